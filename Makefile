@@ -1,0 +1,27 @@
+# The two commands of the README: `make demo` and `make test`. Both build .venv first.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+export OMP_WAIT_POLICY := PASSIVE
+
+.PHONY: demo test lint bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0  # the CPU build, before anything can pull a CUDA one
+	$(PY) -m pip install -q -e '.[all]'
+	touch $@
+
+demo: $(VENV)/.installed
+	$(VENV)/bin/iiwa-torch demo
+
+test: $(VENV)/.installed
+	$(PY) -m pytest -q -n 2
+	$(VENV)/bin/ruff check .
+
+bench: $(VENV)/.installed
+	$(PY) benchmarks/bench_fk.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

@@ -1,0 +1,173 @@
+"""Batched rotation maths: quaternions, the SO(3) log/exp maps, roll-pitch-yaw, pose error.
+
+Conventions: rotations are ``(..., 3, 3)`` matrices, quaternions are ``(..., 4)`` in
+``(w, x, y, z)`` order with ``w >= 0``, rotation vectors are ``(..., 3)`` (axis times angle,
+radians), poses are ``(..., 4, 4)`` homogeneous transforms. Every function is batched over
+any leading shape and differentiable; none edits its input.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = [
+    "skew",
+    "exp",
+    "log",
+    "matrix_to_quaternion",
+    "quaternion_to_matrix",
+    "matrix_to_rpy",
+    "rpy_to_matrix",
+    "pose_error",
+    "check_pose",
+]
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """``(..., 3) -> (..., 3, 3)`` cross-product matrix, ``skew(a) @ b == a x b``."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).unflatten(-1, (3, 3))
+
+
+def exp(rotvec: torch.Tensor) -> torch.Tensor:
+    """Rotation vector ``(..., 3)`` (radians) -> rotation matrix ``(..., 3, 3)`` (Rodrigues).
+
+    Uses Taylor series for small angles so values and gradients stay finite at zero.
+    """
+    theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    small = theta2 < 1e-8
+    safe2 = torch.where(small, torch.ones_like(theta2), theta2)
+    safe = safe2.sqrt()
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(safe) / safe)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(safe)) / safe2)
+    k = skew(rotvec)
+    eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device)
+    return eye + a * k + b * (k @ k)
+
+
+def matrix_to_quaternion(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``(..., 3, 3)`` -> unit quaternion ``(..., 4)``, ``(w, x, y, z)``, ``w >= 0``.
+
+    Each of the four components can be the one recovered from the diagonal; the largest
+    is taken (Shepperd's method), so the result is accurate near a half turn too.
+    """
+    m = rot.unbind(-1)  # columns
+    m00, m10, m20 = m[0].unbind(-1)
+    m01, m11, m21 = m[1].unbind(-1)
+    m02, m12, m22 = m[2].unbind(-1)
+    # 4 * component^2 for w, x, y, z from the diagonal
+    four_sq = torch.stack(
+        [
+            1 + m00 + m11 + m22,
+            1 + m00 - m11 - m22,
+            1 - m00 + m11 - m22,
+            1 - m00 - m11 + m22,
+        ],
+        -1,
+    )  # (..., 4)
+    # Row k: 4 * component_k * (w, x, y, z), built from the off-diagonal terms.
+    rows = torch.stack(
+        [
+            torch.stack([four_sq[..., 0], m21 - m12, m02 - m20, m10 - m01], -1),
+            torch.stack([m21 - m12, four_sq[..., 1], m10 + m01, m02 + m20], -1),
+            torch.stack([m02 - m20, m10 + m01, four_sq[..., 2], m21 + m12], -1),
+            torch.stack([m10 - m01, m02 + m20, m21 + m12, four_sq[..., 3]], -1),
+        ],
+        -2,
+    )  # (..., 4, 4)
+    best = four_sq.argmax(-1, keepdim=True)  # (..., 1)
+    row = rows.gather(-2, best[..., None].expand(*best.shape[:-1], 1, 4)).squeeze(-2)
+    scale = 2 * four_sq.gather(-1, best).clamp_min(1e-30).sqrt()  # 4 * |component|
+    quat = row / scale
+    return torch.where(quat[..., :1] < 0, -quat, quat)
+
+
+def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
+    """Quaternion ``(..., 4)``, ``(w, x, y, z)``, normalised here -> rotation ``(..., 3, 3)``."""
+    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        -1,
+    ).unflatten(-1, (3, 3))
+
+
+def log(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``(..., 3, 3)`` -> rotation vector ``(..., 3)``, angle in ``[0, pi]``.
+
+    Goes through the quaternion, so it is stable near the identity (series) and near a
+    half turn (no division by ``sin(angle)``). At exactly a half turn the sign of the axis
+    is arbitrary, as it must be.
+    """
+    quat = matrix_to_quaternion(rot)
+    w, v = quat[..., :1], quat[..., 1:]
+    vn2 = (v * v).sum(-1, keepdim=True)
+    small = vn2 < 1e-12
+    vn = torch.where(small, torch.ones_like(vn2), vn2).sqrt()
+    # angle / |v| = 2 atan2(|v|, w) / |v|; for |v| -> 0 (w -> 1) it tends to 2 / w.
+    factor = torch.where(small, 2 / w.clamp_min(1e-6), 2 * torch.atan2(vn, w) / vn)
+    return factor * v
+
+
+def matrix_to_rpy(rot: torch.Tensor) -> torch.Tensor:
+    """Rotation ``(..., 3, 3)`` -> roll, pitch, yaw ``(..., 3)`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+    This is URDF's ``rpy``. At pitch = +-pi/2 (gimbal lock) roll is set to 0.
+    """
+    r20 = rot[..., 2, 0].clamp(-1, 1)
+    pitch = torch.asin(-r20)
+    locked = r20.abs() > 1 - 1e-12
+    roll = torch.where(locked, torch.zeros_like(r20), torch.atan2(rot[..., 2, 1], rot[..., 2, 2]))
+    yaw = torch.where(
+        locked,
+        torch.atan2(-rot[..., 0, 1], rot[..., 1, 1]),
+        torch.atan2(rot[..., 1, 0], rot[..., 0, 0]),
+    )
+    return torch.stack([roll, pitch, yaw], -1)
+
+
+def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
+    """Roll, pitch, yaw ``(..., 3)`` (radians) -> ``Rz(yaw) Ry(pitch) Rx(roll)`` ``(..., 3, 3)``."""
+    cr, cp, cy = torch.cos(rpy).unbind(-1)
+    sr, sp, sy = torch.sin(rpy).unbind(-1)
+    return torch.stack(
+        [
+            cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr,
+            sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr,
+            -sp, cp * sr, cp * cr,
+        ],
+        -1,
+    ).unflatten(-1, (3, 3))
+
+
+def check_pose(pose: torch.Tensor, name: str = "pose") -> None:
+    """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` tensor."""
+    if not isinstance(pose, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape (..., 4, 4), got {type(pose).__name__}")
+    if not pose.is_floating_point():
+        raise TypeError(f"{name} must be a float32 or float64 tensor, got {pose.dtype}")
+    if pose.shape[-2:] != (4, 4):
+        raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(pose.shape)}")
+    if not torch.isfinite(pose).all():
+        raise ValueError(f"{name} contains NaN or inf")
+
+
+def pose_error(pose: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Error that takes ``pose`` to ``target``, both ``(..., 4, 4)``, expressed in the base frame.
+
+    Returns ``(pos_err, rot_err)``, each ``(..., 3)``: ``target_p - pose_p`` (metres) and
+    ``log(target_R pose_R^T)`` (radians), the rotation vector that turns ``pose`` into
+    ``target``. Both pair with the geometric Jacobian's rows: ``J dq ~ (pos_err, rot_err)``.
+    """
+    if pose.dtype != target.dtype or pose.device != target.device:
+        raise ValueError(
+            f"pose and target must share dtype and device, got {pose.dtype}/{pose.device} "
+            f"and {target.dtype}/{target.device}"
+        )
+    pos_err = target[..., :3, 3] - pose[..., :3, 3]
+    rot_err = log(target[..., :3, :3] @ pose[..., :3, :3].transpose(-1, -2))
+    return pos_err, rot_err
