@@ -1,0 +1,188 @@
+"""Shared pieces of the closed-form solvers: the result type, guarded trigonometry,
+structure checks, the spherical-joint decomposition and the joint-limit bookkeeping.
+
+Guarded trigonometry: every ``acos`` is written as ``atan2(+-sqrt(1 - c^2), c)`` with
+``c`` clamped to ``[-1, 1]`` and the square root's argument clamped to at least ``_TINY``,
+and every ``atan2(y, x)`` whose arguments may both vanish replaces ``x`` by 1 there. So
+values are finite everywhere (also in unreachable branches and at singularities) and so
+are gradients: an infinite local derivative in a branch a caller masks out would
+otherwise turn into NaN through ``0 * inf`` in the backward pass.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ...dh import Convention, DHChain
+from ...so3 import check_pose
+
+Tensor = torch.Tensor
+
+_TINY = 1e-30  # floor under squared norms before a sqrt / atan2: sqrt(_TINY) = 1e-15
+_TWO_PI = 2 * math.pi
+
+
+@dataclass(frozen=True)
+class AnalyticSolutions:
+    """Every branch of a closed-form IK, for a batch of targets with leading shape ``(...)``.
+
+    Attributes:
+        q: ``(..., B, n)`` joint angles (radians) of the ``B`` branches, each joint wrapped
+            into its limits when a turn of 2 pi gets it there (else into ``(-pi, pi]``).
+            Always finite; meaningful only where ``reachable``.
+        valid: ``(..., B)`` bool, ``reachable & within_limits``.
+        reachable: ``(..., B)`` bool, the branch exists geometrically (the target is in reach).
+        within_limits: ``(..., B)`` bool, every joint of ``q`` lies within the chain's limits.
+    """
+
+    q: Tensor
+    valid: Tensor
+    reachable: Tensor
+    within_limits: Tensor
+
+
+# ---------------------------------------------------------------- guarded trigonometry
+def safe_atan2(y: Tensor, x: Tensor) -> Tensor:
+    """``atan2(y, x)``, 0 with a finite gradient where ``x`` and ``y`` both vanish."""
+    degenerate = x * x + y * y < _TINY
+    return torch.atan2(y, torch.where(degenerate, torch.ones_like(x), x))
+
+
+def safe_norm2(x: Tensor, y: Tensor) -> Tensor:
+    """``sqrt(x^2 + y^2)``, at least ``1e-15``, so its gradient stays finite at 0."""
+    return (x * x + y * y).clamp_min(_TINY).sqrt()
+
+
+def acos_pair(c: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """For a cosine ``c``: ``(cos, |sin|, ok)`` with ``cos`` clamped into ``[-1, 1]``,
+    ``|sin| = sqrt(1 - cos^2)`` (guarded) and ``ok = |c| <= 1 + tol``.
+
+    The angle of the branch with sign ``s`` is ``atan2(s * |sin|, cos)``.
+    """
+    ok = c.abs() <= 1 + tol
+    cc = c.clamp(-1.0, 1.0)
+    return cc, (1 - cc * cc).clamp_min(_TINY).sqrt(), ok
+
+
+def reach_tol(dtype: torch.dtype) -> float:
+    """Slack on a cosine before a target counts as out of reach (rounding of ``|c| = 1``)."""
+    return 1e-12 if dtype == torch.float64 else 1e-5
+
+
+# ---------------------------------------------------------------- rotations
+def rot_z(theta: Tensor) -> Tensor:
+    """``(...) -> (..., 3, 3)`` rotation about z."""
+    c, s = torch.cos(theta), torch.sin(theta)
+    o, i = torch.zeros_like(c), torch.ones_like(c)
+    return torch.stack([c, -s, o, s, c, o, o, o, i], -1).unflatten(-1, (3, 3))
+
+
+def rot_x_const(sigma: float, dtype: torch.dtype, device) -> Tensor:
+    """``Rx(alpha)`` for ``sin(alpha) = sigma = +-1`` (``cos(alpha) = 0``), ``(3, 3)``."""
+    return torch.tensor([[1.0, 0, 0], [0, 0, -sigma], [0, sigma, 0]], dtype=dtype, device=device)
+
+
+def decompose_zxzxz(m: Tensor, sig_a: float, sig_b: float) -> tuple[Tensor, Tensor, Tensor]:
+    """All angles of ``m = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b) Rz(c)`` for twists with
+    ``sin(alpha) = sig_a, sig_b = +-1``: a spherical joint triple (shoulder or wrist).
+
+    ``m (..., 3, 3) -> a, b, c``, each ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1
+    ``sin(b) <= 0``. With ``m = M``: ``M[2,2] = -sig_a sig_b cos b``, ``M[0:2, 2] = sig_b sin b
+    (cos a, sin a)``. ``c`` is taken from what is left once ``a`` and ``b`` are fixed, so the
+    triple reproduces ``m`` exactly also at ``sin b = 0`` (the singularity, where only
+    ``a +- c`` is determined and ``a`` is set to 0).
+    """
+    m02, m12, m22 = m[..., 0, 2], m[..., 1, 2], m[..., 2, 2]
+    sign = torch.tensor([1.0, -1.0], dtype=m.dtype, device=m.device)
+    sb = safe_norm2(m02, m12)[..., None] * sign  # (..., 2)
+    cb = (-sig_a * sig_b * m22)[..., None].expand_as(sb)
+    b = torch.atan2(sb, cb)
+    a = safe_atan2(sig_b * sign * m12[..., None], sig_b * sign * m02[..., None])
+    ca, sa = torch.cos(a), torch.sin(a)
+    m0, m1, m2 = m[..., 0, 0, None], m[..., 1, 0, None], m[..., 2, 0, None]
+    # First column of Rz(c) = (Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b))^T m e_x.
+    cos_c = torch.cos(b) * (ca * m0 + sa * m1) + sig_a * torch.sin(b) * m2
+    sin_c = sig_a * sig_b * (sa * m0 - ca * m1)
+    return a, b, safe_atan2(sin_c, cos_c)
+
+
+# ---------------------------------------------------------------- chain structure
+def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tuple[float, float, float, float]]:
+    """Check that ``chain`` is a standard-DH chain of ``n`` joints whose rows obey ``rows``.
+
+    Each dict may pin ``a``, ``d`` to 0 (``"a0"``, ``"d0"``), require a twist of
+    ``+-pi/2`` (``"perp"``) or 0 (``"twist0"``), or a positive ``d``/``a`` (``"d+"``, ``"a+"``).
+    Returns the rows ``(a, alpha, d, offset)`` as floats; raises ``ValueError`` otherwise.
+    """
+    if not isinstance(chain, DHChain):
+        raise TypeError(f"chain must be a DHChain, got {type(chain).__name__}")
+    if chain.convention is not Convention.STANDARD:
+        raise ValueError(f"the {robot} closed form needs a standard-DH chain, got {chain.convention.value!r}")
+    if chain.n_joints != n:
+        raise ValueError(
+            f"the {robot} closed form needs a chain of {n} joints, got {chain.name!r} with {chain.n_joints}"
+        )
+    table = [tuple(float(v) for v in row) for row in chain.dh.tolist()]
+    eps = 1e-12
+    for i, ((a, alpha, d, _), rule) in enumerate(zip(table, rows)):
+        problems = []
+        if rule.get("a0") and abs(a) > eps:
+            problems.append(f"a = 0 (got {a:g})")
+        if rule.get("d0") and abs(d) > eps:
+            problems.append(f"d = 0 (got {d:g})")
+        if rule.get("a+") and a <= eps:
+            problems.append(f"a > 0 (got {a:g})")
+        if rule.get("d+") and d <= eps:
+            problems.append(f"d > 0 (got {d:g})")
+        if rule.get("perp") and abs(math.cos(alpha)) > eps:
+            problems.append(f"alpha = +-pi/2 (got {alpha:g})")
+        if rule.get("twist0") and abs(alpha) > eps:
+            problems.append(f"alpha = 0 (got {alpha:g})")
+        if problems:
+            raise ValueError(
+                f"chain {chain.name!r} does not have the {robot} structure: row {i + 1} needs "
+                + ", ".join(problems)
+            )
+    return table
+
+
+def sigma(alpha: float) -> float:
+    """``sin(alpha)`` rounded to +-1 for a twist of +-pi/2."""
+    return 1.0 if math.sin(alpha) > 0 else -1.0
+
+
+def check_target(chain: DHChain, target: Tensor) -> None:
+    check_pose(target, "target")
+    if target.device != chain.dh.device:
+        raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
+
+
+def last_frame_target(chain: DHChain, target: Tensor) -> Tensor:
+    """``(..., 4, 4)``: the target pose expressed as ``T_0,n-1 Rz(theta_n)``.
+
+    Strips the base, the tool and the last row's constant part ``Tz(d_n) Tx(a_n) Rx(alpha_n)``
+    from ``target``; its origin is then the origin of frame ``n - 1`` (the wrist centre of
+    a spherical wrist), its rotation ``R_0,n-1 Rz(theta_n)``.
+    """
+    a, alpha, d, _ = chain.dh[-1].tolist()
+    ca, sa = math.cos(alpha), math.sin(alpha)
+    last = torch.tensor([[1.0, 0, 0, a], [0, ca, -sa, 0], [0, sa, ca, d], [0, 0, 0, 1]], dtype=torch.float64)
+    flange = (last.to(chain.tool) @ chain.tool).to(target.dtype)
+    base_inv = torch.linalg.inv(chain.base).to(target.dtype)
+    return base_inv @ target @ torch.linalg.inv(flange)
+
+
+# ---------------------------------------------------------------- joint limits
+def finish(chain: DHChain, theta: Tensor, reachable: Tensor) -> AnalyticSolutions:
+    """DH angles ``theta (..., B, n)`` -> joint angles minus offsets, wrapped into the limits."""
+    q = theta - chain.dh[:, 3].to(theta)
+    q = torch.remainder(q + math.pi, _TWO_PI) - math.pi  # [-pi, pi)
+    lim = chain.limits.to(q)
+    up, down = q + _TWO_PI, q - _TWO_PI
+    q = torch.where((q < lim[0]) & (up <= lim[1]), up, q)
+    q = torch.where((q > lim[1]) & (down >= lim[0]), down, q)
+    inside = chain.within_limits(q)
+    return AnalyticSolutions(q=q, valid=reachable & inside, reachable=reachable, within_limits=inside)

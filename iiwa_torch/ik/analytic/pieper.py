@@ -1,0 +1,133 @@
+"""Closed-form IK of 6R arms with a spherical wrist (Pieper's decoupling): PUMA 560,
+FANUC LR Mate 200iC and any standard-DH arm of the same structure. All 8 branches.
+
+Structure (standard DH rows ``(a, alpha, d, offset)``, read from the chain):
+
+====  =======  ==========  =====  ===================================================
+row   a        alpha       d      role
+====  =======  ==========  =====  ===================================================
+1     a1       +-pi/2      d1     waist: vertical axis, shoulder offset a1 (LR Mate)
+2     a2 > 0   0           d2     shoulder: axis parallel to the elbow's
+3     a3       +-pi/2      d3     elbow; d2 + d3 is the lateral offset (PUMA: 0.150)
+4     0        +-pi/2      d4     wrist roll; the forearm is (a3, d4)
+5     0        +-pi/2      0      wrist pitch
+6     a6       alpha6      d6     wrist roll / flange (folded into the tool)
+====  =======  ==========  =====  ===================================================
+
+Method: the wrist centre ``w`` (origin of frame 5) is the target with the tool and row 6
+stripped. Joint 1 puts ``w`` in the arm's plane: ``w`` seen from frame 0 is at distance
+``r`` from the z axis and must sit at lateral offset ``D = d2 + d3``, so
+``theta_1 = atan2(w_y, w_x) - atan2(-sig1 D, +-sqrt(r^2 - D^2))`` (shoulder branch, index
+0 for ``+``: the wrist in front of the waist). Joints 2 and 3 are then a planar two-link
+arm of lengths ``a2`` and ``L3 = |(a3, d4)|`` in frame 1 (elbow branch, index 0 for
+``sin(theta_3 + gamma) >= 0``). Joints 4-6 follow from ``R_03^T R_06`` (wrist branch,
+index 0 for ``sin(theta_5) >= 0``). Branch ``k = 4 shoulder + 2 elbow + wrist``.
+
+Singularities (finite values, documented, not errors): wrist centre on the cylinder
+``r = |D|`` (or on the waist axis when ``D = 0``: ``theta_1`` then arbitrary and set from
+``atan2(0, 0) = 0``), arm stretched or folded (``theta_3 + gamma`` in ``{0, pi}``), wrist
+aligned (``sin theta_5 = 0``: only ``theta_4 +- theta_6`` is determined; ``theta_4`` is set
+so that the pose is still reproduced exactly).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ...dh import DHChain
+from ._common import (
+    AnalyticSolutions,
+    acos_pair,
+    check_chain,
+    check_target,
+    decompose_zxzxz,
+    finish,
+    last_frame_target,
+    reach_tol,
+    safe_atan2,
+    sigma,
+)
+
+__all__ = ["pieper"]
+
+Tensor = torch.Tensor
+
+_ROWS = [
+    {"perp": True},
+    {"twist0": True, "a+": True},
+    {"perp": True},
+    {"a0": True, "perp": True},
+    {"a0": True, "d0": True, "perp": True},
+    {},
+]
+
+
+def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
+    """All 8 IK solutions of a 6R spherical-wrist arm (structure in the module doc).
+
+    Args:
+        chain: e.g. :func:`iiwa_torch.robots.puma560` or :func:`~iiwa_torch.robots.lrmate200ic`;
+            its base and tool transforms are honoured.
+        target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
+
+    Returns:
+        :class:`AnalyticSolutions` with ``q (..., 8, 6)``, branch ``k = 4 shoulder + 2 elbow +
+        wrist`` (0 = first sign: wrist centre in front of the waist, ``sin(elbow) >= 0``,
+        ``sin(q5 + offset5) >= 0``).
+    """
+    rows = check_chain(chain, 6, _ROWS, "6R spherical-wrist (Pieper)")
+    check_target(chain, target)
+    (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
+    s1, s3, s4, s5 = sigma(al1), sigma(al3), sigma(al4), sigma(al5)
+    dtype, device = target.dtype, target.device
+    tol = reach_tol(dtype)
+    frame5 = last_frame_target(chain, target)  # T_05 Rz(theta6)
+    wx, wy, wz = frame5[..., 0, 3], frame5[..., 1, 3], frame5[..., 2, 3]
+
+    # Waist (shoulder branch): Rz(-theta1) w = (X, -s1 D, wz) with X = +-sqrt(r^2 - D^2).
+    lateral = d2 + d3
+    r2 = wx * wx + wy * wy
+    shoulder_ok = r2 >= lateral * lateral * (1 - tol) - tol
+    along = (r2 - lateral * lateral).clamp_min(1e-30).sqrt()
+    sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device)
+    big_x = along[..., None] * sign  # (..., 2)
+    theta1 = safe_atan2(wy, wx)[..., None] - torch.atan2(torch.full_like(big_x, -s1 * lateral), big_x)
+
+    # Shoulder and elbow: planar two-link arm in frame 1's xy plane, second link (a3, -s3 d4).
+    px = big_x - a1  # (..., 2)
+    py = (s1 * (wz - d1))[..., None].expand_as(px)
+    link3 = math.hypot(a3, d4)
+    gamma = math.atan2(-s3 * d4, a3)
+    c_el, s_el_abs, elbow_ok = acos_pair((px * px + py * py - a2 * a2 - link3 * link3) / (2 * a2 * link3), tol)
+    s_el = s_el_abs[..., None] * sign  # (..., 2 shoulder, 2 elbow)
+    c_el = c_el[..., None].expand_as(s_el)
+    theta3 = torch.atan2(s_el, c_el) - gamma
+    theta2 = safe_atan2(py, px)[..., None] - safe_atan2(link3 * s_el, a2 + link3 * c_el)
+    theta1 = theta1[..., None].expand_as(theta2)
+
+    # Wrist: R_03^T R_06 Rz(-theta6)... = Rz(theta4) Rx(alpha4) Rz(theta5) Rx(alpha5) Rz(theta6).
+    r03 = _r03(theta1, theta2 + theta3, s1, s3)  # (..., 2, 2, 3, 3)
+    m = r03.transpose(-1, -2) @ frame5[..., None, None, :3, :3]
+    theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5)  # (..., 2, 2, 2)
+    expand = theta4.shape
+    arm = [t[..., None].expand(expand) for t in (theta1, theta2, theta3)]
+    theta = torch.stack([*arm, theta4, theta5, theta6], -1).flatten(-4, -2)  # (..., 8, 6)
+    reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None].expand(expand).flatten(-3)
+    return finish(chain, theta, reachable)
+
+
+def _r03(theta1: Tensor, theta23: Tensor, s1: float, s3: float) -> Tensor:
+    """``R_03 = Rz(theta1) Rx(alpha1) Rz(theta2 + theta3) Rx(alpha3)`` (``alpha2 = 0``), ``(..., 3, 3)``."""
+    c1, sn1 = torch.cos(theta1), torch.sin(theta1)
+    c, s = torch.cos(theta23), torch.sin(theta23)
+    k = s1 * s3
+    return torch.stack(
+        [
+            c1 * c, sn1 * k, s3 * c1 * s,
+            sn1 * c, -c1 * k, s3 * sn1 * s,
+            s1 * s, torch.zeros_like(c), -k * c,
+        ],
+        -1,
+    ).unflatten(-1, (3, 3))
