@@ -19,8 +19,8 @@ the benchmark in ``benchmarks/bench_fk.py`` compares it with the peers and a mat
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from enum import Enum
-from typing import Sequence
 
 import torch
 from torch import nn
@@ -28,8 +28,8 @@ from torch import nn
 __all__ = ["Convention", "DHChain"]
 
 Tensor = torch.Tensor
-# One frame in "structure of arrays" form: the x, y, z axis columns and the origin, each (3, *batch).
-_Frame = tuple[Tensor, Tensor, Tensor, Tensor]
+_BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
+_SMALL_BATCH = 128  # up to this many configurations the 4x4-product kernel is faster (measured)
 
 
 class Convention(str, Enum):
@@ -67,6 +67,33 @@ def _exact(v: float) -> float:
     return float(round(v)) if abs(v - round(v)) < 1e-12 else v
 
 
+def _transform(rot_axis: str, angle: float = 0.0, shift: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Tensor:
+    c, s = _exact(math.cos(angle)), _exact(math.sin(angle))
+    m = torch.eye(4, dtype=torch.float64)
+    i, j = (1, 2) if rot_axis == "x" else (0, 1)
+    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+    m[:3, 3] = torch.tensor(shift, dtype=torch.float64)
+    return m
+
+
+def _link_coefficients(dh: Tensor, convention: Convention) -> Tensor:
+    """``(n, 3, 16)``: ``A_i = cos(theta_i) C0 + sin(theta_i) C1 + C2`` with constant ``C_k``."""
+    rz_cos = torch.diag(torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64))
+    rz_sin = torch.zeros(4, 4, dtype=torch.float64)
+    rz_sin[0, 1], rz_sin[1, 0] = -1.0, 1.0
+    rz_one = torch.diag(torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=torch.float64))
+    coeffs = []
+    for a, alpha, d, _ in dh.tolist():
+        if convention is Convention.STANDARD:  # Rz(theta) . [Tz(d) Tx(a) Rx(alpha)]
+            after = _transform("z", 0.0, (0.0, 0.0, d)) @ _transform("x", alpha, (a, 0.0, 0.0))
+            terms = [m @ after for m in (rz_cos, rz_sin, rz_one)]
+        else:  # [Rx(alpha) Tx(a)] . Rz(theta) . [Tz(d)]
+            before, after = _transform("x", alpha, (a, 0.0, 0.0)), _transform("z", 0.0, (0.0, 0.0, d))
+            terms = [before @ m @ after for m in (rz_cos, rz_sin, rz_one)]
+        coeffs.append(torch.stack([t.reshape(16) for t in terms]))
+    return torch.stack(coeffs)
+
+
 class DHChain(nn.Module):
     """A serial chain of revolute joints described by a Denavit-Hartenberg table.
 
@@ -100,7 +127,9 @@ class DHChain(nn.Module):
         super().__init__()
         dh = torch.as_tensor(table, dtype=torch.float64)
         if dh.ndim != 2 or dh.shape[1] != 4 or dh.shape[0] < 1:
-            raise ValueError(f"table must have shape (n, 4) with rows (a, alpha, d, theta_offset), got {tuple(dh.shape)}")
+            raise ValueError(
+                f"table must have shape (n, 4) with rows (a, alpha, d, theta_offset), got {tuple(dh.shape)}"
+            )
         if not torch.isfinite(dh).all():
             raise ValueError("table contains NaN or inf")
         try:
@@ -108,7 +137,11 @@ class DHChain(nn.Module):
         except ValueError:
             raise ValueError(f"convention must be one of {[c.value for c in Convention]}, got {convention!r}") from None
         n = dh.shape[0]
-        lim = torch.tensor([[-math.pi] * n, [math.pi] * n], dtype=torch.float64) if limits is None else torch.as_tensor(limits, dtype=torch.float64)
+        lim = (
+            torch.tensor([[-math.pi] * n, [math.pi] * n], dtype=torch.float64)
+            if limits is None
+            else torch.as_tensor(limits, dtype=torch.float64)
+        )
         if lim.shape != (2, n) or not (lim[0] <= lim[1]).all():
             raise ValueError(f"limits must have shape (2, {n}) with lower <= upper, got {tuple(lim.shape)}")
         names = [f"joint{i + 1}" for i in range(n)] if joint_names is None else list(joint_names)
@@ -126,8 +159,10 @@ class DHChain(nn.Module):
         self.register_buffer("velocity_limits", vel)
         # Python-float copies of the geometry for the kernel: the constants of each joint.
         self._steps = [(a, _exact(math.cos(al)), _exact(math.sin(al)), d) for a, al, d, _ in dh.tolist()]
-        self._base = self.base.tolist()
-        self._tool = None if torch.equal(self.tool, torch.eye(4, dtype=torch.float64)) else self.tool.tolist()
+        self._has_tool = not torch.equal(self.tool, torch.eye(4, dtype=torch.float64))
+        coeffs = _link_coefficients(dh, self.convention)  # (n, 3, 16)
+        self.register_buffer("_link_trig", coeffs[:, :2], persistent=False)
+        self.register_buffer("_link_const", coeffs[:, 2:], persistent=False)
 
     # ------------------------------------------------------------------ properties
     @property
@@ -156,8 +191,11 @@ class DHChain(nn.Module):
         if q.ndim == 0 or q.shape[-1] != n:
             raise ValueError(f"{name} must have shape (..., {n}), got {tuple(q.shape)}")
         if q.device != self.dh.device:
-            raise ValueError(f"{name} is on {q.device} but the chain is on {self.dh.device}; use chain.to({str(q.device)!r})")
-        if not torch.isfinite(q).all():
+            raise ValueError(
+                f"{name} is on {q.device} but the chain is on {self.dh.device}; use chain.to({str(q.device)!r})"
+            )
+        # One cheap reduction; the elementwise test only runs if the sum is not finite.
+        if not math.isfinite(q.detach().sum()) and not torch.isfinite(q).all():
             bad = (~torch.isfinite(q)).nonzero()[0].tolist()
             raise ValueError(f"{name} contains NaN or inf (first at index {tuple(bad)}); joint angles must be finite")
 
@@ -171,30 +209,32 @@ class DHChain(nn.Module):
         lim = self.limits.to(q.dtype)
         return torch.maximum(torch.minimum(q, lim[1]), lim[0])
 
-    def random_q(self, *shape: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64) -> Tensor:
+    def random_q(
+        self, *shape: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
+    ) -> Tensor:
         """``(*shape, n)`` joint angles drawn uniformly within the limits."""
         u = torch.rand(*shape, self.n_joints, generator=generator, dtype=dtype, device=self.dh.device)
         lim = self.limits.to(dtype)
         return lim[0] + u * (lim[1] - lim[0])
 
     # ------------------------------------------------------------------ kinematics
-    def _propagate(self, q: Tensor, keep: bool) -> tuple[list[_Frame], list[tuple[Tensor, Tensor]]]:
-        """Walk the chain. Returns the link frames (all if ``keep``, else the last) and, if
-        ``keep``, each joint's axis and a point on it, all as ``(3, *batch)`` tensors."""
-        batch = q.shape[:-1]
-        theta = q + self.dh[:, 3].to(q.dtype)
-        c = torch.cos(theta).movedim(-1, 0).contiguous()  # (n, *batch)
-        s = torch.sin(theta).movedim(-1, 0).contiguous()
-        cols = torch.tensor(self._base, dtype=q.dtype, device=q.device)[:3].reshape(3, 4, *([1] * len(batch)))
-        x, y, z, p = (cols[:, k].expand(3, *batch) for k in range(4))
-        frames, axes = [(x, y, z, p)], []
+    def _frames_elementwise(self, q: Tensor, keep: bool) -> Tensor:
+        """Large batches: ``(b, n) -> (b, F, 4, 4)`` frames (F = n + 1 if ``keep``, else 1).
+
+        The axis columns of the moving frame are rotated with elementwise multiply-adds,
+        batch last so every op runs over the whole block; the constant twists (``alpha`` of
+        0 or +-pi/2) are swaps and sign flips. Only the result is transposed to batch first.
+        """
+        theta = (q + self.dh[:, 3].to(q.dtype)).T.contiguous()  # (n, b)
+        c, s = torch.cos(theta), torch.sin(theta)
+        base = self.base.to(q.dtype)[:3, :, None]  # (3, 4, 1)
+        x, y, z, p = base.expand(3, 4, q.shape[0]).unbind(1)  # each (3, b)
+        frames = [(x, y, z, p)]
         modified = self.convention is Convention.MODIFIED
         for i, (a, ca, sa, d) in enumerate(self._steps):
             if modified:
                 y, z = _rotate_x(y, z, ca, sa)
                 p = torch.add(p, x, alpha=a) if a else p
-            if keep:
-                axes.append((z, p))
             x, y = _rotate_z(x, y, c[i], s[i])
             p = torch.add(p, z, alpha=d) if d else p
             if not modified:
@@ -202,59 +242,80 @@ class DHChain(nn.Module):
                 y, z = _rotate_x(y, z, ca, sa)
             if keep:
                 frames.append((x, y, z, p))
-        if not keep:
-            frames = [(x, y, z, p)]
-        return frames, axes
+        top = torch.stack([torch.stack(f, 1) for f in (frames if keep else [(x, y, z, p)])], 0)  # (F, 3, 4, b)
+        top = top.permute(3, 0, 1, 2)  # (b, F, 3, 4), a view
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=q.dtype, device=q.device).expand(*top.shape[:2], 1, 4)
+        return torch.cat([top, bottom], -2)
 
-    def _apply_tool(self, frame: _Frame) -> _Frame:
-        if self._tool is None:
-            return frame
-        x, y, z, p = frame
-        t = self._tool
+    def _frames_matmul(self, q: Tensor, keep: bool) -> Tensor:
+        """Small batches: ``(b, n) -> (b, F, 4, 4)`` with few, larger ops. Each ``A_i`` is
+        linear in the cosine and sine of its angle, so one batched product with constant
+        coefficients builds them all; then a chain of 4x4 products."""
+        n, b, dtype = self.n_joints, q.shape[0], q.dtype
+        theta = (q + self.dh[:, 3].to(dtype)).T  # (n, b)
+        trig = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (n, b, 2)
+        links = torch.baddbmm(self._link_const.to(dtype), trig, self._link_trig.to(dtype)).view(n, b, 4, 4)
+        frame = self.base.to(dtype).expand(b, 4, 4)
+        frames = [frame]
+        for i in range(n):
+            frame = torch.bmm(frame, links[i])
+            frames.append(frame)
+        return torch.stack(frames, 1) if keep else frame[:, None]
 
-        def combine(k: int) -> Tensor:  # x * t[0][k] + y * t[1][k] + z * t[2][k]
-            return torch.add(torch.add(x * t[0][k], y, alpha=t[1][k]), z, alpha=t[2][k])
+    def _frames(self, q: Tensor, keep: bool) -> Tensor:
+        """``(b, n) -> (b, F, 4, 4)``: the kernel that is faster for this batch size."""
+        kernel = self._frames_matmul if q.shape[0] <= _SMALL_BATCH else self._frames_elementwise
+        return kernel(q, keep)
 
-        return combine(0), combine(1), combine(2), combine(3) + p
-
-    @staticmethod
-    def _to_matrix(frames: list[_Frame]) -> Tensor:
-        """Frames in SoA form -> ``(*batch, len(frames), 4, 4)`` homogeneous matrices."""
-        top = torch.stack([torch.stack(f, -1) for f in frames], 0)  # (F, 3, *batch, 4)
-        nb = top.ndim - 3
-        top = top.permute(*range(2, 2 + nb), 0, 1, -1)  # (*batch, F, 3, 4)
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=top.dtype, device=top.device)
-        return torch.cat([top, bottom.expand(*top.shape[:-2], 1, 4)], -2)
+    def _blockwise(self, q: Tensor, shape: tuple[int, ...], fn) -> Tensor:
+        """Validate ``q``, apply ``fn: (b, n) -> (b, *shape)`` to blocks of at most ``_BLOCK``
+        configurations (so each block's intermediates stay in the CPU cache), and return
+        the results as ``(*q.shape[:-1], *shape)``."""
+        self.check_q(q)
+        flat = q.reshape(-1, self.n_joints)
+        if flat.shape[0] <= _BLOCK:
+            out = fn(flat)
+        else:
+            out = q.new_empty(flat.shape[0], *shape)
+            for start in range(0, flat.shape[0], _BLOCK):
+                out[start : start + _BLOCK] = fn(flat[start : start + _BLOCK])
+        return out.reshape(*q.shape[:-1], *shape)
 
     def fk(self, q: Tensor) -> Tensor:
-        """End-effector pose: ``q (..., n)`` radians -> ``(..., 4, 4)``, metres, in the base's world frame."""
-        self.check_q(q)
-        frames, _ = self._propagate(q, keep=False)
-        return self._to_matrix([self._apply_tool(frames[0])])[..., 0, :, :]
+        """End-effector pose: ``q (..., n)`` radians -> ``(..., 4, 4)``, metres, in the world frame."""
+
+        def end_pose(qb: Tensor) -> Tensor:
+            pose = self._frames(qb, keep=False)[:, 0]
+            return pose @ self.tool.to(qb.dtype) if self._has_tool else pose
+
+        return self._blockwise(q, (4, 4), end_pose)
 
     def fk_all(self, q: Tensor) -> Tensor:
         """Every frame: ``q (..., n) -> (..., n + 1, 4, 4)``: the base, then link frames 1..n.
 
         The tool transform is not applied: ``fk(q) == fk_all(q)[..., -1, :, :] @ chain.tool``.
         """
-        self.check_q(q)
-        frames, _ = self._propagate(q, keep=True)
-        return self._to_matrix(frames)
+        return self._blockwise(q, (self.n_joints + 1, 4, 4), lambda qb: self._frames(qb, keep=True))
 
     def jacobian(self, q: Tensor) -> Tensor:
         """Geometric Jacobian in the world frame: ``q (..., n) -> (..., 6, n)``.
 
         Rows 0-2 map joint rates (rad/s) to the end-effector's linear velocity (m/s), rows
         3-5 to its angular velocity (rad/s). Column i is ``[z_i x (p_e - p_i); z_i]`` for
-        joint i's axis ``z_i`` through the point ``p_i``, computed from the frames, not by autograd.
+        joint i's axis ``z_i`` through the point ``p_i``, computed from the frames, not by
+        autograd. The axis of joint i is the z axis of frame i - 1 (standard DH) or of
+        frame i (modified DH), and that frame's origin lies on it.
         """
-        self.check_q(q)
-        frames, axes = self._propagate(q, keep=True)
-        p_end = self._apply_tool(frames[-1])[3]
-        z = torch.stack([zi for zi, _ in axes], 0)  # (n, 3, *batch)
-        lever = p_end - torch.stack([pi for _, pi in axes], 0)
-        jac = torch.cat([torch.linalg.cross(z, lever, dim=1), z], 1)  # (n, 6, *batch)
-        return jac.permute(*range(2, jac.ndim), 1, 0)
+
+        def jac(qb: Tensor) -> Tensor:
+            frames = self._frames(qb, keep=True)  # (b, n + 1, 4, 4)
+            axes = frames[:, :-1] if self.convention is Convention.STANDARD else frames[:, 1:]
+            z, origin = axes[..., :3, 2], axes[..., :3, 3]  # (b, n, 3)
+            end = frames[:, -1] @ self.tool.to(qb.dtype) if self._has_tool else frames[:, -1]
+            lever = end[:, None, :3, 3] - origin
+            return torch.cat([torch.linalg.cross(z, lever, dim=-1), z], -1).transpose(-1, -2)  # (b, 6, n)
+
+        return self._blockwise(q, (6, self.n_joints), jac)
 
     def forward(self, q: Tensor) -> Tensor:
         """Same as :meth:`fk`."""
