@@ -1,5 +1,43 @@
-"""Gymnasium environments of iiwa-torch (see issue: reaching env)."""
+"""Gymnasium reaching environments for the KUKA LBR iiwa, registered in one place.
+
+``import envs`` registers the ids in :data:`ENV_IDS`; ``gymnasium.make("envs:IiwaReach-v0")``
+imports this package itself. ``gymnasium.make_vec(id, num_envs=N)`` returns the natively
+batched :class:`envs.reach.IiwaReachVectorEnv`; ``envs.sb3.IiwaReachVecEnv`` is the
+stable-baselines3 ``VecEnv``.
+"""
+
+from __future__ import annotations
+
+import gymnasium
+
+__all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs"]
+
+#: Episode length of the registered ids: from the home posture, a straight full-speed joint
+#: move reaches any configuration within the limits in 48 steps (see ``docs/envs.md``).
+MAX_EPISODE_STEPS = 50
+
+_VARIANTS = {
+    "IiwaReach-v0": {"goal": "position", "reward": "dense"},
+    "IiwaReachSparse-v0": {"goal": "position", "reward": "sparse"},
+    "IiwaReachPose-v0": {"goal": "pose", "reward": "dense"},
+}
+
+#: Every registered environment id.
+ENV_IDS = tuple(_VARIANTS)
 
 
 def register_envs() -> None:
-    """Register the environment ids with gymnasium (filled in by the env module)."""
+    """Register :data:`ENV_IDS` with gymnasium (idempotent: ids already registered are kept)."""
+    for env_id, kwargs in _VARIANTS.items():
+        if env_id in gymnasium.registry:
+            continue
+        gymnasium.register(
+            id=env_id,
+            entry_point="envs.reach:IiwaReachEnv",
+            vector_entry_point="envs.reach:IiwaReachVectorEnv",
+            max_episode_steps=MAX_EPISODE_STEPS,
+            kwargs=dict(kwargs),
+        )
+
+
+register_envs()

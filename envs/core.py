@@ -1,0 +1,448 @@
+"""The reaching task as pure, batched torch functions: one ``step`` drives every env.
+
+Robot, task and env are kept apart:
+
+- the robot is a :class:`~iiwa_torch.dh.DHChain` (kinematics, joint limits, joint speeds);
+- the task, :class:`ReachTask`, is immutable configuration (time step, goal kind, reward,
+  thresholds) with pure methods ``reset(state, mask)`` and ``step(state, action)`` that
+  take a :class:`ReachState` (a tuple of ``(num_envs, ...)`` tensors) and return a new one;
+- the envs (``envs.reach``, ``envs.sb3``) only convert to and from numpy and keep the
+  current state.
+
+Randomness is counter-based: every random number of environment ``i`` is a hash of
+``(key_i, episode_i, index)``, where ``key_i`` comes from that environment's seed. So a
+batch of N environments seeded ``s, s+1, ..., s+N-1`` draws exactly the numbers of N
+single environments with those seeds, without a Python loop and without a generator
+per environment.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from enum import Enum
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from iiwa_torch.dh import DHChain
+from iiwa_torch.robots import iiwa14
+
+__all__ = [
+    "GoalKind",
+    "RewardKind",
+    "StartKind",
+    "ReachState",
+    "StepResult",
+    "Transition",
+    "ReachTask",
+    "keys_from_seeds",
+    "uniform",
+    "IIWA_HOME",
+]
+
+Tensor = torch.Tensor
+
+#: Default start posture of the iiwa (radians): elbow and wrist bent, away from the
+#: stretched-out singularity at q = 0.
+IIWA_HOME = tuple(math.radians(v) for v in (0.0, 30.0, 0.0, -60.0, 0.0, 30.0, 0.0))
+
+_GOAL_CANDIDATES = 8  # goals drawn per reset when a minimum goal distance is asked for
+
+
+class GoalKind(str, Enum):
+    """What the end effector must reach: a position, or a position and an orientation."""
+
+    POSITION = "position"
+    POSE = "pose"
+
+
+class RewardKind(str, Enum):
+    """``dense``: minus the distance (plus weighted angle for poses); ``sparse``: 0 on success, else -1."""
+
+    DENSE = "dense"
+    SPARSE = "sparse"
+
+
+class StartKind(str, Enum):
+    """Where episodes start: the fixed ``home`` posture or a ``random`` one within the limits."""
+
+    HOME = "home"
+    RANDOM = "random"
+
+
+def _enum(kind: type[Enum], value, name: str):
+    try:
+        return kind(value)
+    except ValueError:
+        raise ValueError(f"{name} must be one of {[k.value for k in kind]}, got {value!r}") from None
+
+
+# ---------------------------------------------------------------------------- counter-based RNG
+_M32 = 0xFFFFFFFF
+
+
+def _mul32(x: Tensor, c: int) -> Tensor:
+    """``(x * c) mod 2**32`` for int64 ``x`` in ``[0, 2**32)``, split so no product overflows int64."""
+    return (x * (c & 0xFFFF) + (((x * (c >> 16)) & 0xFFFF) << 16)) & _M32
+
+
+def _mix32(x: Tensor) -> Tensor:
+    """MurmurHash3's 32-bit finaliser: a bijection of ``[0, 2**32)`` that mixes all bits."""
+    x = x ^ (x >> 16)
+    x = _mul32(x, 0x85EBCA6B)
+    x = x ^ (x >> 13)
+    x = _mul32(x, 0xC2B2AE35)
+    return x ^ (x >> 16)
+
+
+def keys_from_seeds(seeds, device=None) -> Tensor:
+    """Integer seeds (any non-negative ints, a sequence or array) -> ``(n,)`` int64 keys in ``[0, 2**32)``."""
+    s = np.asarray(seeds, dtype=object).reshape(-1)
+    if any(not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 0 for v in s.tolist()):
+        raise ValueError(f"seeds must be non-negative integers, got {list(s)[:5]}")
+    s = np.array([int(v) % 2**64 for v in s.tolist()], dtype=np.uint64)
+    lo = torch.from_numpy((s & np.uint64(_M32)).astype(np.int64)).to(device)
+    hi = torch.from_numpy((s >> np.uint64(32)).astype(np.int64)).to(device)
+    return _mix32(lo ^ _mix32(hi ^ 0x9E3779B9))
+
+
+def uniform(key: Tensor, episode: Tensor, start: int, count: int, dtype: torch.dtype) -> Tensor:
+    """Counter-based uniform numbers in ``[0, 1)``: ``(n,)`` keys and episodes -> ``(n, count)``.
+
+    Column ``j`` is the draw number ``start + j`` of that (key, episode): a pure function,
+    so any subset of environments can be (re)drawn in any order with the same result.
+    24 random bits each (resolution 6e-8).
+    """
+    base = _mix32(key ^ _mix32((episode & _M32) ^ 0x7F4A7C15))  # (n,)
+    j = torch.arange(start, start + count, device=key.device, dtype=torch.int64)
+    h = _mix32((base[:, None] + _mul32(j, 0x9E3779B9)) & _M32)  # (n, count)
+    h = _mix32(h ^ base[:, None])
+    return (h >> 8).to(dtype) * (2.0**-24)
+
+
+# ---------------------------------------------------------------------------- state
+class ReachState(NamedTuple):
+    """State of ``n`` environments (all tensors share the task's device).
+
+    q: ``(n, 7)`` joint angles, rad. velocity: ``(n, 7)`` last joint velocity over the
+    joint speed limits (in ``[-1, 1]``). goal: ``(n, g)`` desired goal. achieved: ``(n, g)``
+    achieved goal at ``q``. t: ``(n,)`` int64 steps taken this episode. key: ``(n,)`` int64
+    random key (from the seed). episode: ``(n,)`` int64 episode counter since seeding.
+    """
+
+    q: Tensor
+    velocity: Tensor
+    goal: Tensor
+    achieved: Tensor
+    t: Tensor
+    key: Tensor
+    episode: Tensor
+
+
+class StepResult(NamedTuple):
+    """Per-environment outcome of one step, ``(n,)`` each: reward (obs dtype), the
+    ``terminated``/``truncated``/``success`` bools, the position distance (m) and the
+    orientation error (rad, zero for position goals)."""
+
+    reward: Tensor
+    terminated: Tensor
+    truncated: Tensor
+    success: Tensor
+    distance: Tensor
+    angle: Tensor
+
+
+class Transition(NamedTuple):
+    """A batched step as numpy, for the envs: ``obs`` dict of ``(n, ...)`` float32 arrays
+    (after auto-reset), ``reward`` ``(n,)`` float32, ``terminated``/``truncated``/``success``
+    ``(n,)`` bool, ``distance`` (m) and ``angle`` (rad) ``(n,)`` float32, ``final_index`` the
+    ``(m,)`` rows that finished and ``final_obs`` their last observations ``(m, ...)``."""
+
+    obs: dict
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    success: np.ndarray
+    distance: np.ndarray
+    angle: np.ndarray
+    final_index: np.ndarray
+    final_obs: dict
+
+
+# ---------------------------------------------------------------------------- task
+class ReachTask:
+    """Immutable configuration of the reaching task plus its pure batched functions.
+
+    Args:
+        robot: the chain (default ``iiwa14()``); it must have ``velocity_limits``.
+        goal: ``"position"`` (3 numbers) or ``"pose"`` (position and the first two columns
+            of the rotation matrix: 9 numbers).
+        reward: ``"dense"`` or ``"sparse"`` (see :class:`RewardKind`).
+        start: ``"home"`` (``home``) or ``"random"`` (uniform within the joint limits).
+        dt: control period, s: an action ``a`` in ``[-1, 1]^n`` moves joint ``i`` by
+            ``a_i * velocity_limits_i * dt``.
+        distance_threshold: success radius, m.
+        orientation_threshold: success angle for pose goals, rad.
+        orientation_weight: metres per radian of orientation error in the dense pose reward.
+        goal_min_distance: goals closer than this to the start position (m) are redrawn
+            (the farthest of 8 candidates is kept if none is far enough).
+        max_episode_steps: truncate after this many steps (``None``: never).
+        terminate_on_success: end the episode when the goal is reached (as panda-gym).
+        home: start posture for ``start="home"`` (default :data:`IIWA_HOME` for 7 joints,
+            else zeros clamped into the limits).
+        dtype: float dtype of the state (observations are always float32).
+        device: torch device of the state.
+    """
+
+    def __init__(
+        self,
+        robot: DHChain | None = None,
+        *,
+        goal: GoalKind | str = GoalKind.POSITION,
+        reward: RewardKind | str = RewardKind.DENSE,
+        start: StartKind | str = StartKind.HOME,
+        dt: float = 0.05,
+        distance_threshold: float = 0.01,
+        orientation_threshold: float = 0.1,
+        orientation_weight: float = 0.1,
+        goal_min_distance: float = 0.0,
+        max_episode_steps: int | None = None,
+        terminate_on_success: bool = True,
+        home=None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> None:
+        robot = iiwa14() if robot is None else robot
+        if not isinstance(robot, DHChain):
+            raise TypeError(f"robot must be a DHChain, got {type(robot).__name__}")
+        if robot.velocity_limits is None:
+            raise ValueError(f"robot {robot.name!r} has no velocity_limits; the action scale needs them")
+        self.goal_kind = _enum(GoalKind, goal, "goal")
+        self.reward_kind = _enum(RewardKind, reward, "reward")
+        self.start_kind = _enum(StartKind, start, "start")
+        for name, value in [("dt", dt), ("distance_threshold", distance_threshold),
+                            ("orientation_threshold", orientation_threshold)]:
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        if not (isinstance(orientation_weight, (int, float)) and math.isfinite(orientation_weight)
+                and orientation_weight >= 0):
+            raise ValueError(f"orientation_weight must be >= 0, got {orientation_weight!r}")
+        if not (isinstance(goal_min_distance, (int, float)) and 0 <= goal_min_distance < math.inf):
+            raise ValueError(f"goal_min_distance must be >= 0 (metres), got {goal_min_distance!r}")
+        if max_episode_steps is not None and (isinstance(max_episode_steps, bool) or
+                                              not isinstance(max_episode_steps, int) or max_episode_steps < 1):
+            raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
+        if dtype not in (torch.float32, torch.float64):
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        self.dt = float(dt)
+        self.distance_threshold = float(distance_threshold)
+        self.orientation_threshold = float(orientation_threshold)
+        self.orientation_weight = float(orientation_weight)
+        self.goal_min_distance = float(goal_min_distance)
+        self.max_episode_steps = max_episode_steps
+        self.terminate_on_success = bool(terminate_on_success)
+        self.dtype = dtype
+        self.device = torch.device("cpu") if device is None else torch.device(device)
+        # A private copy on the device: Module.to() works in place and the caller keeps theirs.
+        self.robot = robot if robot.dh.device == self.device else copy.deepcopy(robot).to(self.device)
+        n = self.robot.n_joints
+        lim = self.robot.limits.to(dtype)
+        if home is None:
+            home = IIWA_HOME if n == 7 else [0.0] * n
+        home = torch.as_tensor(home, dtype=dtype, device=self.device)
+        if home.shape != (n,) or not torch.isfinite(home).all() or not bool(self.robot.within_limits(home)):
+            raise ValueError(f"home must be {n} finite joint angles within the limits, got {home.tolist()}")
+        self.home = home
+        self.lower, self.upper = lim[0], lim[1]
+        self.max_step = (self.robot.velocity_limits * self.dt).to(dtype)  # (n,) rad per step at |a| = 1
+        # Chordal threshold: ||R1 - R2||_F = 2 sqrt(2) sin(angle / 2), monotone in the angle.
+        self._chord_sq_threshold = 8.0 * math.sin(min(self.orientation_threshold, math.pi) / 2) ** 2
+        reach = float((self.robot.dh[:, 0].abs() + self.robot.dh[:, 2].abs()).sum() + self.robot.tool[:3, 3].norm())
+        self.position_bound = float(self.robot.base[:3, 3].abs().max()) + reach  # |ee coordinate| <= this
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_joints(self) -> int:
+        return self.robot.n_joints
+
+    @property
+    def goal_size(self) -> int:
+        """Length of ``achieved_goal`` / ``desired_goal``: 3 (position) or 9 (pose)."""
+        return 3 if self.goal_kind is GoalKind.POSITION else 9
+
+    @property
+    def observation_size(self) -> int:
+        """Length of ``observation``: cos q, sin q, joint velocity (normalised), the achieved goal."""
+        return 3 * self.n_joints + self.goal_size
+
+    def steps_to_reach_bound(self) -> int:
+        """Steps a full-speed straight joint move needs, in the worst case, from ``home`` to any
+        configuration within the limits: ``ceil(max_i max(|lo_i - h_i|, |hi_i - h_i|) / (v_i dt))``.
+        Every sampled goal is the FK of such a configuration, so it can be reached in this many steps."""
+        span = torch.maximum((self.lower - self.home).abs(), (self.upper - self.home).abs())
+        return int(torch.ceil((span / self.max_step).max() - 1e-6))
+
+    # ------------------------------------------------------------------ pure functions
+    def goal_of(self, pose: Tensor) -> Tensor:
+        """``(..., 4, 4)`` end-effector pose -> ``(..., goal_size)`` goal vector."""
+        if self.goal_kind is GoalKind.POSITION:
+            return pose[..., :3, 3]
+        return torch.cat([pose[..., :3, 3], pose[..., :3, 0], pose[..., :3, 1]], -1)
+
+    def errors(self, achieved: Tensor, desired: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(..., g)`` goals -> position distance (m), orientation angle (rad), success, each ``(...)``.
+
+        Elementwise arithmetic only (no reductions whose order could depend on the batch
+        size), so a batched call gives bit-identical values to single ones.
+        """
+        d = achieved[..., :3] - desired[..., :3]
+        dist = torch.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
+        ok = dist < self.distance_threshold
+        if self.goal_kind is GoalKind.POSITION:
+            return dist, torch.zeros_like(dist), ok
+        xa, ya, xd, yd = achieved[..., 3:6], achieved[..., 6:9], desired[..., 3:6], desired[..., 6:9]
+        diff = torch.cat([xa - xd, ya - yd, torch.linalg.cross(xa, ya) - torch.linalg.cross(xd, yd)], -1)
+        chord_sq = sum(diff[..., k] * diff[..., k] for k in range(9))
+        angle = 2 * torch.asin(torch.clamp(torch.sqrt(chord_sq / 8), max=1.0))
+        return dist, angle, ok & (chord_sq < self._chord_sq_threshold)
+
+    def reward(self, achieved: Tensor, desired: Tensor) -> Tensor:
+        """Batched reward ``(..., g), (..., g) -> (...)`` in the goals' dtype."""
+        dist, angle, ok = self.errors(achieved, desired)
+        if self.reward_kind is RewardKind.SPARSE:
+            return ok.to(dist.dtype) - 1
+        return -(dist + self.orientation_weight * angle) if self.goal_kind is GoalKind.POSE else -dist
+
+    def initial_state(self, key: Tensor) -> ReachState:
+        """Fresh episode 0 for the ``(n,)`` keys."""
+        return self._new_episodes(key, torch.zeros_like(key))
+
+    def _new_episodes(self, key: Tensor, episode: Tensor) -> ReachState:
+        """Start episode ``episode`` for each key: draw the start and the goal, compute FK once."""
+        n, nj = key.shape[0], self.n_joints
+        k = _GOAL_CANDIDATES if self.goal_min_distance > 0 else 1
+        u = uniform(key, episode, 0, nj * (k + 1), self.dtype).view(n, k + 1, nj)
+        span = self.upper - self.lower
+        configs = self.lower + u * span  # (n, k + 1, nj): the start (row 0) and k goal candidates
+        if self.start_kind is StartKind.HOME:
+            configs = torch.cat([self.home.expand(n, 1, nj), configs[:, 1:]], 1)
+        goals = self.goal_of(self.robot.fk(configs))  # (n, k + 1, g)
+        start_goal, candidates = goals[:, 0], goals[:, 1:]
+        if k > 1:
+            d = (candidates[..., :3] - start_goal[:, None, :3]).norm(dim=-1)  # (n, k)
+            far = d >= self.goal_min_distance
+            # the first candidate far enough, else the farthest: no loop, no sync
+            score = torch.where(far, -torch.arange(k, device=d.device, dtype=d.dtype), d - 1e9)
+            pick = score.argmax(-1)
+            goal = candidates[torch.arange(n, device=d.device), pick]
+        else:
+            goal = candidates[:, 0]
+        return ReachState(
+            q=configs[:, 0],
+            velocity=torch.zeros(n, nj, dtype=self.dtype, device=self.device),
+            goal=goal,
+            achieved=start_goal,
+            t=torch.zeros(n, dtype=torch.int64, device=self.device),
+            key=key,
+            episode=episode,
+        )
+
+    def restart(self, state: ReachState, idx: Tensor) -> tuple[ReachState, ReachState]:
+        """Start the next episode (same key, episode + 1) of the environments ``idx`` ``(m,)``.
+
+        Returns the whole new state and the ``m`` restarted rows alone.
+        """
+        fresh = self._new_episodes(state.key[idx], state.episode[idx] + 1)
+        return ReachState(*(old.index_copy(0, idx, new) for old, new in zip(state, fresh))), fresh
+
+    def step(self, state: ReachState, action: Tensor) -> tuple[ReachState, StepResult]:
+        """Apply ``(n, nj)`` actions (clipped to ``[-1, 1]``): integrate, clamp to the limits, FK.
+
+        The action must be finite with the state's dtype and device (the envs check this).
+        """
+        a = torch.clamp(action, -1.0, 1.0)
+        q = self.robot.clamp(torch.addcmul(state.q, a, self.max_step))
+        # the motion actually made, over the speed limit; the clamp only removes float rounding (1e-6)
+        velocity = torch.clamp((q - state.q) / self.max_step, -1.0, 1.0)
+        achieved = self.goal_of(self.robot.fk(q))
+        obs_ach, obs_goal = achieved.float(), state.goal.float()  # reward from the observed float32 goals
+        dist, angle, success = self.errors(obs_ach, obs_goal)
+        reward = self.reward(obs_ach, obs_goal)
+        t = state.t + 1
+        terminated = success if self.terminate_on_success else torch.zeros_like(success)
+        if self.max_episode_steps is None:
+            truncated = torch.zeros_like(success)
+        else:
+            truncated = t >= self.max_episode_steps
+        new = ReachState(q, velocity, state.goal, achieved, t, state.key, state.episode)
+        return new, StepResult(reward, terminated, truncated, success, dist, angle)
+
+    def observe(self, state: ReachState) -> Tensor:
+        """``(n, observation_size + 2 * goal_size)`` float32: observation, achieved goal, desired goal."""
+        q = state.q
+        return torch.cat([torch.cos(q), torch.sin(q), state.velocity, state.achieved, state.achieved, state.goal],
+                         -1).float()
+
+    def step_autoreset(self, state: ReachState, action: Tensor) -> tuple[ReachState, Transition]:
+        """``step``, then same-step auto-reset of the environments that terminated or truncated.
+
+        One transfer to numpy for the whole batch (plus one for the finished rows). The
+        returned observation of a finished environment is the first of its next episode;
+        its last observation is in ``final_obs`` (rows ``final_index``).
+        """
+        state, res = self.step(state, action)
+        done = res.terminated | res.truncated
+        last = self.observe(state)  # (n, D)
+        idx = done.nonzero().squeeze(-1)  # the one data-dependent shape: which rows restart
+        if idx.numel():
+            state, fresh = self.restart(state, idx)
+            obs = last.index_copy(0, idx, self.observe(fresh))
+        else:
+            obs = last
+        flags = torch.stack([res.reward, res.terminated, res.truncated, res.success, res.distance, res.angle], -1)
+        out = torch.cat([obs, flags.float()], -1).cpu().numpy()
+        d = self.observation_size + 2 * self.goal_size
+        return state, Transition(
+            obs=self.split(out[:, :d]),
+            reward=out[:, d],
+            terminated=out[:, d + 1] > 0.5,
+            truncated=out[:, d + 2] > 0.5,
+            success=out[:, d + 3] > 0.5,
+            distance=out[:, d + 4],
+            angle=out[:, d + 5],
+            final_index=idx.cpu().numpy(),
+            final_obs=self.split(last[idx].cpu().numpy()),
+        )
+
+    def split(self, packed: np.ndarray) -> dict[str, np.ndarray]:
+        """Split ``observe``'s output (as numpy, last axis) into the goal-env observation dict."""
+        o, g = self.observation_size, self.goal_size
+        return {
+            "observation": np.ascontiguousarray(packed[..., :o]),
+            "achieved_goal": np.ascontiguousarray(packed[..., o : o + g]),
+            "desired_goal": np.ascontiguousarray(packed[..., o + g : o + 2 * g]),
+        }
+
+    def check_action(self, action, n: int) -> Tensor:
+        """Numpy array or tensor -> ``(n, nj)`` tensor of the state's dtype on its device.
+
+        Raises ``ValueError`` on a wrong shape or a NaN/inf entry (out-of-range values are
+        fine: ``step`` clips them to ``[-1, 1]``).
+        """
+        nj = self.n_joints
+        if isinstance(action, torch.Tensor):
+            a = action.to(self.device, self.dtype)
+        else:
+            try:
+                a = torch.as_tensor(np.asarray(action, dtype=np.float64), dtype=self.dtype, device=self.device)
+            except (TypeError, ValueError):
+                raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
+        if a.shape == (nj,) and n == 1:
+            a = a[None]
+        if a.shape != (n, nj):
+            raise ValueError(f"action must have shape ({n}, {nj}) (or ({nj},) for one env), got {tuple(a.shape)}")
+        if not bool(torch.isfinite(a).all()):
+            raise ValueError("action contains NaN or inf; actions must be finite (values outside [-1, 1] are clipped)")
+        return a

@@ -1,0 +1,315 @@
+"""Gymnasium reaching environments for the KUKA LBR iiwa: a single env and a batched vector env.
+
+Both are thin shells over :class:`envs.core.ReachTask`: the same pure, batched torch step
+(integrate joint velocities, clamp to the limits, forward kinematics, reward) runs for a
+batch of one (``IiwaReachEnv``) or of ``num_envs`` (``IiwaReachVectorEnv``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from .core import GoalKind, ReachState, ReachTask, keys_from_seeds
+
+__all__ = ["IiwaReachEnv", "IiwaReachVectorEnv", "goal_env_spaces"]
+
+_RENDER_MODES = ["human", "rgb_array"]
+_RENDER_FPS = 20  # 1 / dt at the default dt = 0.05 s
+
+
+def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
+    """The observation space ``Dict(observation, achieved_goal, desired_goal)`` and the action space."""
+    nj, g = task.n_joints, task.goal_size
+    goal_high = np.full(g, 1.0, dtype=np.float32)
+    goal_high[:3] = task.position_bound
+    obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), goal_high])
+    observation = spaces.Dict(
+        {
+            "observation": spaces.Box(-obs_high, obs_high, dtype=np.float32),
+            "achieved_goal": spaces.Box(-goal_high, goal_high, dtype=np.float32),
+            "desired_goal": spaces.Box(-goal_high, goal_high, dtype=np.float32),
+        }
+    )
+    return observation, spaces.Box(-1.0, 1.0, shape=(nj,), dtype=np.float32)
+
+
+def _compute_reward(task: ReachTask, achieved_goal, desired_goal):
+    """Batched reward on numpy (or torch) goals ``(..., g)``; numpy in, float32 numpy out."""
+    if isinstance(achieved_goal, torch.Tensor) and isinstance(desired_goal, torch.Tensor):
+        return task.reward(achieved_goal.float(), desired_goal.float())
+    ag = torch.as_tensor(np.asarray(achieved_goal, dtype=np.float32))
+    dg = torch.as_tensor(np.asarray(desired_goal, dtype=np.float32))
+    if ag.shape[-1:] != (task.goal_size,) or dg.shape[-1:] != (task.goal_size,):
+        raise ValueError(
+            f"goals must have shape (..., {task.goal_size}), got {tuple(ag.shape)} and {tuple(dg.shape)}"
+        )
+    return task.reward(ag, dg).numpy()
+
+
+def _info(task: ReachTask, success, distance, angle) -> dict[str, Any]:
+    info = {"is_success": success, "distance": distance}
+    if task.goal_kind is GoalKind.POSE:
+        info["orientation_error"] = angle
+    return info
+
+
+class IiwaReachEnv(gym.Env):
+    """Reach a goal with the end effector of a KUKA LBR iiwa 14 R820, by joint velocity commands.
+
+    ## Description
+
+    A kinematic 7-joint arm (no dynamics, no collisions): each step integrates the
+    commanded joint velocities over ``dt``, clamps the joints to their limits and computes
+    the end effector by forward kinematics. Goals are the forward kinematics of random
+    configurations within the joint limits, so every goal is reachable. The observation
+    follows panda-gym's goal-conditioned layout, so hindsight experience replay (HER)
+    works out of the box. The step is :meth:`envs.core.ReachTask.step`, the same batched
+    function that drives :class:`IiwaReachVectorEnv` and ``envs.sb3.IiwaReachVecEnv``.
+
+    ## Action Space
+
+    ``Box(-1, 1, (7,), float32)``: joint velocities as fractions of the datasheet's
+    maximum joint speeds (85, 85, 100, 75, 130, 135, 135 deg/s). Joint ``i`` moves by
+    ``a_i * v_max_i * dt`` radians, then is clamped into its limits. Values outside
+    ``[-1, 1]`` are clipped; NaN/inf or a wrong shape raise ``ValueError``.
+
+    ## Observation Space
+
+    ``Dict`` of float32 boxes:
+
+    - ``observation`` ``(21 + g,)``: ``cos q`` (7), ``sin q`` (7), the joint velocity of the
+      last step over ``v_max`` (7, in ``[-1, 1]``; zero at reset), then the achieved goal (g);
+    - ``achieved_goal`` ``(g,)``: the end-effector position (m, base frame), and for pose
+      goals also the first two columns of its rotation matrix (g = 3 or 9);
+    - ``desired_goal`` ``(g,)``: the goal in the same form. It appears only here, so
+      relabelling goals (HER) never contradicts the ``observation``.
+
+    ## Rewards
+
+    ``compute_reward(achieved_goal, desired_goal, info)`` (batched, numpy in and out):
+
+    - dense (``IiwaReach-v0``): ``-d``, the distance in metres;
+    - sparse (``IiwaReachSparse-v0``): ``0`` if successful, else ``-1``;
+    - pose (``IiwaReachPose-v0``, dense): ``-(d + orientation_weight * angle)``, the angle
+      (rad) of the rotation between the achieved and desired orientations.
+
+    Success: ``d < distance_threshold`` (default 0.01 m) and, for pose goals,
+    ``angle < orientation_threshold`` (default 0.1 rad). ``info`` holds ``is_success``,
+    ``distance`` and, for pose goals, ``orientation_error``.
+
+    ## Starting State
+
+    ``start="home"`` (default): ``q = (0, 30, 0, -60, 0, 30, 0)`` degrees, zero velocity.
+    ``start="random"``: uniform within the joint limits. The goal is drawn at every reset;
+    with ``goal_min_distance > 0`` goals nearer than that to the start are redrawn.
+
+    ## Episode End
+
+    Terminated when successful (``terminate_on_success=True``, as panda-gym). Truncated
+    after ``max_episode_steps`` (50 in the registered ids, through gymnasium's
+    ``TimeLimit``): from home, a straight full-speed joint move reaches any configuration
+    within the limits in at most 48 steps (2.4 s, joint 4's 180 deg at 75 deg/s), so every
+    goal is reachable in time. With ``start="random"`` the same bound is 80 steps; use
+    ``max_episode_steps=100`` there.
+
+    ## Arguments
+
+    ``gymnasium.make("IiwaReach-v0", render_mode=None, **options)`` where ``options`` are
+    :class:`envs.core.ReachTask`'s: ``robot`` (a ``DHChain`` with velocity limits, default
+    ``iiwa14()``), ``goal`` (``"position"``/``"pose"``), ``reward`` (``"dense"``/``"sparse"``),
+    ``start`` (``"home"``/``"random"``), ``dt`` (0.05 s), ``distance_threshold`` (0.01 m),
+    ``orientation_threshold`` (0.1 rad), ``orientation_weight`` (0.1 m/rad),
+    ``goal_min_distance`` (0 m), ``max_episode_steps`` (the env's own limit, default
+    ``None``: ``gymnasium.make`` adds ``TimeLimit`` instead), ``terminate_on_success``,
+    ``home``, ``dtype`` (float32), ``device``. ``render_mode``: ``"rgb_array"`` (matplotlib,
+    an ``(H, W, 3)`` uint8 image) or ``"human"`` (a matplotlib window).
+
+    ## Version History
+
+    - v0: initial version.
+    """
+
+    metadata = {"render_modes": _RENDER_MODES, "render_fps": _RENDER_FPS}
+
+    def __init__(self, render_mode: str | None = None, **task_options: Any) -> None:
+        if render_mode is not None and render_mode not in _RENDER_MODES:
+            raise ValueError(f"render_mode must be one of {_RENDER_MODES} or None, got {render_mode!r}")
+        self.task = ReachTask(**task_options)
+        self.observation_space, self.action_space = goal_env_spaces(self.task)
+        self.render_mode = render_mode
+        self._state: ReachState | None = None
+        self._figure = None
+        self._image = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode. ``reset(seed=s)`` makes the following episodes reproducible."""
+        super().reset(seed=seed)
+        if options:
+            raise ValueError(f"reset takes no options, got {options!r}")
+        if seed is not None or self._state is None:
+            seed = seed if seed is not None else int(self.np_random.integers(2**63))
+            self._state = self.task.initial_state(keys_from_seeds([seed], self.task.device))
+        else:
+            idx = torch.zeros(1, dtype=torch.int64, device=self.task.device)
+            self._state, _ = self.task.restart(self._state, idx)
+        obs, info = self._observe()
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def _observe(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        state = self._state
+        dist, angle, ok = self.task.errors(state.achieved.float(), state.goal.float())
+        packed = torch.cat([self.task.observe(state), torch.stack([ok, dist, angle], -1).float()], -1)
+        out = packed[0].cpu().numpy()
+        obs = self.task.split(out[:-3])
+        return obs, _info(self.task, bool(out[-3] > 0.5), float(out[-2]), float(out[-1]))
+
+    def step(self, action):
+        """Apply one joint-velocity command ``(7,)``; see the class docstring."""
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        a = self.task.check_action(action, 1)
+        self._state, res = self.task.step(self._state, a)
+        flags = torch.stack([res.reward, res.terminated, res.truncated, res.success, res.distance, res.angle], -1)
+        packed = torch.cat([self.task.observe(self._state), flags.float()], -1)[0].cpu().numpy()
+        obs = self.task.split(packed[:-6])
+        reward, term, trunc, success, dist, angle = packed[-6:].tolist()
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, term > 0.5, trunc > 0.5, _info(self.task, success > 0.5, dist, angle)
+
+    def compute_reward(self, achieved_goal, desired_goal, info=None):
+        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out); ``info`` is unused."""
+        return _compute_reward(self.task, achieved_goal, desired_goal)
+
+    def render(self):
+        """``rgb_array``: an ``(H, W, 3)`` uint8 image of the arm, its end effector and the goal."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array' or 'human'")
+            return None
+        if self._state is None:
+            raise RuntimeError("call reset() before render()")
+        from iiwa_torch.viz import render_rgb
+
+        image = render_rgb(self.task.robot, self._state.q[0], goal=self._state.goal[0, :3], size=(480, 480))
+        if self.render_mode == "rgb_array":
+            return image
+        import matplotlib.pyplot as plt  # "human": show the same picture in a pyplot window
+
+        if self._figure is None:
+            self._figure = plt.figure("IiwaReach")
+            self._image = self._figure.add_subplot().imshow(image)
+            self._figure.axes[0].set_axis_off()
+        else:
+            self._image.set_data(image)
+        plt.pause(1 / self.metadata["render_fps"])
+        return None
+
+    def close(self) -> None:
+        if self._figure is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(self._figure)
+            self._figure = None
+
+
+class IiwaReachVectorEnv(VectorEnv):
+    """``num_envs`` iiwa reaching tasks stepped by one batched torch call (a gymnasium ``VectorEnv``).
+
+    Same task, spaces and options as :class:`IiwaReachEnv` (see there), with all state
+    in ``(num_envs, ...)`` tensors and no Python loop over environments in a step.
+
+    Differences from the single env:
+
+    - ``max_episode_steps`` (default 50) is the env's own; ``gymnasium.make_vec`` passes
+      the registered value.
+    - Auto-reset happens in the same step (``metadata["autoreset_mode"] ==
+      AutoresetMode.SAME_STEP``): when an environment terminates or truncates, the
+      returned observation is the first of its next episode; reward, flags and ``info``
+      (``is_success``, ``distance``) describe the finished step, and its last observation
+      is ``info["final_obs"][i]`` (an object array of per-env dicts, ``None`` elsewhere,
+      with the mask ``info["_final_obs"]``, as gymnasium's ``SyncVectorEnv`` does).
+    - ``reset(seed=s)`` seeds environment ``i`` with ``s + i`` (a list of seeds works too):
+      the batch then runs exactly like single envs reset with those seeds.
+    - ``step`` accepts a numpy array or a torch tensor of shape ``(num_envs, 7)``.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": _RENDER_FPS, "autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(
+        self, num_envs: int = 1, max_episode_steps: int | None = 50, render_mode: str | None = None, **task_options: Any
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        if render_mode is not None and render_mode != "rgb_array":
+            raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}")
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self.task = ReachTask(max_episode_steps=max_episode_steps, **task_options)
+        self.single_observation_space, self.single_action_space = goal_env_spaces(self.task)
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._state: ReachState | None = None
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
+        """Reset every environment; ``seed=s`` seeds environment ``i`` with ``s + i``."""
+        if options:
+            raise ValueError(f"reset takes no options, got {options!r}")
+        if isinstance(seed, int) and not isinstance(seed, bool):
+            super().reset(seed=seed)
+            seeds = [seed + i for i in range(self.num_envs)]
+        elif seed is None or isinstance(seed, (list, tuple)):
+            seeds = [None] * self.num_envs if seed is None else list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"seed must be an int or a list of {self.num_envs} ints/None, got {len(seeds)} seeds")
+        else:
+            raise ValueError(f"seed must be an int, a list of ints/None or None, got {seed!r}")
+        if seed is None and self._state is not None:
+            idx = torch.arange(self.num_envs, device=self.task.device)
+            self._state, _ = self.task.restart(self._state, idx)
+        else:
+            fresh = self.np_random.integers(2**63, size=self.num_envs).tolist()
+            seeds = [fresh[i] if s is None else s for i, s in enumerate(seeds)]
+            self._state = self.task.initial_state(keys_from_seeds(seeds, self.task.device))
+        state = self._state
+        dist, angle, ok = self.task.errors(state.achieved.float(), state.goal.float())
+        out = torch.cat([self.task.observe(state), torch.stack([ok, dist, angle], -1).float()], -1).cpu().numpy()
+        return self.task.split(out[:, :-3]), _info(self.task, out[:, -3] > 0.5, out[:, -2], out[:, -1])
+
+    def step(self, actions):
+        """Step all environments with ``(num_envs, 7)`` actions; finished ones restart in the same step."""
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        a = self.task.check_action(actions, self.num_envs)
+        self._state, tr = self.task.step_autoreset(self._state, a)
+        info = _info(self.task, tr.success, tr.distance, tr.angle)
+        if tr.final_index.size:
+            final = np.full(self.num_envs, None, dtype=object)
+            for row, i in enumerate(tr.final_index.tolist()):  # finished environments only
+                final[i] = {k: v[row] for k, v in tr.final_obs.items()}
+            info["final_obs"] = final
+            info["_final_obs"] = tr.terminated | tr.truncated
+        return tr.obs, tr.reward, tr.terminated, tr.truncated, info
+
+    def compute_reward(self, achieved_goal, desired_goal, info=None):
+        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out)."""
+        return _compute_reward(self.task, achieved_goal, desired_goal)
+
+    def render(self):
+        """``rgb_array``: a tuple with one image per environment (slow for large ``num_envs``)."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without render_mode='rgb_array'")
+            return None
+        if self._state is None:
+            raise RuntimeError("call reset() before render()")
+        from iiwa_torch.viz import render_rgb
+
+        return tuple(render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(self._state.q, self._state.goal))

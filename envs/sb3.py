@@ -1,0 +1,156 @@
+"""A stable-baselines3 ``VecEnv`` over the batched iiwa reaching task (no per-env Python step).
+
+stable-baselines3 does not accept gymnasium ``VectorEnv`` s, so this implements SB3's own
+``VecEnv`` contract (``stable_baselines3/common/vec_env/base_vec_env.py``) over the same pure
+step as :class:`envs.reach.IiwaReachVectorEnv`: one batched torch call and one transfer to
+numpy per step, same-step auto-reset with ``infos[i]["terminal_observation"]`` and
+``infos[i]["TimeLimit.truncated"]`` as ``DummyVecEnv`` gives, and
+``env_method("compute_reward", ...)`` for ``HerReplayBuffer``.
+
+Example::
+
+    from stable_baselines3 import SAC, HerReplayBuffer
+    from envs.sb3 import IiwaReachVecEnv
+
+    env = IiwaReachVecEnv(64, "IiwaReachSparse-v0", seed=0)
+    model = SAC("MultiInputPolicy", env, replay_buffer_class=HerReplayBuffer)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium
+import numpy as np
+import torch
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
+
+from . import ENV_IDS, MAX_EPISODE_STEPS
+from .core import GoalKind, ReachState, ReachTask, keys_from_seeds
+from .reach import _compute_reward, goal_env_spaces
+
+__all__ = ["IiwaReachVecEnv"]
+
+
+class IiwaReachVecEnv(VecEnv):
+    """``num_envs`` iiwa reaching tasks as a stable-baselines3 ``VecEnv``.
+
+    Args:
+        num_envs: number of environments.
+        env_id: one of :data:`envs.ENV_IDS`, whose registered options (goal, reward) are the
+            defaults; ``task_options`` override them.
+        seed: seeds environment ``i`` with ``seed + i`` at the first ``reset()`` (like
+            ``VecEnv.seed``); ``None``: random.
+        device: torch device of the batched state (``"cpu"`` by default).
+        max_episode_steps: truncation (default 50, as the registered ids).
+        render_mode: ``None`` or ``"rgb_array"`` (one image per environment, tiled by SB3).
+        **task_options: any option of :class:`envs.core.ReachTask` (``dt``,
+            ``distance_threshold``, ``start``, ``goal_min_distance``, ...).
+
+    All environments share one task, so ``get_attr`` returns the same value for every
+    index, ``set_attr`` sets it for all (a subset of indices is an error) and
+    ``env_method`` calls the shared method once per index. Each ``infos[i]`` holds
+    ``is_success``, ``distance`` (m), ``TimeLimit.truncated`` and, for pose goals,
+    ``orientation_error`` (rad); finished environments also get ``terminal_observation``.
+    """
+
+    def __init__(
+        self,
+        num_envs: int,
+        env_id: str = "IiwaReach-v0",
+        *,
+        seed: int | None = None,
+        device: torch.device | str | None = None,
+        max_episode_steps: int | None = MAX_EPISODE_STEPS,
+        render_mode: str | None = None,
+        **task_options: Any,
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
+        if env_id not in ENV_IDS:
+            raise ValueError(f"env_id must be one of {list(ENV_IDS)}, got {env_id!r}")
+        if render_mode is not None and render_mode != "rgb_array":
+            raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}")
+        options = {**gymnasium.spec(env_id).kwargs, **task_options}
+        self.task = ReachTask(max_episode_steps=max_episode_steps, device=device, **options)
+        self.env_id = env_id
+        self.render_mode = render_mode  # read by VecEnv.__init__ through get_attr
+        observation_space, action_space = goal_env_spaces(self.task)
+        super().__init__(num_envs, observation_space, action_space)
+        self._state: ReachState | None = None
+        self._actions: torch.Tensor | None = None
+        self._rng = np.random.default_rng(seed)  # only for unseeded resets
+        if seed is not None:
+            self.seed(seed)
+
+    # ------------------------------------------------------------------ stepping
+    def reset(self):
+        """Reset every environment (with the seeds of ``seed()``, if any, used once)."""
+        if any(self._options):
+            raise ValueError(f"IiwaReachVecEnv.reset takes no options, got {self._options[0]!r}")
+        seeds = self._seeds
+        if all(s is None for s in seeds) and self._state is not None:
+            idx = torch.arange(self.num_envs, device=self.task.device)
+            self._state, _ = self.task.restart(self._state, idx)
+        else:
+            fresh = self._rng.integers(2**63, size=self.num_envs).tolist()
+            seeds = [fresh[i] if s is None else s for i, s in enumerate(seeds)]
+            self._state = self.task.initial_state(keys_from_seeds(seeds, self.task.device))
+        self._reset_seeds()
+        self._reset_options()
+        out = self.task.observe(self._state).cpu().numpy()
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        return self.task.split(out)
+
+    def step_async(self, actions: np.ndarray) -> None:
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        self._actions = self.task.check_action(actions, self.num_envs)
+
+    def step_wait(self):
+        self._state, tr = self.task.step_autoreset(self._state, self._actions)
+        timeout = (tr.truncated & ~tr.terminated).tolist()
+        success, distance = tr.success.tolist(), tr.distance.tolist()
+        if self.task.goal_kind is GoalKind.POSE:
+            infos = [
+                {"is_success": s, "distance": d, "orientation_error": a, "TimeLimit.truncated": t}
+                for s, d, a, t in zip(success, distance, tr.angle.tolist(), timeout)
+            ]
+        else:
+            infos = [{"is_success": s, "distance": d, "TimeLimit.truncated": t} for s, d, t in zip(success, distance, timeout)]
+        for row, i in enumerate(tr.final_index.tolist()):  # finished environments only
+            infos[i]["terminal_observation"] = {k: v[row] for k, v in tr.final_obs.items()}
+        return tr.obs, tr.reward, tr.terminated | tr.truncated, infos
+
+    def compute_reward(self, achieved_goal, desired_goal, info=None):
+        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out); ``info`` is unused."""
+        return _compute_reward(self.task, achieved_goal, desired_goal)
+
+    def close(self) -> None:
+        self._state = None
+
+    # ------------------------------------------------------------------ the VecEnv attribute API
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        value = getattr(self, attr_name)  # AttributeError if missing, as VecEnv.has_attr expects
+        return [value for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        if sorted(self._get_indices(indices)) != list(range(self.num_envs)):
+            raise ValueError("the environments share one task: set_attr must target all of them (indices=None)")
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args, indices: VecEnvIndices = None, **method_kwargs) -> list[Any]:
+        method = getattr(self, method_name)
+        return [method(*method_args, **method_kwargs) for _ in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type[gymnasium.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        """One ``(H, W, 3)`` image per environment (slow for many environments)."""
+        if self.render_mode != "rgb_array" or self._state is None:
+            return [None for _ in range(self.num_envs)]
+        from iiwa_torch.viz import render_rgb
+
+        return [render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(self._state.q, self._state.goal)]

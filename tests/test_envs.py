@@ -1,0 +1,326 @@
+"""Tests of the iiwa reaching environments (envs/): checkers, batched == looped, seeding, limits, SB3."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import envs
+from envs.core import ReachTask, keys_from_seeds, uniform
+from envs.reach import IiwaReachEnv, IiwaReachVectorEnv
+from envs.sb3 import IiwaReachVecEnv
+from iiwa_torch.robots import iiwa14
+
+# Datasheet values (robots.md), not read from the code under test.
+IIWA14_SPEED_DEG = np.array([85, 85, 100, 75, 130, 135, 135], dtype=np.float64)
+IIWA14_LIMIT_DEG = np.array([170, 120, 170, 120, 170, 120, 175], dtype=np.float64)
+# Options that make episodes end early by success too, not only by time-out.
+EASY = {"distance_threshold": 0.05, "start": "random", "orientation_threshold": 3.0}
+_CHAIN = iiwa14()
+
+
+def _policy(obs: dict, rng: np.random.Generator) -> np.ndarray:
+    """Towards the goal by damped least squares on even-numbered steps' coin flips, else random:
+    so episodes end both by success and by time-out."""
+    o = obs["observation"]
+    q = torch.as_tensor(np.arctan2(o[:, 7:14], o[:, :7]), dtype=torch.float64)
+    err = torch.as_tensor(obs["desired_goal"][:, :3] - obs["achieved_goal"][:, :3], dtype=torch.float64)
+    jac = _CHAIN.jacobian(q)[:, :3]
+    dq = jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + 1e-3 * torch.eye(3), err[..., None])
+    greedy = (dq[..., 0] / (_CHAIN.velocity_limits * 0.05)).numpy()
+    random = rng.uniform(-1, 1, size=greedy.shape)
+    return np.where(rng.uniform(size=(len(q), 1)) < 0.7, greedy, random).astype(np.float32)
+
+
+def _assert_obs_equal(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+# ------------------------------------------------------------------ registration and checkers
+def test_ids_registered_and_made_three_ways():
+    assert envs.ENV_IDS == ("IiwaReach-v0", "IiwaReachSparse-v0", "IiwaReachPose-v0")
+    for env_id in envs.ENV_IDS:
+        assert gym.spec(env_id).max_episode_steps == envs.MAX_EPISODE_STEPS
+        assert isinstance(gym.make(env_id).unwrapped, IiwaReachEnv)
+        assert isinstance(gym.make(f"envs:{env_id}").unwrapped, IiwaReachEnv)
+        vec = gym.make_vec(env_id, num_envs=3)
+        assert isinstance(vec, IiwaReachVectorEnv) and vec.num_envs == 3
+        assert vec.task.max_episode_steps == envs.MAX_EPISODE_STEPS
+        assert vec.metadata["autoreset_mode"] is gym.vector.AutoresetMode.SAME_STEP
+
+
+@pytest.mark.parametrize("env_id", envs.ENV_IDS)
+def test_gymnasium_and_sb3_checkers(env_id):
+    from gymnasium.utils.env_checker import check_env
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any checker warning fails the test
+        check_env(gym.make(env_id).unwrapped, skip_render_check=True)
+    # SB3's checker calls env.compute_reward, which gymnasium 1.x wrappers do not forward
+    sb3_check_env(gym.make(env_id).unwrapped, warn=True)
+
+
+# ------------------------------------------------------------------ batched == looped
+@pytest.mark.parametrize("env_id", ["IiwaReach-v0", "IiwaReachPose-v0"])
+def test_vector_env_matches_single_envs_through_resets(env_id):
+    n, steps, seed = 3, 130, 7
+    vec = gym.make_vec(env_id, num_envs=n, **EASY)
+    singles = [gym.make(env_id, **EASY) for _ in range(n)]
+    obs, _ = vec.reset(seed=seed)
+    for i, e in enumerate(singles):
+        _assert_obs_equal({k: v[i] for k, v in obs.items()}, e.reset(seed=seed + i)[0])
+    ends = {"terminated": 0, "truncated": 0}
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        action = _policy(obs, rng)
+        obs, reward, term, trunc, info = vec.step(action)
+        for i, env in enumerate(singles):
+            o, r, te, tr, inf = env.step(action[i])
+            assert (r, te, tr, inf["is_success"]) == (reward[i], term[i], trunc[i], info["is_success"][i])
+            if te or tr:
+                ends["terminated" if te else "truncated"] += 1
+                assert info["_final_obs"][i]
+                _assert_obs_equal(info["final_obs"][i], o)
+                o, _ = env.reset()
+            else:
+                assert "final_obs" not in info or info["final_obs"][i] is None
+            _assert_obs_equal({k: v[i] for k, v in obs.items()}, o)
+    assert ends["terminated"] > 0 and ends["truncated"] > 0  # both kinds of auto-reset were exercised
+
+
+def test_sb3_vecenv_matches_single_envs_through_resets():
+    n, steps, seed = 3, 130, 11
+    vec = IiwaReachVecEnv(n, "IiwaReachSparse-v0", seed=seed, **EASY)
+    singles = [gym.make("IiwaReachSparse-v0", **EASY) for _ in range(n)]
+    obs = vec.reset()
+    for i, e in enumerate(singles):
+        _assert_obs_equal({k: v[i] for k, v in obs.items()}, e.reset(seed=seed + i)[0])
+    timeouts = successes = 0
+    rng = np.random.default_rng(1)
+    for _ in range(steps):
+        action = _policy(obs, rng)
+        obs, reward, done, infos = vec.step(action)
+        assert reward.dtype == np.float32 and done.dtype == bool and len(infos) == n
+        for i, env in enumerate(singles):
+            o, r, te, tr, inf = env.step(action[i])
+            assert (r, te or tr, inf["is_success"]) == (reward[i], done[i], infos[i]["is_success"])
+            assert infos[i]["TimeLimit.truncated"] == (tr and not te)
+            timeouts += infos[i]["TimeLimit.truncated"]
+            successes += te
+            if te or tr:
+                _assert_obs_equal(infos[i]["terminal_observation"], o)
+                o, _ = env.reset()
+            else:
+                assert "terminal_observation" not in infos[i]
+            _assert_obs_equal({k: v[i] for k, v in obs.items()}, o)
+    assert timeouts > 0 and successes > 0
+
+
+def test_sb3_vecenv_attribute_api_and_her_reward():
+    vec = IiwaReachVecEnv(4, "IiwaReachSparse-v0", seed=0)
+    obs = vec.reset()
+    assert vec.get_attr("render_mode") == [None] * 4
+    assert vec.has_attr("compute_reward") and not vec.has_attr("no_such_attribute")
+    assert vec.env_is_wrapped(gym.Wrapper) == [False] * 4
+    # HerReplayBuffer's call: a batch of relabelled goals through env 0's method
+    ag, dg = obs["achieved_goal"], obs["desired_goal"]
+    (rewards,) = vec.env_method("compute_reward", ag, np.concatenate([ag[:2], dg[2:]]), [{}] * 4, indices=[0])
+    np.testing.assert_array_equal(rewards, [0, 0, -1, -1])
+    with pytest.raises(ValueError, match="all of them"):
+        vec.set_attr("render_mode", None, indices=[1])
+
+
+# ------------------------------------------------------------------ task semantics
+def test_action_moves_each_joint_by_datasheet_speed_times_dt():
+    env = IiwaReachEnv(dt=0.05)
+    obs0, _ = env.reset(seed=0)
+    q0 = env.unwrapped._state.q[0].double().numpy()
+    action = np.array([1, -1, 0.5, 0, 3.0, -7.0, 0.25], dtype=np.float32)  # 3 and -7 are clipped to +-1
+    env.step(action)
+    dq = env._state.q[0].double().numpy() - q0
+    expected = np.clip(action, -1, 1) * np.radians(IIWA14_SPEED_DEG) * 0.05
+    np.testing.assert_allclose(dq, expected, atol=1e-6)
+    # the observed velocity is that motion over the speed limit
+    np.testing.assert_allclose(env._observe()[0]["observation"][14:21], np.clip(action, -1, 1), atol=1e-5)
+
+
+def test_joint_limits_never_exceeded_and_velocity_reflects_clamping():
+    vec = IiwaReachVectorEnv(64, max_episode_steps=200, start="random")
+    vec.reset(seed=3)
+    rng = np.random.default_rng(3)
+    lim = np.radians(IIWA14_LIMIT_DEG)
+    for _ in range(150):
+        vec.step(np.sign(rng.uniform(-1, 1, size=(64, 7))) * 5)  # saturating, often against a limit
+        q = vec._state.q.double().numpy()
+        assert (np.abs(q) <= lim + 1e-6).all()
+    at_limit = np.isclose(np.abs(q), lim, atol=1e-6)
+    assert at_limit.any()  # the test did push joints into their limits
+    # a joint held at a limit reports zero velocity
+    obs, *_ = vec.step(np.sign(q) * np.ones((64, 7)))
+    vel = obs["observation"][:, 14:21]
+    assert np.abs(vel[at_limit]).max() < 1e-5
+
+
+def test_bad_actions_raise_clear_errors():
+    env = IiwaReachEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.array([0, 0, np.nan, 0, 0, 0, 0], dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(np.zeros(6, dtype=np.float32))
+    vec = IiwaReachVectorEnv(4)
+    vec.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        vec.step(np.zeros((3, 7)))
+    with pytest.raises(ValueError, match="NaN"):
+        vec.step(torch.full((4, 7), float("nan")))
+    with pytest.raises(ValueError, match="goal"):
+        IiwaReachEnv(goal="orientation")
+    with pytest.raises(ValueError, match="dt"):
+        IiwaReachEnv(dt=0.0)
+
+
+def test_seeding_is_reproducible():
+    def rollout(seed):
+        env = gym.make("IiwaReachPose-v0", start="random")
+        out = [env.reset(seed=seed)[0]["desired_goal"]]
+        rng = np.random.default_rng(0)
+        for _ in range(120):  # crosses two time-outs and two unseeded resets
+            o, r, te, tr, _ = env.step(rng.uniform(-1, 1, 7).astype(np.float32))
+            out += [o["observation"], np.array([r])]
+            if te or tr:
+                out.append(env.reset()[0]["desired_goal"])
+        return np.concatenate(out)
+
+    a, b, c = rollout(5), rollout(5), rollout(6)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+
+
+def test_counter_based_random_numbers():
+    keys = keys_from_seeds(np.arange(20_000))
+    assert len(set(keys.tolist())) == 20_000  # distinct seeds, distinct keys
+    u = uniform(keys, torch.zeros_like(keys), 0, 10, torch.float64)
+    assert (u >= 0).all() and (u < 1).all()
+    # mean 1/2 and variance 1/12 of a uniform law, within ~5 standard errors
+    assert abs(u.mean().item() - 0.5) < 5 * math.sqrt(1 / 12 / u.numel())
+    assert abs(u.var().item() - 1 / 12) < 0.002
+    assert abs(np.corrcoef(u[:, 0], u[:, 1])[0, 1]) < 0.03
+    # a row's numbers do not depend on which other rows are drawn with it
+    sub = uniform(keys[[5, 17]], torch.tensor([3, 4]), 0, 10, torch.float64)
+    full = uniform(keys, torch.full_like(keys, 3), 0, 10, torch.float64)
+    torch.testing.assert_close(sub[0], full[5], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="non-negative"):
+        keys_from_seeds([-1])
+
+
+# ------------------------------------------------------------------ goals and rewards
+def _dls_ik(chain, target: torch.Tensor, iters: int = 300) -> torch.Tensor:
+    """Damped least squares on position only, from the home posture (a test-local solver)."""
+    q = torch.tensor([0.0, 0.5, 0.0, -1.0, 0.0, 0.5, 0.0], dtype=torch.float64).expand(len(target), 7).clone()
+    for _ in range(iters):
+        err = target - chain.fk(q)[:, :3, 3]
+        jac = chain.jacobian(q)[:, :3]
+        dq = jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + 1e-4 * torch.eye(3), err[..., None])
+        q = chain.clamp(q + dq[..., 0])
+    return q
+
+
+def test_goals_are_reachable_and_respect_min_distance():
+    vec = IiwaReachVectorEnv(64, goal_min_distance=0.3)
+    obs, _ = vec.reset(seed=0)
+    goals = torch.as_tensor(obs["desired_goal"], dtype=torch.float64)
+    start = torch.as_tensor(obs["achieved_goal"], dtype=torch.float64)
+    # the farthest of 8 candidates is kept when none is 0.3 m away: almost never from home
+    assert ((goals - start).norm(dim=-1) >= 0.3).float().mean() > 0.95
+    # within the sphere the shoulder can reach: |p - shoulder| <= l_se + l_ew + flange (robots.md)
+    shoulder = torch.tensor([0, 0, 0.360], dtype=torch.float64)
+    assert ((goals - shoulder).norm(dim=-1) <= 0.420 + 0.400 + 0.126 + 1e-5).all()
+    chain = vec.task.robot
+    try:
+        from iiwa_torch.ik import solve  # the library's solver, when it exists
+    except ImportError:
+        solve = None
+    targets = goals[:16]
+    if solve is not None:
+        q = solve(chain, targets).q
+    else:
+        q = _dls_ik(chain, targets)
+    assert chain.within_limits(q, tol=1e-9).all()
+    assert (chain.fk(q)[:, :3, 3] - targets).norm(dim=-1).max() < 1e-3
+
+
+def test_episode_length_covers_the_worst_joint_move_from_home():
+    task = ReachTask()
+    # datasheet: joint 4 from -60 deg (home) to +120 deg at 75 deg/s = 2.4 s = 48 steps of 0.05 s
+    assert task.steps_to_reach_bound() == 48 <= envs.MAX_EPISODE_STEPS
+    assert ReachTask(start="home", home=[0.0] * 7).steps_to_reach_bound() == 40  # 170 deg at 85 deg/s = 2 s
+
+
+def test_rewards_and_success_against_numpy():
+    rng = np.random.default_rng(0)
+    ag, dg = rng.normal(size=(2, 50, 3)).astype(np.float32) * 0.01
+    dense, sparse = IiwaReachEnv(), IiwaReachEnv(reward="sparse")
+    d = np.linalg.norm(ag.astype(np.float64) - dg, axis=-1)
+    np.testing.assert_allclose(dense.compute_reward(ag, dg, None), -d, rtol=1e-6)
+    np.testing.assert_array_equal(sparse.compute_reward(ag, dg, None), np.where(d < 0.01, 0.0, -1.0))
+    assert 0 < (d < 0.01).sum() < 50
+    # pose goals: position + first two rotation columns; angle from the trace in float64
+    pose = IiwaReachEnv(goal="pose")
+    rot = torch.linalg.qr(torch.as_tensor(rng.normal(size=(2, 50, 3, 3)))).Q.numpy()
+    rot[..., 2] *= np.linalg.det(rot)[..., None]  # proper rotations
+    pa = np.concatenate([ag, rot[0, :, :, 0], rot[0, :, :, 1]], -1).astype(np.float32)
+    pd = np.concatenate([dg, rot[1, :, :, 0], rot[1, :, :, 1]], -1).astype(np.float32)
+    angle = np.arccos(np.clip((np.einsum("nij,nij->n", rot[0], rot[1]) - 1) / 2, -1, 1))
+    np.testing.assert_allclose(pose.compute_reward(pa, pd, None), -(d + 0.1 * angle), atol=2e-4)
+    # a batched call equals one call per row, bit for bit (what SB3's checker and HER rely on)
+    one_by_one = np.array([pose.compute_reward(pa[i], pd[i], None) for i in range(50)])
+    np.testing.assert_array_equal(pose.compute_reward(pa, pd, None), one_by_one)
+
+
+def test_pose_success_needs_the_orientation_too():
+    env = IiwaReachEnv(goal="pose", orientation_threshold=0.1)
+    p = np.zeros(3, dtype=np.float32)
+    ident = np.array([1, 0, 0, 0, 1, 0], dtype=np.float32)
+    c, s = math.cos(0.15), math.sin(0.15)  # 0.15 rad about z: above the threshold
+    turned = np.array([c, s, 0, -s, c, 0], dtype=np.float32)
+    c, s = math.cos(0.05), math.sin(0.05)
+    slight = np.array([c, s, 0, -s, c, 0], dtype=np.float32)
+    dist, angle, ok = env.task.errors(
+        torch.as_tensor(np.stack([np.r_[p, ident]] * 2)), torch.as_tensor(np.stack([np.r_[p, turned], np.r_[p, slight]]))
+    )
+    np.testing.assert_allclose(angle.numpy(), [0.15, 0.05], atol=1e-5)
+    assert ok.tolist() == [False, True]
+
+
+def test_rgb_array_render():
+    env = gym.make("IiwaReach-v0", render_mode="rgb_array")
+    env.reset(seed=0)
+    image = env.render()
+    assert image.shape == (480, 480, 3) and image.dtype == np.uint8
+    assert image.std() > 5  # something was drawn
+
+
+# ------------------------------------------------------------------ training smoke runs
+@pytest.mark.slow
+def test_ppo_and_sac_her_smoke_run_on_the_vecenv():
+    from stable_baselines3 import PPO, SAC, HerReplayBuffer
+
+    tiny = {"net_arch": [32, 32]}
+    env = IiwaReachVecEnv(8, "IiwaReach-v0", seed=0)
+    PPO("MultiInputPolicy", env, n_steps=64, batch_size=128, n_epochs=2, policy_kwargs=tiny, seed=0).learn(2_000)
+    env = IiwaReachVecEnv(8, "IiwaReachSparse-v0", seed=0)
+    model = SAC(
+        "MultiInputPolicy", env, replay_buffer_class=HerReplayBuffer, learning_starts=8 * 55,
+        batch_size=64, policy_kwargs=tiny, seed=0,
+    )
+    model.learn(2_000)
+    assert model.num_timesteps >= 2_000 and model.replay_buffer.size() > 0
