@@ -110,15 +110,15 @@ class IiwaReachVecEnv(VecEnv):
 
     def step_wait(self):
         self._state, tr = self.task.step_autoreset(self._state, self._actions)
-        timeout = (tr.truncated & ~tr.terminated).tolist()
-        success, distance = tr.success.tolist(), tr.distance.tolist()
+        columns = {
+            "is_success": tr.success.tolist(),
+            "distance": tr.distance.tolist(),
+            "TimeLimit.truncated": (tr.truncated & ~tr.terminated).tolist(),
+        }
         if self.task.goal_kind is GoalKind.POSE:
-            infos = [
-                {"is_success": s, "distance": d, "orientation_error": a, "TimeLimit.truncated": t}
-                for s, d, a, t in zip(success, distance, tr.angle.tolist(), timeout)
-            ]
-        else:
-            infos = [{"is_success": s, "distance": d, "TimeLimit.truncated": t} for s, d, t in zip(success, distance, timeout)]
+            columns["orientation_error"] = tr.angle.tolist()
+        names = tuple(columns)
+        infos = [dict(zip(names, row)) for row in zip(*columns.values())]
         for row, i in enumerate(tr.final_index.tolist()):  # finished environments only
             infos[i]["terminal_observation"] = {k: v[row] for k, v in tr.final_obs.items()}
         return tr.obs, tr.reward, tr.terminated | tr.truncated, infos

@@ -294,9 +294,8 @@ def test_pose_success_needs_the_orientation_too():
     turned = np.array([c, s, 0, -s, c, 0], dtype=np.float32)
     c, s = math.cos(0.05), math.sin(0.05)
     slight = np.array([c, s, 0, -s, c, 0], dtype=np.float32)
-    dist, angle, ok = env.task.errors(
-        torch.as_tensor(np.stack([np.r_[p, ident]] * 2)), torch.as_tensor(np.stack([np.r_[p, turned], np.r_[p, slight]]))
-    )
+    achieved = torch.as_tensor(np.stack([np.r_[p, ident]] * 2))
+    dist, angle, ok = env.task.errors(achieved, torch.as_tensor(np.stack([np.r_[p, turned], np.r_[p, slight]])))
     np.testing.assert_allclose(angle.numpy(), [0.15, 0.05], atol=1e-5)
     assert ok.tolist() == [False, True]
 
