@@ -291,29 +291,32 @@ class ReachTask:
             return pose[..., :3, 3]
         return torch.cat([pose[..., :3, 3], pose[..., :3, 0], pose[..., :3, 1]], -1)
 
-    def errors(self, achieved: Tensor, desired: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``(..., g)`` goals -> position distance (m), orientation angle (rad), success, each ``(...)``.
+    def errors(self, achieved: Tensor, desired: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
+        """``(..., g)`` goals -> position distance (m), orientation angle (rad; ``None`` for
+        position goals) and success, each ``(...)``.
 
-        Elementwise arithmetic only (no reductions whose order could depend on the batch
-        size), so a batched call gives bit-identical values to single ones.
+        Each row is computed on its own (no reduction across rows), so a batched call gives
+        the values of single calls bit for bit: what SB3's checker and HER rely on.
         """
-        d = achieved[..., :3] - desired[..., :3]
-        dist = torch.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
+        dist = torch.linalg.vector_norm(achieved[..., :3] - desired[..., :3], dim=-1)
         ok = dist < self.distance_threshold
         if self.goal_kind is GoalKind.POSITION:
-            return dist, torch.zeros_like(dist), ok
+            return dist, None, ok
         xa, ya, xd, yd = achieved[..., 3:6], achieved[..., 6:9], desired[..., 3:6], desired[..., 6:9]
+        # ||Ra - Rd||_F^2 over the three columns (z = x cross y) = 8 sin^2(angle / 2)
         diff = torch.cat([xa - xd, ya - yd, torch.linalg.cross(xa, ya) - torch.linalg.cross(xd, yd)], -1)
-        chord_sq = sum(diff[..., k] * diff[..., k] for k in range(9))
+        chord_sq = torch.linalg.vector_norm(diff, dim=-1) ** 2
         angle = 2 * torch.asin(torch.clamp(torch.sqrt(chord_sq / 8), max=1.0))
         return dist, angle, ok & (chord_sq < self._chord_sq_threshold)
 
-    def reward(self, achieved: Tensor, desired: Tensor) -> Tensor:
-        """Batched reward ``(..., g), (..., g) -> (...)`` in the goals' dtype."""
-        dist, angle, ok = self.errors(achieved, desired)
+    def _reward(self, dist: Tensor, angle: Tensor | None, ok: Tensor) -> Tensor:
         if self.reward_kind is RewardKind.SPARSE:
             return ok.to(dist.dtype) - 1
-        return -(dist + self.orientation_weight * angle) if self.goal_kind is GoalKind.POSE else -dist
+        return -dist if angle is None else -(dist + self.orientation_weight * angle)
+
+    def reward(self, achieved: Tensor, desired: Tensor) -> Tensor:
+        """Batched reward ``(..., g), (..., g) -> (...)`` in the goals' dtype."""
+        return self._reward(*self.errors(achieved, desired))
 
     def initial_state(self, key: Tensor) -> ReachState:
         """Fresh episode 0 for the ``(n,)`` keys."""
@@ -324,19 +327,16 @@ class ReachTask:
         n, nj = key.shape[0], self.n_joints
         k = _GOAL_CANDIDATES if self.goal_min_distance > 0 else 1
         u = uniform(key, episode, 0, nj * (k + 1), self.dtype).view(n, k + 1, nj)
-        span = self.upper - self.lower
-        configs = self.lower + u * span  # (n, k + 1, nj): the start (row 0) and k goal candidates
+        configs = self.lower + u * (self.upper - self.lower)  # (n, k + 1, nj): the start (row 0), k goal candidates
         if self.start_kind is StartKind.HOME:
             configs = torch.cat([self.home.expand(n, 1, nj), configs[:, 1:]], 1)
         goals = self.goal_of(self.robot.fk(configs))  # (n, k + 1, g)
         start_goal, candidates = goals[:, 0], goals[:, 1:]
         if k > 1:
-            d = (candidates[..., :3] - start_goal[:, None, :3]).norm(dim=-1)  # (n, k)
-            far = d >= self.goal_min_distance
+            d = torch.linalg.vector_norm(candidates[..., :3] - start_goal[:, None, :3], dim=-1)  # (n, k)
             # the first candidate far enough, else the farthest: no loop, no sync
-            score = torch.where(far, -torch.arange(k, device=d.device, dtype=d.dtype), d - 1e9)
-            pick = score.argmax(-1)
-            goal = candidates[torch.arange(n, device=d.device), pick]
+            score = torch.where(d >= self.goal_min_distance, -torch.arange(k, device=d.device, dtype=d.dtype), d - 1e9)
+            goal = candidates[torch.arange(n, device=d.device), score.argmax(-1)]
         else:
             goal = candidates[:, 0]
         return ReachState(
@@ -360,30 +360,69 @@ class ReachTask:
     def step(self, state: ReachState, action: Tensor) -> tuple[ReachState, StepResult]:
         """Apply ``(n, nj)`` actions (clipped to ``[-1, 1]``): integrate, clamp to the limits, FK.
 
-        The action must be finite with the state's dtype and device (the envs check this).
+        The action must be finite with the state's dtype and device (``check_action``).
         """
         a = torch.clamp(action, -1.0, 1.0)
-        q = self.robot.clamp(torch.addcmul(state.q, a, self.max_step))
-        # the motion actually made, over the speed limit; the clamp only removes float rounding (1e-6)
+        q = torch.clamp(torch.addcmul(state.q, a, self.max_step), self.lower, self.upper)
+        # the motion actually made, over the speed limit; this clamp only removes float rounding (1e-6)
         velocity = torch.clamp((q - state.q) / self.max_step, -1.0, 1.0)
         achieved = self.goal_of(self.robot.fk(q))
-        obs_ach, obs_goal = achieved.float(), state.goal.float()  # reward from the observed float32 goals
-        dist, angle, success = self.errors(obs_ach, obs_goal)
-        reward = self.reward(obs_ach, obs_goal)
+        dist, angle, success = self.errors(achieved.float(), state.goal.float())  # as observed, in float32
+        reward = self._reward(dist, angle, success)
         t = state.t + 1
         terminated = success if self.terminate_on_success else torch.zeros_like(success)
-        if self.max_episode_steps is None:
-            truncated = torch.zeros_like(success)
-        else:
-            truncated = t >= self.max_episode_steps
+        truncated = torch.zeros_like(success) if self.max_episode_steps is None else t >= self.max_episode_steps
+        angle = torch.zeros_like(dist) if angle is None else angle
         new = ReachState(q, velocity, state.goal, achieved, t, state.key, state.episode)
         return new, StepResult(reward, terminated, truncated, success, dist, angle)
 
-    def observe(self, state: ReachState) -> Tensor:
-        """``(n, observation_size + 2 * goal_size)`` float32: observation, achieved goal, desired goal."""
-        q = state.q
-        return torch.cat([torch.cos(q), torch.sin(q), state.velocity, state.achieved, state.achieved, state.goal],
-                         -1).float()
+    def status(self, state: ReachState) -> StepResult:
+        """The ``StepResult`` fields for a state just reset (not terminated, not truncated)."""
+        dist, angle, success = self.errors(state.achieved.float(), state.goal.float())
+        no = torch.zeros_like(success)
+        return StepResult(self._reward(dist, angle, success), no, no, success, dist,
+                          torch.zeros_like(dist) if angle is None else angle)
+
+    def observe(self, state: ReachState, out: Tensor | None = None) -> Tensor:
+        """``(n, observation_size + 2 * goal_size)`` float32: observation, achieved goal, desired goal.
+
+        ``out``: write into this float32 tensor (a view is fine) instead of a new one.
+        """
+        nj, g = self.n_joints, self.goal_size
+        if out is None:
+            out = torch.empty(state.q.shape[0], 3 * nj + 3 * g, dtype=torch.float32, device=self.device)
+        torch.cos(state.q, out=out[:, :nj])
+        torch.sin(state.q, out=out[:, nj : 2 * nj])
+        out[:, 2 * nj : 3 * nj] = state.velocity
+        out[:, 3 * nj : 3 * nj + g] = state.achieved
+        out[:, 3 * nj + g : 3 * nj + 2 * g] = state.achieved
+        out[:, 3 * nj + 2 * g :] = state.goal
+        return out
+
+    def pack(self, state: ReachState, result: StepResult) -> Tensor:
+        """``(n, D + 6)`` float32: the observation (``D`` columns), then reward, terminated,
+        truncated, success, distance and angle: everything a step returns, for one transfer."""
+        d = self.observation_size + 2 * self.goal_size
+        out = torch.empty(state.q.shape[0], d + 6, dtype=torch.float32, device=self.device)
+        self.observe(state, out[:, :d])
+        torch.stack(result, -1, out=out[:, d:])
+        return out
+
+    def unpack(self, packed: np.ndarray) -> Transition:
+        """``pack``'s output as numpy -> a :class:`Transition` without finished episodes."""
+        d = self.observation_size + 2 * self.goal_size
+        empty = np.zeros(0, dtype=np.int64)
+        return Transition(
+            obs=self.split(packed[:, :d]),
+            reward=packed[:, d].copy(),
+            terminated=packed[:, d + 1] > 0.5,
+            truncated=packed[:, d + 2] > 0.5,
+            success=packed[:, d + 3] > 0.5,
+            distance=packed[:, d + 4].copy(),
+            angle=packed[:, d + 5].copy(),
+            final_index=empty,
+            final_obs=self.split(packed[:0, :d]),
+        )
 
     def step_autoreset(self, state: ReachState, action: Tensor) -> tuple[ReachState, Transition]:
         """``step``, then same-step auto-reset of the environments that terminated or truncated.
@@ -393,28 +432,22 @@ class ReachTask:
         its last observation is in ``final_obs`` (rows ``final_index``).
         """
         state, res = self.step(state, action)
-        done = res.terminated | res.truncated
-        last = self.observe(state)  # (n, D)
-        idx = done.nonzero().squeeze(-1)  # the one data-dependent shape: which rows restart
-        if idx.numel():
-            state, fresh = self.restart(state, idx)
-            obs = last.index_copy(0, idx, self.observe(fresh))
-        else:
-            obs = last
-        flags = torch.stack([res.reward, res.terminated, res.truncated, res.success, res.distance, res.angle], -1)
-        out = torch.cat([obs, flags.float()], -1).cpu().numpy()
+        out = self.pack(state, res)  # a buffer of our own, updated in place below
+        idx = (res.terminated | res.truncated).nonzero().squeeze(-1)  # which rows restart: one sync
         d = self.observation_size + 2 * self.goal_size
-        return state, Transition(
-            obs=self.split(out[:, :d]),
-            reward=out[:, d],
-            terminated=out[:, d + 1] > 0.5,
-            truncated=out[:, d + 2] > 0.5,
-            success=out[:, d + 3] > 0.5,
-            distance=out[:, d + 4],
-            angle=out[:, d + 5],
-            final_index=idx.cpu().numpy(),
-            final_obs=self.split(last[idx].cpu().numpy()),
-        )
+        final = out[idx, :d]  # (m, D) copy: the finished episodes' last observations
+        if idx.numel():
+            fresh = self._new_episodes(state.key[idx], state.episode[idx] + 1)
+            # q, velocity, achieved and t were created by this step: update them in place;
+            # goal and episode are the caller's tensors: copy them.
+            for name in ("q", "velocity", "achieved", "t"):
+                getattr(state, name).index_copy_(0, idx, getattr(fresh, name))
+            state = state._replace(
+                goal=state.goal.index_copy(0, idx, fresh.goal), episode=state.episode.index_copy(0, idx, fresh.episode)
+            )
+            out[idx, :d] = self.observe(fresh)
+        tr = self.unpack(out.cpu().numpy())
+        return state, tr._replace(final_index=idx.cpu().numpy(), final_obs=self.split(final.cpu().numpy()))
 
     def split(self, packed: np.ndarray) -> dict[str, np.ndarray]:
         """Split ``observe``'s output (as numpy, last axis) into the goal-env observation dict."""
@@ -433,16 +466,19 @@ class ReachTask:
         """
         nj = self.n_joints
         if isinstance(action, torch.Tensor):
+            finite = bool(torch.isfinite(action).all())
             a = action.to(self.device, self.dtype)
         else:
             try:
-                a = torch.as_tensor(np.asarray(action, dtype=np.float64), dtype=self.dtype, device=self.device)
+                arr = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
             except (TypeError, ValueError):
                 raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
+            finite = bool(np.isfinite(arr).all())
+            a = torch.from_numpy(arr).to(self.device)
         if a.shape == (nj,) and n == 1:
             a = a[None]
         if a.shape != (n, nj):
             raise ValueError(f"action must have shape ({n}, {nj}) (or ({nj},) for one env), got {tuple(a.shape)}")
-        if not bool(torch.isfinite(a).all()):
+        if not finite:
             raise ValueError("action contains NaN or inf; actions must be finite (values outside [-1, 1] are clipped)")
         return a

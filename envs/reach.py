@@ -165,23 +165,19 @@ class IiwaReachEnv(gym.Env):
         return obs, info
 
     def _observe(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        state = self._state
-        dist, angle, ok = self.task.errors(state.achieved.float(), state.goal.float())
-        packed = torch.cat([self.task.observe(state), torch.stack([ok, dist, angle], -1).float()], -1)
-        out = packed[0].cpu().numpy()
-        obs = self.task.split(out[:-3])
-        return obs, _info(self.task, bool(out[-3] > 0.5), float(out[-2]), float(out[-1]))
+        tr = self.task.unpack(self.task.pack(self._state, self.task.status(self._state)).cpu().numpy())
+        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), float(tr.angle[0]))
+        return {k: v[0] for k, v in tr.obs.items()}, info
 
     def step(self, action):
         """Apply one joint-velocity command ``(7,)``; see the class docstring."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        a = self.task.check_action(action, 1)
-        self._state, res = self.task.step(self._state, a)
-        flags = torch.stack([res.reward, res.terminated, res.truncated, res.success, res.distance, res.angle], -1)
-        packed = torch.cat([self.task.observe(self._state), flags.float()], -1)[0].cpu().numpy()
-        obs = self.task.split(packed[:-6])
-        reward, term, trunc, success, dist, angle = packed[-6:].tolist()
+        self._state, res = self.task.step(self._state, self.task.check_action(action, 1))
+        packed = self.task.pack(self._state, res)[0].cpu().numpy()
+        d = packed.shape[0] - 6
+        obs = self.task.split(packed[:d])
+        reward, term, trunc, success, dist, angle = packed[d:].tolist()
         if self.render_mode == "human":
             self.render()
         return obs, reward, term > 0.5, trunc > 0.5, _info(self.task, success > 0.5, dist, angle)
@@ -279,10 +275,8 @@ class IiwaReachVectorEnv(VectorEnv):
             fresh = self.np_random.integers(2**63, size=self.num_envs).tolist()
             seeds = [fresh[i] if s is None else s for i, s in enumerate(seeds)]
             self._state = self.task.initial_state(keys_from_seeds(seeds, self.task.device))
-        state = self._state
-        dist, angle, ok = self.task.errors(state.achieved.float(), state.goal.float())
-        out = torch.cat([self.task.observe(state), torch.stack([ok, dist, angle], -1).float()], -1).cpu().numpy()
-        return self.task.split(out[:, :-3]), _info(self.task, out[:, -3] > 0.5, out[:, -2], out[:, -1])
+        tr = self.task.unpack(self.task.pack(self._state, self.task.status(self._state)).cpu().numpy())
+        return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle)
 
     def step(self, actions):
         """Step all environments with ``(num_envs, 7)`` actions; finished ones restart in the same step."""

@@ -251,7 +251,9 @@ def test_goals_are_reachable_and_respect_min_distance():
         solve = None
     targets = goals[:16]
     if solve is not None:
-        q = solve(chain, targets).q
+        result = solve(chain, targets, mode="position")
+        assert result.success.all()
+        q = result.q
     else:
         q = _dls_ik(chain, targets)
     assert chain.within_limits(q, tol=1e-9).all()
