@@ -218,17 +218,17 @@ class DHChain(nn.Module):
         return lim[0] + u * (lim[1] - lim[0])
 
     # ------------------------------------------------------------------ kinematics
-    def _frames_elementwise(self, q: Tensor, keep: bool) -> Tensor:
-        """Large batches: ``(b, n) -> (b, F, 4, 4)`` frames (F = n + 1 if ``keep``, else 1).
+    # Both kernels return frames "batch last": a (F, 3, 4, b) tensor of frame, row, column
+    # (x, y, z axes, origin) and configuration, with F = n + 1 (base and links) if ``keep``,
+    # else 1 (the last link). Batch last keeps every elementwise op contiguous.
 
-        The axis columns of the moving frame are rotated with elementwise multiply-adds,
-        batch last so every op runs over the whole block; the constant twists (``alpha`` of
-        0 or +-pi/2) are swaps and sign flips. Only the result is transposed to batch first.
-        """
+    def _frames_elementwise(self, q: Tensor, keep: bool) -> Tensor:
+        """Large batches: the moving frame's axis columns are rotated with elementwise
+        multiply-adds over the whole block; the constant twists (``alpha`` of 0 or +-pi/2)
+        are swaps and sign flips. No 4x4 products."""
         theta = (q + self.dh[:, 3].to(q.dtype)).T.contiguous()  # (n, b)
         c, s = torch.cos(theta), torch.sin(theta)
-        base = self.base.to(q.dtype)[:3, :, None]  # (3, 4, 1)
-        x, y, z, p = base.expand(3, 4, q.shape[0]).unbind(1)  # each (3, b)
+        x, y, z, p = self.base.to(q.dtype)[:3, :, None].expand(3, 4, q.shape[0]).unbind(1)  # each (3, b)
         frames = [(x, y, z, p)]
         modified = self.convention is Convention.MODIFIED
         for i, (a, ca, sa, d) in enumerate(self._steps):
@@ -242,15 +242,12 @@ class DHChain(nn.Module):
                 y, z = _rotate_x(y, z, ca, sa)
             if keep:
                 frames.append((x, y, z, p))
-        top = torch.stack([torch.stack(f, 1) for f in (frames if keep else [(x, y, z, p)])], 0)  # (F, 3, 4, b)
-        top = top.permute(3, 0, 1, 2)  # (b, F, 3, 4), a view
-        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=q.dtype, device=q.device).expand(*top.shape[:2], 1, 4)
-        return torch.cat([top, bottom], -2)
+        return torch.stack([torch.stack(f, 1) for f in (frames if keep else [(x, y, z, p)])], 0)
 
     def _frames_matmul(self, q: Tensor, keep: bool) -> Tensor:
-        """Small batches: ``(b, n) -> (b, F, 4, 4)`` with few, larger ops. Each ``A_i`` is
-        linear in the cosine and sine of its angle, so one batched product with constant
-        coefficients builds them all; then a chain of 4x4 products."""
+        """Small batches, few ops: each ``A_i`` is linear in the cosine and sine of its
+        angle, so one batched product with constant coefficients builds them all; then a
+        chain of 4x4 products."""
         n, b, dtype = self.n_joints, q.shape[0], q.dtype
         theta = (q + self.dh[:, 3].to(dtype)).T  # (n, b)
         trig = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (n, b, 2)
@@ -260,18 +257,32 @@ class DHChain(nn.Module):
         for i in range(n):
             frame = torch.bmm(frame, links[i])
             frames.append(frame)
-        return torch.stack(frames, 1) if keep else frame[:, None]
+        stacked = torch.stack(frames, 0) if keep else frame[None]  # (F, b, 4, 4)
+        return stacked[:, :, :3].permute(0, 2, 3, 1)  # (F, 3, 4, b), a view
 
     def _frames(self, q: Tensor, keep: bool) -> Tensor:
-        """``(b, n) -> (b, F, 4, 4)``: the kernel that is faster for this batch size."""
+        """``(b, n) -> (F, 3, 4, b)`` with the kernel that is faster for this batch size."""
         kernel = self._frames_matmul if q.shape[0] <= _SMALL_BATCH else self._frames_elementwise
         return kernel(q, keep)
 
+    def _end_position(self, last: Tensor) -> Tensor:
+        """``(3, 4, b)`` last link frame -> ``(3, b)`` end-effector (tool) position."""
+        if not self._has_tool:
+            return last[:, 3]
+        t = self.tool.to(last.dtype)[:3, 3]
+        return last[:, 3] + (last[:, :3] * t[None, :, None]).sum(1)
+
+    @staticmethod
+    def _poses(frames: Tensor) -> Tensor:
+        """``(F, 3, 4, b)`` -> ``(b, F, 4, 4)`` homogeneous matrices."""
+        top = frames.permute(3, 0, 1, 2)
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=top.dtype, device=top.device)
+        return torch.cat([top, bottom.expand(*top.shape[:2], 1, 4)], -2)
+
     def _blockwise(self, q: Tensor, shape: tuple[int, ...], fn) -> Tensor:
-        """Validate ``q``, apply ``fn: (b, n) -> (b, *shape)`` to blocks of at most ``_BLOCK``
-        configurations (so each block's intermediates stay in the CPU cache), and return
-        the results as ``(*q.shape[:-1], *shape)``."""
-        self.check_q(q)
+        """Apply ``fn: (b, n) -> (b, *shape)`` to blocks of at most ``_BLOCK`` configurations
+        of ``q (..., n)`` (so each block's intermediates stay in the CPU cache) and return
+        ``(..., *shape)``."""
         flat = q.reshape(-1, self.n_joints)
         if flat.shape[0] <= _BLOCK:
             out = fn(flat)
@@ -281,21 +292,36 @@ class DHChain(nn.Module):
                 out[start : start + _BLOCK] = fn(flat[start : start + _BLOCK])
         return out.reshape(*q.shape[:-1], *shape)
 
+    def _end_pose(self, qb: Tensor) -> Tensor:
+        pose = self._poses(self._frames(qb, keep=False))[:, 0]
+        return pose @ self.tool.to(qb.dtype) if self._has_tool else pose
+
+    def _jacobian(self, qb: Tensor) -> Tensor:
+        frames = self._frames(qb, keep=True)  # (n + 1, 3, 4, b)
+        axes = frames[:-1] if self.convention is Convention.STANDARD else frames[1:]
+        z, origin = axes[:, :, 2], axes[:, :, 3]  # (n, 3, b)
+        lever = self._end_position(frames[-1]) - origin
+        jac = torch.cat([torch.linalg.cross(z, lever, dim=1), z], 1)  # (n, 6, b)
+        return jac.permute(2, 1, 0)
+
     def fk(self, q: Tensor) -> Tensor:
-        """End-effector pose: ``q (..., n)`` radians -> ``(..., 4, 4)``, metres, in the world frame."""
+        """End-effector pose: ``q (..., n)`` radians -> ``(..., 4, 4)``, metres, in the world frame.
 
-        def end_pose(qb: Tensor) -> Tensor:
-            pose = self._frames(qb, keep=False)[:, 0]
-            return pose @ self.tool.to(qb.dtype) if self._has_tool else pose
-
-        return self._blockwise(q, (4, 4), end_pose)
+        Differentiable; the backward pass is ``J(q)^T`` times the pose gradient's twist,
+        not a replay of the forward kernel.
+        """
+        self.check_q(q)
+        if q.requires_grad and torch.is_grad_enabled():
+            return _EndPose.apply(q, self)
+        return self._blockwise(q, (4, 4), self._end_pose)
 
     def fk_all(self, q: Tensor) -> Tensor:
         """Every frame: ``q (..., n) -> (..., n + 1, 4, 4)``: the base, then link frames 1..n.
 
         The tool transform is not applied: ``fk(q) == fk_all(q)[..., -1, :, :] @ chain.tool``.
         """
-        return self._blockwise(q, (self.n_joints + 1, 4, 4), lambda qb: self._frames(qb, keep=True))
+        self.check_q(q)
+        return self._blockwise(q, (self.n_joints + 1, 4, 4), lambda qb: self._poses(self._frames(qb, keep=True)))
 
     def jacobian(self, q: Tensor) -> Tensor:
         """Geometric Jacobian in the world frame: ``q (..., n) -> (..., 6, n)``.
@@ -306,17 +332,33 @@ class DHChain(nn.Module):
         autograd. The axis of joint i is the z axis of frame i - 1 (standard DH) or of
         frame i (modified DH), and that frame's origin lies on it.
         """
-
-        def jac(qb: Tensor) -> Tensor:
-            frames = self._frames(qb, keep=True)  # (b, n + 1, 4, 4)
-            axes = frames[:, :-1] if self.convention is Convention.STANDARD else frames[:, 1:]
-            z, origin = axes[..., :3, 2], axes[..., :3, 3]  # (b, n, 3)
-            end = frames[:, -1] @ self.tool.to(qb.dtype) if self._has_tool else frames[:, -1]
-            lever = end[:, None, :3, 3] - origin
-            return torch.cat([torch.linalg.cross(z, lever, dim=-1), z], -1).transpose(-1, -2)  # (b, 6, n)
-
-        return self._blockwise(q, (6, self.n_joints), jac)
+        self.check_q(q)
+        return self._blockwise(q, (6, self.n_joints), self._jacobian)
 
     def forward(self, q: Tensor) -> Tensor:
         """Same as :meth:`fk`."""
         return self.fk(q)
+
+
+class _EndPose(torch.autograd.Function):
+    """``fk`` with a closed-form backward: the pose moves as ``dT/dq_i = [z_i]x T`` about
+    joint i's axis, so ``dL/dq = J^T [g_p; w]``, with ``g_p = dL/dp`` and ``w`` the axial
+    vector of ``R (dL/dR)^T``. One Jacobian instead of replaying every op of the forward."""
+
+    @staticmethod
+    def forward(q: Tensor, chain: DHChain) -> Tensor:
+        return chain._blockwise(q, (4, 4), chain._end_pose)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.chain = inputs[1]
+        ctx.save_for_backward(inputs[0], output)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        q, pose = ctx.saved_tensors
+        # axial vector of R G^T = sum over columns k of R[:, k] x G[:, k]
+        w = torch.linalg.cross(pose[..., :3, :3], grad[..., :3, :3], dim=-2).sum(-1)  # (..., 3)
+        twist = torch.cat([grad[..., :3, 3], w], -1)  # (..., 6)
+        jac = ctx.chain._blockwise(q, (6, ctx.chain.n_joints), ctx.chain._jacobian)
+        return (twist.unsqueeze(-1) * jac).sum(-2), None

@@ -154,6 +154,24 @@ def test_gradcheck_fk(batch):
     assert torch.autograd.gradcheck(lambda x: chain.jacobian(x), (q[:2],))
 
 
+def test_second_derivatives_through_fk():
+    chain = robots.lrmate200ic()
+    q = sample(chain, 2, seed=15).requires_grad_()
+    assert torch.autograd.gradgradcheck(lambda x: chain.fk(x)[..., :3, :], (q,))
+
+
+def test_closed_form_backward_equals_autograd_through_the_kernels():
+    chain = robots.iiwa14(tool=robots.puma560().fk(torch.full((6,), 0.3, dtype=torch.float64)))
+    q = sample(chain, _SMALL_BATCH + 40, seed=16)
+    weights = torch.randn(q.shape[0], 4, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    grads = []
+    for fk in (chain.fk, lambda x: chain._blockwise(x, (4, 4), chain._end_pose)):  # closed form, replayed ops
+        x = q.clone().requires_grad_()
+        (fk(x) * weights).sum().backward()
+        grads.append(x.grad)
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-12, rtol=0)
+
+
 def test_batched_equals_looped_across_kernels_and_blocks():
     chain = robots.iiwa14()
     q = sample(chain, _BLOCK + 300, seed=8)  # two blocks of the elementwise kernel

@@ -1,0 +1,206 @@
+"""FK, all frames, Jacobian and FK forward+backward: iiwa-torch against its peers, one run.
+
+    python benchmarks/bench_fk.py [--quick]
+
+Peers measured in the same run on the iiwa 14 (the same URDF for all):
+pytorch_kinematics (batched torch), roboticstoolbox's C++ ``ETS.eval`` and pinocchio
+(C++, called once per configuration from Python), a plain batched 4x4-matmul torch chain
+(our small-batch kernel, forced on every size) and the floor: a torch copy of the output's
+size. Prints per-configuration times and ratios; writes results/fk.json and results/fk.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
+
+import torch  # noqa: E402
+from common import machine, markdown_table, save, timeit  # noqa: E402
+
+from iiwa_torch import robots  # noqa: E402
+from iiwa_torch.urdf import to_urdf  # noqa: E402
+
+CHAIN = robots.iiwa14()
+SIZES = {
+    "fk": [1, 1_000, 100_000, 1_000_000],
+    "fk_all": [1, 1_000, 100_000],
+    "jacobian": [1, 1_000, 10_000, 100_000],
+    "fk_backward": [1, 1_000, 100_000],
+}
+
+
+def ours(op: str, q: torch.Tensor):
+    if op == "fk_backward":
+        qg = q.clone().requires_grad_()
+        return lambda: CHAIN.fk(qg)[..., :3, 3].sum().backward()
+    return lambda: getattr(CHAIN, op)(q)
+
+
+def matmul_chain(op: str, q: torch.Tensor):
+    """The 4x4-product kernel on any batch size (what a plain torch chain does)."""
+    if op != "fk":
+        return None
+    return lambda: CHAIN._frames_matmul(q, keep=False)
+
+
+def pytorch_kinematics(op: str, q: torch.Tensor):
+    import pytorch_kinematics as pk
+
+    serial = pk.build_serial_chain_from_urdf(to_urdf(CHAIN).encode(), "tool0").to(dtype=q.dtype)
+    if op == "fk":
+        return lambda: serial.forward_kinematics(q).get_matrix()
+    if op == "fk_all":
+        return lambda: [t.get_matrix() for t in serial.forward_kinematics(q, end_only=False).values()]
+    if op == "jacobian":
+        return lambda: serial.jacobian(q)
+    qg = q.clone().requires_grad_()
+    return lambda: serial.forward_kinematics(qg).get_matrix()[..., :3, 3].sum().backward()
+
+
+def floor(op: str, q: torch.Tensor):
+    """A plain copy of a tensor the size of the output: the memory-bound limit."""
+    shape = {"fk": (4, 4), "fk_all": (CHAIN.n_joints + 1, 4, 4), "jacobian": (6, CHAIN.n_joints)}.get(op)
+    if shape is None:
+        return None
+    out = torch.empty(q.shape[0], *shape, dtype=q.dtype)
+    return out.clone
+
+
+def per_call_cpp(q64: torch.Tensor) -> dict:
+    """roboticstoolbox ETS.eval and pinocchio, one configuration per call (float64)."""
+    res = {}
+    qs = q64.numpy()
+    try:
+        import roboticstoolbox as rtb
+
+        ets = rtb.DHRobot([rtb.RevoluteDH(a=a, alpha=al, d=d, offset=o) for a, al, d, o in CHAIN.dh.tolist()]).ets()
+        res["roboticstoolbox ETS.eval"] = timeit(lambda: [ets.eval(x) for x in qs]) / len(qs)
+    except ImportError:
+        pass
+    try:
+        import pinocchio as pin
+
+        model = pin.buildModelFromXML(to_urdf(CHAIN))
+        data, frame = model.createData(), model.getFrameId("tool0")
+
+        def run():
+            for x in qs:
+                pin.framesForwardKinematics(model, data, x)
+                data.oMf[frame].homogeneous  # noqa: B018
+
+        res["pinocchio framesForwardKinematics"] = timeit(run) / len(qs)
+    except ImportError:
+        pass
+    return res
+
+
+def peak_memory_mb(batch: int) -> float:
+    """Peak resident memory added by one float32 FK of ``batch`` configurations (fresh process)."""
+    code = (
+        "import resource, torch; from iiwa_torch import robots; c = robots.iiwa14();"
+        f"q = c.random_q({batch}, dtype=torch.float32); c.fk(q[:10]);"
+        "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss; c.fk(q);"
+        "print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) / 1024)"
+    )
+    return float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes, one thread (a smoke run)")
+    args = parser.parse_args()
+    sizes = {op: [b for b in bs if b <= 1_000] for op, bs in SIZES.items()} if args.quick else SIZES
+    threads = [1] if args.quick else [1, 2]
+    g = torch.Generator().manual_seed(0)
+    runners = {
+        "iiwa-torch": ours,
+        "pytorch_kinematics": pytorch_kinematics,
+        "matmul chain": matmul_chain,
+        "copy floor": floor,
+    }
+    records, rows = [], []
+    for n_threads in threads:
+        torch.set_num_threads(n_threads)
+        for dtype in (torch.float32, torch.float64):
+            for op, batches in sizes.items():
+                for batch in batches:
+                    q = CHAIN.random_q(batch, generator=g, dtype=dtype)
+                    slow = batch >= 1_000_000
+                    times = {}
+                    for name, make in runners.items():
+                        fn = make(op, q)
+                        if fn is not None:
+                            times[name] = timeit(fn, min_time=0.0 if slow else 0.2, repeats=3 if slow else 5)
+                    rec = {
+                        "op": op,
+                        "batch": batch,
+                        "dtype": str(dtype).split(".")[1],
+                        "threads": n_threads,
+                        "seconds_per_call": times,
+                    }
+                    records.append(rec)
+                    t = times["iiwa-torch"]
+                    pk_ratio = times["pytorch_kinematics"] / t
+                    floor_ratio = t / times["copy floor"] if "copy floor" in times else float("nan")
+                    mm = times.get("matmul chain")
+                    rows.append(
+                        [
+                            op,
+                            batch,
+                            rec["dtype"],
+                            n_threads,
+                            f"{t / batch * 1e9:,.0f}",
+                            f"{times['pytorch_kinematics'] / batch * 1e9:,.0f}",
+                            f"**{pk_ratio:.1f}x**",
+                            f"{mm / t:.1f}x" if mm else "",
+                            f"{floor_ratio:.1f}x",
+                        ]
+                    )
+                    print(" | ".join(str(c) for c in rows[-1]), flush=True)
+    torch.set_num_threads(1)
+    cpp = per_call_cpp(CHAIN.random_q(1000, generator=g))
+    single = timeit(lambda: CHAIN.fk(CHAIN.random_q(1, generator=g)[0]))
+    headers = [
+        "op",
+        "batch",
+        "dtype",
+        "threads",
+        "ours ns/config",
+        "pytorch_kinematics ns/config",
+        "speed-up vs pk",
+        "speed-up vs matmul chain",
+        "ours / copy floor",
+    ]
+    md = markdown_table(headers, rows)
+    md += "\nPer configuration, one call each, float64, 1 thread:\n\n"
+    md += markdown_table(
+        ["library", "µs per configuration"],
+        [[k, f"{v * 1e6:.2f}"] for k, v in cpp.items()]
+        + [["iiwa-torch fk, batch 1 (one call)", f"{single * 1e6:.1f}"]],
+    )
+    mem = None if args.quick else peak_memory_mb(1_000_000)
+    if mem is not None:
+        md += f"\nPeak memory added by one float32 FK of 1,000,000 configurations: {mem:.0f} MB\n"
+    info = machine()
+    md += f"\nMachine: {info}\n"
+    print(md)
+    path = save(
+        "fk_quick" if args.quick else "fk",
+        {
+            "machine": info,
+            "records": records,
+            "per_config_cpp_s": cpp,
+            "fk_batch1_s": single,
+            "peak_memory_mb_fk_1e6_f32": mem,
+        },
+        md,
+    )
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
