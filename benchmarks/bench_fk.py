@@ -47,6 +47,17 @@ def matmul_chain(op: str, q: torch.Tensor):
     return lambda: CHAIN._frames_matmul(q, keep=False)
 
 
+# Compiled lazily, on first call (once per dtype).
+FUSED = torch.compile(lambda x: CHAIN._poses(CHAIN._frames_elementwise(x, keep=False)), dynamic=True)
+
+
+def compiled(op: str, q: torch.Tensor):
+    """Our elementwise kernel through ``torch.compile`` (inductor), for FK from batch 1,000 up."""
+    if op != "fk" or q.shape[0] < 1_000:
+        return None
+    return lambda: FUSED(q)
+
+
 def pytorch_kinematics(op: str, q: torch.Tensor):
     import pytorch_kinematics as pk
 
