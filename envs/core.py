@@ -383,30 +383,22 @@ class ReachTask:
         return StepResult(self._reward(dist, angle, success), no, no, success, dist,
                           torch.zeros_like(dist) if angle is None else angle)
 
-    def observe(self, state: ReachState, out: Tensor | None = None) -> Tensor:
-        """``(n, observation_size + 2 * goal_size)`` float32: observation, achieved goal, desired goal.
+    @staticmethod
+    def _columns(state: ReachState) -> list[Tensor]:
+        return [torch.cos(state.q), torch.sin(state.q), state.velocity, state.achieved, state.achieved, state.goal]
 
-        ``out``: write into this float32 tensor (a view is fine) instead of a new one.
-        """
-        nj, g = self.n_joints, self.goal_size
-        if out is None:
-            out = torch.empty(state.q.shape[0], 3 * nj + 3 * g, dtype=torch.float32, device=self.device)
-        torch.cos(state.q, out=out[:, :nj])
-        torch.sin(state.q, out=out[:, nj : 2 * nj])
-        out[:, 2 * nj : 3 * nj] = state.velocity
-        out[:, 3 * nj : 3 * nj + g] = state.achieved
-        out[:, 3 * nj + g : 3 * nj + 2 * g] = state.achieved
-        out[:, 3 * nj + 2 * g :] = state.goal
-        return out
+    def observe(self, state: ReachState) -> Tensor:
+        """``(n, D)`` float32, ``D = observation_size + 2 * goal_size``: the observation, the
+        achieved goal and the desired goal side by side."""
+        return torch.cat(self._columns(state), -1).float()
 
     def pack(self, state: ReachState, result: StepResult) -> Tensor:
         """``(n, D + 6)`` float32: the observation (``D`` columns), then reward, terminated,
-        truncated, success, distance and angle: everything a step returns, for one transfer."""
-        d = self.observation_size + 2 * self.goal_size
-        out = torch.empty(state.q.shape[0], d + 6, dtype=torch.float32, device=self.device)
-        self.observe(state, out[:, :d])
-        torch.stack(result, -1, out=out[:, d:])
-        return out
+        truncated, success, distance and angle: everything a step returns, for one transfer.
+
+        One ``cat`` of contiguous parts: writing each part into a view of a preallocated
+        buffer (``out=``) was measured 3-10x slower (strided outputs are not vectorised)."""
+        return torch.cat([*self._columns(state), torch.stack(result, -1)], -1).float()
 
     def unpack(self, packed: np.ndarray) -> Transition:
         """``pack``'s output as numpy -> a :class:`Transition` without finished episodes."""
@@ -432,7 +424,7 @@ class ReachTask:
         its last observation is in ``final_obs`` (rows ``final_index``).
         """
         state, res = self.step(state, action)
-        out = self.pack(state, res)  # a buffer of our own, updated in place below
+        out = self.pack(state, res)  # a new tensor of our own, updated in place below
         idx = (res.terminated | res.truncated).nonzero().squeeze(-1)  # which rows restart: one sync
         d = self.observation_size + 2 * self.goal_size
         final = out[idx, :d]  # (m, D) copy: the finished episodes' last observations
