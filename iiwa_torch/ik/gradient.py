@@ -1,0 +1,518 @@
+"""Batched gradient-based inverse kinematics.
+
+- :func:`solve`: damped least squares / Levenberg-Marquardt on the geometric Jacobian, for
+  thousands of targets at once, with joint limits, several seeds per target and an optional
+  null-space pull toward a rest posture.
+- :func:`minimize`: IK as gradient descent (``torch.optim``) on any differentiable loss of
+  the joint angles and the end-effector pose.
+
+How :func:`solve` is fast on a CPU: the inner loop keeps every quantity batch last, as
+``(rows, batch)`` tensors, so each operation is one elementwise kernel over the whole batch
+(no batched ``4x4`` products, no per-problem LAPACK call: the damped ``6x6`` normal equations
+are solved by a Cholesky factorisation written out over the batch). Problems that converge
+leave the batch every ``check_every`` iterations, and the ones that stall restart from their
+next seed, so the batch shrinks as the solve goes on.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Literal, get_args
+
+import torch
+
+from .. import so3
+from ..dh import Convention, DHChain
+from .result import IKResult
+
+__all__ = ["Mode", "Optimizer", "solve", "minimize"]
+
+Tensor = torch.Tensor
+Mode = Literal["pose", "position"]
+Optimizer = Literal["adam", "lbfgs"]
+
+_POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
+_MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
+_LAMBDA0 = 1e-2  # initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
+
+
+def _check_choice(value, choices: tuple, name: str) -> None:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
+
+
+def _check_positive(value, name: str, integer: bool = False) -> None:
+    kind = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind) or not value > 0 or not math.isfinite(value):
+        raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
+
+
+# ---------------------------------------------------------------------- batch-last kinematics
+class _Kinematics:
+    """End pose and Jacobian ingredients of a chain, batch last, for the solver's inner loop.
+
+    The same maths as :class:`DHChain` (whose tests this is checked against), kept as
+    ``(3, b)`` axis columns so no layout change happens inside the loop.
+    """
+
+    def __init__(self, chain: DHChain, dtype: torch.dtype, device: torch.device) -> None:
+        def exact(v: float) -> float:  # cos/sin of a multiple of pi/2 snapped to 0 or +-1
+            return float(round(v)) if abs(v - round(v)) < 1e-12 else v
+
+        self.n = chain.n_joints
+        self.modified = chain.convention is Convention.MODIFIED
+        self.steps = [(a, exact(math.cos(al)), exact(math.sin(al)), d) for a, al, d, _ in chain.dh.tolist()]
+        self.offsets = chain.dh[:, 3].to(dtype=dtype, device=device)[:, None]  # (n, 1)
+        self.base = chain.base.to(dtype=dtype, device=device)
+        tool = chain.tool.to(dtype=dtype, device=device)
+        self.tool = (
+            None if torch.equal(chain.tool, torch.eye(4, dtype=chain.tool.dtype, device=chain.tool.device)) else tool
+        )
+
+    @staticmethod
+    def _twist(y: Tensor, z: Tensor, ca: float, sa: float) -> tuple[Tensor, Tensor]:
+        """Rotate the frame axes y, z about x by the constant angle with cosine ca, sine sa."""
+        if ca == 0.0:
+            return (z, -y) if sa > 0 else (-z, y)
+        if sa == 0.0:
+            return (y, z) if ca > 0 else (-y, -z)
+        return torch.add(ca * y, z, alpha=sa), torch.add(ca * z, y, alpha=-sa)
+
+    def __call__(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``q (n, b)`` -> end axes ``R (3, 3, b)`` (axis x/y/z, component), end position
+        ``p (3, b)``, joint axes ``Z (n, 3, b)`` and points on them ``P (n, 3, b)``."""
+        n, b = q.shape
+        theta = q + self.offsets
+        c, s = torch.cos(theta), torch.sin(theta)
+        Z, P = q.new_empty(n, 3, b), q.new_empty(n, 3, b)
+        x, y, z, p = self.base[:3, :, None].expand(3, 4, b).unbind(1)
+        for i, (a, ca, sa, d) in enumerate(self.steps):
+            if self.modified:
+                y, z = self._twist(y, z, ca, sa)
+                p = torch.add(p, x, alpha=a) if a else p
+            Z[i], P[i] = z, p
+            x, y = torch.addcmul(c[i] * x, s[i], y), torch.addcmul(c[i] * y, s[i], x, value=-1)
+            p = torch.add(p, z, alpha=d) if d else p
+            if not self.modified:
+                p = torch.add(p, x, alpha=a) if a else p
+                y, z = self._twist(y, z, ca, sa)
+        R = torch.stack([x, y, z])  # (3, 3, b)
+        if self.tool is not None:
+            p = p + (R * self.tool[:3, 3, None, None]).sum(0)
+            R = torch.einsum("kcb,kj->jcb", R, self.tool[:3, :3])
+        return R, p, Z, P
+
+
+_ROLL1, _ROLL2 = [1, 2, 0], [2, 0, 1]  # cross product a x b = a[R1] * b[R2] - a[R2] * b[R1]
+
+
+class _Target:
+    """Targets in the loop's layout: rotation axes ``(3, 3, b)`` and their rolls, position ``(3, b)``."""
+
+    def __init__(self, rot: Tensor | None, pos: Tensor) -> None:
+        self.pos = pos
+        self.rot = rot
+        if rot is not None:
+            self.rot1, self.rot2 = rot[:, _ROLL1].contiguous(), rot[:, _ROLL2].contiguous()
+
+    def take(self, keep: Tensor) -> _Target:
+        out = _Target.__new__(_Target)
+        out.pos, out.rot = self.pos[:, keep], None if self.rot is None else self.rot[..., keep]
+        if self.rot is not None:
+            out.rot1, out.rot2 = self.rot1[..., keep], self.rot2[..., keep]
+        return out
+
+
+def _evaluate(
+    kin: _Kinematics, q: Tensor, target: _Target, weight: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """``q (n, b)`` -> weighted Jacobian ``J (m, n, b)``, weighted error ``e (m, b)`` (m = 6 or 3),
+    squared weighted error ``E (b,)``, position error ``(b,)`` m, rotation error ``(b,)`` rad."""
+    R, p, Z, P = kin(q)
+    e_pos = target.pos - p
+    pos_err = torch.addcmul(torch.addcmul(e_pos[0] * e_pos[0], e_pos[1], e_pos[1]), e_pos[2], e_pos[2]).sqrt()
+    lever = p - P  # (n, 3, b)
+    m = 3 if target.rot is None else 6
+    J = q.new_empty(m, kin.n, q.shape[1])
+    for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
+        torch.mul(Z[:, i], lever[:, j], out=J[r])
+        J[r].addcmul_(Z[:, j], lever[:, i], value=-1)
+    if target.rot is None:
+        return J, e_pos, pos_err.square(), pos_err, torch.zeros_like(pos_err)
+    torch.mul(Z.transpose(0, 1), weight, out=J[3:])
+    # log(R_t R^T): its skew part is sum_k r_k x t_k / 2 (r_k, t_k the axes), its trace sum_k r_k . t_k.
+    v = (R[:, _ROLL1] * target.rot2 - R[:, _ROLL2] * target.rot1).sum(0).mul_(0.5)  # sin(angle) * axis
+    cos = ((R * target.rot).sum((0, 1)) - 1) * 0.5
+    sin = torch.addcmul(torch.addcmul(v[0] * v[0], v[1], v[1]), v[2], v[2]).sqrt()
+    rot_err = torch.atan2(sin, cos)
+    tiny = torch.finfo(q.dtype).eps
+    e_rot = v * torch.where(sin > tiny, rot_err / sin.clamp_min(tiny), 1.0)  # |e_rot| <= angle, finite
+    e = torch.cat([e_pos, e_rot * weight])
+    return J, e, pos_err.square() + (weight * rot_err).square(), pos_err, rot_err
+
+
+def _cholesky_solve(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
+    """Solve ``A x = rhs`` for symmetric positive definite ``A (m, m, b)`` (lower triangle read),
+    ``rhs (m, k, b)``. Pivots are floored at ``floor`` so the result stays finite."""
+    m = A.shape[0]
+    L = torch.zeros_like(A)
+    inv = A.new_empty(m, A.shape[2])  # 1 / L_jj
+    for j in range(m):
+        col = A[j:, j] - (L[j:, :j] * L[j, :j]).sum(1) if j else A[j:, j]
+        inv[j] = col[0].clamp_min(floor).rsqrt()
+        L[j:, j] = col * inv[j]
+    y = torch.empty_like(rhs)
+    for i in range(m):  # L y = rhs
+        y[i] = (rhs[i] - (L[i, :i, None] * y[:i]).sum(0) if i else rhs[i]) * inv[i]
+    x = torch.empty_like(rhs)
+    for i in reversed(range(m)):  # L^T x = y
+        x[i] = (y[i] - (L[i + 1 :, i, None] * x[i + 1 :]).sum(0) if i < m - 1 else y[i]) * inv[i]
+    return x
+
+
+def _damped_solve(J: Tensor, rhs: Tensor, lam: Tensor, floor: float) -> Tensor:
+    """``J^T (J J^T + lam I)^-1 rhs`` for ``J (m, n, b)``, ``rhs (m, k, b)``, ``lam (b,)`` -> ``(n, k, b)``."""
+    m = J.shape[0]
+    A = J.new_empty(m, m, J.shape[2])
+    for r in range(m):
+        A[r:, r] = (J[r : r + 1] * J[r:]).sum(1)
+    A.diagonal(0, 0, 1).add_(lam[:, None])
+    y = _cholesky_solve(A, rhs, floor)
+    return (J[:, :, None] * y[:, None]).sum(0)
+
+
+# ---------------------------------------------------------------------- solve
+def _lm_step(kin, state, target, weight, lo, hi, rest, rest_gain, lam_min, lam_max):
+    """One Levenberg-Marquardt step for every active problem. ``state`` is ``(q, J, e, E,
+    pos_err, rot_err, lam)``; a step is kept where it lowers ``E``, and the damping follows."""
+    q, J, e, E, pos_err, rot_err, lam = state
+    descent = (J * e[:, None]).sum(0)  # J^T e (n, b): where E wants each joint to go
+    free = ~(((q <= lo) & (descent < 0)) | ((q >= hi) & (descent > 0)))  # box constraint: active set
+    J_free = J * free
+    if rest is None:
+        dq = _damped_solve(J_free, e[:, None], lam, lam_min)[:, 0]
+    else:  # pull toward the rest posture inside the (damped) null space of J, while the damping
+        # is low: a large damping would turn the projected pull into the full pull.
+        pull = rest_gain * (rest - q) * (free & (lam <= _LAMBDA0))
+        sol = _damped_solve(J_free, torch.stack([e, (J_free * pull).sum(1)], 1), lam, lam_min)
+        dq = sol[:, 0] + pull - sol[:, 1]
+    q_new = torch.minimum(torch.maximum(q + dq, lo), hi)
+    J_new, e_new, E_new, pos_new, rot_new = _evaluate(kin, q_new, target, weight)
+    ok = E_new < E
+    return (
+        torch.where(ok, q_new, q),
+        torch.where(ok, J_new, J),
+        torch.where(ok, e_new, e),
+        torch.where(ok, E_new, E),
+        torch.where(ok, pos_new, pos_err),
+        torch.where(ok, rot_new, rot_err),
+        torch.where(ok, lam * 0.5, lam * 3.0).clamp_(lam_min, lam_max),
+    )
+
+
+def _broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
+    """Check ``value (..., n)`` and broadcast it to ``(prod(batch), n)``."""
+    chain.check_q(value, name)
+    try:
+        return torch.broadcast_to(value.to(dtype), (*batch, chain.n_joints)).reshape(-1, chain.n_joints)
+    except RuntimeError:
+        raise ValueError(
+            f"{name} must broadcast to the targets' batch shape {(*batch, chain.n_joints)}, got {tuple(value.shape)}"
+        ) from None
+
+
+def _seed_ranking(chain: DHChain, pool: Tensor, target: Tensor, mode: str, count: int) -> Tensor:
+    """``(b, count)`` indices of the pool configurations whose end pose is nearest each target:
+    squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance."""
+    pose = chain.fk(pool)
+    if mode == "pose":
+        feat_pool = torch.cat([pose[:, :3, 3], 0.3 * pose[:, :3, :3].flatten(1)], 1)
+        feat_target = torch.cat([target[:, :3, 3], 0.3 * target[:, :3, :3].flatten(1)], 1)
+    else:
+        feat_pool, feat_target = pose[:, :3, 3], target
+    score = pose[:, :3, 3].square().sum(1) - 2 * feat_target @ feat_pool.T  # (b, pool) distance minus |target|^2
+    return score.topk(count, dim=1, largest=False).indices
+
+
+def _check_target(target: Tensor, mode: str, dtype: torch.dtype | None, batch: torch.Size | None) -> torch.Size:
+    """Validate a pose ``(..., 4, 4)`` or position ``(..., 3)`` target; return its batch shape."""
+    if mode == "pose":
+        so3.check_pose(target, "target")
+        found = target.shape[:-2]
+    else:
+        if not isinstance(target, torch.Tensor) or not target.is_floating_point():
+            raise TypeError(
+                f"target must be a float tensor of shape (..., 3) in position mode, got {type(target).__name__}"
+            )
+        if target.ndim == 0 or target.shape[-1] != 3:
+            raise ValueError(f"target must have shape (..., 3) in position mode, got {tuple(target.shape)}")
+        if not torch.isfinite(target).all():
+            raise ValueError("target contains NaN or inf")
+        found = target.shape[:-1]
+    if dtype is not None and target.dtype != dtype:
+        raise ValueError(f"target must have the dtype of q0 ({dtype}), got {target.dtype}")
+    if batch is not None and found != batch:
+        raise ValueError(f"target's batch shape {tuple(found)} must match q0's {tuple(batch)}")
+    return found
+
+
+def _keep_best(best_q: Tensor, best_E: Tensor, q: Tensor, key: Tensor, problem: Tensor) -> Tensor:
+    """Per problem, keep the slot with the lowest ``key`` (several slots may share a problem).
+
+    ``best_q (n, b)`` is updated in place where a slot of ``q (n, s)`` improves on ``best_E (b,)``
+    (one slot per problem is copied, never a mix); returns the new ``best_E``.
+    """
+    lowest = best_E.scatter_reduce(0, problem, key, "amin")
+    better = ((key <= lowest[problem]) & (key < best_E[problem])).nonzero().squeeze(1)
+    winner = torch.full_like(best_E, -1, dtype=torch.long).scatter_reduce_(0, problem[better], better, "amax")
+    problems = (winner >= 0).nonzero().squeeze(1)
+    best_q[:, problems] = q[:, winner[problems]]
+    return lowest
+
+
+def solve(
+    chain: DHChain,
+    target: Tensor,
+    q0: Tensor | None = None,
+    *,
+    mode: Mode = "pose",
+    rot_weight: float = 1.0,
+    pos_tol: float = 1e-4,
+    rot_tol: float = 1e-3,
+    seeds: int = 8,
+    iterations: int = 16,
+    rest: Tensor | None = None,
+    rest_gain: float = 0.0,
+    check_every: int = 4,
+    generator: torch.Generator | None = None,
+) -> IKResult:
+    """Inverse kinematics for a batch of targets by damped least squares (Levenberg-Marquardt).
+
+    Args:
+        chain: the robot.
+        target: ``(..., 4, 4)`` end-effector poses (``mode="pose"``) or ``(..., 3)`` positions
+            (``mode="position"``), metres, in the chain's world frame. The dtype (float32 or
+            float64) and device of the solve and of the result follow it.
+        q0: optional ``(..., n)`` first seed (broadcast to the targets), e.g. the previous
+            solution when tracking; clamped into the joint limits.
+        mode: ``"pose"`` (position and orientation) or ``"position"`` (orientation free).
+        rot_weight: metres per radian of rotation error in the least-squares objective.
+        pos_tol, rot_tol: success tolerances, metres and radians (defaults 0.1 mm, 1 mrad).
+        seeds: starting configurations per target: ``q0`` if given, then configurations drawn
+            within the limits from ``generator``, nearest in pose to the target first.
+        iterations: LM iterations per seed before a problem that has not converged restarts.
+        rest, rest_gain: optional ``(..., n)`` posture and gain (per iteration, 0 to 1): each
+            step also moves ``rest_gain * (rest - q)`` inside the Jacobian's null space, so a
+            redundant arm (the iiwa) stays near ``rest`` (pass ``rest=q0`` when tracking).
+        check_every: iterations between convergence checks (each check syncs and removes
+            converged problems from the batch).
+        generator: source of the random seeds (default: a fresh generator seeded with 0, so
+            results are reproducible).
+
+    Returns:
+        :class:`IKResult` with ``q (..., n)`` always within the joint limits; the errors and
+        ``success`` come from ``chain.fk(q)``; ``iterations`` counts every iteration spent on a
+        problem, over all its seeds. A target that cannot be reached is not an error: its
+        ``success`` is False and ``q`` is the best attempt (smallest weighted error).
+
+    The solve is not differentiable (it runs under ``torch.no_grad``); use :func:`minimize`
+    to optimise through IK.
+    """
+    _check_choice(mode, get_args(Mode), "mode")
+    for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
+        _check_positive(value, name)
+    for value, name in ((seeds, "seeds"), (iterations, "iterations"), (check_every, "check_every")):
+        _check_positive(value, name, integer=True)
+    if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
+        raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
+    batch = _check_target(target, mode, None, None)
+    if target.device != chain.dh.device:
+        raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
+    dtype, device, n = target.dtype, target.device, chain.n_joints
+    flat = target.reshape(-1, *target.shape[len(batch) :])
+    b = flat.shape[0]
+    first = None if q0 is None else chain.clamp(_broadcast_q(q0, chain, batch, "q0", dtype))
+    rest_flat = None if rest is None or rest_gain == 0 else _broadcast_q(rest, chain, batch, "rest", dtype)
+    if generator is None:
+        generator = torch.Generator(device).manual_seed(0)
+
+    with torch.no_grad():
+        kin = _Kinematics(chain, dtype, device)
+        lo, hi = chain.limits.to(dtype)[..., None].unbind(0)  # (n, 1) each
+        lam_min = 1e-12 if dtype == torch.float64 else 1e-6
+        weight = float(rot_weight)
+        # Seeds: q0, then pool configurations ranked by pose distance to each target.
+        from_pool = seeds - (first is not None)
+        pool = chain.random_q(max(_POOL, from_pool), generator=generator, dtype=dtype)
+        ranking = _seed_ranking(chain, pool, flat, mode, max(from_pool, 1)) if b else None
+        tgt = _Target(
+            None if mode == "position" else flat[:, :3, :3].permute(2, 1, 0).contiguous(),
+            (flat if mode == "position" else flat[:, :3, 3]).T.contiguous(),
+        )
+        best_q = torch.zeros(n, b, dtype=dtype, device=device)
+        best_E = torch.full((b,), math.inf, dtype=dtype, device=device)
+        used = torch.zeros(b, dtype=torch.long, device=device)
+        remaining, next_seed = torch.arange(b, device=device), 0
+        # Rounds: every remaining problem tries its next `width` seeds side by side; the width
+        # grows when few problems remain, so the small tail of hard targets fills the batch.
+        while remaining.numel() and next_seed < seeds:
+            width = min(seeds - next_seed, max(1, -(-_MIN_BATCH // remaining.numel())))
+            problem = remaining.repeat(width)  # slot -> problem
+            number = torch.arange(next_seed, next_seed + width, device=device).repeat_interleave(remaining.numel())
+            if first is None:
+                q = pool[ranking[problem, number]].T.contiguous()
+            else:
+                from_pool_q = pool[ranking[problem, (number - 1).clamp_min(0)]]
+                q = torch.where((number == 0)[:, None], first[problem], from_pool_q).T.contiguous()
+            slot_tgt = tgt.take(problem)
+            slot_rest = None if rest_flat is None else rest_flat[problem].T.contiguous()
+            lam = torch.full((q.shape[1],), _LAMBDA0, dtype=dtype, device=device)
+            state = (q, *_evaluate(kin, q, slot_tgt, weight), lam)
+            for _ in range(-(-iterations // check_every)):
+                for _ in range(check_every):
+                    state = _lm_step(kin, state, slot_tgt, weight, lo, hi, slot_rest, rest_gain, lam_min, 1e4)
+                used.index_add_(0, problem, torch.full_like(problem, check_every))
+                q, _, _, E, pos_err, rot_err, _ = state
+                done = (pos_err <= 0.5 * pos_tol) & (rot_err <= 0.5 * rot_tol)
+                # Converged slots rank below every error, the lowest seed number first, so the
+                # answer does not depend on how many seeds ran side by side.
+                best_E = _keep_best(best_q, best_E, q, torch.where(done, (number - seeds).to(dtype), E), problem)
+                running = torch.full_like(best_E, seeds).scatter_reduce_(
+                    0, problem[~done], number[~done].to(dtype), "amin"
+                )
+                finished = (best_E < 0) & (best_E + seeds < running)  # no lower seed still running
+                keep = ~done & ~finished[problem]
+                if not keep.all():
+                    problem, number, slot_tgt = problem[keep], number[keep], slot_tgt.take(keep)
+                    state = tuple(s[..., keep] for s in state)
+                    slot_rest = None if slot_rest is None else slot_rest[:, keep]
+                if not problem.numel():
+                    break
+            next_seed += width
+            remaining = remaining[best_E[remaining] >= 0]
+
+        q_out = best_q.T.reshape(*batch, n)
+        return _result(chain, q_out, target, mode, pos_tol, rot_tol, used.reshape(batch))
+
+
+def _result(
+    chain: DHChain, q: Tensor, target: Tensor, mode: str, pos_tol: float, rot_tol: float, iterations: Tensor
+) -> IKResult:
+    """Errors and success from the public ``chain.fk`` of the returned ``q``."""
+    pose = chain.fk(q)
+    if mode == "pose":
+        pos_vec, rot_vec = so3.pose_error(pose, target)
+        rot_err = rot_vec.norm(dim=-1)
+    else:
+        pos_vec = target - pose[..., :3, 3]
+        rot_err = torch.zeros_like(pos_vec[..., 0])
+    pos_err = pos_vec.norm(dim=-1)
+    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    return IKResult(q=q, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
+
+
+# ---------------------------------------------------------------------- minimize
+def minimize(
+    chain: DHChain,
+    loss: Callable[[Tensor, Tensor], Tensor],
+    q0: Tensor,
+    *,
+    target: Tensor,
+    mode: Mode = "pose",
+    optimizer: Optimizer = "adam",
+    steps: int = 500,
+    lr: float | None = None,
+    pos_tol: float = 1e-4,
+    rot_tol: float = 1e-3,
+    success_fn: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> IKResult:
+    """IK by gradient descent on any differentiable loss, for a batch of problems.
+
+    Args:
+        chain: the robot.
+        loss: ``loss(q, pose) -> (...)``, one value per problem, from the joint angles
+            ``q (..., n)`` and the end-effector pose ``chain.fk(q) (..., 4, 4)``; it may call
+            ``chain.fk_all(q)`` for other links (e.g. to keep the elbow high).
+        q0: ``(..., n)`` starting joint angles (clamped into the limits); sets dtype and batch.
+        target: ``(..., 4, 4)`` poses (``mode="pose"``) or ``(..., 3)`` positions
+            (``mode="position"``) that define ``pos_err``, ``rot_err`` and ``success``; the
+            loss itself should contain the reaching term (the target is not added to it).
+        optimizer: ``"adam"`` (default; each problem is optimised independently, its step
+            size decays from ``lr`` to ``lr / 100``) or ``"lbfgs"`` (strong Wolfe line search
+            on the summed loss, so the batch shares one step length: best for small batches).
+        steps: optimiser steps (L-BFGS: iterations, with at most ``2 * steps`` evaluations).
+        lr: learning rate (default 0.1 rad for Adam, 1 for L-BFGS).
+        pos_tol, rot_tol: success tolerances, metres and radians.
+        success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion of the caller's
+            loss (e.g. "elbow above 0.5 m"); success needs it and the tolerances.
+
+    Joint limits are kept by projection: the loss sees ``chain.clamp`` of the parameters and
+    the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
+    seen; ``iterations`` is ``steps`` for every problem.
+    """
+    _check_choice(mode, get_args(Mode), "mode")
+    _check_choice(optimizer, get_args(Optimizer), "optimizer")
+    _check_positive(steps, "steps", integer=True)
+    for value, name in ((pos_tol, "pos_tol"), (rot_tol, "rot_tol")) + (() if lr is None else ((lr, "lr"),)):
+        _check_positive(value, name)
+    if not callable(loss) or (success_fn is not None and not callable(success_fn)):
+        raise TypeError("loss and success_fn must be callables (q, pose) -> tensor of shape q.shape[:-1]")
+    chain.check_q(q0, "q0")
+    batch = q0.shape[:-1]
+    _check_target(target, mode, q0.dtype, batch)
+
+    u = chain.clamp(q0.detach()).clone().requires_grad_(True)
+    if optimizer == "adam":
+        opt = torch.optim.Adam([u], lr=0.1 if lr is None else lr)
+        decay = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.01 ** (1 / steps))
+    else:
+        # One call runs every iteration: torch's L-BFGS keeps its history within a call.
+        opt = torch.optim.LBFGS(
+            [u],
+            lr=1.0 if lr is None else lr,
+            max_iter=steps,
+            max_eval=2 * steps,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=0.0,
+            tolerance_change=0.0,
+            history_size=20,
+        )
+        decay = None
+    best_q = u.detach().clone()
+    best_loss = torch.full(batch, math.inf, dtype=q0.dtype, device=q0.device)
+
+    def closure() -> Tensor:
+        nonlocal best_loss
+        opt.zero_grad()
+        q = chain.clamp(u)
+        value = loss(q, chain.fk(q))
+        if not isinstance(value, torch.Tensor) or value.shape != batch:
+            raise ValueError(
+                f"loss must return one value per problem, shape {tuple(batch)}, got {getattr(value, 'shape', value)}"
+            )
+        with torch.no_grad():  # every evaluated q is within limits, so any may be the answer
+            better = value < best_loss
+            best_q.copy_(torch.where(better[..., None], q, best_q))
+            best_loss = torch.where(better, value.detach(), best_loss)
+        value.sum().backward()
+        return value.sum()
+
+    for _ in range(steps if decay is not None else 1):
+        opt.step(closure)
+        with torch.no_grad():  # projection; a non-finite update (from the caller's loss) restarts from the best
+            u.copy_(chain.clamp(torch.where(torch.isfinite(u), u, best_q)))
+        if decay is not None:
+            decay.step()
+    with torch.no_grad():
+        q = chain.clamp(u)
+        value = loss(q, chain.fk(q))
+        best_q = torch.where((value < best_loss)[..., None], q, best_q)
+        iterations = torch.full(batch, steps, dtype=torch.long, device=q0.device)
+        result = _result(chain, best_q, target, mode, pos_tol, rot_tol, iterations)
+        if success_fn is None:
+            return result
+        extra = success_fn(best_q, chain.fk(best_q))
+        if not isinstance(extra, torch.Tensor) or extra.shape != batch:
+            raise ValueError(f"success_fn must return one bool per problem, shape {tuple(batch)}")
+        return IKResult(best_q, result.success & extra.bool(), result.pos_err, result.rot_err, iterations)

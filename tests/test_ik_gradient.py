@@ -1,0 +1,312 @@
+"""Gradient-based IK (iiwa_torch.ik.solve / minimize).
+
+Expected values come from the chain's own FK of random configurations (reachable targets by
+construction), from chain.jacobian / so3.pose_error (independent code paths for the solver's
+batch-last kernel), and from closed-form facts (reach of the arm, planar z).
+"""
+
+import math
+
+import pytest
+import torch
+
+from iiwa_torch import robots, so3
+from iiwa_torch.dh import DHChain
+from iiwa_torch.ik import IKResult, minimize, solve
+from iiwa_torch.ik.gradient import _evaluate, _Kinematics, _Target
+
+DTYPES = [torch.float64, torch.float32]
+
+
+def reachable(chain, count, seed, dtype=torch.float64):
+    """Targets: FK of random configurations within the limits (seeded)."""
+    q = chain.random_q(count, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return chain.fk(q).to(dtype), q.to(dtype)
+
+
+def target_layout(pose):
+    return _Target(pose[:, :3, :3].permute(2, 1, 0).contiguous(), pose[:, :3, 3].T.contiguous())
+
+
+# ---------------------------------------------------------------- the solver's kernel
+@pytest.mark.parametrize("name", list(robots.PRESETS))
+def test_kernel_matches_chain_jacobian_and_pose_error(name):
+    chain = robots.PRESETS[name]()
+    q = chain.random_q(64, generator=torch.Generator().manual_seed(0))
+    target, _ = reachable(chain, 64, 1)
+    J, e, E, pos, rot = _evaluate(_Kinematics(chain, q.dtype, q.device), q.T.contiguous(), target_layout(target), 0.5)
+    ref_J = chain.jacobian(q)
+    ref_pos, ref_rot = so3.pose_error(chain.fk(q), target)
+    scale = torch.tensor([1, 1, 1, 0.5, 0.5, 0.5], dtype=q.dtype)
+    torch.testing.assert_close(J.permute(2, 0, 1), ref_J * scale[:, None], atol=1e-12, rtol=0)
+    torch.testing.assert_close(e.T, torch.cat([ref_pos, ref_rot], -1) * scale, atol=1e-9, rtol=0)
+    torch.testing.assert_close(pos, ref_pos.norm(dim=-1), atol=1e-12, rtol=0)
+    torch.testing.assert_close(rot, ref_rot.norm(dim=-1), atol=1e-9, rtol=0)
+    torch.testing.assert_close(E, pos.square() + 0.25 * rot.square())
+
+
+def test_kernel_handles_modified_dh_base_and_tool():
+    tool = torch.eye(4, dtype=torch.float64)
+    tool[:3, :3] = so3.exp(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64))
+    tool[:3, 3] = torch.tensor([0.01, 0.02, 0.1])
+    base = torch.eye(4, dtype=torch.float64)
+    base[:3, :3] = so3.exp(torch.tensor([0.0, 0.0, 0.7], dtype=torch.float64))
+    base[:3, 3] = torch.tensor([0.5, -0.2, 0.1])
+    table = [(0, 0, 0.3, 0), (0.1, -math.pi / 2, 0, 0.2), (0.4, 0.3, 0.05, 0), (0.02, math.pi / 2, 0.35, 0)]
+    chain = DHChain(table, convention="modified", base=base, tool=tool)
+    q = chain.random_q(32, generator=torch.Generator().manual_seed(2))
+    target, _ = reachable(chain, 32, 3)
+    J, e, _, _, _ = _evaluate(_Kinematics(chain, q.dtype, q.device), q.T.contiguous(), target_layout(target), 1.0)
+    torch.testing.assert_close(J.permute(2, 0, 1), chain.jacobian(q), atol=1e-12, rtol=0)
+    torch.testing.assert_close(e.T, torch.cat(so3.pose_error(chain.fk(q), target), -1), atol=1e-9, rtol=0)
+
+
+# ---------------------------------------------------------------- success on reachable targets
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_iiwa_pose_success_rate(dtype):
+    # 2,000 seeded reachable poses. The issue's bar is >= 99.9 % success: we allow 2 failures
+    # (99.9 %); the benchmark measures the rate on 10,000.
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 2000, 10, dtype)
+    result = solve(chain, target)
+    assert isinstance(result, IKResult)
+    assert result.q.dtype == dtype and result.q.shape == (2000, 7)
+    assert int((~result.success).sum()) <= 2
+    assert chain.within_limits(result.q).all()
+    # success is what FK of the returned q says, at 0.1 mm / 1 mrad
+    pos, rot = so3.pose_error(chain.fk(result.q), target)
+    assert torch.equal(result.success, (pos.norm(dim=-1) <= 1e-4) & (rot.norm(dim=-1) <= 1e-3))
+    assert (result.iterations > 0).all()
+
+
+@pytest.mark.parametrize("name", list(robots.PRESETS))
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_position_only_always_succeeds(name, dtype):
+    chain = robots.PRESETS[name]()
+    target, _ = reachable(chain, 300, 11, dtype)
+    result = solve(chain, target[:, :3, 3], mode="position")
+    assert result.success.all()
+    assert chain.within_limits(result.q).all()
+    assert (result.rot_err == 0).all()
+
+
+@pytest.mark.parametrize("name", ["puma560", "lrmate200ic", "iiwa7"])
+def test_other_arms_full_pose(name):
+    # 6-DOF arms have at most 8 branches and the joint limits cut some: more seeds.
+    chain = robots.PRESETS[name]()
+    target, _ = reachable(chain, 300, 12)
+    result = solve(chain, target, seeds=32)
+    assert result.success.double().mean() >= 0.99
+    assert chain.within_limits(result.q).all()
+
+
+def test_planar3r_position_targets_in_its_plane():
+    chain = robots.planar3r()
+    target, _ = reachable(chain, 200, 13)
+    assert torch.all(target[:, 2, 3] == 0)  # the arm moves in z = 0
+    result = solve(chain, target[:, :3, 3], mode="position")
+    assert result.success.all()
+    # a target off the plane cannot be reached: best effort, no NaN
+    off = target[:, :3, 3] + torch.tensor([0.0, 0.0, 0.2], dtype=torch.float64)
+    result = solve(chain, off, mode="position", seeds=2)
+    assert not result.success.any()
+    assert torch.isfinite(result.q).all()
+    torch.testing.assert_close(result.pos_err.min(), torch.tensor(0.2, dtype=torch.float64), atol=1e-6, rtol=0)
+
+
+# ---------------------------------------------------------------- unreachable and singular
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_unreachable_targets_give_finite_best_effort(dtype):
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 64, 14, dtype)
+    far = target.clone()
+    far[:, :3, 3] *= 5 / far[:, :3, 3].norm(dim=-1, keepdim=True)  # 5 m away: reach is 1.306 m
+    result = solve(chain, far, seeds=3, iterations=8)
+    assert not result.success.any()
+    for value in (result.q, result.pos_err, result.rot_err):
+        assert torch.isfinite(value).all()
+    assert chain.within_limits(result.q).all()
+    assert (result.pos_err >= 5 - 1.306).all()  # the flange is at most 1.306 m from the base
+    # Position only, the best effort is the arm stretched toward the target: the miss is the
+    # target's distance from the shoulder (0, 0, 0.36) minus the arm's length 0.946 m, unless
+    # the joint limits forbid pointing straight at it.
+    result = solve(chain, far[:, :3, 3], mode="position", seeds=2, iterations=40)
+    shoulder = torch.tensor([0.0, 0.0, 0.36], dtype=dtype)
+    bound = (far[:, :3, 3] - shoulder).norm(dim=-1) - 0.946
+    tol = 1e-9 if dtype == torch.float64 else 1e-5
+    assert (result.pos_err >= bound - tol).all()
+    assert ((result.pos_err - bound) < 1e-4).double().mean() >= 0.9
+
+
+def test_unreachable_orientation():
+    # A position at full reach straight up, but the flange pointing down: impossible.
+    chain = robots.iiwa14()
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[2, 3] = 1.306
+    pose[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    result = solve(chain, pose[None], seeds=4)
+    assert not result.success.any()
+    assert torch.isfinite(result.q).all() and torch.isfinite(result.rot_err).all()
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_singular_seeds_and_targets(dtype):
+    chain = robots.iiwa14()
+    q = chain.random_q(200, generator=torch.Generator().manual_seed(15), dtype=dtype)
+    q[:100, 3] = 0  # stretched elbow
+    q[100:, 5] = 0  # aligned wrist
+    target = chain.fk(q)
+    # start every problem at the fully singular zero posture (q4 = q6 = 0, arm straight up)
+    result = solve(chain, target, torch.zeros(7, dtype=dtype), seeds=6)
+    assert torch.isfinite(result.q).all()
+    assert result.success.double().mean() >= 0.99
+    # the straight-up pose itself, from a singular seed
+    up = chain.fk(torch.zeros(1, 7, dtype=dtype))
+    result = solve(chain, up, torch.zeros(7, dtype=dtype), seeds=1)
+    assert result.success.all() and torch.isfinite(result.q).all()
+
+
+def test_minimize_gradients_finite_at_singularity():
+    chain = robots.iiwa14()
+    goal = chain.fk(chain.random_q(4, generator=torch.Generator().manual_seed(16)))
+
+    loss = pose_loss(goal)
+    q0 = torch.zeros(4, 7, dtype=torch.float64, requires_grad=True)
+    value = loss(q0, chain.fk(q0)).sum()
+    (grad,) = torch.autograd.grad(value, q0)
+    assert torch.isfinite(grad).all()
+    result = minimize(chain, loss, torch.zeros(4, 7, dtype=torch.float64), target=goal, steps=50)
+    assert torch.isfinite(result.q).all()
+
+
+# ---------------------------------------------------------------- batching, seeds, null space
+def test_batched_equals_looped():
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 1200, 17)
+    batched = solve(chain, target)
+    for i in range(0, 1200, 100):
+        single = solve(chain, target[i : i + 1])
+        torch.testing.assert_close(single.q[0], batched.q[i], atol=1e-9, rtol=0)
+        assert bool(single.success[0]) == bool(batched.success[i])
+
+
+def test_batch_shape_and_q0_broadcast():
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 12, 18)
+    result = solve(chain, target.reshape(3, 4, 4, 4), torch.zeros(7, dtype=torch.float64))
+    assert result.q.shape == (3, 4, 7) and result.success.shape == (3, 4)
+    assert result.pos_err.shape == (3, 4) and result.iterations.shape == (3, 4)
+
+
+def test_q0_near_solution_is_kept():
+    # Tracking: a seed next to a solution converges to that solution, not another branch.
+    chain = robots.iiwa14()
+    target, q_true = reachable(chain, 300, 19)
+    q0 = chain.clamp(q_true + 0.01)
+    result = solve(chain, target, q0)
+    assert result.success.all()
+    assert (result.q - q_true).abs().max() < 0.05
+
+
+def test_rest_posture_pull_uses_the_null_space():
+    # Another solution of the same poses: move along the Jacobian's null space (SVD) and
+    # project back. Pulled toward it, the solver must land near it instead of near q0.
+    chain = robots.iiwa14()
+    target, q_true = reachable(chain, 300, 20)
+    null = torch.linalg.svd(chain.jacobian(q_true)).Vh[:, -1]  # (300, 7) self-motion direction
+    other = solve(chain, target, chain.clamp(q_true + 0.4 * null), seeds=1)
+    ok = other.success  # (a few starts are cut by the joint limits)
+    assert ok.sum() >= 280
+    target, q0, rest = target[ok], chain.clamp(q_true[ok] + 0.02), other.q[ok]
+    plain = solve(chain, target, q0)
+    pulled = solve(chain, target, q0, rest=rest, rest_gain=0.5)
+    assert plain.success.all() and pulled.success.all()
+    dist_plain = (plain.q - rest).norm(dim=-1).mean()
+    dist_pulled = (pulled.q - rest).norm(dim=-1).mean()
+    assert dist_plain > 0.3 and dist_pulled < 0.2 * dist_plain
+
+
+def test_generator_makes_seeds_reproducible():
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 200, 21)
+    a = solve(chain, target, generator=torch.Generator().manual_seed(3))
+    b = solve(chain, target, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a.q, b.q)
+
+
+# ---------------------------------------------------------------- minimize
+def test_minimize_reaches_point_and_keeps_elbow_high():
+    chain = robots.iiwa14()
+    goal = torch.tensor([[0.5, 0.1, 0.4], [0.3, -0.4, 0.6], [-0.4, 0.3, 0.3], [0.6, 0.0, 0.8]], dtype=torch.float64)
+    start = solve(chain, goal, mode="position").q  # reaches, elbow anywhere
+
+    def elbow_height(q):
+        return chain.fk_all(q)[..., 4, 2, 3]  # frame 4: the elbow (wrist-side of joint 4)
+
+    def loss(q, pose):
+        return (pose[..., :3, 3] - goal).square().sum(-1) + torch.relu(0.7 - elbow_height(q)).square()
+
+    result = minimize(
+        chain, loss, start, target=goal, mode="position", success_fn=lambda q, pose: elbow_height(q) >= 0.7 - 1e-3
+    )
+    assert result.success.all()
+    assert result.success.all()  # reached within 0.1 mm, elbow above 0.7 m
+    # the custom term went down: solve's answer had one elbow at 0.18 m
+    assert elbow_height(start).min() < 0.5
+    assert (elbow_height(result.q) > torch.minimum(elbow_height(start), torch.tensor(0.699))).all()
+    assert chain.within_limits(result.q).all()
+
+
+def pose_loss(goal, rot_weight=0.1):
+    def loss(q, pose):
+        pos, rot = so3.pose_error(pose, goal)
+        return pos.square().sum(-1) + rot_weight * rot.square().sum(-1)
+
+    return loss
+
+
+def test_minimize_batched_equals_looped_with_adam():
+    chain = robots.iiwa14()
+    target, q_true = reachable(chain, 6, 22)
+    q0 = chain.clamp(q_true + 0.2)
+    batched = minimize(chain, pose_loss(target), q0, target=target, steps=60)
+    for i in range(6):
+        goal = target[i : i + 1]
+        single = minimize(chain, pose_loss(goal), q0[i : i + 1], target=goal, steps=60)
+        torch.testing.assert_close(single.q[0], batched.q[i], atol=1e-9, rtol=0)
+
+
+def test_minimize_lbfgs_reaches_a_pose():
+    chain = robots.iiwa14()
+    target, q_true = reachable(chain, 1, 23)
+
+    result = minimize(
+        chain, pose_loss(target, 1.0), chain.clamp(q_true + 0.3), target=target, optimizer="lbfgs", steps=100
+    )
+    assert result.success.all()
+
+
+# ---------------------------------------------------------------- input errors
+def test_input_errors():
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 2, 24)
+    with pytest.raises(ValueError, match="mode"):
+        solve(chain, target, mode="orientation")
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        solve(chain, target, mode="position")
+    with pytest.raises(ValueError, match=r"\(\.\.\., 4, 4\)"):
+        solve(chain, target[:, :3])
+    with pytest.raises(ValueError, match="NaN"):
+        solve(chain, target * float("nan"))
+    with pytest.raises(ValueError, match="q0"):
+        solve(chain, target, torch.zeros(3, 7, dtype=torch.float64))
+    with pytest.raises(ValueError, match="seeds"):
+        solve(chain, target, seeds=0)
+    with pytest.raises(ValueError, match="pos_tol"):
+        solve(chain, target, pos_tol=-1.0)
+    with pytest.raises(ValueError, match="rest_gain"):
+        solve(chain, target, rest=torch.zeros(7, dtype=torch.float64), rest_gain=2.0)
+    with pytest.raises(ValueError, match="optimizer"):
+        minimize(chain, lambda q, p: q.sum(-1), torch.zeros(2, 7, dtype=torch.float64), target=target, optimizer="sgd")
+    with pytest.raises(ValueError, match="one value per problem"):
+        minimize(chain, lambda q, p: q.sum(), torch.zeros(2, 7, dtype=torch.float64), target=target, steps=2)
