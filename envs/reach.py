@@ -148,6 +148,7 @@ class IiwaReachEnv(gym.Env):
         self._figure = None
         self._image = None
 
+    @torch.inference_mode()
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start an episode. ``reset(seed=s)`` makes the following episodes reproducible."""
         super().reset(seed=seed)
@@ -169,6 +170,7 @@ class IiwaReachEnv(gym.Env):
         info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), float(tr.angle[0]))
         return {k: v[0] for k, v in tr.obs.items()}, info
 
+    @torch.inference_mode()
     def step(self, action):
         """Apply one joint-velocity command ``(7,)``; see the class docstring."""
         if self._state is None:
@@ -255,6 +257,7 @@ class IiwaReachVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._state: ReachState | None = None
 
+    @torch.inference_mode()
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
         """Reset every environment; ``seed=s`` seeds environment ``i`` with ``s + i``."""
         if options:
@@ -278,6 +281,7 @@ class IiwaReachVectorEnv(VectorEnv):
         tr = self.task.unpack(self.task.pack(self._state, self.task.status(self._state)).cpu().numpy())
         return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle)
 
+    @torch.inference_mode()
     def step(self, actions):
         """Step all environments with ``(num_envs, 7)`` actions; finished ones restart in the same step."""
         if self._state is None:

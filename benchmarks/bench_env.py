@@ -1,0 +1,150 @@
+"""Random-action env-steps per second: the iiwa reaching envs against panda-gym and FetchReach, one run.
+
+    python benchmarks/bench_env.py [--quick]
+
+Measured in the same run, each with pre-drawn uniform random actions and a reset when an
+episode ends (the vector envs reset themselves):
+
+- ``IiwaReach-v0`` through ``gymnasium.make`` (one arm per call, with gymnasium's wrappers);
+- ``IiwaReachVectorEnv`` (``gymnasium.make_vec``) at N = 1, 256, 4,096, 65,536 arms per call;
+- ``envs.sb3.IiwaReachVecEnv`` (the stable-baselines3 VecEnv) at N = 256 and 4,096;
+- panda-gym ``PandaReach-v3`` (PyBullet) and gymnasium-robotics ``FetchReach-v4`` (MuJoCo),
+  if installed: ``pip install panda-gym gymnasium-robotics "mujoco<3.3"`` (gymnasium-robotics
+  1.4.2 fails with MuJoCo >= 3.3 on this machine).
+
+Prints a table with the targets of the issue; writes results/env.json and results/env.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import warnings
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from common import machine, markdown_table, save, timeit  # noqa: E402
+
+import envs  # noqa: E402, F401  (registers the ids)
+from envs.sb3 import IiwaReachVecEnv  # noqa: E402
+
+VECTOR_SIZES = [1, 256, 4_096, 65_536]
+SB3_SIZES = [256, 4_096]
+N_ACTIONS = 16  # distinct pre-drawn action batches, cycled
+
+
+def single_env_runner(env: gym.Env, seed: int = 0):
+    """One ``step`` per call, with a ``reset`` when the episode ends."""
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    low, high = env.action_space.low, env.action_space.high
+    actions = rng.uniform(low, high, size=(N_ACTIONS, *env.action_space.shape)).astype(env.action_space.dtype)
+    state = {"i": 0}
+
+    def step():
+        state["i"] = (state["i"] + 1) % N_ACTIONS
+        _, _, terminated, truncated, _ = env.step(actions[state["i"]])
+        if terminated or truncated:
+            env.reset()
+
+    return step
+
+
+def batched_runner(step_fn, n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    actions = rng.uniform(-1, 1, size=(N_ACTIONS, n, 7)).astype(np.float32)
+    state = {"i": 0}
+
+    def step():
+        state["i"] = (state["i"] + 1) % N_ACTIONS
+        step_fn(actions[state["i"]])
+
+    return step
+
+
+def peers() -> dict[str, gym.Env]:
+    found = {}
+    try:
+        import panda_gym  # noqa: F401
+
+        found["panda-gym PandaReach-v3"] = gym.make("PandaReach-v3")
+    except ImportError:
+        print("panda-gym not installed: skipped")
+    try:
+        import gymnasium_robotics
+
+        gym.register_envs(gymnasium_robotics)
+        env = gym.make("FetchReach-v4")
+        env.reset(seed=0)
+        found["gymnasium-robotics FetchReach-v4"] = env
+    except Exception as exc:  # ImportError, or a MuJoCo version it does not support
+        print(f"gymnasium-robotics FetchReach-v4 unavailable: {type(exc).__name__}: {exc}")
+    return found
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="small sizes, short timings (a smoke run)")
+    args = parser.parse_args()
+    vector_sizes = [n for n in VECTOR_SIZES if n <= 4_096] if args.quick else VECTOR_SIZES
+    timing = {"min_time": 0.05, "repeats": 3} if args.quick else {"min_time": 1.0, "repeats": 5}
+    warnings.filterwarnings("ignore")
+    results = []  # (name, arms per call, seconds per call)
+
+    def record(name: str, n: int, fn) -> float:
+        seconds = timeit(fn, **timing)
+        results.append((name, n, seconds))
+        print(f"{name:<40} N={n:>6}  {n / seconds:>14,.0f} env-steps/s  {seconds * 1e6:>10,.1f} us/call", flush=True)
+        return seconds
+
+    for name, env in peers().items():
+        record(name, 1, single_env_runner(env))
+    single = record("IiwaReach-v0 (gymnasium.make)", 1, single_env_runner(gym.make("IiwaReach-v0")))
+    raw = {}
+    for n in vector_sizes:
+        vec = gym.make_vec("IiwaReach-v0", num_envs=n)
+        vec.reset(seed=0)
+        raw[n] = record("IiwaReachVectorEnv (make_vec)", n, batched_runner(vec.step, n))
+    sb3 = {}
+    for n in SB3_SIZES:
+        venv = IiwaReachVecEnv(n, "IiwaReach-v0", seed=0)
+        venv.reset()
+        sb3[n] = record("envs.sb3.IiwaReachVecEnv", n, batched_runner(venv.step, n))
+
+    panda = next((s for name, n, s in results if name.startswith("panda-gym")), None)
+    checks = {
+        "single env >= 10x PandaReach-v3 steps/s": None if panda is None else panda / single,
+        "vector env env-steps/s at N=65,536 (target 5,000,000)": (
+            65_536 / raw[65_536] if 65_536 in raw else None
+        ),
+        "SB3 VecEnv / vector env time per step at N=256 (target <= 2)": sb3[256] / raw[256],
+    }
+    rows = []
+    for name, n, seconds in results:
+        ratio = "" if panda is None else f"{(n / seconds) * panda:,.1f}x"
+        rows.append([name, f"{n:,}", f"{n / seconds:,.0f}", f"{seconds * 1e6:,.1f}", ratio])
+    md = markdown_table(["env", "arms per call", "env-steps/s", "µs per call", "vs PandaReach-v3"], rows)
+    md += "\n" + markdown_table(
+        ["target", "measured"], [[k, "n/a" if v is None else f"{v:,.2f}"] for k, v in checks.items()]
+    )
+    info = machine()
+    md += f"\nMachine: {info}\n"
+    print("\n" + md)
+    payload = {
+        "machine": info,
+        "torch_threads": torch.get_num_threads(),
+        "quick": args.quick,
+        "results": [
+            {"env": name, "num_envs": n, "seconds_per_call": s, "env_steps_per_s": n / s} for name, n, s in results
+        ],
+        "checks": checks,
+    }
+    path = save("env_quick" if args.quick else "env", payload, md)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
