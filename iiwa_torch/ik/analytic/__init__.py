@@ -1,13 +1,19 @@
 """Closed-form inverse kinematics, batched and differentiable, returning every branch.
 
-- :func:`planar3r`: planar 3R arm, 2 branches;
+- :func:`iiwa`: KUKA LBR iiwa (7R) for given arm angles, 8 branches per angle;
+  :func:`iiwa_arm_angle` the arm angle of a configuration; :func:`iiwa_solve` sweeps the
+  arm angle and returns one solution per pose as an :class:`~iiwa_torch.ik.IKResult`;
+- :func:`iiwa_q3_locked`: the iiwa with joint 3 held fixed, 8 branches;
 - :func:`pieper`: 6R arms with a spherical wrist (PUMA 560, LR Mate 200iC), 8 branches;
+- :func:`planar3r`: planar 3R arm, 2 branches.
 
-Each returns :class:`AnalyticSolutions` ``(q, valid, reachable, within_limits)``.
+Each multi-branch solver returns :class:`AnalyticSolutions` ``(q, valid, reachable,
+within_limits)``. See docs/analytic_ik.md.
 """
 
 from ._common import AnalyticSolutions
-from .pieper import pieper
 from .planar import planar3r
+from .spherical6r import pieper
+from .srs import iiwa, iiwa_arm_angle, iiwa_q3_locked, iiwa_solve
 
-__all__ = ["AnalyticSolutions", "pieper", "planar3r"]
+__all__ = ["AnalyticSolutions", "iiwa", "iiwa_arm_angle", "iiwa_q3_locked", "iiwa_solve", "pieper", "planar3r"]

@@ -30,7 +30,8 @@ class AnalyticSolutions:
     """Every branch of a closed-form IK, for a batch of targets with leading shape ``(...)``.
 
     Attributes:
-        q: ``(..., B, n)`` joint angles (radians) of the ``B`` branches, each joint wrapped
+        q: ``(..., B, n)`` joint angles (radians) of the ``B`` branches (a view with each
+            joint's values contiguous in memory; ``.contiguous()`` it if needed), each joint wrapped
             into its limits when a turn of 2 pi gets it there (else into ``(-pi, pi]``).
             Always finite; meaningful only where ``reachable``.
         valid: ``(..., B)`` bool, ``reachable & within_limits``.
@@ -176,13 +177,34 @@ def last_frame_target(chain: DHChain, target: Tensor) -> Tensor:
 
 
 # ---------------------------------------------------------------- joint limits
-def finish(chain: DHChain, theta: Tensor, reachable: Tensor) -> AnalyticSolutions:
-    """DH angles ``theta (..., B, n)`` -> joint angles minus offsets, wrapped into the limits."""
-    q = theta - chain.dh[:, 3].to(theta)
-    q = torch.remainder(q + math.pi, _TWO_PI) - math.pi  # [-pi, pi)
-    lim = chain.limits.to(q)
-    up, down = q + _TWO_PI, q - _TWO_PI
-    q = torch.where((q < lim[0]) & (up <= lim[1]), up, q)
-    q = torch.where((q > lim[1]) & (down >= lim[0]), down, q)
-    inside = chain.within_limits(q)
-    return AnalyticSolutions(q=q, valid=reachable & inside, reachable=reachable, within_limits=inside)
+def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int) -> AnalyticSolutions:
+    """DH angles -> :class:`AnalyticSolutions`.
+
+    ``thetas`` holds one tensor per joint, each broadcastable to the common shape
+    ``(..., b_1, ..., b_m)`` whose last ``m = branch_dims`` dims index the branch signs (a
+    joint that does not depend on a sign has size 1 there, so it is wrapped and checked
+    once, not once per branch). Each joint gets its offset removed, is wrapped into
+    ``[-pi, pi)`` and then shifted by 2 pi if that brings it within its limits.
+    ``reachable`` broadcasts to the common shape too. Returns ``q (..., B, n)``.
+    """
+    offsets = chain.dh[:, 3].tolist()
+    lows, highs = chain.limits.tolist()
+    qs, inside = [], []
+    for theta, off, lo, hi in zip(thetas, offsets, lows, highs):
+        q = torch.remainder(theta - (off - math.pi), _TWO_PI) - math.pi
+        if lo < -math.pi:  # a turn up may get it inside
+            q = torch.where((q < lo) & (q + _TWO_PI <= hi), q + _TWO_PI, q)
+        if hi >= math.pi:
+            q = torch.where((q > hi) & (q - _TWO_PI >= lo), q - _TWO_PI, q)
+        qs.append(q)
+        inside.append((q >= lo) & (q <= hi))
+    shape = torch.broadcast_shapes(*(q.shape for q in qs), reachable.shape)
+    within = inside[0]
+    for ok in inside[1:]:
+        within = within & ok
+    # Joint-major memory (each joint's values contiguous, as chain.fk wants them): q is a
+    # non-contiguous view; the branch dims flatten without a copy.
+    q = torch.stack([q.expand(shape) for q in qs], 0).movedim(0, -1).flatten(-1 - branch_dims, -2)
+    within = within.expand(shape).flatten(-branch_dims)
+    reachable = reachable.expand(shape).flatten(-branch_dims)
+    return AnalyticSolutions(q=q, valid=reachable & within, reachable=reachable, within_limits=within)

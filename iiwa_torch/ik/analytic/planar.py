@@ -76,5 +76,4 @@ def planar3r(chain: DHChain, x, y, phi) -> AnalyticSolutions:
     theta2 = torch.atan2(s2, c2)
     theta1 = safe_atan2(wy, wx)[..., None] - safe_atan2(a2 * s2, a1 + a2 * c2)
     theta3 = h[..., None] - theta1 - theta2
-    theta = torch.stack([theta1, theta2, theta3], -1)  # (..., 2, 3)
-    return finish(chain, theta, ok[..., None].expand_as(theta2))
+    return finish(chain, [theta1, theta2, theta3], ok[..., None], branch_dims=1)

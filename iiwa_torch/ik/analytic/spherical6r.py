@@ -105,17 +105,14 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
     c_el = c_el[..., None].expand_as(s_el)
     theta3 = torch.atan2(s_el, c_el) - gamma
     theta2 = safe_atan2(py, px)[..., None] - safe_atan2(link3 * s_el, a2 + link3 * c_el)
-    theta1 = theta1[..., None].expand_as(theta2)
 
     # Wrist: R_03^T R_06 Rz(-theta6)... = Rz(theta4) Rx(alpha4) Rz(theta5) Rx(alpha5) Rz(theta6).
-    r03 = _r03(theta1, theta2 + theta3, s1, s3)  # (..., 2, 2, 3, 3)
+    r03 = _r03(theta1[..., None].expand_as(theta2), theta2 + theta3, s1, s3)  # (..., 2, 2, 3, 3)
     m = r03.transpose(-1, -2) @ frame5[..., None, None, :3, :3]
     theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5)  # (..., 2, 2, 2)
-    expand = theta4.shape
-    arm = [t[..., None].expand(expand) for t in (theta1, theta2, theta3)]
-    theta = torch.stack([*arm, theta4, theta5, theta6], -1).flatten(-4, -2)  # (..., 8, 6)
-    reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None].expand(expand).flatten(-3)
-    return finish(chain, theta, reachable)
+    thetas = [theta1[..., None, None], theta2[..., None], theta3[..., None], theta4, theta5, theta6]
+    reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None]
+    return finish(chain, thetas, reachable, branch_dims=3)
 
 
 def _r03(theta1: Tensor, theta23: Tensor, s1: float, s3: float) -> Tensor:

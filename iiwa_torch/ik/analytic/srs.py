@@ -1,0 +1,310 @@
+"""Closed-form IK of the KUKA LBR iiwa (7R, shoulder-elbow-wrist with spherical shoulder
+and wrist): every branch for a given arm angle, the arm angle of a configuration, a
+solver that sweeps the arm angle, and the 6-DOF variant with joint 3 locked (seed 002).
+
+Structure (standard DH rows ``(a, alpha, d, offset)``, read from the chain): all ``a = 0``;
+twists ``+-pi/2`` on rows 1-6; ``d_2 = d_4 = d_6 = 0``; ``d_1`` the shoulder height,
+``d_3 > 0`` upper arm, ``d_5 > 0`` forearm; row 7 (flange) and the tool are arbitrary.
+The shoulder ``S = (0, 0, d_1)`` (frame 0), elbow ``E`` (origin of frame 3) and wrist
+``W`` (origin of frame 5) are joint-axis intersections.
+
+**Arm angle** ``psi``. Let ``u`` be the unit vector from ``S`` to ``W``. The *reference
+plane* is the plane through ``S`` and ``W`` that contains the base z axis (the vertical
+plane through the shoulder-wrist line): it is where the elbow lies whenever ``q3 = 0`` or
+``q3 = pi``. Its in-plane unit normal to ``u`` pointing up is
+``v_ref = (-u_z cos b, -u_z sin b, sqrt(u_x^2 + u_y^2))`` with ``b = atan2(u_y, u_x)``, and
+``w_ref = u x v_ref = (sin b, -cos b, 0)``. The elbow lies on a circle about the line
+``SW``; ``psi`` is the angle of ``E - S`` about ``u`` (right hand), measured from ``v_ref``:
+``psi = atan2((E - S).w_ref, (E - S).v_ref)``. So ``psi = 0`` is "elbow up" in the vertical
+plane, ``psi = pi`` "elbow down", and one ``psi`` is one elbow position, shared by all 8
+branches. If ``SW`` is vertical, ``b = 0`` (the reference plane is the base xz plane).
+
+**Branches** at a given ``psi``: ``k = 4 shoulder + 2 elbow + wrist``, 0 for the first
+sign: ``sin(theta_2) >= 0``, ``sin(theta_4) >= 0``, ``sin(theta_6) >= 0`` (``theta = q +
+offset``; the iiwa's offsets are 0, so these are the signs of q2, q4, q6).
+
+Method: ``|SW|`` fixes ``theta_4`` (law of cosines); ``psi`` fixes the elbow and with it
+``R_03``, built from the upper-arm direction and the normal of the ``S, E, W`` plane (no
+division by ``sin theta_4``); ``R_03`` and ``R_04^T R_06`` are then split into the
+shoulder and wrist angles as ``Rz Rx Rz Rx Rz`` products.
+
+Singularities (finite values, not errors): arm stretched (``theta_4 = 0``; ``psi`` is then
+undefined and :func:`iiwa_arm_angle` returns 0), ``SW`` along the base z axis (see above),
+shoulder or wrist aligned (``sin theta_2 = 0`` or ``sin theta_6 = 0``: only the sum or
+difference of the neighbouring angles is determined; the first is set to 0 there and the
+pose is still reproduced exactly).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ...dh import DHChain
+from ...so3 import pose_error
+from ..result import IKResult
+from ._common import (
+    AnalyticSolutions,
+    acos_pair,
+    check_chain,
+    check_target,
+    decompose_zxzxz,
+    finish,
+    last_frame_target,
+    reach_tol,
+    rot_x_const,
+    rot_z,
+    safe_atan2,
+    safe_norm2,
+    sigma,
+)
+
+__all__ = ["iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
+
+Tensor = torch.Tensor
+
+_ROWS = [
+    {"a0": True, "perp": True},
+    {"a0": True, "d0": True, "perp": True},
+    {"a0": True, "d+": True, "perp": True},
+    {"a0": True, "d0": True, "perp": True},
+    {"a0": True, "d+": True, "perp": True},
+    {"a0": True, "d0": True, "perp": True},
+    {},
+]
+
+
+class _Geometry:
+    """The chain's constants for the closed form (checked on construction)."""
+
+    def __init__(self, chain: DHChain) -> None:
+        rows = check_chain(chain, 7, _ROWS, "iiwa (S-R-S)")
+        self.d1, self.d3, self.d5 = rows[0][2], rows[2][2], rows[4][2]
+        self.sig = [sigma(row[1]) for row in rows[:6]]  # sin(alpha_1..6)
+
+
+def _frames(chain: DHChain, target: Tensor) -> tuple[Tensor, Tensor]:
+    """``(R, sw)``: the rotation of ``T_06 Rz(theta7)`` ``(..., 3, 3)`` and ``W - S`` ``(..., 3)``."""
+    check_target(chain, target)
+    frame6 = last_frame_target(chain, target)
+    sw = frame6[..., :3, 3] - torch.tensor([0.0, 0.0, float(chain.dh[0, 2])], dtype=target.dtype, device=target.device)
+    return frame6[..., :3, :3], sw
+
+
+def _elbow(geo: _Geometry, sw: Tensor, tol: float) -> tuple[Tensor, Tensor]:
+    """``theta_4`` for both elbow branches ``(..., 2)`` and whether ``W`` is in reach ``(...)``."""
+    dist2 = (sw * sw).sum(-1)
+    c4 = -geo.sig[2] * geo.sig[3] * (dist2 - geo.d3**2 - geo.d5**2) / (2 * geo.d3 * geo.d5)
+    c4, s4_abs, ok = acos_pair(c4, tol)
+    s4 = s4_abs[..., None] * torch.tensor([1.0, -1.0], dtype=sw.dtype, device=sw.device)
+    return torch.atan2(s4, c4[..., None].expand_as(s4)), ok
+
+
+def _reference(u: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit ``u (..., 3)`` along ``SW`` -> ``(v_ref, w_ref)``, each ``(..., 3)`` (module doc)."""
+    ux, uy, uz = u.unbind(-1)
+    b = safe_atan2(uy, ux)
+    cb, sb = torch.cos(b), torch.sin(b)
+    rho = safe_norm2(ux, uy)
+    v_ref = torch.stack([-uz * cb, -uz * sb, rho], -1)
+    w_ref = torch.stack([sb, -cb, torch.zeros_like(cb)], -1)
+    return v_ref, w_ref
+
+
+def _split(geo: _Geometry, r03: Tensor, theta4: Tensor, rot: Tensor) -> list[Tensor]:
+    """Shoulder ``R_03 (..., 2, 3, 3)`` and ``theta_4 (..., 2)`` of both elbow branches and
+    ``R_06 Rz(theta7) (..., 3, 3)`` -> the 7 joint angles, each broadcastable to
+    ``(..., 2 shoulder, 2 elbow, 2 wrist)``."""
+    sig = geo.sig
+    # R_03 Rx(alpha3)^T = Rz(theta1) Rx(alpha1) Rz(theta2) Rx(alpha2) Rz(theta3)
+    t1, t2, t3 = decompose_zxzxz(r03 @ rot_x_const(sig[2], rot.dtype, rot.device).T, sig[0], sig[1])  # (..., E, 2)
+    # R_03 does not depend on the shoulder branch: one R_04 per elbow branch.
+    r04 = r03 @ rot_z(theta4) @ rot_x_const(sig[3], rot.dtype, rot.device)  # (..., E, 3, 3)
+    m = r04.transpose(-1, -2) @ rot[..., None, :, :]
+    t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., E, 2)
+    shoulder = [t.transpose(-1, -2)[..., None] for t in (t1, t2, t3)]
+    return [*shoulder, theta4[..., None, :, None], *(t[..., None, :, :] for t in (t5, t6, t7))]
+
+
+def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
+    """All 8 IK branches of an iiwa-like 7R arm for given arm angles.
+
+    Args:
+        chain: e.g. :func:`iiwa_torch.robots.iiwa14` (any flange length, base and tool).
+        target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
+        psi: arm angles (rad, module doc), a float or a tensor of shape ``(...)``
+            (broadcastable: one angle per pose) or ``(..., K)`` (K angles per pose).
+
+    Returns:
+        :class:`AnalyticSolutions` with ``q (..., [K,] 8, 7)``, branch ``k = 4 shoulder +
+        2 elbow + wrist`` (module doc).
+    """
+    geo = _Geometry(chain)
+    rot, sw = _frames(chain, target)
+    psi = torch.as_tensor(psi, dtype=target.dtype, device=target.device)
+    batch_dims = target.ndim - 2
+    if psi.ndim == batch_dims + 1:  # K angles per pose
+        rot, sw = rot[..., None, :, :], sw[..., None, :]
+    elif psi.ndim > batch_dims:
+        raise ValueError(
+            f"psi must have shape (...) or (..., K) for targets of shape (..., 4, 4) = {tuple(target.shape)}, "
+            f"got {tuple(psi.shape)}"
+        )
+    if not torch.isfinite(psi).all():
+        raise ValueError("psi contains NaN or inf")
+    tol = reach_tol(target.dtype)
+    theta4, reachable = _elbow(geo, sw, tol)
+
+    dist = safe_norm2(safe_norm2(sw[..., 0], sw[..., 1]), sw[..., 2])
+    u = sw / dist[..., None]
+    v_ref, w_ref = _reference(u)
+    cp, sp = torch.cos(psi)[..., None], torch.sin(psi)[..., None]
+    v = cp * v_ref + sp * w_ref  # elbow direction off the SW line
+    n = cp * w_ref - sp * v_ref  # u x v: normal of the S, E, W plane
+    cos_a, sin_a, _ = acos_pair((geo.d3**2 + dist * dist - geo.d5**2) / (2 * geo.d3 * dist), tol)
+    cos_a, sin_a = cos_a[..., None], sin_a[..., None]
+    e = cos_a * u + sin_a * v  # upper arm, z_2
+    x_dir = sin_a * u - cos_a * v  # e x n
+    # Columns of R_03: x3 = s3 kappa (e x n), y3 = s3 e, z3 = kappa n with kappa = s3 s4 sign(sin theta4).
+    s3 = geo.sig[2]
+    kappa = s3 * geo.sig[3] * torch.tensor([1.0, -1.0], dtype=u.dtype, device=u.device)[:, None]  # (2, 1)
+    r03 = torch.stack(
+        [s3 * kappa * x_dir[..., None, :], (s3 * e)[..., None, :].expand(*e.shape[:-1], 2, 3), kappa * n[..., None, :]],
+        -1,
+    )  # (..., 2, 3, 3)
+    thetas = _split(geo, r03, theta4.expand(r03.shape[:-2]), rot)
+    return finish(chain, thetas, reachable[..., None, None, None], branch_dims=3)
+
+
+def iiwa_arm_angle(chain: DHChain, q: Tensor) -> Tensor:
+    """Arm angle of configurations: ``q (..., 7) -> psi (...)`` radians in ``(-pi, pi]``
+    (module doc; the inverse of :func:`iiwa`: ``iiwa(chain, chain.fk(q), iiwa_arm_angle(chain, q))``
+    contains ``q``). 0 where the arm is stretched (elbow on the shoulder-wrist line)."""
+    _Geometry(chain)
+    frames = chain.fk_all(q)  # world frame; bring S, E, W back into frame 0
+    base_rot = chain.base[:3, :3].to(q.dtype)
+    points = (frames[..., [1, 3, 5], :3, 3] - chain.base[:3, 3].to(q.dtype)) @ base_rot
+    s, e, w = points.unbind(-2)
+    sw = w - s
+    u = sw / safe_norm2(safe_norm2(sw[..., 0], sw[..., 1]), sw[..., 2])[..., None]
+    v_ref, w_ref = _reference(u)
+    se = e - s
+    return safe_atan2((se * w_ref).sum(-1), (se * v_ref).sum(-1))
+
+
+def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
+    """All 8 IK branches of the iiwa with joint 3 held at ``q3`` (seed 002's 6-DOF arm).
+
+    Args:
+        chain: as for :func:`iiwa`.
+        target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
+        q3: the locked joint angle (rad), a float or a tensor broadcastable to ``(...)``.
+
+    Returns:
+        :class:`AnalyticSolutions` with ``q (..., 8, 7)`` (``q[..., 2] == q3``), branch
+        ``k = 4 shoulder + 2 elbow + wrist``: elbow and wrist as in :func:`iiwa`, shoulder 0
+        for ``theta_2 = g + acos(...)``, 1 for ``g - acos(...)`` (below).
+
+    With ``theta_3, theta_4`` fixed, ``W - S`` seen from frame 2 is a fixed vector ``p``;
+    joint 2 must turn it to the height of ``W``: ``A sin(theta_2) + B cos(theta_2) = C``,
+    ``theta_2 = g +- acos(C / sqrt(A^2 + B^2))`` with ``g = atan2(A, B)``; joint 1 then turns
+    it about the base z axis onto ``W``. Unreachable also when ``|C| > sqrt(A^2 + B^2)``.
+    """
+    geo = _Geometry(chain)
+    rot, sw = _frames(chain, target)
+    theta3 = torch.as_tensor(q3, dtype=target.dtype, device=target.device) + float(chain.dh[2, 3])
+    if not torch.isfinite(theta3).all():
+        raise ValueError("q3 contains NaN or inf")
+    tol = reach_tol(target.dtype)
+    sig = geo.sig
+    theta4, reachable = _elbow(geo, sw, tol)  # (..., 2)
+    theta3 = theta3[..., None].expand(torch.broadcast_shapes(theta3[..., None].shape, theta4.shape))
+    c3, s3, c4, s4 = torch.cos(theta3), torch.sin(theta3), torch.cos(theta4), torch.sin(theta4)
+    # p = W - S in frame 2, then p' = Rx(alpha2) p.
+    px = geo.d5 * sig[3] * s4 * c3
+    py = geo.d5 * sig[3] * s4 * s3
+    pz = geo.d3 - geo.d5 * sig[2] * sig[3] * c4
+    a, b, c = px, -sig[1] * pz, sig[1] * py  # p'
+    height = (sig[0] * sw[..., 2])[..., None]
+    cos_d, sin_d, ok = acos_pair(height / safe_norm2(a, b), tol)
+    delta = torch.atan2(sin_d[..., None] * torch.tensor([1.0, -1.0], dtype=a.dtype, device=a.device), cos_d[..., None])
+    theta2 = safe_atan2(a, b)[..., None] + delta  # (..., 2 elbow, 2 shoulder)
+    c2, s2 = torch.cos(theta2), torch.sin(theta2)
+    vx, vz = c2 * a[..., None] - s2 * b[..., None], c[..., None].expand_as(c2)
+    theta1 = safe_atan2(sw[..., 1], sw[..., 0])[..., None, None] - safe_atan2(-sig[0] * vz, vx)
+
+    dtype, device = target.dtype, target.device
+    rx = [rot_x_const(s, dtype, device) for s in sig[:3]]
+    r03 = rot_z(theta1) @ rx[0] @ rot_z(theta2) @ rx[1] @ rot_z(theta3[..., None].expand_as(theta2)) @ rx[2]
+    r04 = r03 @ rot_z(theta4[..., None].expand_as(theta2)) @ rot_x_const(sig[3], dtype, device)
+    m = r04.transpose(-1, -2) @ rot[..., None, None, :, :]
+    t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2 elbow, 2 shoulder, 2 wrist)
+    # Reorder the branch dims to (..., 2 shoulder, 2 elbow, 2 wrist).
+    thetas = [
+        theta1.transpose(-1, -2)[..., None],
+        theta2.transpose(-1, -2)[..., None],
+        theta3[..., None, :, None],
+        theta4[..., None, :, None],
+        *(t.transpose(-3, -2) for t in (t5, t6, t7)),
+    ]
+    return finish(chain, thetas, (reachable[..., None] & ok)[..., None, :, None], branch_dims=3)
+
+
+def iiwa_solve(
+    chain: DHChain,
+    target: Tensor,
+    q0: Tensor | None = None,
+    *,
+    num_psi: int = 64,
+    pos_tol: float = 1e-4,
+    rot_tol: float = 1e-3,
+) -> IKResult:
+    """One IK solution per pose by sweeping the arm angle: interchangeable with the
+    gradient solver :func:`iiwa_torch.ik.solve`.
+
+    Args:
+        chain: as for :func:`iiwa`.
+        target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
+        q0: optional ``(..., 7)`` reference configuration (e.g. the current one when
+            tracking): the valid solution nearest to it (wrapped joint-space distance) is
+            returned. Without it, the one with the largest joint-limit margin (radians).
+        num_psi: arm angles sampled evenly over ``[-pi, pi)``; ``8 * num_psi`` candidates per pose.
+        pos_tol, rot_tol: success tolerances (m, rad), as in the gradient solver.
+
+    Returns:
+        :class:`~iiwa_torch.ik.IKResult` with ``q (..., 7)`` within the joint limits,
+        ``success`` where some candidate was reachable within the limits (and its FK
+        reproduces the target to the tolerances), ``iterations`` 0. Where no candidate is
+        within the limits, ``q`` is the reachable candidate that violates them least,
+        clamped into them (``success`` False).
+    """
+    if isinstance(num_psi, bool) or not isinstance(num_psi, int) or num_psi < 1:
+        raise ValueError(f"num_psi must be a positive int, got {num_psi!r}")
+    for value, name in ((pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
+    check_target(chain, target)
+    batch = target.shape[:-2]
+    psi = torch.arange(num_psi, dtype=target.dtype, device=target.device) * (2 * math.pi / num_psi) - math.pi
+    sol = iiwa(chain, target, psi.view(*([1] * len(batch)), num_psi))
+    q = sol.q.flatten(-3, -2)  # (..., K * 8, 7)
+    valid, reachable = sol.valid.flatten(-2), sol.reachable.flatten(-2)
+    lim = chain.limits.to(q)
+    if q0 is None:
+        cost = -torch.minimum(q - lim[0], lim[1] - q).amin(-1)  # minus the smallest margin
+    else:
+        chain.check_q(q0, "q0")
+        diff = torch.remainder(q - q0[..., None, :] + math.pi, 2 * math.pi) - math.pi
+        cost = (diff * diff).sum(-1)
+    violation = ((lim[0] - q).clamp_min(0) + (q - lim[1]).clamp_min(0)).sum(-1)
+    big = 1e6  # valid first, then reachable by least violation, then the rest
+    key = torch.where(valid, cost, torch.where(reachable, big + violation, torch.full_like(cost, 2 * big)))
+    best = key.argmin(-1, keepdim=True)  # (..., 1)
+    q_best = chain.clamp(q.gather(-2, best[..., None].expand(*best.shape, q.shape[-1])).squeeze(-2))
+    found = valid.gather(-1, best).squeeze(-1)
+    pos_vec, rot_vec = pose_error(chain.fk(q_best), target)
+    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
+    success = found & (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    iterations = torch.zeros(q_best.shape[:-1], dtype=torch.int64, device=q_best.device)
+    return IKResult(q=q_best, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
