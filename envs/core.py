@@ -286,9 +286,10 @@ class ReachTask:
 
     # ------------------------------------------------------------------ pure functions
     def goal_of(self, pose: Tensor) -> Tensor:
-        """``(..., 4, 4)`` end-effector pose -> ``(..., goal_size)`` goal vector."""
+        """``(..., 4, 4)`` end-effector pose -> ``(..., goal_size)`` goal vector (contiguous: it is
+        concatenated into the observation, and ``cat`` has a fast path for contiguous parts only)."""
         if self.goal_kind is GoalKind.POSITION:
-            return pose[..., :3, 3]
+            return pose[..., :3, 3].contiguous()
         return torch.cat([pose[..., :3, 3], pose[..., :3, 0], pose[..., :3, 1]], -1)
 
     def errors(self, achieved: Tensor, desired: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
@@ -340,10 +341,10 @@ class ReachTask:
         else:
             goal = candidates[:, 0]
         return ReachState(
-            q=configs[:, 0],
+            q=configs[:, 0].contiguous(),
             velocity=torch.zeros(n, nj, dtype=self.dtype, device=self.device),
-            goal=goal,
-            achieved=start_goal,
+            goal=goal.contiguous(),
+            achieved=start_goal.contiguous(),
             t=torch.zeros(n, dtype=torch.int64, device=self.device),
             key=key,
             episode=episode,
