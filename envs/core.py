@@ -407,12 +407,12 @@ class ReachTask:
         empty = np.zeros(0, dtype=np.int64)
         return Transition(
             obs=self.split(packed[:, :d]),
-            reward=packed[:, d].copy(),
+            reward=packed[:, d],
             terminated=packed[:, d + 1] > 0.5,
             truncated=packed[:, d + 2] > 0.5,
             success=packed[:, d + 3] > 0.5,
-            distance=packed[:, d + 4].copy(),
-            angle=packed[:, d + 5].copy(),
+            distance=packed[:, d + 4],
+            angle=packed[:, d + 5],
             final_index=empty,
             final_obs=self.split(packed[:0, :d]),
         )
@@ -443,12 +443,15 @@ class ReachTask:
         return state, tr._replace(final_index=idx.cpu().numpy(), final_obs=self.split(final.cpu().numpy()))
 
     def split(self, packed: np.ndarray) -> dict[str, np.ndarray]:
-        """Split ``observe``'s output (as numpy, last axis) into the goal-env observation dict."""
+        """Split ``observe``'s output (as numpy, last axis) into the goal-env observation dict.
+
+        The arrays are views of ``packed`` (no copy; not C-contiguous for a batch): every step
+        packs into a new array, so a returned observation is never overwritten later."""
         o, g = self.observation_size, self.goal_size
         return {
-            "observation": np.ascontiguousarray(packed[..., :o]),
-            "achieved_goal": np.ascontiguousarray(packed[..., o : o + g]),
-            "desired_goal": np.ascontiguousarray(packed[..., o + g : o + 2 * g]),
+            "observation": packed[..., :o],
+            "achieved_goal": packed[..., o : o + g],
+            "desired_goal": packed[..., o + g : o + 2 * g],
         }
 
     def check_action(self, action, n: int) -> Tensor:
