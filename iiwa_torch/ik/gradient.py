@@ -34,6 +34,7 @@ Optimizer = Literal["adam", "lbfgs"]
 
 _POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
 _MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
+_FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
 _LAMBDA0 = 1e-2  # initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
 
 
@@ -183,32 +184,45 @@ def _damped_solve(J: Tensor, rhs: Tensor, lam: Tensor, floor: float) -> Tensor:
 
 
 # ---------------------------------------------------------------------- solve
-def _lm_step(kin, state, target, weight, lo, hi, rest, rest_gain, lam_min, lam_max):
-    """One Levenberg-Marquardt step for every active problem. ``state`` is ``(q, J, e, E,
-    pos_err, rot_err, lam)``; a step is kept where it lowers ``E``, and the damping follows."""
+def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_max):
+    """One Levenberg-Marquardt step for every slot. ``state`` is ``(q, J, e, E, pos_err,
+    rot_err, lam)``; a step is kept where it lowers ``E``, and the damping follows.
+    ``limits`` is ``(lo, hi)``, each ``(n, 1)``, or None for an unconstrained step."""
     q, J, e, E, pos_err, rot_err, lam = state
-    descent = (J * e[:, None]).sum(0)  # J^T e (n, b): where E wants each joint to go
-    free = ~(((q <= lo) & (descent < 0)) | ((q >= hi) & (descent > 0)))  # box constraint: active set
-    J_free = J * free
+    if limits is not None:  # box constraint: joints at a limit that E pushes outward are frozen
+        lo, hi = limits
+        descent = (J * e[:, None]).sum(0)  # J^T e (n, b)
+        free = ~(((q <= lo) & (descent < 0)) | ((q >= hi) & (descent > 0)))
+        J = J * free
     if rest is None:
-        dq = _damped_solve(J_free, e[:, None], lam, lam_min)[:, 0]
+        dq = _damped_solve(J, e[:, None], lam, lam_min)[:, 0]
     else:  # pull toward the rest posture inside the (damped) null space of J, while the damping
         # is low: a large damping would turn the projected pull into the full pull.
-        pull = rest_gain * (rest - q) * (free & (lam <= _LAMBDA0))
-        sol = _damped_solve(J_free, torch.stack([e, (J_free * pull).sum(1)], 1), lam, lam_min)
+        active = lam <= _LAMBDA0 if limits is None else free & (lam <= _LAMBDA0)
+        pull = rest_gain * (rest - q) * active
+        sol = _damped_solve(J, torch.stack([e, (J * pull).sum(1)], 1), lam, lam_min)
         dq = sol[:, 0] + pull - sol[:, 1]
-    q_new = torch.minimum(torch.maximum(q + dq, lo), hi)
+    q_new = q + dq if limits is None else torch.minimum(torch.maximum(q + dq, lo), hi)
     J_new, e_new, E_new, pos_new, rot_new = _evaluate(kin, q_new, target, weight)
     ok = E_new < E
     return (
         torch.where(ok, q_new, q),
-        torch.where(ok, J_new, J),
+        torch.where(ok, J_new, state[1]),
         torch.where(ok, e_new, e),
         torch.where(ok, E_new, E),
         torch.where(ok, pos_new, pos_err),
         torch.where(ok, rot_new, rot_err),
         torch.where(ok, lam * 0.5, lam * 3.0).clamp_(lam_min, lam_max),
     )
+
+
+def _into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """Joint angles into ``[lo, hi]``: an angle outside is first shifted by a multiple of 2 pi
+    (the same pose for a revolute joint), then clamped to the nearer limit if still outside."""
+    shifted = lo + torch.remainder(q - lo, 2 * math.pi)  # in [lo, lo + 2 pi)
+    nearer = torch.where(shifted - hi <= lo + 2 * math.pi - shifted, hi, lo)
+    shifted = torch.where(shifted <= hi, shifted, nearer)
+    return torch.where((q >= lo) & (q <= hi), q, shifted)
 
 
 def _broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
@@ -332,7 +346,6 @@ def solve(
     dtype, device, n = target.dtype, target.device, chain.n_joints
     flat = target.reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
-    first = None if q0 is None else chain.clamp(_broadcast_q(q0, chain, batch, "q0", dtype))
     rest_flat = None if rest is None or rest_gain == 0 else _broadcast_q(rest, chain, batch, "rest", dtype)
     if generator is None:
         generator = torch.Generator(device).manual_seed(0)
@@ -340,6 +353,7 @@ def solve(
     with torch.no_grad():
         kin = _Kinematics(chain, dtype, device)
         lo, hi = chain.limits.to(dtype)[..., None].unbind(0)  # (n, 1) each
+        first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", dtype).T, lo, hi).T
         lam_min = 1e-12 if dtype == torch.float64 else 1e-6
         weight = float(rot_weight)
         # Seeds: q0, then pool configurations ranked by pose distance to each target.
@@ -350,9 +364,10 @@ def solve(
             None if mode == "position" else flat[:, :3, :3].permute(2, 1, 0).contiguous(),
             (flat if mode == "position" else flat[:, :3, 3]).T.contiguous(),
         )
-        best_q = torch.zeros(n, b, dtype=dtype, device=device)
+        best_q = (pool[ranking[:, 0]] if first is None else first).T.contiguous()  # (n, b), replaced below
         best_E = torch.full((b,), math.inf, dtype=dtype, device=device)
         used = torch.zeros(b, dtype=torch.long, device=device)
+        free_steps = min(_FREE_STEPS, iterations // 2)
         remaining, next_seed = torch.arange(b, device=device), 0
         # Rounds: every remaining problem tries its next `width` seeds side by side; the width
         # grows when few problems remain, so the small tail of hard targets fills the batch.
@@ -369,15 +384,24 @@ def solve(
             slot_rest = None if rest_flat is None else rest_flat[problem].T.contiguous()
             lam = torch.full((q.shape[1],), _LAMBDA0, dtype=dtype, device=device)
             state = (q, *_evaluate(kin, q, slot_tgt, weight), lam)
-            for _ in range(-(-iterations // check_every)):
-                for _ in range(check_every):
-                    state = _lm_step(kin, state, slot_tgt, weight, lo, hi, slot_rest, rest_gain, lam_min, 1e4)
-                used.index_add_(0, problem, torch.full_like(problem, check_every))
+            checked = 0
+            for step in range(iterations):
+                if step == free_steps and step:  # the unconstrained start ends: into the limits
+                    q = _into_limits(state[0], lo, hi)
+                    state = (q, *_evaluate(kin, q, slot_tgt, weight), state[-1])
+                limits = None if step < free_steps else (lo, hi)
+                state = _lm_step(kin, state, slot_tgt, weight, limits, slot_rest, rest_gain, lam_min, 1e4)
+                if (step + 1) % check_every and step + 1 < iterations:
+                    continue
+                used.index_add_(0, problem, torch.full_like(problem, step + 1 - checked))
+                checked = step + 1
                 q, _, _, E, pos_err, rot_err, _ = state
-                done = (pos_err <= 0.5 * pos_tol) & (rot_err <= 0.5 * rot_tol)
+                inside = ((q >= lo) & (q <= hi)).all(0)
+                done = (pos_err <= 0.5 * pos_tol) & (rot_err <= 0.5 * rot_tol) & inside
                 # Converged slots rank below every error, the lowest seed number first, so the
                 # answer does not depend on how many seeds ran side by side.
-                best_E = _keep_best(best_q, best_E, q, torch.where(done, (number - seeds).to(dtype), E), problem)
+                key = torch.where(done, (number - seeds).to(dtype), torch.where(inside, E, math.inf))
+                best_E = _keep_best(best_q, best_E, q, key, problem)
                 running = torch.full_like(best_E, seeds).scatter_reduce_(
                     0, problem[~done], number[~done].to(dtype), "amin"
                 )
