@@ -245,8 +245,10 @@ class ReachTask:
         self.terminate_on_success = bool(terminate_on_success)
         self.dtype = dtype
         self.device = torch.device("cpu") if device is None else torch.device(device)
-        # A private copy on the device: Module.to() works in place and the caller keeps theirs.
-        self.robot = robot if robot.dh.device == self.device else copy.deepcopy(robot).to(self.device)
+        # A private copy in the state's dtype and device (Module.to() works in place and the
+        # caller keeps theirs): FK then converts no buffer at each call.
+        same = robot.dh.device == self.device and robot.dh.dtype == dtype
+        self.robot = robot if same else copy.deepcopy(robot).to(device=self.device, dtype=dtype)
         n = self.robot.n_joints
         lim = self.robot.limits.to(dtype)
         if home is None:
