@@ -219,6 +219,179 @@ class TestPieper:
             analytic.pieper(_with(robots.puma560(), table=table), target)
 
 
+# ---------------------------------------------------------------- iiwa (arm angle)
+def _iiwa_chains():
+    base = torch.eye(4, dtype=torch.float64)
+    base[:3, :3] = exp(torch.tensor([0.0, 0.3, 0.2], dtype=torch.float64))
+    base[:3, 3] = torch.tensor([0.1, 0.2, 0.3])
+    return {
+        "iiwa14": robots.iiwa14(),
+        "iiwa7": robots.iiwa7(),
+        "paper-flange+tool+base": _with(robots.iiwa14(flange=0.090), base=base, tool=_tool()),
+    }
+
+
+IIWA = _iiwa_chains()
+
+
+class TestIiwa:
+    @pytest.mark.parametrize("name", list(IIWA))
+    def test_round_trip_and_closure(self, name):
+        chain = IIWA[name]
+        q = chain.random_q(N_POSES, generator=_gen(10))
+        target = chain.fk(q)
+        psi = analytic.iiwa_arm_angle(chain, q)
+        sol = analytic.iiwa(chain, target, psi)
+        assert sol.q.shape == (N_POSES, 8, 7)
+        assert sol.reachable.all() and _contains(sol.q, q).all()
+        pos, rot = _closure(chain, sol.q, target)
+        assert pos.max() < TOL and rot.max() < TOL
+        # One arm angle is one elbow position: every branch has the arm angle asked for.
+        assert _wrap(analytic.iiwa_arm_angle(chain, sol.q) - psi[:, None]).abs().max() < 1e-8
+        assert (sol.valid == chain.within_limits(sol.q)).all()
+
+    def test_eight_distinct_branches_for_several_arm_angles(self):
+        chain = IIWA["iiwa14"]
+        q = chain.random_q(2000, generator=_gen(11))
+        target = chain.fk(q)
+        psi = (2 * torch.rand(2000, 4, generator=_gen(12), dtype=torch.float64) - 1) * math.pi
+        sol = analytic.iiwa(chain, target, psi)  # (..., K) arm angles: q (2000, 4, 8, 7)
+        assert sol.q.shape == (2000, 4, 8, 7)
+        assert sol.reachable.all() and _distinct(sol.q).all()
+        pos, rot = _closure(chain, sol.q, target[:, None])
+        assert pos.max() < TOL and rot.max() < TOL
+        # Branch signs: k = 4 shoulder + 2 elbow + wrist, 0 for sin(q) >= 0.
+        signs = torch.tensor([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], dtype=torch.bool)
+        assert ((sol.q[..., [1, 3, 5]] < 0) == signs).all()
+
+    def test_reference_plane_is_where_q3_is_zero(self):
+        # With q3 = 0 the elbow lies in the vertical plane through shoulder and wrist:
+        # arm angle 0 (elbow above the shoulder-wrist line) or pi (below it).
+        chain = IIWA["iiwa14"]
+        q = chain.random_q(1000, generator=_gen(13))
+        q[:, 2] = 0.0
+        psi = analytic.iiwa_arm_angle(chain, q)
+        assert psi.sin().abs().max() < 1e-9
+        frames = chain.fk_all(q)
+        s, e, w = frames[:, 1, :3, 3], frames[:, 3, :3, 3], frames[:, 5, :3, 3]
+        u = (w - s) / (w - s).norm(dim=-1, keepdim=True)
+        off_line = (e - s) - ((e - s) * u).sum(-1, keepdim=True) * u
+        up = off_line[:, 2] > 0
+        assert ((psi.cos() > 0) == up).all()
+
+    def test_seed_paper_pose(self):
+        # robots.md / seed 000 with the paper's 0.090 m flange: q4 = -pi/2, q5 = pi/3 ->
+        # p = (0.490, 0, 0.780), R = [[0, 0, 1], [sqrt3/2, 1/2, 0], [-1/2, sqrt3/2, 0]].
+        chain = robots.iiwa14(flange=0.090)
+        r3 = math.sqrt(3) / 2
+        target = torch.tensor(
+            [[0, 0, 1, 0.490], [r3, 0.5, 0, 0], [-0.5, r3, 0, 0.780], [0, 0, 0, 1]], dtype=torch.float64
+        )
+        # q2 = q6 = 0: shoulder and wrist aligned, only q1 + q3 and q5 + q7 are determined.
+        def reduced(q):
+            return torch.stack([q[..., 0] + q[..., 2], q[..., 1], q[..., 3], q[..., 4] + q[..., 6], q[..., 5]], -1)
+
+        expected = torch.tensor([0, 0, -math.pi / 2, math.pi / 3, 0], dtype=torch.float64)
+        both = analytic.iiwa(chain, target, torch.tensor([0.0, math.pi], dtype=torch.float64))
+        locked = analytic.iiwa_q3_locked(chain, target)
+        for sol in (both, locked):
+            assert sol.reachable.all() and _contains(reduced(sol.q).flatten(0, -2), expected, tol=1e-9)
+            pos, rot = _closure(chain, sol.q, target)
+            assert pos.max() < TOL and rot.max() < TOL
+
+    def test_stretched_arm_is_finite(self):
+        chain = robots.iiwa14(flange=0.090)
+        target = torch.eye(4, dtype=torch.float64)
+        target[2, 3] = 1.270  # robots.md: all joints 0
+        sol = analytic.iiwa(chain, target, 0.3)
+        assert torch.isfinite(sol.q).all() and sol.reachable.all()
+        pos, rot = _closure(chain, sol.q, target)
+        assert pos.max() < 1e-6 and rot.max() < 1e-9
+        assert analytic.iiwa_arm_angle(chain, torch.zeros(7, dtype=torch.float64)) == 0
+
+    def test_out_of_reach_and_float32(self):
+        chain = robots.iiwa14().float()  # Module.float() converts in place: a fresh chain
+        target = _random_poses(N_POSES, _gen(14), (0.0, 0.0, 0.36), 0.9).float()
+        sol = analytic.iiwa(chain, target, 0.5)
+        assert sol.q.dtype == torch.float32 and torch.isfinite(sol.q).all()
+        assert 0.2 < sol.reachable.float().mean() < 0.9
+        pos, rot = _closure(chain, sol.q, target)
+        assert pos[sol.reachable].max() < 1e-3 and rot[sol.reachable].max() < 1e-3
+
+    def test_bad_input(self):
+        target = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+        with pytest.raises(ValueError, match="iiwa"):
+            analytic.iiwa(robots.puma560(), target, 0.0)
+        with pytest.raises(ValueError, match="psi must have shape"):
+            analytic.iiwa(IIWA["iiwa14"], target, torch.zeros(3, 2, 1, dtype=torch.float64))
+        with pytest.raises(ValueError, match="7 joints"):
+            analytic.iiwa_arm_angle(robots.puma560(), torch.zeros(6, dtype=torch.float64))
+
+
+class TestIiwaQ3Locked:
+    @pytest.mark.parametrize("name", list(IIWA))
+    def test_round_trip_and_closure(self, name):
+        chain = IIWA[name]
+        q = chain.random_q(N_POSES, generator=_gen(15))
+        q3 = q[:, 2].clone()  # a different locked angle per pose
+        target = chain.fk(q)
+        sol = analytic.iiwa_q3_locked(chain, target, q3)
+        assert sol.reachable.all() and _contains(sol.q, q).all() and _distinct(sol.q).all()
+        assert (sol.q[..., 2] - q3[:, None]).abs().max() < 1e-12
+        pos, rot = _closure(chain, sol.q, target)
+        assert pos.max() < TOL and rot.max() < TOL
+
+    def test_default_locks_q3_at_zero_and_unreachable(self):
+        chain = IIWA["iiwa14"]
+        target = _random_poses(N_POSES, _gen(16), (0.0, 0.0, 0.36), 0.9)
+        sol = analytic.iiwa_q3_locked(chain, target)
+        assert sol.q[..., 2].abs().max() < 1e-12 and torch.isfinite(sol.q).all()
+        assert 0.1 < sol.reachable.float().mean() < 0.9
+        pos, rot = _closure(chain, sol.q, target)
+        assert pos[sol.reachable].max() < TOL and rot[sol.reachable].max() < TOL
+
+
+class TestIiwaSolve:
+    def test_finds_a_solution_for_reachable_poses(self):
+        chain = IIWA["iiwa14"]
+        q = chain.random_q(3000, generator=_gen(17))
+        target = chain.fk(q)
+        res = analytic.iiwa_solve(chain, target)
+        assert res.success.float().mean() >= 0.999
+        assert chain.within_limits(res.q).all() and (res.iterations == 0).all()
+        assert res.pos_err.max() < TOL and res.rot_err.max() < TOL
+
+    def test_nearest_to_reference(self):
+        chain = IIWA["iiwa14"]
+        q = chain.random_q(500, generator=_gen(18))
+        target = chain.fk(q)
+        res = analytic.iiwa_solve(chain, target, q0=q)
+        assert res.success.all() and _wrap(res.q - q).abs().max() < 1e-8
+        # A reference near q: the answer is about as close to it as q is (the pick is over
+        # sampled arm angles; near q2 = 0 or q6 = 0 the joints swing fast with psi).
+        ref = chain.clamp(q + 0.05 * torch.randn(500, 7, generator=_gen(19), dtype=torch.float64))
+        near = analytic.iiwa_solve(chain, target, q0=ref)
+        assert near.success.all()
+        excess = _wrap(near.q - ref).norm(dim=-1) - _wrap(q - ref).norm(dim=-1)
+        assert (excess <= 0.05).float().mean() >= 0.97 and excess.median() < 0.01
+
+    def test_agrees_with_the_gradient_solver(self):
+        ik = pytest.importorskip("iiwa_torch.ik")
+        if not hasattr(ik, "solve"):
+            pytest.skip("the gradient solver iiwa_torch.ik.solve is not there yet")
+        chain = IIWA["iiwa14"]
+        q = chain.random_q(200, generator=_gen(20))
+        target = chain.fk(q)
+        ours = analytic.iiwa_solve(chain, target)
+        theirs = ik.solve(chain, target, seeds=16, generator=_gen(21))
+        both = ours.success & theirs.success
+        assert ours.success.all() and both.float().mean() > 0.95
+        # Same pose reached (the arm is redundant: the joint angles may differ).
+        pose_a, pose_b = chain.fk(ours.q[both]), chain.fk(theirs.q[both])
+        pos, rot = pose_error(pose_a, pose_b)
+        assert pos.norm(dim=-1).max() < 2e-4 and rot.norm(dim=-1).max() < 2e-3
+
+
 # ---------------------------------------------------------------- gradients
 def test_gradients_are_finite_and_match_finite_differences():
     chain = robots.puma560()
@@ -236,3 +409,25 @@ def test_gradients_are_finite_and_match_finite_differences():
         return analytic.pieper(chain, pose).q[..., 0, :]
 
     torch.autograd.gradcheck(first_branch_angles, (target[:3].detach().clone().requires_grad_(True),))
+
+
+def test_iiwa_gradients_w_r_t_target_and_arm_angle():
+    chain = robots.iiwa14()
+    q = chain.random_q(3, generator=_gen(22))
+    target = chain.fk(q).requires_grad_(True)
+    psi = analytic.iiwa_arm_angle(chain, q).requires_grad_(True)
+    torch.autograd.gradcheck(lambda t, p: analytic.iiwa(chain, t, p).q[..., 2, :], (target, psi))
+    torch.autograd.gradcheck(lambda t: analytic.iiwa_q3_locked(chain, t, 0.2).q[..., 5, :], (target,))
+    far = _random_poses(64, _gen(23), (0.0, 0.0, 0.36), 1.4).requires_grad_(True)  # many out of reach
+    for solve in (lambda t: analytic.iiwa(chain, t, 0.4), lambda t: analytic.iiwa_q3_locked(chain, t)):
+        sol = solve(far)
+        assert (~sol.reachable).any()
+        (sol.q * sol.valid[..., None]).sum().backward()
+        assert torch.isfinite(far.grad).all()
+        far.grad = None
+
+
+def test_planar_gradients():
+    chain = robots.planar3r()
+    xyphi = torch.tensor([[1.2, 0.4, 0.3], [0.2, -1.1, 2.0]], dtype=torch.float64, requires_grad=True)
+    torch.autograd.gradcheck(lambda v: analytic.planar3r(chain, v[:, 0], v[:, 1], v[:, 2]).q, (xyphi,))

@@ -11,6 +11,7 @@ otherwise turn into NaN through ``0 * inf`` in the backward pass.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -127,7 +128,7 @@ def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tu
             f"the {robot} closed form needs a chain of {n} joints, got {chain.name!r} with {chain.n_joints}"
         )
     table = [tuple(float(v) for v in row) for row in chain.dh.tolist()]
-    eps = 1e-12
+    eps = 1e-6  # float32 chains hold cos(pi/2) = -4e-8
     for i, ((a, alpha, d, _), rule) in enumerate(zip(table, rows)):
         problems = []
         if rule.get("a0") and abs(a) > eps:
@@ -199,9 +200,10 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
         qs.append(q)
         inside.append((q >= lo) & (q <= hi))
     shape = torch.broadcast_shapes(*(q.shape for q in qs), reachable.shape)
-    within = inside[0]
-    for ok in inside[1:]:
-        within = within & ok
+    groups: dict[torch.Size, Tensor] = {}  # AND the masks of equal shape first: fewer full-size ops
+    for ok in inside:
+        groups[ok.shape] = groups[ok.shape] & ok if ok.shape in groups else ok
+    within = functools.reduce(torch.logical_and, groups.values())
     # Joint-major memory (each joint's values contiguous, as chain.fk wants them): q is a
     # non-contiguous view; the branch dims flatten without a copy.
     q = torch.stack([q.expand(shape) for q in qs], 0).movedim(0, -1).flatten(-1 - branch_dims, -2)

@@ -64,6 +64,9 @@ __all__ = ["iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
 
 Tensor = torch.Tensor
 
+_CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
+_LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
+_REFINE = 3  # refining passes
 _ROWS = [
     {"a0": True, "perp": True},
     {"a0": True, "d0": True, "perp": True},
@@ -256,7 +259,7 @@ def iiwa_solve(
     target: Tensor,
     q0: Tensor | None = None,
     *,
-    num_psi: int = 64,
+    num_psi: int = 32,
     pos_tol: float = 1e-4,
     rot_tol: float = 1e-3,
 ) -> IKResult:
@@ -269,7 +272,10 @@ def iiwa_solve(
         q0: optional ``(..., 7)`` reference configuration (e.g. the current one when
             tracking): the valid solution nearest to it (wrapped joint-space distance) is
             returned. Without it, the one with the largest joint-limit margin (radians).
-        num_psi: arm angles sampled evenly over ``[-pi, pi)``; ``8 * num_psi`` candidates per pose.
+        num_psi: arm angles sampled evenly over ``[-pi, pi)`` (plus the arm angle of ``q0``),
+            ``8 * num_psi`` candidates per pose; then 9 angles spanning one step either side of
+            the best are tried too. Poses with no candidate within the limits are swept once
+            more with ``16 * num_psi`` angles (narrow feasible intervals).
         pos_tol, rot_tol: success tolerances (m, rad), as in the gradient solver.
 
     Returns:
@@ -286,25 +292,68 @@ def iiwa_solve(
             raise ValueError(f"{name} must be a positive number, got {value!r}")
     check_target(chain, target)
     batch = target.shape[:-2]
-    psi = torch.arange(num_psi, dtype=target.dtype, device=target.device) * (2 * math.pi / num_psi) - math.pi
-    sol = iiwa(chain, target, psi.view(*([1] * len(batch)), num_psi))
-    q = sol.q.flatten(-3, -2)  # (..., K * 8, 7)
+    flat = target.reshape(-1, 4, 4)
+    if q0 is not None:
+        chain.check_q(q0, "q0")
+        try:
+            q0 = torch.broadcast_to(q0.to(target.dtype), (*batch, 7)).reshape(-1, 7)
+        except RuntimeError:
+            raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
+    q_best, found = _sweep(chain, flat, q0, num_psi)
+    missed = (~found).nonzero().squeeze(-1)
+    if missed.numel():  # narrow feasible arm-angle intervals: once more, 16 times finer
+        q_fine, found_fine = _sweep(chain, flat[missed], None if q0 is None else q0[missed], 16 * num_psi)
+        q_best, found = q_best.index_put((missed,), q_fine), found.index_put((missed,), found_fine)
+    q_best, found = q_best.reshape(*batch, 7), found.reshape(batch)
+    pos_vec, rot_vec = pose_error(chain.fk(q_best), target)
+    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
+    success = found & (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    iterations = torch.zeros(batch, dtype=torch.int64, device=target.device)
+    return IKResult(q=q_best, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
+
+
+def _sweep(chain: DHChain, target: Tensor, q0: Tensor | None, num_psi: int) -> tuple[Tensor, Tensor]:
+    """Best candidate of each pose ``target (B, 4, 4)`` over ``num_psi`` evenly spaced arm
+    angles (plus the arm angle of ``q0 (B, 7)`` when given), then over a finer grid of
+    ``_LOCAL`` angles spanning one step either side of the best one (its centre)."""
+    step = 2 * math.pi / num_psi
+    psi = (torch.arange(num_psi, dtype=target.dtype, device=target.device) * step - math.pi).expand(target.shape[0], -1)
+    if q0 is not None:
+        psi = torch.cat([iiwa_arm_angle(chain, q0)[:, None], psi], -1)  # (B, K + 1)
+    q, found, psi_best = _pick_chunked(chain, target, psi, q0)
+    for _ in range(_REFINE):
+        local = torch.linspace(-step, step, _LOCAL, dtype=target.dtype, device=target.device)
+        q, found, psi_best = _pick_chunked(chain, target, psi_best[:, None] + local, q0)
+        step = 2 * step / (_LOCAL - 1)  # the next window spans the neighbours of the best
+    return q, found
+
+
+def _pick_chunked(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_pick` over chunks of poses, so that memory stays bounded."""
+    chunk = max(1, _CANDIDATES // (8 * psi.shape[-1]))
+    picks = [
+        _pick(chain, target[i : i + chunk], psi[i : i + chunk], None if q0 is None else q0[i : i + chunk])
+        for i in range(0, max(target.shape[0], 1), chunk)
+    ]
+    return tuple(torch.cat(parts) for parts in zip(*picks))
+
+
+def _pick(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Best of the ``K * 8`` candidates of each pose: ``target (B, 4, 4)``, ``psi (B, K)``,
+    ``q0 (B, 7)`` or None -> ``q (B, 7)`` clamped into the limits, ``found (B,)`` bool (the
+    candidate is valid) and its arm angle ``(B,)``."""
+    sol = iiwa(chain, target, psi)
+    q = sol.q.flatten(-3, -2)  # (B, K * 8, 7)
     valid, reachable = sol.valid.flatten(-2), sol.reachable.flatten(-2)
     lim = chain.limits.to(q)
     if q0 is None:
         cost = -torch.minimum(q - lim[0], lim[1] - q).amin(-1)  # minus the smallest margin
     else:
-        chain.check_q(q0, "q0")
-        diff = torch.remainder(q - q0[..., None, :] + math.pi, 2 * math.pi) - math.pi
+        diff = torch.remainder(q - q0[:, None, :] + math.pi, 2 * math.pi) - math.pi
         cost = (diff * diff).sum(-1)
     violation = ((lim[0] - q).clamp_min(0) + (q - lim[1]).clamp_min(0)).sum(-1)
     big = 1e6  # valid first, then reachable by least violation, then the rest
     key = torch.where(valid, cost, torch.where(reachable, big + violation, torch.full_like(cost, 2 * big)))
-    best = key.argmin(-1, keepdim=True)  # (..., 1)
-    q_best = chain.clamp(q.gather(-2, best[..., None].expand(*best.shape, q.shape[-1])).squeeze(-2))
-    found = valid.gather(-1, best).squeeze(-1)
-    pos_vec, rot_vec = pose_error(chain.fk(q_best), target)
-    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
-    success = found & (pos_err <= pos_tol) & (rot_err <= rot_tol)
-    iterations = torch.zeros(q_best.shape[:-1], dtype=torch.int64, device=q_best.device)
-    return IKResult(q=q_best, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
+    best = key.argmin(-1, keepdim=True)  # (B, 1)
+    q_best = q.gather(-2, best[..., None].expand(-1, 1, 7)).squeeze(-2)
+    return chain.clamp(q_best), valid.gather(-1, best).squeeze(-1), psi.gather(-1, best // 8).squeeze(-1)
