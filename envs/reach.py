@@ -184,6 +184,14 @@ class IiwaReachEnv(gym.Env):
             self.render()
         return obs, reward, term > 0.5, trunc > 0.5, _info(self.task, success > 0.5, dist, angle)
 
+    @property
+    def joint_angles(self) -> np.ndarray:
+        """The arm's current joint angles ``(7,)``, radians (e.g. to animate an episode with
+        ``iiwa_torch.viz.animate(env.unwrapped.task.robot, qs, "episode.gif")``)."""
+        if self._state is None:
+            raise RuntimeError("call reset() first")
+        return self._state.q[0].double().cpu().numpy()
+
     def compute_reward(self, achieved_goal, desired_goal, info=None):
         """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out); ``info`` is unused."""
         return _compute_reward(self.task, achieved_goal, desired_goal)
@@ -234,7 +242,9 @@ class IiwaReachVectorEnv(VectorEnv):
       returned observation is the first of its next episode; reward, flags and ``info``
       (``is_success``, ``distance``) describe the finished step, and its last observation
       is ``info["final_obs"][i]`` (an object array of per-env dicts, ``None`` elsewhere,
-      with the mask ``info["_final_obs"]``, as gymnasium's ``SyncVectorEnv`` does).
+      with the mask ``info["_final_obs"]``, as gymnasium's ``SyncVectorEnv`` does; the same
+      step's info is also under ``info["final_info"]``). Gymnasium's vector wrappers
+      (``RecordEpisodeStatistics``, ...) read this mode from ``metadata``.
     - ``reset(seed=s)`` seeds environment ``i`` with ``s + i`` (a list of seeds works too):
       the batch then runs exactly like single envs reset with those seeds.
     - ``step`` accepts a numpy array or a torch tensor of shape ``(num_envs, 7)``.
@@ -293,8 +303,11 @@ class IiwaReachVectorEnv(VectorEnv):
             final = np.full(self.num_envs, None, dtype=object)
             for row, i in enumerate(tr.final_index.tolist()):  # finished environments only
                 final[i] = {k: v[row] for k, v in tr.final_obs.items()}
-            info["final_obs"] = final
-            info["_final_obs"] = tr.terminated | tr.truncated
+            done = tr.terminated | tr.truncated
+            info["final_obs"], info["_final_obs"] = final, done
+            # the finished step's info (already in ``info``), under the name SyncVectorEnv uses
+            info["final_info"] = {**_info(self.task, tr.success, tr.distance, tr.angle), "_is_success": done}
+            info["_final_info"] = done
         return tr.obs, tr.reward, tr.terminated, tr.truncated, info
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):

@@ -310,6 +310,58 @@ def test_rgb_array_render():
     assert image.std() > 5  # something was drawn
 
 
+def test_human_render_and_gif_of_an_episode(tmp_path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    env = gym.make("IiwaReach-v0", render_mode="human")
+    env.reset(seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # Agg is non-interactive: plt.pause only warns
+        env.step(np.ones(7, dtype=np.float32))
+    env.close()
+    # record joint angles, then animate them with iiwa_torch.viz (Pillow GIF writer)
+    from iiwa_torch.viz import animate
+
+    env = gym.make("IiwaReach-v0")
+    obs, _ = env.reset(seed=1)
+    qs = [env.unwrapped.joint_angles]
+    for _ in range(3):
+        env.step(np.full(7, 0.5, dtype=np.float32))
+        qs.append(env.unwrapped.joint_angles)
+    np.testing.assert_allclose(qs[1] - qs[0], 0.5 * np.radians(IIWA14_SPEED_DEG) * 0.05, atol=1e-6)
+    robot = env.unwrapped.task.robot
+    gif = animate(robot, np.stack(qs), tmp_path / "episode.gif", goal=obs["desired_goal"], size=(120, 120))
+    from PIL import Image
+
+    assert Image.open(gif).n_frames == 4
+
+
+def test_record_episode_statistics_reads_same_step_autoreset():
+    vec = gym.wrappers.vector.RecordEpisodeStatistics(gym.make_vec("IiwaReach-v0", num_envs=4))
+    vec.reset(seed=0)
+    for _ in range(envs.MAX_EPISODE_STEPS):
+        _, reward, term, trunc, info = vec.step(np.zeros((4, 7), dtype=np.float32))  # stand still: time-outs
+    assert trunc.all() and not term.any()
+    np.testing.assert_array_equal(info["episode"]["l"], [envs.MAX_EPISODE_STEPS] * 4)
+    assert info["final_info"]["_is_success"].all()
+    # standing still at home: the return is 50 times the (constant) first reward
+    np.testing.assert_allclose(info["episode"]["r"], envs.MAX_EPISODE_STEPS * reward, rtol=1e-5)
+
+
+def test_float64_state_and_explicit_device():
+    env = IiwaReachVectorEnv(8, dtype=torch.float64, device="cpu", goal="pose", start="random")
+    obs, _ = env.reset(seed=0)
+    assert env._state.q.dtype == torch.float64 and obs["observation"].dtype == np.float32
+    obs, reward, *_ = env.step(np.zeros((8, 7)))
+    assert obs["desired_goal"].shape == (8, 9) and reward.dtype == np.float32
+    # the float32 task draws the same goals, to float32 rounding
+    ref, _ = IiwaReachVectorEnv(8, goal="pose", start="random").reset(seed=0)
+    np.testing.assert_allclose(obs["desired_goal"], ref["desired_goal"], atol=1e-5)
+    with pytest.raises(ValueError, match="options"):
+        env.reset(options={"goal": [0, 0, 1]})
+
+
 # ------------------------------------------------------------------ training smoke runs
 @pytest.mark.slow
 def test_ppo_and_sac_her_smoke_run_on_the_vecenv():
