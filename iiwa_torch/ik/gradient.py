@@ -36,6 +36,7 @@ _POOL = 64  # random configurations ranked by pose distance to pick each target'
 _MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
 _FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
 _LAMBDA0 = 1e-2  # initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
+_DAMP_DOWN, _DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
 
 
 def _check_choice(value, choices: tuple, name: str) -> None:
@@ -212,7 +213,7 @@ def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_m
         torch.where(ok, E_new, E),
         torch.where(ok, pos_new, pos_err),
         torch.where(ok, rot_new, rot_err),
-        torch.where(ok, lam * 0.5, lam * 3.0).clamp_(lam_min, lam_max),
+        torch.where(ok, lam * _DAMP_DOWN, lam * _DAMP_UP).clamp_(lam_min, lam_max),
     )
 
 
@@ -236,17 +237,31 @@ def _broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dt
         ) from None
 
 
-def _seed_ranking(chain: DHChain, pool: Tensor, target: Tensor, mode: str, count: int) -> Tensor:
-    """``(b, count)`` indices of the pool configurations whose end pose is nearest each target:
-    squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance."""
+def _pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str) -> Tensor:
+    """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
+    squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
+    less terms that are the same for every pool entry."""
     pose = chain.fk(pool)
     if mode == "pose":
         feat_pool = torch.cat([pose[:, :3, 3], 0.3 * pose[:, :3, :3].flatten(1)], 1)
         feat_target = torch.cat([target[:, :3, 3], 0.3 * target[:, :3, :3].flatten(1)], 1)
     else:
         feat_pool, feat_target = pose[:, :3, 3], target
-    score = pose[:, :3, 3].square().sum(1) - 2 * feat_target @ feat_pool.T  # (b, pool) distance minus |target|^2
-    return score.topk(count, dim=1, largest=False).indices
+    return pose[:, :3, 3].square().sum(1, keepdim=True) - 2 * feat_pool @ feat_target.T
+
+
+def _seed_q(pool: Tensor, distance: Tensor, first: Tensor | None, problems: Tensor, width: int, start: int) -> Tensor:
+    """Seeds ``start .. start + width - 1`` of each problem, as ``(n, width * len(problems))``
+    (seed-major): ``first`` (q0) is seed 0 if given, then the pool entries nearest the target."""
+    shift = 0 if first is None else 1
+    count = start + width - shift  # pool ranks needed: 0 .. count - 1
+    if count > 0:
+        dist = distance[:, problems]
+        nearest = dist.argmin(0, keepdim=True) if count == 1 else dist.topk(count, 0, largest=False).indices
+    seeds = []
+    for number in range(start, start + width):
+        seeds.append(first[problems] if number < shift else pool[nearest[number - shift]])
+    return torch.cat(seeds).T.contiguous()
 
 
 def _check_target(target: Tensor, mode: str, dtype: torch.dtype | None, batch: torch.Size | None) -> torch.Size:
@@ -298,7 +313,7 @@ def solve(
     iterations: int = 16,
     rest: Tensor | None = None,
     rest_gain: float = 0.0,
-    check_every: int = 4,
+    check_every: int = 2,
     generator: torch.Generator | None = None,
 ) -> IKResult:
     """Inverse kinematics for a batch of targets by damped least squares (Levenberg-Marquardt).
@@ -357,14 +372,13 @@ def solve(
         lam_min = 1e-12 if dtype == torch.float64 else 1e-6
         weight = float(rot_weight)
         # Seeds: q0, then pool configurations ranked by pose distance to each target.
-        from_pool = seeds - (first is not None)
-        pool = chain.random_q(max(_POOL, from_pool), generator=generator, dtype=dtype)
-        ranking = _seed_ranking(chain, pool, flat, mode, max(from_pool, 1)) if b else None
+        pool = chain.random_q(max(_POOL, seeds), generator=generator, dtype=dtype)
+        distance = _pool_distance(chain, pool, flat, mode)  # (pool, b)
         tgt = _Target(
             None if mode == "position" else flat[:, :3, :3].permute(2, 1, 0).contiguous(),
             (flat if mode == "position" else flat[:, :3, 3]).T.contiguous(),
         )
-        best_q = (pool[ranking[:, 0]] if first is None else first).T.contiguous()  # (n, b), replaced below
+        best_q = torch.empty(n, b, dtype=dtype, device=device)
         best_E = torch.full((b,), math.inf, dtype=dtype, device=device)
         used = torch.zeros(b, dtype=torch.long, device=device)
         free_steps = min(_FREE_STEPS, iterations // 2)
@@ -375,11 +389,9 @@ def solve(
             width = min(seeds - next_seed, max(1, -(-_MIN_BATCH // remaining.numel())))
             problem = remaining.repeat(width)  # slot -> problem
             number = torch.arange(next_seed, next_seed + width, device=device).repeat_interleave(remaining.numel())
-            if first is None:
-                q = pool[ranking[problem, number]].T.contiguous()
-            else:
-                from_pool_q = pool[ranking[problem, (number - 1).clamp_min(0)]]
-                q = torch.where((number == 0)[:, None], first[problem], from_pool_q).T.contiguous()
+            q = _seed_q(pool, distance, first, remaining, width, next_seed)
+            if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
+                best_q.copy_(q[:, :b])
             slot_tgt = tgt.take(problem)
             slot_rest = None if rest_flat is None else rest_flat[problem].T.contiguous()
             lam = torch.full((q.shape[1],), _LAMBDA0, dtype=dtype, device=device)
