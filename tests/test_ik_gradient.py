@@ -133,9 +133,9 @@ def test_unreachable_targets_give_finite_best_effort(dtype):
     result = solve(chain, far[:, :3, 3], mode="position", seeds=2, iterations=40)
     shoulder = torch.tensor([0.0, 0.0, 0.36], dtype=dtype)
     bound = (far[:, :3, 3] - shoulder).norm(dim=-1) - 0.946
-    tol = 1e-9 if dtype == torch.float64 else 1e-5
+    tol, close = (1e-9, 1e-4) if dtype == torch.float64 else (1e-5, 1e-3)  # float32 converges less far
     assert (result.pos_err >= bound - tol).all()
-    assert ((result.pos_err - bound) < 1e-4).double().mean() >= 0.9
+    assert ((result.pos_err - bound) < close).double().mean() >= 0.9
 
 
 def test_unreachable_orientation():
