@@ -81,19 +81,20 @@ class _Kinematics:
             return (y, z) if ca > 0 else (-y, -z)
         return torch.add(ca * y, z, alpha=sa), torch.add(ca * z, y, alpha=-sa)
 
-    def __call__(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def __call__(self, q: Tensor, Z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``q (n, b)`` -> end axes ``R (3, 3, b)`` (axis x/y/z, component), end position
-        ``p (3, b)``, joint axes ``Z (n, 3, b)`` and points on them ``P (n, 3, b)``."""
+        ``p (3, b)`` and points on the joint axes ``P (3, n, b)``; the joint axes themselves
+        are written into ``Z (3, n, b)``."""
         n, b = q.shape
         theta = q + self.offsets
         c, s = torch.cos(theta), torch.sin(theta)
-        Z, P = q.new_empty(n, 3, b), q.new_empty(n, 3, b)
+        P = q.new_empty(3, n, b)
         x, y, z, p = self.base[:3, :, None].expand(3, 4, b).unbind(1)
         for i, (a, ca, sa, d) in enumerate(self.steps):
             if self.modified:
                 y, z = self._twist(y, z, ca, sa)
                 p = torch.add(p, x, alpha=a) if a else p
-            Z[i], P[i] = z, p
+            Z[:, i], P[:, i] = z, p
             x, y = torch.addcmul(c[i] * x, s[i], y), torch.addcmul(c[i] * y, s[i], x, value=-1)
             p = torch.add(p, z, alpha=d) if d else p
             if not self.modified:
@@ -103,7 +104,7 @@ class _Kinematics:
         if self.tool is not None:
             p = p + (R * self.tool[:3, 3, None, None]).sum(0)
             R = torch.einsum("kcb,kj->jcb", R, self.tool[:3, :3])
-        return R, p, Z, P
+        return R, p, P
 
 
 _ROLL1, _ROLL2 = [1, 2, 0], [2, 0, 1]  # cross product a x b = a[R1] * b[R2] - a[R2] * b[R1]
@@ -131,18 +132,21 @@ def _evaluate(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """``q (n, b)`` -> weighted Jacobian ``J (m, n, b)``, weighted error ``e (m, b)`` (m = 6 or 3),
     squared weighted error ``E (b,)``, position error ``(b,)`` m, rotation error ``(b,)`` rad."""
-    R, p, Z, P = kin(q)
+    n, b = q.shape
+    pose = target.rot is not None
+    J = q.new_empty(6 if pose else 3, n, b)
+    Z = J[3:] if pose else q.new_empty(3, n, b)  # the angular rows are the joint axes
+    R, p, P = kin(q, Z)
     e_pos = target.pos - p
     pos_err = torch.addcmul(torch.addcmul(e_pos[0] * e_pos[0], e_pos[1], e_pos[1]), e_pos[2], e_pos[2]).sqrt()
-    lever = p - P  # (n, 3, b)
-    m = 3 if target.rot is None else 6
-    J = q.new_empty(m, kin.n, q.shape[1])
+    lever = p[:, None] - P  # (3, n, b)
     for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
-        torch.mul(Z[:, i], lever[:, j], out=J[r])
-        J[r].addcmul_(Z[:, j], lever[:, i], value=-1)
-    if target.rot is None:
+        torch.mul(Z[i], lever[j], out=J[r])
+        J[r].addcmul_(Z[j], lever[i], value=-1)
+    if not pose:
         return J, e_pos, pos_err.square(), pos_err, torch.zeros_like(pos_err)
-    torch.mul(Z.transpose(0, 1), weight, out=J[3:])
+    if weight != 1:
+        J[3:].mul_(weight)
     # log(R_t R^T): its skew part is sum_k r_k x t_k / 2 (r_k, t_k the axes), its trace sum_k r_k . t_k.
     v = (R[:, _ROLL1] * target.rot2 - R[:, _ROLL2] * target.rot1).sum(0).mul_(0.5)  # sin(angle) * axis
     cos = ((R * target.rot).sum((0, 1)) - 1) * 0.5
@@ -156,32 +160,47 @@ def _evaluate(
 
 def _cholesky_solve(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
     """Solve ``A x = rhs`` for symmetric positive definite ``A (m, m, b)`` (lower triangle read),
-    ``rhs (m, k, b)``. Pivots are floored at ``floor`` so the result stays finite."""
+    ``rhs (m, k, b)``, by Cholesky ``A = L L^T`` written out entry by entry over the batch.
+    Pivots are floored at ``floor`` so the result stays finite."""
     m = A.shape[0]
-    L = torch.zeros_like(A)
-    inv = A.new_empty(m, A.shape[2])  # 1 / L_jj
+    L = [[None] * m for _ in range(m)]  # L[i][j], (b,) each
+    inv = [None] * m  # 1 / L[j][j]
     for j in range(m):
-        col = A[j:, j] - (L[j:, :j] * L[j, :j]).sum(1) if j else A[j:, j]
-        inv[j] = col[0].clamp_min(floor).rsqrt()
-        L[j:, j] = col * inv[j]
-    y = torch.empty_like(rhs)
-    for i in range(m):  # L y = rhs
-        y[i] = (rhs[i] - (L[i, :i, None] * y[:i]).sum(0) if i else rhs[i]) * inv[i]
-    x = torch.empty_like(rhs)
-    for i in reversed(range(m)):  # L^T x = y
-        x[i] = (y[i] - (L[i + 1 :, i, None] * x[i + 1 :]).sum(0) if i < m - 1 else y[i]) * inv[i]
-    return x
+        pivot = A[j, j]
+        for k in range(j):
+            pivot = torch.addcmul(pivot, L[j][k], L[j][k], value=-1)
+        inv[j] = pivot.clamp_min(floor).rsqrt()
+        for i in range(j + 1, m):
+            entry = A[i, j]
+            for k in range(j):
+                entry = torch.addcmul(entry, L[i][k], L[j][k], value=-1)
+            L[i][j] = entry * inv[j]
+    y = [None] * m  # L y = rhs
+    for i in range(m):
+        entry = rhs[i]
+        for k in range(i):
+            entry = torch.addcmul(entry, L[i][k], y[k], value=-1)
+        y[i] = entry * inv[i]
+    x = [None] * m  # L^T x = y
+    for i in reversed(range(m)):
+        entry = y[i]
+        for k in range(i + 1, m):
+            entry = torch.addcmul(entry, L[k][i], x[k], value=-1)
+        x[i] = entry * inv[i]
+    return torch.stack(x)
 
 
-def _damped_solve(J: Tensor, rhs: Tensor, lam: Tensor, floor: float) -> Tensor:
-    """``J^T (J J^T + lam I)^-1 rhs`` for ``J (m, n, b)``, ``rhs (m, k, b)``, ``lam (b,)`` -> ``(n, k, b)``."""
+def _damped_solve(J: Tensor, rhs: Tensor, lam: Tensor, floor: float, free: Tensor | None = None) -> Tensor:
+    """``J^T (J J^T + lam I)^-1 rhs`` for ``J (m, n, b)``, ``rhs (m, k, b)``, ``lam (b,)`` -> ``(n, k, b)``.
+    With ``free (n, b)``, the other columns of ``J`` count as zero (those joints stay put)."""
     m = J.shape[0]
     A = J.new_empty(m, m, J.shape[2])
     for r in range(m):
-        A[r:, r] = (J[r : r + 1] * J[r:]).sum(1)
+        A[r:, r] = ((J[r] if free is None else J[r] * free) * J[r:]).sum(1)
     A.diagonal(0, 0, 1).add_(lam[:, None])
     y = _cholesky_solve(A, rhs, floor)
-    return (J[:, :, None] * y[:, None]).sum(0)
+    dq = (J[:, :, None] * y[:, None]).sum(0)
+    return dq if free is None else dq * free[:, None]
 
 
 # ---------------------------------------------------------------------- solve
@@ -190,26 +209,28 @@ def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_m
     rot_err, lam)``; a step is kept where it lowers ``E``, and the damping follows.
     ``limits`` is ``(lo, hi)``, each ``(n, 1)``, or None for an unconstrained step."""
     q, J, e, E, pos_err, rot_err, lam = state
+    free = None
     if limits is not None:  # box constraint: joints at a limit that E pushes outward are frozen
         lo, hi = limits
         descent = (J * e[:, None]).sum(0)  # J^T e (n, b)
         free = ~(((q <= lo) & (descent < 0)) | ((q >= hi) & (descent > 0)))
-        J = J * free
+        free = free.to(q.dtype)
     if rest is None:
-        dq = _damped_solve(J, e[:, None], lam, lam_min)[:, 0]
+        dq = _damped_solve(J, e[:, None], lam, lam_min, free)[:, 0]
     else:  # pull toward the rest posture inside the (damped) null space of J, while the damping
         # is low: a large damping would turn the projected pull into the full pull.
-        active = lam <= _LAMBDA0 if limits is None else free & (lam <= _LAMBDA0)
-        pull = rest_gain * (rest - q) * active
-        sol = _damped_solve(J, torch.stack([e, (J * pull).sum(1)], 1), lam, lam_min)
+        pull = rest_gain * (rest - q) * (lam <= _LAMBDA0)
+        pull = pull if free is None else pull * free
+        sol = _damped_solve(J, torch.stack([e, (J * pull).sum(1)], 1), lam, lam_min, free)
         dq = sol[:, 0] + pull - sol[:, 1]
     q_new = q + dq if limits is None else torch.minimum(torch.maximum(q + dq, lo), hi)
     J_new, e_new, E_new, pos_new, rot_new = _evaluate(kin, q_new, target, weight)
     ok = E_new < E
+    kept = ok.to(q.dtype)  # lerp with weight 0 or 1 is exact, and faster than where on big tensors
     return (
         torch.where(ok, q_new, q),
-        torch.where(ok, J_new, state[1]),
-        torch.where(ok, e_new, e),
+        torch.lerp(J, J_new, kept),
+        torch.lerp(e, e_new, kept),
         torch.where(ok, E_new, E),
         torch.where(ok, pos_new, pos_err),
         torch.where(ok, rot_new, rot_err),
