@@ -75,29 +75,32 @@ def reach_tol(dtype: torch.dtype) -> float:
 
 
 # ---------------------------------------------------------------- rotations
-def rot_z(theta: Tensor) -> Tensor:
-    """``(...) -> (..., 3, 3)`` rotation about z."""
-    c, s = torch.cos(theta), torch.sin(theta)
-    o, i = torch.zeros_like(c), torch.ones_like(c)
-    return torch.stack([c, -s, o, s, c, o, o, o, i], -1).unflatten(-1, (3, 3))
-
-
-def rot_x_const(sigma: float, dtype: torch.dtype, device) -> Tensor:
-    """``Rx(alpha)`` for ``sin(alpha) = sigma = +-1`` (``cos(alpha) = 0``), ``(3, 3)``."""
-    return torch.tensor([[1.0, 0, 0], [0, 0, -sigma], [0, sigma, 0]], dtype=dtype, device=device)
+def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float) -> Tensor:
+    """``Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b)`` for ``sin(alpha) = sig_a, sig_b = +-1``:
+    ``a, b (...) -> (..., 3, 3)``, written out (one kernel per entry, no matrix products)."""
+    ca, sa, cb, sb = torch.cos(a), torch.sin(a), torch.cos(b), torch.sin(b)
+    k = sig_a * sig_b
+    return torch.stack(
+        [
+            ca * cb, k * sa, sig_b * ca * sb,
+            sa * cb, -k * ca, sig_b * sa * sb,
+            sig_a * sb, torch.zeros_like(cb), -k * cb,
+        ],
+        -1,
+    ).unflatten(-1, (3, 3))  # fmt: skip
 
 
 def decompose_zxzxz(m: Tensor, sig_a: float, sig_b: float) -> tuple[Tensor, Tensor, Tensor]:
-    """All angles of ``m = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b) Rz(c)`` for twists with
+    """All angles of ``M = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b) Rz(c)`` for twists with
     ``sin(alpha) = sig_a, sig_b = +-1``: a spherical joint triple (shoulder or wrist).
 
-    ``m (..., 3, 3) -> a, b, c``, each ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1
-    ``sin(b) <= 0``. With ``m = M``: ``M[2,2] = -sig_a sig_b cos b``, ``M[0:2, 2] = sig_b sin b
-    (cos a, sin a)``. ``c`` is taken from what is left once ``a`` and ``b`` are fixed, so the
-    triple reproduces ``m`` exactly also at ``sin b = 0`` (the singularity, where only
-    ``a +- c`` is determined and ``a`` is set to 0).
+    ``m (..., 3, 2)``, the columns 0 and 2 of ``M`` (all it takes) ``-> a, b, c``, each
+    ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1 ``sin(b) <= 0``. ``M[2,2] = -sig_a
+    sig_b cos b``, ``M[0:2, 2] = sig_b sin b (cos a, sin a)``. ``c`` is taken from what is
+    left once ``a`` and ``b`` are fixed, so the triple reproduces ``M`` exactly also at
+    ``sin b = 0`` (the singularity, where only ``a +- c`` is determined and ``a`` is set to 0).
     """
-    m02, m12, m22 = m[..., 0, 2], m[..., 1, 2], m[..., 2, 2]
+    m02, m12, m22 = m[..., 0, 1], m[..., 1, 1], m[..., 2, 1]
     sign = torch.tensor([1.0, -1.0], dtype=m.dtype, device=m.device)
     sb = safe_norm2(m02, m12)[..., None] * sign  # (..., 2)
     cb = (-sig_a * sig_b * m22)[..., None].expand_as(sb)

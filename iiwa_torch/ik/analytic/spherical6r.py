@@ -48,6 +48,7 @@ from ._common import (
     reach_tol,
     safe_atan2,
     sigma,
+    zxzx,
 )
 
 __all__ = ["pieper"]
@@ -107,24 +108,10 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
     theta2 = safe_atan2(py, px)[..., None] - safe_atan2(link3 * s_el, a2 + link3 * c_el)
 
     # Wrist: R_03^T R_06 Rz(-theta6)... = Rz(theta4) Rx(alpha4) Rz(theta5) Rx(alpha5) Rz(theta6).
-    r03 = _r03(theta1[..., None].expand_as(theta2), theta2 + theta3, s1, s3)  # (..., 2, 2, 3, 3)
-    m = r03.transpose(-1, -2) @ frame5[..., None, None, :3, :3]
+    r03 = zxzx(theta1[..., None].expand_as(theta2), theta2 + theta3, s1, s3)  # (..., 2, 2, 3, 3), alpha2 = 0
+    m = r03.transpose(-1, -2) @ frame5[..., None, None, :3, 0::2]  # columns 0, 2 of R_03^T R
     theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5)  # (..., 2, 2, 2)
     thetas = [theta1[..., None, None], theta2[..., None], theta3[..., None], theta4, theta5, theta6]
     reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None]
     return finish(chain, thetas, reachable, branch_dims=3)
 
-
-def _r03(theta1: Tensor, theta23: Tensor, s1: float, s3: float) -> Tensor:
-    """``R_03 = Rz(theta1) Rx(alpha1) Rz(theta2 + theta3) Rx(alpha3)`` (``alpha2 = 0``), ``(..., 3, 3)``."""
-    c1, sn1 = torch.cos(theta1), torch.sin(theta1)
-    c, s = torch.cos(theta23), torch.sin(theta23)
-    k = s1 * s3
-    return torch.stack(
-        [
-            c1 * c, sn1 * k, s3 * c1 * s,
-            sn1 * c, -c1 * k, s3 * sn1 * s,
-            s1 * s, torch.zeros_like(c), -k * c,
-        ],
-        -1,
-    ).unflatten(-1, (3, 3))

@@ -53,11 +53,10 @@ from ._common import (
     finish,
     last_frame_target,
     reach_tol,
-    rot_x_const,
-    rot_z,
     safe_atan2,
     safe_norm2,
     sigma,
+    zxzx,
 )
 
 __all__ = ["iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
@@ -95,13 +94,14 @@ def _frames(chain: DHChain, target: Tensor) -> tuple[Tensor, Tensor]:
     return frame6[..., :3, :3], sw
 
 
-def _elbow(geo: _Geometry, sw: Tensor, tol: float) -> tuple[Tensor, Tensor]:
-    """``theta_4`` for both elbow branches ``(..., 2)`` and whether ``W`` is in reach ``(...)``."""
+def _elbow(geo: _Geometry, sw: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Both elbow branches from ``W - S``: ``theta_4 (..., 2)``, ``cos theta_4 (...)``,
+    ``sin theta_4 (..., 2)`` and whether ``W`` is in reach ``(...)``."""
     dist2 = (sw * sw).sum(-1)
     c4 = -geo.sig[2] * geo.sig[3] * (dist2 - geo.d3**2 - geo.d5**2) / (2 * geo.d3 * geo.d5)
     c4, s4_abs, ok = acos_pair(c4, tol)
     s4 = s4_abs[..., None] * torch.tensor([1.0, -1.0], dtype=sw.dtype, device=sw.device)
-    return torch.atan2(s4, c4[..., None].expand_as(s4)), ok
+    return torch.atan2(s4, c4[..., None].expand_as(s4)), c4, s4, ok
 
 
 def _reference(u: Tensor) -> tuple[Tensor, Tensor]:
@@ -115,17 +115,18 @@ def _reference(u: Tensor) -> tuple[Tensor, Tensor]:
     return v_ref, w_ref
 
 
-def _split(geo: _Geometry, r03: Tensor, theta4: Tensor, rot: Tensor) -> list[Tensor]:
-    """Shoulder ``R_03 (..., 2, 3, 3)`` and ``theta_4 (..., 2)`` of both elbow branches and
-    ``R_06 Rz(theta7) (..., 3, 3)`` -> the 7 joint angles, each broadcastable to
-    ``(..., 2 shoulder, 2 elbow, 2 wrist)``."""
+def _split(geo: _Geometry, cols: tuple[Tensor, Tensor, Tensor], theta4: Tensor, c4: Tensor, s4: Tensor, rot: Tensor):
+    """Columns ``x3, y3, z3 (..., 2, 3)`` of ``R_03`` and ``theta_4`` (its cos ``(..., 1)``,
+    sin ``(..., 2)``) of both elbow branches, and ``R_06 Rz(theta7) (..., 3, 3)`` -> the 7
+    joint angles, each broadcastable to ``(..., 2 shoulder, 2 elbow, 2 wrist)``."""
     sig = geo.sig
-    # R_03 Rx(alpha3)^T = Rz(theta1) Rx(alpha1) Rz(theta2) Rx(alpha2) Rz(theta3)
-    t1, t2, t3 = decompose_zxzxz(r03 @ rot_x_const(sig[2], rot.dtype, rot.device).T, sig[0], sig[1])  # (..., E, 2)
-    # R_03 does not depend on the shoulder branch: one R_04 per elbow branch.
-    r04 = r03 @ rot_z(theta4) @ rot_x_const(sig[3], rot.dtype, rot.device)  # (..., E, 3, 3)
-    m = r04.transpose(-1, -2) @ rot[..., None, :, :]
-    t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., E, 2)
+    x3, y3, z3 = cols
+    # R_03 Rx(alpha3)^T = Rz(theta1) Rx(alpha1) Rz(theta2) Rx(alpha2) Rz(theta3): columns x3, s3 y3.
+    t1, t2, t3 = decompose_zxzxz(torch.stack([x3, sig[2] * y3], -1), sig[0], sig[1])  # (..., E, 2)
+    # R_04 = R_03 Rz(theta4) Rx(alpha4), one per elbow branch; its transpose has these rows.
+    c4, s4 = c4[..., None], s4[..., None]
+    r04_t = torch.stack([c4 * x3 + s4 * y3, sig[3] * z3, sig[3] * (s4 * x3 - c4 * y3)], -2)
+    t5, t6, t7 = decompose_zxzxz(r04_t @ rot[..., None, :, 0::2], sig[4], sig[5])  # (..., E, 2)
     shoulder = [t.transpose(-1, -2)[..., None] for t in (t1, t2, t3)]
     return [*shoulder, theta4[..., None, :, None], *(t[..., None, :, :] for t in (t5, t6, t7))]
 
@@ -157,7 +158,7 @@ def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
     if not torch.isfinite(psi).all():
         raise ValueError("psi contains NaN or inf")
     tol = reach_tol(target.dtype)
-    theta4, reachable = _elbow(geo, sw, tol)
+    theta4, c4, s4, reachable = _elbow(geo, sw, tol)
 
     dist = safe_norm2(safe_norm2(sw[..., 0], sw[..., 1]), sw[..., 2])
     u = sw / dist[..., None]
@@ -165,18 +166,19 @@ def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
     cp, sp = torch.cos(psi)[..., None], torch.sin(psi)[..., None]
     v = cp * v_ref + sp * w_ref  # elbow direction off the SW line
     n = cp * w_ref - sp * v_ref  # u x v: normal of the S, E, W plane
-    cos_a, sin_a, _ = acos_pair((geo.d3**2 + dist * dist - geo.d5**2) / (2 * geo.d3 * dist), tol)
-    cos_a, sin_a = cos_a[..., None], sin_a[..., None]
+    # Angle alpha at S between u and the upper arm e, from theta4 itself (so that E and
+    # theta4 agree exactly): dist u = d3 e + d5 f with e.f = -s3 s4 cos(theta4), |e x f| = |sin theta4|.
+    cos_a = ((geo.d3 - geo.sig[2] * geo.sig[3] * geo.d5 * c4) / dist)[..., None]
+    sin_a = (geo.d5 * s4[..., 0].abs() / dist)[..., None]
     e = cos_a * u + sin_a * v  # upper arm, z_2
     x_dir = sin_a * u - cos_a * v  # e x n
     # Columns of R_03: x3 = s3 kappa (e x n), y3 = s3 e, z3 = kappa n with kappa = s3 s4 sign(sin theta4).
     s3 = geo.sig[2]
     kappa = s3 * geo.sig[3] * torch.tensor([1.0, -1.0], dtype=u.dtype, device=u.device)[:, None]  # (2, 1)
-    r03 = torch.stack(
-        [s3 * kappa * x_dir[..., None, :], (s3 * e)[..., None, :].expand(*e.shape[:-1], 2, 3), kappa * n[..., None, :]],
-        -1,
-    )  # (..., 2, 3, 3)
-    thetas = _split(geo, r03, theta4.expand(r03.shape[:-2]), rot)
+    x3 = s3 * kappa * x_dir[..., None, :]  # (..., 2, 3)
+    cols = (x3, (s3 * e)[..., None, :].expand_as(x3), kappa * n[..., None, :])
+    shape = x3.shape[:-1]
+    thetas = _split(geo, cols, theta4.expand(shape), c4[..., None].expand(shape), s4.expand(shape), rot)
     return finish(chain, thetas, reachable[..., None, None, None], branch_dims=3)
 
 
@@ -221,7 +223,7 @@ def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
         raise ValueError("q3 contains NaN or inf")
     tol = reach_tol(target.dtype)
     sig = geo.sig
-    theta4, reachable = _elbow(geo, sw, tol)  # (..., 2)
+    theta4, _, _, reachable = _elbow(geo, sw, tol)  # (..., 2)
     theta3 = theta3[..., None].expand(torch.broadcast_shapes(theta3[..., None].shape, theta4.shape))
     c3, s3, c4, s4 = torch.cos(theta3), torch.sin(theta3), torch.cos(theta4), torch.sin(theta4)
     # p = W - S in frame 2, then p' = Rx(alpha2) p.
@@ -237,11 +239,8 @@ def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
     vx, vz = c2 * a[..., None] - s2 * b[..., None], c[..., None].expand_as(c2)
     theta1 = safe_atan2(sw[..., 1], sw[..., 0])[..., None, None] - safe_atan2(-sig[0] * vz, vx)
 
-    dtype, device = target.dtype, target.device
-    rx = [rot_x_const(s, dtype, device) for s in sig[:3]]
-    r03 = rot_z(theta1) @ rx[0] @ rot_z(theta2) @ rx[1] @ rot_z(theta3[..., None].expand_as(theta2)) @ rx[2]
-    r04 = r03 @ rot_z(theta4[..., None].expand_as(theta2)) @ rot_x_const(sig[3], dtype, device)
-    m = r04.transpose(-1, -2) @ rot[..., None, None, :, :]
+    r04 = zxzx(theta1, theta2, sig[0], sig[1]) @ zxzx(theta3, theta4, sig[2], sig[3])[..., None, :, :]
+    m = r04.transpose(-1, -2) @ rot[..., None, None, :, 0::2]  # columns 0, 2 of R_04^T R
     t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2 elbow, 2 shoulder, 2 wrist)
     # Reorder the branch dims to (..., 2 shoulder, 2 elbow, 2 wrist).
     thetas = [
