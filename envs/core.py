@@ -113,12 +113,12 @@ def uniform(key: Tensor, episode: Tensor, start: int, count: int, dtype: torch.d
 
     Column ``j`` is the draw number ``start + j`` of that (key, episode): a pure function,
     so any subset of environments can be (re)drawn in any order with the same result.
-    24 random bits each (resolution 6e-8).
+    24 random bits each (resolution 6e-8). The stream of one (key, episode) is SplitMix's:
+    the finaliser applied to a start point plus ``j`` times the golden-ratio increment.
     """
-    base = _mix32(key ^ _mix32((episode & _M32) ^ 0x7F4A7C15))  # (n,)
+    base = _mix32(key ^ _mix32((episode & _M32) ^ 0x7F4A7C15))  # (n,) start point
     j = torch.arange(start, start + count, device=key.device, dtype=torch.int64)
     h = _mix32((base[:, None] + _mul32(j, 0x9E3779B9)) & _M32)  # (n, count)
-    h = _mix32(h ^ base[:, None])
     return (h >> 8).to(dtype) * (2.0**-24)
 
 

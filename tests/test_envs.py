@@ -213,7 +213,13 @@ def test_counter_based_random_numbers():
     # mean 1/2 and variance 1/12 of a uniform law, within ~5 standard errors
     assert abs(u.mean().item() - 0.5) < 5 * math.sqrt(1 / 12 / u.numel())
     assert abs(u.var().item() - 1 / 12) < 0.002
-    assert abs(np.corrcoef(u[:, 0], u[:, 1])[0, 1]) < 0.03
+    assert abs(np.corrcoef(u[:, 0], u[:, 1])[0, 1]) < 0.03  # consecutive draws
+    assert abs(np.corrcoef(u[:-1, 0], u[1:, 0])[0, 1]) < 0.03  # neighbouring seeds
+    nxt = uniform(keys, torch.ones_like(keys), 0, 10, torch.float64)
+    assert abs(np.corrcoef(u[:, 0], nxt[:, 0])[0, 1]) < 0.03  # consecutive episodes
+    counts = np.histogram(u.numpy(), bins=20, range=(0, 1))[0]
+    expected = u.numel() / 20
+    assert ((counts - expected) ** 2 / expected).sum() < 43.8  # chi-square, 19 dof, p = 0.001
     # a row's numbers do not depend on which other rows are drawn with it
     sub = uniform(keys[[5, 17]], torch.tensor([3, 4]), 0, 10, torch.float64)
     full = uniform(keys, torch.full_like(keys, 3), 0, 10, torch.float64)
