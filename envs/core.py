@@ -4,8 +4,10 @@ Robot, task and env are kept apart:
 
 - the robot is a :class:`~iiwa_torch.dh.DHChain` (kinematics, joint limits, joint speeds);
 - the task, :class:`ReachTask`, is immutable configuration (time step, goal kind, reward,
-  thresholds) with pure methods ``reset(state, mask)`` and ``step(state, action)`` that
-  take a :class:`ReachState` (a tuple of ``(num_envs, ...)`` tensors) and return a new one;
+  thresholds) with pure batched methods over a :class:`ReachState` (a tuple of
+  ``(num_envs, ...)`` tensors): ``initial_state(keys)``, ``restart(state, idx)``,
+  ``step(state, action)`` (the one step) and ``step_autoreset(state, action)`` (the step,
+  same-step auto-reset and one transfer to numpy, for the vector envs);
 - the envs (``envs.reach``, ``envs.sb3``) only convert to and from numpy and keep the
   current state.
 
@@ -126,7 +128,7 @@ def uniform(key: Tensor, episode: Tensor, start: int, count: int, dtype: torch.d
 class ReachState(NamedTuple):
     """State of ``n`` environments (all tensors share the task's device).
 
-    q: ``(n, 7)`` joint angles, rad. velocity: ``(n, 7)`` last joint velocity over the
+    q: ``(n, nj)`` joint angles, rad. velocity: ``(n, nj)`` last joint velocity over the
     joint speed limits (in ``[-1, 1]``). goal: ``(n, g)`` desired goal. achieved: ``(n, g)``
     achieved goal at ``q``. t: ``(n,)`` int64 steps taken this episode. key: ``(n,)`` int64
     random key (from the seed). episode: ``(n,)`` int64 episode counter since seeding.
@@ -191,7 +193,7 @@ class ReachTask:
         max_episode_steps: truncate after this many steps (``None``: never).
         terminate_on_success: end the episode when the goal is reached (as panda-gym).
         home: start posture for ``start="home"`` (default :data:`IIWA_HOME` for 7 joints,
-            else zeros clamped into the limits).
+            else zeros; it must lie within the limits).
         dtype: float dtype of the state (observations are always float32).
         device: torch device of the state.
     """
@@ -284,7 +286,7 @@ class ReachTask:
         configuration within the limits: ``ceil(max_i max(|lo_i - h_i|, |hi_i - h_i|) / (v_i dt))``.
         Every sampled goal is the FK of such a configuration, so it can be reached in this many steps."""
         span = torch.maximum((self.lower - self.home).abs(), (self.upper - self.home).abs())
-        return int(torch.ceil((span / self.max_step).max() - 1e-6))
+        return int(torch.ceil((span / self.max_step).max() - 1e-4))  # 1e-4: float32 rounding of exact ratios
 
     # ------------------------------------------------------------------ pure functions
     def goal_of(self, pose: Tensor) -> Tensor:

@@ -309,11 +309,17 @@ def test_pose_success_needs_the_orientation_too():
 
 
 def test_rgb_array_render():
+    from gymnasium.utils.env_checker import check_env
+
     env = gym.make("IiwaReach-v0", render_mode="rgb_array")
     env.reset(seed=0)
     image = env.render()
     assert image.shape == (480, 480, 3) and image.dtype == np.uint8
     assert image.std() > 5  # something was drawn
+    check_env(env.unwrapped)  # with its render check
+    vec = IiwaReachVectorEnv(2, render_mode="rgb_array")
+    vec.reset(seed=0)
+    assert [im.shape for im in vec.render()] == [(480, 480, 3)] * 2
 
 
 def test_human_render_and_gif_of_an_episode(tmp_path):
