@@ -95,23 +95,24 @@ def decompose_zxzxz(m: Tensor, sig_a: float, sig_b: float) -> tuple[Tensor, Tens
     ``sin(alpha) = sig_a, sig_b = +-1``: a spherical joint triple (shoulder or wrist).
 
     ``m (..., 3, 2)``, the columns 0 and 2 of ``M`` (all it takes) ``-> a, b, c``, each
-    ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1 ``sin(b) <= 0``. ``M[2,2] = -sig_a
-    sig_b cos b``, ``M[0:2, 2] = sig_b sin b (cos a, sin a)``. ``c`` is taken from what is
-    left once ``a`` and ``b`` are fixed, so the triple reproduces ``M`` exactly also at
-    ``sin b = 0`` (the singularity, where only ``a +- c`` is determined and ``a`` is set to 0).
+    ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1 is its flip ``(a + pi, -b, c + pi)``
+    (angles not wrapped). ``M[2,2] = -sig_a sig_b cos b``, ``M[0:2, 2] = sig_b sin b (cos a,
+    sin a)``. ``c`` is taken from what is left once ``a`` and ``b`` are fixed, so the triple
+    reproduces ``M`` exactly also at ``sin b = 0`` (the singularity, where only ``a +- c`` is
+    determined and ``a`` is set to 0, or pi in the flip).
     """
     m02, m12, m22 = m[..., 0, 1], m[..., 1, 1], m[..., 2, 1]
-    sign = torch.tensor([1.0, -1.0], dtype=m.dtype, device=m.device)
-    sb = safe_norm2(m02, m12)[..., None] * sign  # (..., 2)
-    cb = (-sig_a * sig_b * m22)[..., None].expand_as(sb)
+    sb = safe_norm2(m02, m12)  # sin b >= 0
+    cb = -sig_a * sig_b * m22
     b = torch.atan2(sb, cb)
-    a = safe_atan2(sig_b * sign * m12[..., None], sig_b * sign * m02[..., None])
+    a = safe_atan2(sig_b * m12, sig_b * m02)
     ca, sa = torch.cos(a), torch.sin(a)
-    m0, m1, m2 = m[..., 0, 0, None], m[..., 1, 0, None], m[..., 2, 0, None]
+    m0, m1, m2 = m[..., 0, 0], m[..., 1, 0], m[..., 2, 0]
     # First column of Rz(c) = (Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b))^T m e_x.
-    cos_c = torch.cos(b) * (ca * m0 + sa * m1) + sig_a * torch.sin(b) * m2
+    cos_c = cb * (ca * m0 + sa * m1) + sig_a * sb * m2
     sin_c = sig_a * sig_b * (sa * m0 - ca * m1)
-    return a, b, safe_atan2(sin_c, cos_c)
+    c = safe_atan2(sin_c, cos_c)
+    return torch.stack([a, a + math.pi], -1), torch.stack([b, -b], -1), torch.stack([c, c + math.pi], -1)
 
 
 # ---------------------------------------------------------------- chain structure
