@@ -238,6 +238,16 @@ def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_m
     )
 
 
+def _inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """``(lo, hi)``, each ``(n,)``, the joint limits in ``dtype`` rounded inward, so an angle
+    within them is within the chain's float64 limits too (float32 rounding could cross them)."""
+    exact = chain.limits
+    lo, hi = exact.to(dtype)
+    lo = torch.where(lo.double() < exact[0], torch.nextafter(lo, torch.full_like(lo, math.inf)), lo)
+    hi = torch.where(hi.double() > exact[1], torch.nextafter(hi, torch.full_like(hi, -math.inf)), hi)
+    return lo, hi
+
+
 def _into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Joint angles into ``[lo, hi]``: an angle outside is first shifted by a multiple of 2 pi
     (the same pose for a revolute joint), then clamped to the nearer limit if still outside."""
@@ -388,7 +398,7 @@ def solve(
 
     with torch.no_grad():
         kin = _Kinematics(chain, dtype, device)
-        lo, hi = chain.limits.to(dtype)[..., None].unbind(0)  # (n, 1) each
+        lo, hi = (x[:, None] for x in _inner_limits(chain, dtype))  # (n, 1) each
         first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", dtype).T, lo, hi).T
         lam_min = 1e-12 if dtype == torch.float64 else 1e-6
         weight = float(rot_weight)
@@ -504,8 +514,8 @@ def minimize(
         success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion of the caller's
             loss (e.g. "elbow above 0.5 m"); success needs it and the tolerances.
 
-    Joint limits are kept by projection: the loss sees ``chain.clamp`` of the parameters and
-    the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
+    Joint limits are kept by projection: the loss sees the parameters clamped into the limits,
+    and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
     seen; ``iterations`` is ``steps`` for every problem.
     """
     _check_choice(mode, get_args(Mode), "mode")
@@ -519,7 +529,12 @@ def minimize(
     batch = q0.shape[:-1]
     _check_target(target, mode, q0.dtype, batch)
 
-    u = chain.clamp(q0.detach()).clone().requires_grad_(True)
+    lo, hi = _inner_limits(chain, q0.dtype)
+
+    def clamp(q: Tensor) -> Tensor:
+        return torch.minimum(torch.maximum(q, lo), hi)
+
+    u = clamp(q0.detach()).requires_grad_(True)
     if optimizer == "adam":
         opt = torch.optim.Adam([u], lr=0.1 if lr is None else lr)
         decay = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.01 ** (1 / steps))
@@ -542,7 +557,7 @@ def minimize(
     def closure() -> Tensor:
         nonlocal best_loss
         opt.zero_grad()
-        q = chain.clamp(u)
+        q = clamp(u)
         value = loss(q, chain.fk(q))
         if not isinstance(value, torch.Tensor) or value.shape != batch:
             raise ValueError(
@@ -558,11 +573,11 @@ def minimize(
     for _ in range(steps if decay is not None else 1):
         opt.step(closure)
         with torch.no_grad():  # projection; a non-finite update (from the caller's loss) restarts from the best
-            u.copy_(chain.clamp(torch.where(torch.isfinite(u), u, best_q)))
+            u.copy_(clamp(torch.where(torch.isfinite(u), u, best_q)))
         if decay is not None:
             decay.step()
     with torch.no_grad():
-        q = chain.clamp(u)
+        q = clamp(u)
         value = loss(q, chain.fk(q))
         best_q = torch.where((value < best_loss)[..., None], q, best_q)
         iterations = torch.full(batch, steps, dtype=torch.long, device=q0.device)

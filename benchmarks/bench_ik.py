@@ -1,0 +1,202 @@
+"""IK on 10,000 random reachable iiwa 14 poses: iiwa-torch against its peers, one run.
+
+    python benchmarks/bench_ik.py [--quick]
+
+Solvers, all on the same targets (FK of seeded random configurations within the limits):
+- ours: ``iiwa_torch.ik.solve`` (batched LM), float32 and float64, 1 and 2 threads;
+- pytorch_kinematics ``PseudoInverseIK`` (batched torch, float32; the settings the issue
+  measured: 10 retries, 50 iterations, ``early_stopping_any_converged``, regularisation 1e-6)
+  and its ``PseudoInverseIKWithSVD`` variant, on the chain loaded from our URDF export;
+- roboticstoolbox ``ETS.ik_LM`` (C++, one call per target) at its defaults and at tol 1e-7,
+  on an ETS built from the same DH table and limits.
+
+Every answer is scored by the same code: our ``chain.fk`` and ``so3.pose_error`` (after a
+check that each peer's FK agrees with ours), success at 0.1 mm / 1 mrad and at 1 mm /
+10 mrad, and the share of answers within the joint limits. Then the success/time trade-off
+of ours as seeds and iterations vary. Writes results/ik.json and results/ik.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from common import machine, markdown_table, save  # noqa: E402
+
+from iiwa_torch import robots, so3  # noqa: E402
+from iiwa_torch.ik import solve  # noqa: E402
+from iiwa_torch.urdf import to_urdf  # noqa: E402
+
+CHAIN = robots.iiwa14()
+TOLERANCES = {"0.1mm/1mrad": (1e-4, 1e-3), "1mm/10mrad": (1e-3, 1e-2)}
+
+
+def score(q: torch.Tensor, target: torch.Tensor) -> dict:
+    """One FK for every solver: success at both tolerances and the share within limits."""
+    q = q.to(torch.float64)
+    pos, rot = so3.pose_error(CHAIN.fk(q), target)
+    pos, rot = pos.norm(dim=-1), rot.norm(dim=-1)
+    out = {f"success {k}": float(((pos <= p) & (rot <= r)).double().mean()) for k, (p, r) in TOLERANCES.items()}
+    out["within limits"] = float(CHAIN.within_limits(q, tol=1e-9).double().mean())
+    return out
+
+
+def timed(fn, repeats: int) -> tuple[float, object]:
+    """Median wall seconds over ``repeats`` calls (after one warm-up) and the last result."""
+    result = fn()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        samples.append(time.perf_counter() - start)
+    return statistics.median(samples), result
+
+
+def ours(target: torch.Tensor, repeats: int, **options) -> dict:
+    seconds, result = timed(lambda: solve(CHAIN, target, **options), repeats)
+    row = {"seconds": seconds, "per target ms": seconds / len(target) * 1e3}
+    row |= score(result.q, target.to(torch.float64))
+    row["mean iterations"] = float(result.iterations.double().mean())
+    return row
+
+
+def pytorch_kinematics(target: torch.Tensor, variant: str) -> dict | None:
+    try:
+        import pytorch_kinematics as pk
+    except ImportError:
+        return None
+    serial = pk.build_serial_chain_from_urdf(to_urdf(CHAIN).encode(), "tool0").to(dtype=torch.float32)
+    q_check = CHAIN.random_q(64, generator=torch.Generator().manual_seed(1))
+    agree = (serial.forward_kinematics(q_check.float()).get_matrix().double() - CHAIN.fk(q_check)).abs().max()
+    solver_cls = getattr(pk, variant)
+    solver = solver_cls(
+        serial,
+        max_iterations=50,
+        num_retries=10,
+        joint_limits=CHAIN.limits.T.float(),
+        early_stopping_any_converged=True,
+        early_stopping_no_improvement="all",
+        regularlization=1e-6,
+        pos_tolerance=1e-4,
+        rot_tolerance=1e-3,
+        debug=False,
+    )
+    goal = pk.Transform3d(matrix=target.float())
+    torch.manual_seed(0)  # pk samples its retry configurations from torch's global generator
+    start = time.perf_counter()
+    try:
+        sol = solver.solve(goal)
+    except RuntimeError as err:  # e.g. a singular matrix in torch.linalg.solve
+        return {"error": str(err)[:200], "fk max diff vs ours": float(agree)}
+    seconds = time.perf_counter() - start
+    # best retry per target, by its own error
+    err = sol.err_pos.double() + sol.err_rot.double()  # (M, retries)
+    best = err.argmin(1)
+    q = sol.solutions[torch.arange(len(target)), best]
+    row = {"seconds": seconds, "per target ms": seconds / len(target) * 1e3, "fk max diff vs ours": float(agree)}
+    return row | score(q, target)
+
+
+def roboticstoolbox(target: torch.Tensor, tol: float | None) -> dict | None:
+    try:
+        import roboticstoolbox as rtb
+    except ImportError:
+        return None
+    links = [
+        rtb.RevoluteDH(a=a, alpha=al, d=d, offset=o, qlim=[lo, hi])
+        for (a, al, d, o), lo, hi in zip(CHAIN.dh.tolist(), *CHAIN.limits.tolist())
+    ]
+    ets = rtb.DHRobot(links, tool=CHAIN.tool.numpy()).ets()
+    q_check = CHAIN.random_q(64, generator=torch.Generator().manual_seed(1))
+    agree = max(float(np.abs(ets.eval(x) - y).max()) for x, y in zip(q_check.numpy(), CHAIN.fk(q_check).numpy()))
+    goals = list(target.numpy())
+    options = {} if tol is None else {"tol": tol}
+    np.random.seed(0)  # ik_LM draws its restarts from numpy's global generator
+    start = time.perf_counter()
+    solutions = [ets.ik_LM(g, **options) for g in goals]
+    seconds = time.perf_counter() - start
+    q = torch.tensor(np.stack([s[0] for s in solutions]))
+    row = {"seconds": seconds, "per target ms": seconds / len(target) * 1e3, "fk max diff vs ours": agree}
+    return row | score(q, target)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="1,000 targets, fewer repeats (a smoke run)")
+    args = parser.parse_args()
+    count, repeats = (1_000, 2) if args.quick else (10_000, 5)
+    q_true = CHAIN.random_q(count, generator=torch.Generator().manual_seed(2024))
+    target = CHAIN.fk(q_true)
+    rows: dict[str, dict] = {}
+
+    def report(name: str, row: dict | None) -> None:
+        if row is None:
+            print(f"{name}: not installed, skipped", flush=True)
+            return
+        rows[name] = row
+        shown = {k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()}
+        print(f"{name}: {shown}", flush=True)
+
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        for dtype in (torch.float32, torch.float64):
+            report(f"iiwa-torch solve, {str(dtype)[6:]}, {threads} thread(s)", ours(target.to(dtype), repeats))
+    torch.set_num_threads(1)
+    for variant in ("PseudoInverseIK", "PseudoInverseIKWithSVD"):
+        report(f"pytorch_kinematics {variant}, float32, 1 thread", pytorch_kinematics(target, variant))
+    report("roboticstoolbox ik_LM (C++), defaults", roboticstoolbox(target, None))
+    report("roboticstoolbox ik_LM (C++), tol=1e-7", roboticstoolbox(target, 1e-7))
+
+    # Success/time trade-off of ours (float32, 1 thread) as seeds and iterations vary.
+    tradeoff = []
+    for seeds in (1, 2, 4, 8):
+        for iterations in (8, 12, 16, 24):
+            row = ours(target.float(), max(1, repeats // 2), seeds=seeds, iterations=iterations)
+            tradeoff.append({"seeds": seeds, "iterations per seed": iterations} | row)
+            print(f"trade-off seeds={seeds} iterations={iterations}: {row}", flush=True)
+
+    best_ours = min(
+        (r for k, r in rows.items() if k.startswith("iiwa-torch") and "1 thread" in k), key=lambda r: r["seconds"]
+    )
+    headers = ["solver", "per target (ms)", "success 0.1 mm / 1 mrad", "success 1 mm / 10 mrad", "within limits",
+               "time vs ours (fastest 1-thread)"]  # fmt: skip
+    table = []
+    for name, row in rows.items():
+        if "error" in row:
+            table.append([name, "crashed: " + row["error"][:60], "", "", "", ""])
+            continue
+        ratio = row["seconds"] / best_ours["seconds"]
+        table.append([
+            name, f"{row['per target ms']:.4f}", f"{100 * row['success 0.1mm/1mrad']:.2f}%",
+            f"{100 * row['success 1mm/10mrad']:.2f}%", f"{100 * row['within limits']:.2f}%", f"{ratio:.1f}x",
+        ])  # fmt: skip
+    trade_table = [
+        [r["seeds"], r["iterations per seed"], f"{r['per target ms']:.4f}", f"{100 * r['success 0.1mm/1mrad']:.2f}%"]
+        for r in tradeoff
+    ]
+    info = machine()
+    command = "python benchmarks/bench_ik.py" + (" --quick" if args.quick else "")
+    markdown = (
+        f"IK on {count:,} random reachable iiwa 14 poses (`{command}`); wall time, median of {repeats} runs "
+        "for ours.\n\n"
+        + markdown_table(headers, table)
+        + "\nOurs, float32, 1 thread, as seeds and iterations per seed vary:\n\n"
+        + markdown_table(["seeds", "iterations per seed", "per target (ms)", "success 0.1 mm / 1 mrad"], trade_table)
+        + f"\nMachine: {info}\n"
+    )
+    name = "ik_quick" if args.quick else "ik"
+    path = save(name, {"machine": info, "targets": count, "command": command, "solvers": rows, "tradeoff": tradeoff},
+                markdown)  # fmt: skip
+    print(markdown)
+    print(f"wrote {path}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
