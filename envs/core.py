@@ -303,11 +303,12 @@ class ReachTask:
         Each row is computed on its own (no reduction across rows), so a batched call gives
         the values of single calls bit for bit: what SB3's checker and HER rely on.
         """
-        d = achieved[..., :3] - desired[..., :3]
-        # not vector_norm: 1.5x faster on (N, 3) rows at N = 65,536, and 4 ops (per-op cost rules at N = 1)
+        position = self.goal_kind is GoalKind.POSITION
+        d = achieved - desired if position else achieved[..., :3] - desired[..., :3]
+        # not vector_norm: 1.5x faster on (N, 3) rows at N = 65,536, and few ops (per-op cost rules at N = 1)
         dist = torch.sqrt((d * d).sum(-1))
         ok = dist < self.distance_threshold
-        if self.goal_kind is GoalKind.POSITION:
+        if position:
             return dist, None, ok
         xa, ya, xd, yd = achieved[..., 3:6], achieved[..., 6:9], desired[..., 3:6], desired[..., 6:9]
         # ||Ra - Rd||_F^2 over the three columns (z = x cross y) = 8 sin^2(angle / 2)
@@ -374,7 +375,8 @@ class ReachTask:
         # the motion actually made, over the speed limit; this clamp only removes float rounding (1e-6)
         velocity = torch.clamp((q - state.q) / self.max_step, -1.0, 1.0)
         achieved = self.goal_of(self.robot.fk(q))
-        dist, angle, success = self.errors(achieved.float(), state.goal.float())  # as observed, in float32
+        observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
+        dist, angle, success = self.errors(*observed)  # the reward of the goals as observed, in float32
         reward = self._reward(dist, angle, success)
         t = state.t + 1
         terminated = success if self.terminate_on_success else torch.zeros_like(success)
@@ -476,7 +478,8 @@ class ReachTask:
             except (TypeError, ValueError):
                 raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
             finite = bool(np.isfinite(arr).all())
-            a = torch.from_numpy(arr).to(self.device)
+            a = torch.from_numpy(arr.reshape(1, nj) if arr.shape == (nj,) and n == 1 else arr)
+            a = a if self.device.type == "cpu" else a.to(self.device)
         if a.shape == (nj,) and n == 1:
             a = a[None]
         if a.shape != (n, nj):
