@@ -330,6 +330,15 @@ class ReachTask:
         """Fresh episode 0 for the ``(n,)`` keys."""
         return self._new_episodes(key, torch.zeros_like(key))
 
+    def reset_all(self, state: ReachState | None, seeds: list, rng: np.random.Generator) -> ReachState:
+        """Reset every environment, as the envs' ``reset`` does: without seeds (all ``None``)
+        an existing state goes on to the next episode of each environment; otherwise
+        episode 0 starts from the keys of ``seeds`` (a ``None`` entry draws a seed from ``rng``)."""
+        if state is not None and all(s is None for s in seeds):
+            return self.restart(state, torch.arange(len(seeds), device=self.device))[0]
+        fresh = rng.integers(2**63, size=len(seeds)).tolist()
+        return self.initial_state(keys_from_seeds([f if s is None else s for f, s in zip(fresh, seeds)], self.device))
+
     def _new_episodes(self, key: Tensor, episode: Tensor) -> ReachState:
         """Start episode ``episode`` for each key: draw the start and the goal, compute FK once."""
         n, nj = key.shape[0], self.n_joints
@@ -385,12 +394,13 @@ class ReachTask:
         new = ReachState(q, velocity, state.goal, achieved, t, state.key, state.episode)
         return new, StepResult(reward, terminated, truncated, success, dist, angle)
 
-    def status(self, state: ReachState) -> StepResult:
-        """The ``StepResult`` fields for a state just reset (not terminated, not truncated)."""
+    def reset_transition(self, state: ReachState) -> Transition:
+        """The observation and status of a state just reset, as numpy (one transfer)."""
         dist, angle, success = self.errors(state.achieved.float(), state.goal.float())
         no = torch.zeros_like(success)
-        return StepResult(self._reward(dist, angle, success), no, no, success, dist,
-                          torch.zeros_like(dist) if angle is None else angle)
+        angle = torch.zeros_like(dist) if angle is None else angle
+        status = StepResult(self._reward(dist, angle, success), no, no, success, dist, angle)
+        return self.unpack(self.pack(state, status).cpu().numpy())
 
     @staticmethod
     def _columns(state: ReachState) -> list[Tensor]:

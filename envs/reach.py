@@ -16,7 +16,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .core import GoalKind, ReachState, ReachTask, keys_from_seeds
+from .core import GoalKind, ReachState, ReachTask
 
 __all__ = ["IiwaReachEnv", "IiwaReachVectorEnv", "goal_env_spaces"]
 
@@ -154,21 +154,13 @@ class IiwaReachEnv(gym.Env):
         super().reset(seed=seed)
         if options:
             raise ValueError(f"reset takes no options, got {options!r}")
-        if seed is not None or self._state is None:
-            seed = seed if seed is not None else int(self.np_random.integers(2**63))
-            self._state = self.task.initial_state(keys_from_seeds([seed], self.task.device))
-        else:
-            idx = torch.zeros(1, dtype=torch.int64, device=self.task.device)
-            self._state, _ = self.task.restart(self._state, idx)
-        obs, info = self._observe()
+        self._state = self.task.reset_all(self._state, [seed], self.np_random)
+        tr = self.task.reset_transition(self._state)
+        obs = {k: v[0] for k, v in tr.obs.items()}
+        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), float(tr.angle[0]))
         if self.render_mode == "human":
             self.render()
         return obs, info
-
-    def _observe(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        tr = self.task.unpack(self.task.pack(self._state, self.task.status(self._state)).cpu().numpy())
-        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), float(tr.angle[0]))
-        return {k: v[0] for k, v in tr.obs.items()}, info
 
     @torch.inference_mode()
     def step(self, action):
@@ -281,14 +273,8 @@ class IiwaReachVectorEnv(VectorEnv):
                 raise ValueError(f"seed must be an int or a list of {self.num_envs} ints/None, got {len(seeds)} seeds")
         else:
             raise ValueError(f"seed must be an int, a list of ints/None or None, got {seed!r}")
-        if seed is None and self._state is not None:
-            idx = torch.arange(self.num_envs, device=self.task.device)
-            self._state, _ = self.task.restart(self._state, idx)
-        else:
-            fresh = self.np_random.integers(2**63, size=self.num_envs).tolist()
-            seeds = [fresh[i] if s is None else s for i, s in enumerate(seeds)]
-            self._state = self.task.initial_state(keys_from_seeds(seeds, self.task.device))
-        tr = self.task.unpack(self.task.pack(self._state, self.task.status(self._state)).cpu().numpy())
+        self._state = self.task.reset_all(self._state, seeds, self.np_random)
+        tr = self.task.reset_transition(self._state)
         return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle)
 
     @torch.inference_mode()

@@ -27,7 +27,7 @@ import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
 from . import ENV_IDS, MAX_EPISODE_STEPS
-from .core import GoalKind, ReachState, ReachTask, keys_from_seeds
+from .core import GoalKind, ReachState, ReachTask
 from .reach import _compute_reward, goal_env_spaces
 
 __all__ = ["IiwaReachVecEnv"]
@@ -90,19 +90,12 @@ class IiwaReachVecEnv(VecEnv):
         """Reset every environment (with the seeds of ``seed()``, if any, used once)."""
         if any(self._options):
             raise ValueError(f"IiwaReachVecEnv.reset takes no options, got {self._options[0]!r}")
-        seeds = self._seeds
-        if all(s is None for s in seeds) and self._state is not None:
-            idx = torch.arange(self.num_envs, device=self.task.device)
-            self._state, _ = self.task.restart(self._state, idx)
-        else:
-            fresh = self._rng.integers(2**63, size=self.num_envs).tolist()
-            seeds = [fresh[i] if s is None else s for i, s in enumerate(seeds)]
-            self._state = self.task.initial_state(keys_from_seeds(seeds, self.task.device))
+        self._state = self.task.reset_all(self._state, self._seeds, self._rng)
         self._reset_seeds()
         self._reset_options()
-        out = self.task.observe(self._state).cpu().numpy()
-        self.reset_infos = [{} for _ in range(self.num_envs)]
-        return self.task.split(out)
+        tr = self.task.reset_transition(self._state)
+        self.reset_infos = [{"is_success": s, "distance": d} for s, d in zip(tr.success.tolist(), tr.distance.tolist())]
+        return tr.obs
 
     def step_async(self, actions: np.ndarray) -> None:
         if self._state is None:
