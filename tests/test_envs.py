@@ -142,14 +142,14 @@ def test_sb3_vecenv_attribute_api_and_her_reward():
 def test_action_moves_each_joint_by_datasheet_speed_times_dt():
     env = IiwaReachEnv(dt=0.05)
     obs0, _ = env.reset(seed=0)
-    q0 = env.unwrapped._state.q[0].double().numpy()
+    q0 = env.joint_angles
     action = np.array([1, -1, 0.5, 0, 3.0, -7.0, 0.25], dtype=np.float32)  # 3 and -7 are clipped to +-1
-    env.step(action)
-    dq = env._state.q[0].double().numpy() - q0
+    obs, *_ = env.step(action)
+    dq = env.joint_angles - q0
     expected = np.clip(action, -1, 1) * np.radians(IIWA14_SPEED_DEG) * 0.05
     np.testing.assert_allclose(dq, expected, atol=1e-6)
     # the observed velocity is that motion over the speed limit
-    np.testing.assert_allclose(env._observe()[0]["observation"][14:21], np.clip(action, -1, 1), atol=1e-5)
+    np.testing.assert_allclose(obs["observation"][14:21], np.clip(action, -1, 1), atol=1e-5)
 
 
 def test_joint_limits_never_exceeded_and_velocity_reflects_clamping():
