@@ -1,0 +1,398 @@
+"""Compare a trained policy with the analytic and the gradient IK on the same held-out goals.
+
+    python -m train.evaluate --model train/policies/ppo_reach --goals 1000 --seed 0 --out reports/ppo_reach
+
+``--model`` is a run directory of ``train.train`` (or a shipped policy folder) holding
+``model.zip``, ``config.yaml`` and, if the run normalised observations, ``vecnormalize.pkl``.
+The goals are the FK of ``--goals`` configurations drawn within the joint limits with
+``--seed`` (a stream separate from the training's), every arm starting at home.
+
+Methods, each on every goal:
+
+- ``policy``: the deterministic policy, closed loop for the env's 50 steps (2.5 s at
+  dt = 0.05 s), no early stop: the final error says whether it reached the goal and stayed;
+- ``analytic_ik``: ``iiwa_torch.ik.analytic.iiwa_solve`` (arm-angle sweep, within limits),
+  nearest solution to home. It solves the full pose: for position goals it is given the
+  pose the goal was drawn from (a harder problem than the position alone);
+- ``gradient_ik``: ``iiwa_torch.ik.solve`` from home, position-only for position goals.
+
+The IK answers are end configurations, not motions: their "steps to reach" is the number
+of env steps a straight full-speed joint move from home needs, and their path length the
+straight-line joint distance. Outputs in ``--out``: ``report.json`` (keys in
+docs/training.md), ``report.md`` and PNG plots.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
+METHODS = ("policy", "analytic_ik", "gradient_ik")
+SINGLE_GOALS = 20  # goals timed one at a time for the "single" wall time
+
+
+# ---------------------------------------------------------------------------- loading
+def load_policy(model_dir: Path):
+    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder."""
+    from stable_baselines3 import PPO, SAC
+
+    model_dir = Path(model_dir)
+    if not (model_dir / "model.zip").exists() or not (model_dir / "config.yaml").exists():
+        raise FileNotFoundError(f"{model_dir} must hold model.zip and config.yaml (a train.train run or a "
+                                f"train/policies/ folder)")
+    config = yaml.safe_load((model_dir / "config.yaml").read_text())
+    algo = {"ppo": PPO, "sac": SAC}[config["algo"]]
+    model = algo.load(model_dir / "model.zip", device="cpu")
+    vec_normalize = None
+    if (model_dir / "vecnormalize.pkl").exists():
+        import pickle
+
+        with open(model_dir / "vecnormalize.pkl", "rb") as f:
+            vec_normalize = pickle.load(f)  # SB3's own format (VecNormalize.save pickles the wrapper)
+        vec_normalize.training = False
+    return model, vec_normalize, config
+
+
+# ---------------------------------------------------------------------------- metrics
+def _steps_to_reach(distance: np.ndarray, tol: float) -> np.ndarray:
+    """``(T + 1, n)`` distances -> ``(n,)`` first step index below ``tol`` (NaN if never)."""
+    hit = distance < tol
+    first = hit.argmax(0).astype(float)
+    first[~hit.any(0)] = np.nan
+    return first
+
+
+def summarise(final_error: np.ndarray, steps: np.ndarray, path: np.ndarray, violations: int,
+              batched: float, single: float, n: int) -> dict[str, Any]:
+    """The metrics of one method (errors in metres, times in seconds per goal, path in radians)."""
+    out = {f"success@{k}": float(np.mean(final_error < v)) for k, v in TOLERANCES.items()}
+    reached = steps[np.isfinite(steps)]
+    out.update({
+        "median_error_m": float(np.median(final_error)),
+        "p95_error_m": float(np.percentile(final_error, 95)),
+        "max_error_m": float(np.max(final_error)),
+        "median_steps_to_reach": float(np.median(reached)) if reached.size else None,
+        "mean_steps_to_reach": float(np.mean(reached)) if reached.size else None,
+        "reached_1cm": float(reached.size / n),
+        "joint_limit_violations": int(violations),
+        "median_path_length_rad": float(np.median(path)),
+        "time_per_goal_batched_s": batched,
+        "time_per_goal_single_s": single,
+    })
+    return out
+
+
+def _limit_violations(chain, q) -> int:
+    """Configurations (rows of ``q (..., nj)``) outside the joint limits by more than 1e-9 rad."""
+    import torch
+
+    return int((~chain.within_limits(torch.as_tensor(q, dtype=torch.float64), tol=1e-9)).sum())
+
+
+def _median_time(fn, reps: int) -> float:
+    times = []
+    for i in range(reps):
+        start = time.perf_counter()
+        fn(i)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def run_policy(task, goals, model, vec_normalize) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    from train.rollout import GoalSet, policy_actor, rollout
+
+    steps = task.max_episode_steps or 50
+    act = policy_actor(model, vec_normalize)
+    r = rollout(task, goals, act, steps)
+
+    def one(i: int) -> None:
+        sub = GoalSet(goals.pose[i : i + 1], goals.q_goal[i : i + 1],
+                      type(goals.state)(*(x[i : i + 1] for x in goals.state)))
+        rollout(task, sub, act, steps)
+
+    single = _median_time(one, SINGLE_GOALS)
+    final = r.distance[-1]
+    path = np.linalg.norm(np.diff(r.q, axis=0), axis=-1).sum(0)  # (n,) rad
+    steps_hit = _steps_to_reach(r.distance, TOLERANCES["1cm"])
+    metrics = summarise(final, steps_hit, path, _limit_violations(task.robot, r.q), r.seconds / goals.n, single,
+                        goals.n)
+    metrics["touched_a_limit"] = float(np.mean(
+        ((np.abs(r.q - task.lower.double().numpy()) < 1e-6) | (np.abs(r.q - task.upper.double().numpy()) < 1e-6))
+        .any(axis=(0, 2))))
+    if task.goal_kind.value == "pose":
+        metrics["median_angle_rad"] = float(np.median(r.angle[-1]))
+        metrics["success_pose"] = float(np.mean((final < task.distance_threshold)
+                                                & (r.angle[-1] < task.orientation_threshold)))
+    return metrics, {"final_error": final, "path": path, "curve": np.median(r.distance, axis=1)}
+
+
+def run_ik(name: str, task, goals) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """One IK method on every goal: batched once, then ``SINGLE_GOALS`` goals one by one."""
+    import torch
+
+    robot, home = task.robot, task.home.double()
+    position_only = task.goal_kind.value == "position"
+    if name == "analytic_ik":
+        from iiwa_torch.ik.analytic import iiwa_solve
+
+        def solve(pose):
+            return iiwa_solve(robot, pose, home.expand(pose.shape[0], -1))
+    else:
+        from iiwa_torch.ik import solve as gradient_solve
+
+        def solve(pose):
+            target = pose[:, :3, 3] if position_only else pose
+            return gradient_solve(robot, target, home.expand(pose.shape[0], -1), mode="position" if position_only
+                                  else "pose", generator=torch.Generator().manual_seed(0))
+
+    start = time.perf_counter()
+    result = solve(goals.pose)
+    batched = (time.perf_counter() - start) / goals.n
+    single = _median_time(lambda i: solve(goals.pose[i : i + 1]), SINGLE_GOALS)
+    q = result.q.double()
+    pose = robot.fk(q)
+    final = (pose[:, :3, 3] - goals.pose[:, :3, 3]).norm(dim=-1).numpy()
+    delta = (q - home).numpy()
+    path = np.linalg.norm(delta, axis=-1)
+    steps = np.ceil(np.max(np.abs(delta) / task.max_step.double().numpy(), axis=-1))  # full-speed straight move
+    steps[final >= TOLERANCES["1cm"]] = np.nan
+    metrics = summarise(final, steps, path, _limit_violations(robot, q), batched, single, goals.n)
+    metrics["solver_success"] = float(result.success.double().mean())
+    if not position_only:
+        from iiwa_torch.so3 import pose_error
+
+        _, rot = pose_error(pose, goals.pose)
+        angle = rot.norm(dim=-1).numpy()
+        metrics["median_angle_rad"] = float(np.median(angle))
+        ok = (final < task.distance_threshold) & (angle < task.orientation_threshold)
+        metrics["success_pose"] = float(np.mean(ok))
+    return metrics, {"final_error": final, "path": path}
+
+
+# ---------------------------------------------------------------------------- verdict and report
+def verdict(m: dict[str, dict[str, Any]]) -> list[str]:
+    """Plain sentences: where the policy loses to the IK solvers and where it wins."""
+    p = m["policy"]
+    lines = []
+    ik = {k: v for k, v in m.items() if k != "policy" and "error" not in v}
+    for name, v in ik.items():
+        ratio = p["median_error_m"] / max(v["median_error_m"], 1e-15)
+        lines.append(f"Accuracy: the policy loses to {name}: median final error {1e3 * p['median_error_m']:.2f} mm "
+                     f"against {1e3 * v['median_error_m']:.2g} mm ({ratio:.0e}x); success at 1 mm "
+                     f"{100 * p['success@1mm']:.1f}% against {100 * v['success@1mm']:.1f}%.")
+        faster = p["time_per_goal_batched_s"] < v["time_per_goal_batched_s"]
+        lines.append(f"Time per goal (batched): the policy {'wins' if faster else 'loses'} against {name}: "
+                     f"{1e6 * p['time_per_goal_batched_s']:.1f} us for all 50 closed-loop steps against "
+                     f"{1e6 * v['time_per_goal_batched_s']:.1f} us for one solve. Single goal: "
+                     f"{1e3 * p['time_per_goal_single_s']:.2f} ms against {1e3 * v['time_per_goal_single_s']:.2f} ms.")
+        shorter = p["median_path_length_rad"] < v["median_path_length_rad"]
+        lines.append(f"Joint-space path: the policy's median {p['median_path_length_rad']:.2f} rad is "
+                     f"{'shorter' if shorter else 'longer'} than {name}'s straight move to its solution "
+                     f"({v['median_path_length_rad']:.2f} rad).")
+    lines.append("What the policy is and the IK is not: a closed-loop controller that produces the whole motion "
+                 "within the joint speed limits and corrects itself every 50 ms (a goal that moves is just a new "
+                 "observation), at one small network evaluation per step. The IK gives an end configuration only; "
+                 "the motion to it (and its timing) is left to a trajectory generator.")
+    return lines
+
+
+def _fmt(value, scale=1.0, digits=2, unit="") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return f"{value * scale:.{digits}f}{unit}"
+
+
+def write_markdown(report: dict[str, Any], path: Path) -> str:
+    rows = [
+        "| method | success @1 cm | @5 mm | @1 mm | median error | p95 error | steps to 1 cm (median) "
+        "| limit violations | path (rad, median) | time/goal batched | time/goal single |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, m in report["methods"].items():
+        if "error" in m:
+            rows.append(f"| {name} | {m['error']} |" + " |" * 10)
+            continue
+        rows.append(
+            f"| {name} | {_fmt(m['success@1cm'], 100, 1, '%')} | {_fmt(m['success@5mm'], 100, 1, '%')} "
+            f"| {_fmt(m['success@1mm'], 100, 1, '%')} | {m['median_error_m'] * 1e3:.3g} mm "
+            f"| {m['p95_error_m'] * 1e3:.3g} mm "
+            f"| {_fmt(m['median_steps_to_reach'], 1, 0)} | {m['joint_limit_violations']} "
+            f"| {_fmt(m['median_path_length_rad'])} | {m['time_per_goal_batched_s'] * 1e6:.1f} us "
+            f"| {m['time_per_goal_single_s'] * 1e3:.2f} ms |")
+    table = "\n".join(rows)
+    text = [
+        f"# Policy versus IK on {report['goals']} held-out goals ({report['env_id']})",
+        "",
+        f"Model: `{report['model']}` ({report['algo']}); goals seed {report['seed']}; "
+        f"load average {report['machine']['loadavg'][0]:.1f} on {report['machine']['cpu_count']} CPUs "
+        f"({report['machine']['cpu']}), torch threads {report['machine']['torch_threads']}.",
+        "",
+        table,
+        "",
+        "## Where the policy loses and where it wins",
+        "",
+        *[f"- {line}" for line in report["verdict"]],
+        "",
+        "## Plots",
+        "",
+        *[f"- `{p}`" for p in report["plots"]],
+        "",
+    ]
+    path.write_text("\n".join(text))
+    return table
+
+
+def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[str, Any],
+               evaluations: list[dict], compare: dict[str, list[dict]]) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [n for n in data]
+    written = []
+
+    def save(fig, name):
+        fig.tight_layout()
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+        written.append(name)
+
+    floor = 1e-9  # errors below 1 nm are drawn at 1 nm
+    fig, ax = plt.subplots(figsize=(7, 4))
+    bins = np.logspace(-9, 0, 64)
+    for n in names:
+        ax.hist(np.clip(data[n]["final_error"], floor, None), bins=bins, histtype="step", lw=1.5, label=n)
+    ax.set(xscale="log", xlabel="final position error (m)", ylabel="goals", title="Final error per method")
+    ax.axvline(0.01, color="gray", ls=":", lw=1)
+    ax.legend()
+    save(fig, "final_error.png")
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    tol = np.logspace(np.log10(5e-4), np.log10(5e-2), 100)
+    for n in names:
+        ax.plot(tol, [(data[n]["final_error"] < t).mean() * 100 for t in tol], lw=1.8, label=n)
+    ax.set(xscale="log", xlabel="tolerance (m)", ylabel="success (%)", title="Success rate against tolerance",
+           ylim=(0, 101))
+    ax.legend()
+    save(fig, "success_vs_tolerance.png")
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    x = np.arange(len(names))
+    m = report["methods"]
+    ax.bar(x - 0.2, [m[n]["time_per_goal_batched_s"] * 1e3 for n in names], 0.4, label=f"batched ({report['goals']})")
+    ax.bar(x + 0.2, [m[n]["time_per_goal_single_s"] * 1e3 for n in names], 0.4, label="single goal")
+    ax.set(yscale="log", xticks=x, xticklabels=names, ylabel="ms per goal",
+           title="Wall time per goal (policy: all 50 steps)")
+    ax.legend()
+    save(fig, "time_per_goal.png")
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    hi = max(float(np.percentile(data[n]["path"], 99.5)) for n in names)
+    for n in names:
+        ax.hist(data[n]["path"], bins=np.linspace(0, hi, 50), histtype="step", lw=1.5, label=n)
+    ax.set(xlabel="joint-space path length (rad)", ylabel="goals",
+           title="Joint-space path length (IK: straight move from home)")
+    ax.legend()
+    save(fig, "path_length.png")
+
+    if evaluations:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        curves = {report["env_id"] + " (ours)": evaluations, **compare}
+        for label, ev in curves.items():
+            axes[0].plot([e["wall_time"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
+            axes[1].plot([e["steps"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
+        axes[0].set(xlabel="training wall time (s)", ylabel="success (%)", title="Learning curve against wall time")
+        axes[1].set(xscale="log", xlabel="env steps", ylabel="success (%)", title="Learning curve against env steps")
+        for a in axes:
+            a.legend(fontsize=8)
+            a.set_ylim(0, 101)
+        save(fig, "learning_curve.png")
+    return written
+
+
+def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths: list[Path]) -> dict[str, Any]:
+    import torch
+
+    from envs.sb3 import IiwaReachVecEnv
+    from train.rollout import make_goal_set
+    from train.train import machine_info
+
+    model, vec_normalize, config = load_policy(model_dir)
+    env_id = config["env_id"]
+    task = IiwaReachVecEnv(1, env_id, **(config["hyperparams"].get("env_kwargs") or {})).task
+    task_goals = make_goal_set(task, n_goals, seed)
+    torch.set_num_threads(1)
+
+    metrics, data = {}, {}
+    metrics["policy"], data["policy"] = run_policy(task, task_goals, model, vec_normalize)
+    for name in ("analytic_ik", "gradient_ik"):
+        try:
+            metrics[name], data[name] = run_ik(name, task, task_goals)
+        except ImportError as err:  # a solver not installed in this checkout: say so, keep the rest
+            metrics[name] = {"error": f"unavailable: {err}"}
+    evaluations = []
+    if (model_dir / "evaluations.json").exists():
+        evaluations = json.loads((model_dir / "evaluations.json").read_text())
+    compare = {}
+    for p in compare_paths:
+        blob = json.loads(Path(p).read_text())
+        compare[blob.get("label", Path(p).stem)] = blob["evaluations"] if isinstance(blob, dict) else blob
+    out.mkdir(parents=True, exist_ok=True)
+    report = {
+        "env_id": env_id,
+        "algo": config["algo"],
+        "model": str(model_dir),
+        "goals": n_goals,
+        "seed": seed,
+        "episode_steps": task.max_episode_steps,
+        "tolerances_m": TOLERANCES,
+        "methods": metrics,
+        "verdict": verdict(metrics),
+        "training": json.loads((model_dir / "train_info.json").read_text())
+        if (model_dir / "train_info.json").exists() else None,
+        "machine": machine_info(),
+    }
+    report["plots"] = make_plots(out, data, report, evaluations, compare)
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    table = write_markdown(report, out / "report.md")
+    print(table)
+    print()
+    for line in report["verdict"]:
+        print("- " + line)
+    print(f"\nreport: {out / 'report.md'}, {out / 'report.json'}; plots: "
+          + ", ".join(str(out / p) for p in report["plots"]))
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    p = argparse.ArgumentParser(prog="python -m train.evaluate", description=__doc__.split("\n\n")[0])
+    p.add_argument("--model", required=True, type=Path, help="run or policy folder (model.zip + config.yaml)")
+    p.add_argument("--goals", type=int, default=1000, help="held-out goals (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the goal set (default 0)")
+    p.add_argument("--out", required=True, type=Path, help="report folder")
+    p.add_argument("--compare", nargs="*", type=Path, default=[],
+                   help="evaluations JSON of other runs to draw on the learning curve (e.g. panda-gym)")
+    args = p.parse_args(argv)
+    if args.goals < 1:
+        p.error(f"--goals must be >= 1, got {args.goals}")
+    try:
+        evaluate(args.model, args.goals, args.seed, args.out, args.compare)
+    except FileNotFoundError as err:
+        p.error(str(err))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
