@@ -75,19 +75,29 @@ def reach_tol(dtype: torch.dtype) -> float:
 
 
 # ---------------------------------------------------------------- rotations
-def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float) -> Tensor:
-    """``Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b)`` for ``sin(alpha) = sig_a, sig_b = +-1``:
-    ``a, b (...) -> (..., 3, 3)``, written out (one kernel per entry, no matrix products)."""
+def zxzx_t(a: Tensor, b: Tensor, sig_a: float, sig_b: float) -> Tensor:
+    """The transpose of ``Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b)`` for ``sin(alpha) = sig_a,
+    sig_b = +-1``: ``a, b (...) -> (..., 3, 3)``, written out (no matrix products)."""
     ca, sa, cb, sb = torch.cos(a), torch.sin(a), torch.cos(b), torch.sin(b)
     k = sig_a * sig_b
     return torch.stack(
         [
-            ca * cb, k * sa, sig_b * ca * sb,
-            sa * cb, -k * ca, sig_b * sa * sb,
-            sig_a * sb, torch.zeros_like(cb), -k * cb,
+            ca * cb, sa * cb, sig_a * sb,
+            k * sa, -k * ca, torch.zeros_like(cb),
+            sig_b * ca * sb, sig_b * sa * sb, -k * cb,
         ],
         -1,
     ).unflatten(-1, (3, 3))  # fmt: skip
+
+
+def rows_times(rows: Tensor, rot: Tensor) -> Tensor:
+    """Columns 0 and 2 of ``A rot`` for ``A = rows (*batch, *g, 3, 3)`` and ``rot (*batch, 3, 3)``
+    (broadcastable): ``(*batch, *g, 3, 2)``, as one product per pose over all ``g`` branches
+    (``rot`` is not copied per branch)."""
+    batch = rows.shape[: rot.ndim - 2]
+    right = rot[..., :, 0::2].expand(*batch, 3, 2).reshape(-1, 3, 2)
+    flat = rows.reshape(right.shape[0], -1, 3)  # (B, G * 3, 3)
+    return (flat @ right).reshape(*rows.shape[:-1], 2)
 
 
 def decompose_zxzxz(m: Tensor, sig_a: float, sig_b: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -101,13 +111,14 @@ def decompose_zxzxz(m: Tensor, sig_a: float, sig_b: float) -> tuple[Tensor, Tens
     reproduces ``M`` exactly also at ``sin b = 0`` (the singularity, where only ``a +- c`` is
     determined and ``a`` is set to 0, or pi in the flip).
     """
-    m02, m12, m22 = m[..., 0, 1], m[..., 1, 1], m[..., 2, 1]
+    m = m.movedim((-2, -1), (0, 1)).contiguous()  # entries contiguous: ~10x faster elementwise ops
+    m02, m12, m22 = m[0, 1], m[1, 1], m[2, 1]
     sb = safe_norm2(m02, m12)  # sin b >= 0
     cb = -sig_a * sig_b * m22
     b = torch.atan2(sb, cb)
     a = safe_atan2(sig_b * m12, sig_b * m02)
     ca, sa = torch.cos(a), torch.sin(a)
-    m0, m1, m2 = m[..., 0, 0], m[..., 1, 0], m[..., 2, 0]
+    m0, m1, m2 = m[0, 0], m[1, 0], m[2, 0]
     # First column of Rz(c) = (Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b))^T m e_x.
     cos_c = cb * (ca * m0 + sa * m1) + sig_a * sb * m2
     sin_c = sig_a * sig_b * (sa * m0 - ca * m1)
@@ -189,14 +200,15 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
     ``(..., b_1, ..., b_m)`` whose last ``m = branch_dims`` dims index the branch signs (a
     joint that does not depend on a sign has size 1 there, so it is wrapped and checked
     once, not once per branch). Each joint gets its offset removed, is wrapped into
-    ``[-pi, pi)`` and then shifted by 2 pi if that brings it within its limits.
+    ``[-pi, pi]`` and then shifted by 2 pi if that brings it within its limits.
     ``reachable`` broadcasts to the common shape too. Returns ``q (..., B, n)``.
     """
     offsets = chain.dh[:, 3].tolist()
     lows, highs = chain.limits.tolist()
     qs, inside = [], []
     for theta, off, lo, hi in zip(thetas, offsets, lows, highs):
-        q = torch.remainder(theta - (off - math.pi), _TWO_PI) - math.pi
+        q = theta - off
+        q = q - _TWO_PI * torch.round(q * (1 / _TWO_PI))  # [-pi, pi]; 3x faster than remainder
         if lo < -math.pi:  # a turn up may get it inside
             q = torch.where((q < lo) & (q + _TWO_PI <= hi), q + _TWO_PI, q)
         if hi >= math.pi:

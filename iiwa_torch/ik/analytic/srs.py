@@ -53,10 +53,11 @@ from ._common import (
     finish,
     last_frame_target,
     reach_tol,
+    rows_times,
     safe_atan2,
     safe_norm2,
     sigma,
-    zxzx,
+    zxzx_t,
 )
 
 __all__ = ["iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
@@ -126,7 +127,7 @@ def _split(geo: _Geometry, cols: tuple[Tensor, Tensor, Tensor], theta4: Tensor, 
     # R_04 = R_03 Rz(theta4) Rx(alpha4), one per elbow branch; its transpose has these rows.
     c4, s4 = c4[..., None], s4[..., None]
     r04_t = torch.stack([c4 * x3 + s4 * y3, sig[3] * z3, sig[3] * (s4 * x3 - c4 * y3)], -2)
-    t5, t6, t7 = decompose_zxzxz(r04_t @ rot[..., None, :, 0::2], sig[4], sig[5])  # (..., E, 2)
+    t5, t6, t7 = decompose_zxzxz(rows_times(r04_t, rot), sig[4], sig[5])  # (..., E, 2)
     shoulder = [t.transpose(-1, -2)[..., None] for t in (t1, t2, t3)]
     return [*shoulder, theta4[..., None, :, None], *(t[..., None, :, :] for t in (t5, t6, t7))]
 
@@ -239,8 +240,8 @@ def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
     vx, vz = c2 * a[..., None] - s2 * b[..., None], c[..., None].expand_as(c2)
     theta1 = safe_atan2(sw[..., 1], sw[..., 0])[..., None, None] - safe_atan2(-sig[0] * vz, vx)
 
-    r04 = zxzx(theta1, theta2, sig[0], sig[1]) @ zxzx(theta3, theta4, sig[2], sig[3])[..., None, :, :]
-    m = r04.transpose(-1, -2) @ rot[..., None, None, :, 0::2]  # columns 0, 2 of R_04^T R
+    r04_t = zxzx_t(theta3, theta4, sig[2], sig[3])[..., None, :, :] @ zxzx_t(theta1, theta2, sig[0], sig[1])
+    m = rows_times(r04_t, rot)  # columns 0, 2 of R_04^T R
     t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2 elbow, 2 shoulder, 2 wrist)
     # Reorder the branch dims to (..., 2 shoulder, 2 elbow, 2 wrist).
     thetas = [
