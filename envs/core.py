@@ -86,8 +86,12 @@ _M32 = 0xFFFFFFFF
 
 
 def _mul32(x: Tensor, c: int) -> Tensor:
-    """``(x * c) mod 2**32`` for int64 ``x`` in ``[0, 2**32)``, split so no product overflows int64."""
-    return (x * (c & 0xFFFF) + (((x * (c >> 16)) & 0xFFFF) << 16)) & _M32
+    """``(x * c) mod 2**32`` for int64 ``x`` in ``[0, 2**32)`` and a constant ``c`` in ``[0, 2**32)``.
+
+    ``c`` is used as its signed 32-bit equal (``c - 2**32`` from ``2**31`` up), which is the
+    same modulo ``2**32`` and keeps ``|x * c| < 2**63``: no int64 overflow, two ops.
+    """
+    return (x * (c - 2**32 if c >= 2**31 else c)) & _M32
 
 
 def _mix32(x: Tensor) -> Tensor:
@@ -119,8 +123,8 @@ def uniform(key: Tensor, episode: Tensor, start: int, count: int, dtype: torch.d
     the finaliser applied to a start point plus ``j`` times the golden-ratio increment.
     """
     base = _mix32(key ^ _mix32((episode & _M32) ^ 0x7F4A7C15))  # (n,) start point
-    j = torch.arange(start, start + count, device=key.device, dtype=torch.int64)
-    h = _mix32((base[:, None] + _mul32(j, 0x9E3779B9)) & _M32)  # (n, count)
+    steps = torch.tensor([(j * 0x9E3779B9) & _M32 for j in range(start, start + count)], device=key.device)
+    h = _mix32((base[:, None] + steps) & _M32)  # (n, count)
     return (h >> 8).to(dtype) * (2.0**-24)
 
 
