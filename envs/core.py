@@ -285,6 +285,11 @@ class ReachTask:
         """Length of ``observation``: cos q, sin q, joint velocity (normalised), the achieved goal."""
         return 3 * self.n_joints + self.goal_size
 
+    @property
+    def packed_size(self) -> int:
+        """Columns of :meth:`observe`: the observation, then the desired goal."""
+        return self.observation_size + self.goal_size
+
     def steps_to_reach_bound(self) -> int:
         """Steps a full-speed straight joint move needs, in the worst case, from ``home`` to any
         configuration within the limits: ``ceil(max_i max(|lo_i - h_i|, |hi_i - h_i|) / (v_i dt))``.
@@ -408,11 +413,11 @@ class ReachTask:
 
     @staticmethod
     def _columns(state: ReachState) -> list[Tensor]:
-        return [torch.cos(state.q), torch.sin(state.q), state.velocity, state.achieved, state.achieved, state.goal]
+        return [torch.cos(state.q), torch.sin(state.q), state.velocity, state.achieved, state.goal]
 
     def observe(self, state: ReachState) -> Tensor:
-        """``(n, D)`` float32, ``D = observation_size + 2 * goal_size``: the observation, the
-        achieved goal and the desired goal side by side."""
+        """``(n, D)`` float32, ``D = packed_size``: the observation (which ends with the achieved
+        goal), then the desired goal; :meth:`split` makes the observation dict of it."""
         return torch.cat(self._columns(state), -1).float()
 
     def pack(self, state: ReachState, result: StepResult) -> Tensor:
@@ -425,7 +430,7 @@ class ReachTask:
 
     def unpack(self, packed: np.ndarray) -> Transition:
         """``pack``'s output as numpy -> a :class:`Transition` without finished episodes."""
-        d = self.observation_size + 2 * self.goal_size
+        d = self.packed_size
         empty = np.zeros(0, dtype=np.int64)
         return Transition(
             obs=self.split(packed[:, :d]),
@@ -449,7 +454,7 @@ class ReachTask:
         state, res = self.step(state, action)
         out = self.pack(state, res)  # a new tensor of our own, updated in place below
         idx = (res.terminated | res.truncated).nonzero().squeeze(-1)  # which rows restart: one sync
-        d = self.observation_size + 2 * self.goal_size
+        d = self.packed_size
         final = out[idx, :d]  # (m, D) copy: the finished episodes' last observations
         if idx.numel():
             fresh = self._new_episodes(state.key[idx], state.episode[idx] + 1)
@@ -467,13 +472,15 @@ class ReachTask:
     def split(self, packed: np.ndarray) -> dict[str, np.ndarray]:
         """Split ``observe``'s output (as numpy, last axis) into the goal-env observation dict.
 
-        The arrays are views of ``packed`` (no copy; not C-contiguous for a batch): every step
-        packs into a new array, so a returned observation is never overwritten later."""
+        The arrays are views of ``packed`` (no copy; not C-contiguous for a batch), and the
+        achieved goal is stored once: the end of ``observation`` and ``achieved_goal`` are
+        the same memory. Every step packs into a new array, so a returned observation is
+        never overwritten later."""
         o, g = self.observation_size, self.goal_size
         return {
             "observation": packed[..., :o],
-            "achieved_goal": packed[..., o : o + g],
-            "desired_goal": packed[..., o + g : o + 2 * g],
+            "achieved_goal": packed[..., o - g : o],
+            "desired_goal": packed[..., o : o + g],
         }
 
     def check_action(self, action, n: int) -> Tensor:
