@@ -1,0 +1,268 @@
+"""Trajectories: quintic joint-space moves, straight Cartesian lines, IK tracking, time scaling.
+
+- :func:`jtraj`: quintic polynomial from ``q0`` to ``q1`` (zero or given boundary
+  velocities, zero boundary accelerations), batched over start/goal pairs, differentiable;
+- :func:`ctraj`: straight line in position, slerp in orientation, ``(..., T, 4, 4)``;
+- :func:`track`: IK at every pose of a Cartesian path, each step started from the previous
+  solution, so the joint path has no jumps (gradient IK, or the closed forms);
+- :func:`shortest_duration`: the shortest rest-to-rest :func:`jtraj` duration that keeps
+  every joint within the chain's speed limits.
+
+Time arguments ``t`` are either a number of steps ``T`` (an int >= 2: samples evenly over a
+move of unit duration, so velocities are per unit of that normalised time) or a time vector
+in seconds, shape ``(T,)`` or ``(..., T)`` (increasing; the move runs from ``t[..., 0]`` to
+``t[..., -1]`` and velocities are in rad/s).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal, get_args
+
+import torch
+
+from . import so3
+from .dh import DHChain
+
+__all__ = ["JointTrajectory", "TrackResult", "Method", "Profile", "jtraj", "ctraj", "track", "shortest_duration"]
+
+Tensor = torch.Tensor
+Method = Literal["gradient", "analytic"]
+Profile = Literal["linear", "quintic"]
+
+_PEAK_SPEED = 15 / 8  # peak of d/ds (10 s^3 - 15 s^4 + 6 s^5), at s = 1/2
+
+
+@dataclass(frozen=True)
+class JointTrajectory:
+    """Samples of a joint-space trajectory, each ``(..., T, n)``.
+
+    Attributes:
+        q: positions (rad).
+        qd: velocities (rad/s, or rad per unit duration when ``t`` was a step count).
+        qdd: accelerations (rad/s^2, or per unit duration squared).
+    """
+
+    q: Tensor
+    qd: Tensor
+    qdd: Tensor
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """IK along a Cartesian path of ``T`` poses, for a batch of paths with leading shape ``(...)``.
+
+    Attributes:
+        q: ``(..., T, n)`` joint angles (rad) solving each pose.
+        success: ``(..., T)`` bool, the IK met its tolerances at that pose.
+        pos_err: ``(..., T)`` position error norm of ``fk(q)`` against the pose (m).
+        rot_err: ``(..., T)`` rotation error angle (rad).
+        max_step: ``(...)`` largest change of any joint between consecutive steps (rad).
+    """
+
+    q: Tensor
+    success: Tensor
+    pos_err: Tensor
+    rot_err: Tensor
+    max_step: Tensor
+
+
+def _check_choice(value, choices: tuple, name: str) -> None:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
+
+
+def _times(t, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """``t`` (step count or time vector) -> normalised times ``s (..., T)`` in [0, 1] and the
+    duration ``(..., 1)``."""
+    if isinstance(t, bool):
+        raise TypeError("t must be a number of steps (int >= 2) or a time vector, got a bool")
+    if isinstance(t, int):
+        if t < 2:
+            raise ValueError(f"t as a number of steps must be at least 2, got {t}")
+        return torch.linspace(0, 1, t, dtype=dtype, device=device), torch.ones(1, dtype=dtype, device=device)
+    t = torch.as_tensor(t, dtype=dtype, device=device)
+    if t.ndim == 0 or t.shape[-1] < 2:
+        raise ValueError(f"t must be a step count or a time vector of shape (..., T) with T >= 2, got {tuple(t.shape)}")
+    if not torch.isfinite(t).all() or not (t.diff(dim=-1) > 0).all():
+        raise ValueError("t must be finite and strictly increasing")
+    duration = t[..., -1:] - t[..., :1]
+    return (t - t[..., :1]) / duration, duration
+
+
+def jtraj(q0: Tensor, q1: Tensor, t, qd0: Tensor | None = None, qd1: Tensor | None = None) -> JointTrajectory:
+    """Quintic joint-space trajectory from ``q0`` to ``q1``.
+
+    Args:
+        q0, q1: ``(..., n)`` start and goal joint angles (rad), broadcast together.
+        t: number of steps ``T`` or a time vector ``(T,)`` / ``(..., T)`` in seconds (module doc).
+        qd0, qd1: optional ``(..., n)`` boundary velocities (default 0), in the units of ``t``.
+
+    Returns:
+        :class:`JointTrajectory` with ``q, qd, qdd`` each ``(..., T, n)``; boundary
+        accelerations are zero. Differentiable in every input.
+    """
+    for name, value in (("q0", q0), ("q1", q1), ("qd0", qd0), ("qd1", qd1)):
+        if value is not None and not (isinstance(value, Tensor) and value.is_floating_point() and value.ndim >= 1):
+            raise TypeError(f"{name} must be a float tensor of shape (..., n), got {value!r:.60}")
+    s, duration = _times(t, q0.dtype, q0.device)
+    s, duration = s[..., None], duration[..., None]  # (..., T, 1), (..., 1, 1)
+    delta = (q1 - q0)[..., None, :]  # (..., 1, n)
+    v0 = torch.zeros_like(delta) if qd0 is None else qd0[..., None, :] * duration
+    v1 = torch.zeros_like(delta) if qd1 is None else qd1[..., None, :] * duration
+    # q(s) = q0 + v0 s + c3 s^3 + c4 s^4 + c5 s^5, s in [0, 1]; v0, v1 are d q / d s at the ends.
+    c5 = 6 * delta - 3 * (v0 + v1)
+    c4 = -15 * delta + 8 * v0 + 7 * v1
+    c3 = 10 * delta - 6 * v0 - 4 * v1
+    q = q0[..., None, :] + s * (v0 + s * s * (c3 + s * (c4 + s * c5)))
+    qd = (v0 + s * s * (3 * c3 + s * (4 * c4 + s * 5 * c5))) / duration
+    qdd = s * (6 * c3 + s * (12 * c4 + s * 20 * c5)) / (duration * duration)
+    return JointTrajectory(q=q, qd=qd, qdd=qdd)
+
+
+def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
+    """Cartesian straight line from pose ``T0`` to pose ``T1``: ``(..., T, 4, 4)``.
+
+    Args:
+        T0, T1: ``(..., 4, 4)`` poses (m), broadcast together.
+        t: number of steps or a time vector (module doc).
+        profile: ``"linear"`` (constant speed along the line and constant angular rate) or
+            ``"quintic"`` (starts and stops at rest: the path parameter follows :func:`jtraj`).
+
+    The position moves on the segment ``p0 -> p1``; the rotation is ``R0 exp(s log(R0^T R1))``
+    (slerp: the shortest rotation, at a constant rate about a fixed axis). Differentiable.
+    """
+    _check_choice(profile, get_args(Profile), "profile")
+    so3.check_pose(T0, "T0")
+    so3.check_pose(T1, "T1")
+    s, _ = _times(t, T0.dtype, T0.device)
+    if profile == "quintic":
+        zero = torch.zeros(1, dtype=T0.dtype, device=T0.device)
+        s = jtraj(zero, torch.ones_like(zero), s).q[..., 0]  # s already spans [0, 1] in unit time
+    s = s[..., None]  # (..., T, 1)
+    p0, p1 = T0[..., None, :3, 3], T1[..., None, :3, 3]  # (..., 1, 3)
+    r0 = T0[..., None, :3, :3]
+    w = so3.log(T0[..., :3, :3].transpose(-1, -2) @ T1[..., :3, :3])[..., None, :]  # body-frame rotation vector
+    rot = r0 @ so3.exp(s * w)  # (..., T, 3, 3)
+    pos = p0 + s * (p1 - p0)  # (..., T, 3)
+    top = torch.cat([rot, pos[..., None]], -1)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T0.dtype, device=T0.device).expand(*top.shape[:-2], 1, 4)
+    return torch.cat([top, bottom], -2)
+
+
+def shortest_duration(chain: DHChain, q0: Tensor, q1: Tensor, *, speed_scale: float = 1.0) -> Tensor:
+    """Shortest duration (s) of a rest-to-rest :func:`jtraj` from ``q0`` to ``q1`` ``(..., n)``
+    that keeps every joint within ``speed_scale * chain.velocity_limits``: ``(...)``.
+
+    A quintic with zero boundary velocities peaks at ``15/8 |q1 - q0| / duration`` half way,
+    so the answer is ``max_j 15/8 |q1_j - q0_j| / (speed_scale * vmax_j)`` (0 for no motion).
+    """
+    if chain.velocity_limits is None:
+        raise ValueError(f"chain {chain.name!r} has no velocity_limits; pass them to DHChain to time-scale")
+    if isinstance(speed_scale, bool) or not isinstance(speed_scale, (int, float)) or not 0 < speed_scale <= 1:
+        raise ValueError(f"speed_scale must be a number in (0, 1], got {speed_scale!r}")
+    chain.check_q(q0, "q0")
+    chain.check_q(q1, "q1")
+    vmax = speed_scale * chain.velocity_limits.to(q0.dtype)
+    return (_PEAK_SPEED * (q1 - q0).abs() / vmax).amax(-1)
+
+
+def track(
+    chain: DHChain,
+    poses: Tensor,
+    q0: Tensor,
+    *,
+    method: Method = "gradient",
+    pos_tol: float = 1e-7,
+    rot_tol: float = 1e-6,
+    rest_gain: float = 0.0,
+) -> TrackResult:
+    """Inverse kinematics along Cartesian paths, each step started from the previous solution.
+
+    Args:
+        chain: the robot.
+        poses: ``(..., T, 4, 4)`` end-effector poses (m), e.g. from :func:`ctraj`.
+        q0: ``(..., n)`` configuration to start from (rad), normally one that reaches ``poses[..., 0]``.
+        method: ``"gradient"``: :func:`iiwa_torch.ik.solve` from the previous solution only (one
+            seed, no random restart, so no jump; ``rest_gain`` pulls the redundant iiwa toward
+            ``q0`` in the null space). ``"analytic"``: the closed form (the iiwa at the arm angle
+            of ``q0`` held along the path, or Pieper's 6R arms), taking the branch nearest to the
+            previous solution; where that is outside the limits, :func:`~iiwa_torch.ik.analytic.iiwa_solve`
+            from the previous solution instead.
+        pos_tol, rot_tol: success tolerances at each pose (m, rad).
+        rest_gain: null-space gain of the gradient method (0 to 1).
+
+    Returns:
+        :class:`TrackResult`: joint path, per-step errors and success, and the largest joint step.
+        Check ``max_step``: a large value means a branch switch or a failure along the way.
+    """
+    _check_choice(method, get_args(Method), "method")
+    so3.check_pose(poses, "poses")
+    chain.check_q(q0, "q0")
+    if poses.ndim < 3:
+        raise ValueError(f"poses must have shape (..., T, 4, 4), got {tuple(poses.shape)}")
+    if method == "gradient":
+        step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain)
+    else:
+        step = _analytic_stepper(chain, q0, pos_tol, rot_tol)
+    q_prev = q0.to(poses.dtype)
+    qs = []
+    for k in range(poses.shape[-3]):  # sequential by nature: each step starts from the last
+        q_prev = step(poses[..., k, :, :], q_prev)
+        qs.append(q_prev)
+    q = torch.stack(qs, -2)  # (..., T, n)
+    pos_vec, rot_vec = so3.pose_error(chain.fk(q), poses)
+    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
+    steps = q.diff(dim=-2).abs().amax(-1)  # (..., T - 1)
+    max_step = steps.amax(-1) if steps.shape[-1] else torch.zeros(q.shape[:-2], dtype=q.dtype, device=q.device)
+    return TrackResult(
+        q=q, success=(pos_err <= pos_tol) & (rot_err <= rot_tol), pos_err=pos_err, rot_err=rot_err, max_step=max_step
+    )
+
+
+def _gradient_stepper(chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float):
+    from .ik import solve
+
+    def step(pose: Tensor, q_prev: Tensor) -> Tensor:
+        result = solve(
+            chain, pose, q_prev, pos_tol=pos_tol, rot_tol=rot_tol, seeds=1, iterations=50,
+            rest=q0.to(pose.dtype), rest_gain=rest_gain,
+        )
+        return result.q
+
+    return step
+
+
+def _analytic_stepper(chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float):
+    from .ik import analytic
+
+    if chain.n_joints == 7:
+        psi = analytic.iiwa_arm_angle(chain, q0)  # (...), held along the path
+
+        def candidates(pose: Tensor):
+            return analytic.iiwa(chain, pose, psi)
+    elif chain.n_joints == 6:
+
+        def candidates(pose: Tensor):
+            return analytic.pieper(chain, pose)
+    else:
+        raise ValueError(
+            f"method='analytic' tracks 7-joint iiwa-like arms and 6R spherical-wrist arms; "
+            f"{chain.name!r} has {chain.n_joints} joints (use method='gradient')"
+        )
+
+    def step(pose: Tensor, q_prev: Tensor) -> Tensor:
+        sol = candidates(pose)  # q (..., B, n)
+        dist = (sol.q - q_prev[..., None, :]).square().sum(-1)  # (..., B)
+        # valid branches first, then reachable ones (clamped below), nearest to the last step
+        key = torch.where(sol.valid, dist, torch.where(sol.reachable, dist + 1e6, torch.full_like(dist, math.inf)))
+        best = key.argmin(-1)
+        q = chain.clamp(sol.q.gather(-2, best[..., None, None].expand(*best.shape, 1, chain.n_joints)).squeeze(-2))
+        missed = ~sol.valid.any(-1)
+        if chain.n_joints == 7 and missed.any():  # the held arm angle left the limits: sweep it
+            fallback = analytic.iiwa_solve(chain, pose, q_prev, pos_tol=pos_tol, rot_tol=rot_tol).q
+            q = torch.where(missed[..., None], fallback, q)
+        return q
+
+    return step
