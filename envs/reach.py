@@ -168,7 +168,7 @@ class IiwaReachEnv(gym.Env):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         self._state, res = self.task.step(self._state, self.task.check_action(action, 1))
-        packed = self.task.pack(self._state, res)[0].cpu().numpy()
+        packed = self.task.pack(self._state, res).cpu().numpy()[0]
         d = packed.shape[0] - 6
         obs = self.task.split(packed[:d])
         reward, term, trunc, success, dist, angle = packed[d:].tolist()
