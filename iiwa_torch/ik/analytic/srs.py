@@ -66,7 +66,7 @@ Tensor = torch.Tensor
 
 _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
-_REFINE = 3  # refining passes
+_REFINE = 3  # refining passes when a reference q0 is given
 _ROWS = [
     {"a0": True, "perp": True},
     {"a0": True, "d0": True, "perp": True},
@@ -259,7 +259,7 @@ def iiwa_solve(
     target: Tensor,
     q0: Tensor | None = None,
     *,
-    num_psi: int = 32,
+    num_psi: int = 16,
     pos_tol: float = 1e-4,
     rot_tol: float = 1e-3,
 ) -> IKResult:
@@ -270,20 +270,22 @@ def iiwa_solve(
         chain: as for :func:`iiwa`.
         target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
         q0: optional ``(..., 7)`` reference configuration (e.g. the current one when
-            tracking): the valid solution nearest to it (wrapped joint-space distance) is
-            returned. Without it, the one with the largest joint-limit margin (radians).
+            tracking): the valid solution nearest to it (Euclidean joint-space distance, not
+            wrapped: a joint cannot turn through its limits) is returned. Without it, the one
+            with the largest joint-limit margin (radians, the smallest over the joints).
         num_psi: arm angles sampled evenly over ``[-pi, pi)`` (plus the arm angle of ``q0``),
             ``8 * num_psi`` candidates per pose; then 9 angles spanning one step either side of
-            the best are tried too. Poses with no candidate within the limits are swept once
-            more with ``16 * num_psi`` angles (narrow feasible intervals).
+            the best are tried (3 times, each a 4x finer window, when ``q0`` is given). Poses
+            with no candidate within the limits are swept once more with ``16 * num_psi`` angles
+            (narrow feasible intervals).
         pos_tol, rot_tol: success tolerances (m, rad), as in the gradient solver.
 
     Returns:
         :class:`~iiwa_torch.ik.IKResult` with ``q (..., 7)`` within the joint limits,
         ``success`` where some candidate was reachable within the limits (and its FK
         reproduces the target to the tolerances), ``iterations`` 0. Where no candidate is
-        within the limits, ``q`` is the reachable candidate that violates them least,
-        clamped into them (``success`` False).
+        within the limits, ``q`` is the reachable candidate nearest ``q0`` (or violating the
+        limits least), clamped into them (``success`` False).
     """
     if isinstance(num_psi, bool) or not isinstance(num_psi, int) or num_psi < 1:
         raise ValueError(f"num_psi must be a positive int, got {num_psi!r}")
@@ -314,14 +316,14 @@ def iiwa_solve(
 
 def _sweep(chain: DHChain, target: Tensor, q0: Tensor | None, num_psi: int) -> tuple[Tensor, Tensor]:
     """Best candidate of each pose ``target (B, 4, 4)`` over ``num_psi`` evenly spaced arm
-    angles (plus the arm angle of ``q0 (B, 7)`` when given), then over a finer grid of
-    ``_LOCAL`` angles spanning one step either side of the best one (its centre)."""
+    angles (plus the arm angle of ``q0 (B, 7)`` when given), then over finer grids of
+    ``_LOCAL`` angles spanning one step either side of the best so far (their centre)."""
     step = 2 * math.pi / num_psi
     psi = (torch.arange(num_psi, dtype=target.dtype, device=target.device) * step - math.pi).expand(target.shape[0], -1)
     if q0 is not None:
         psi = torch.cat([iiwa_arm_angle(chain, q0)[:, None], psi], -1)  # (B, K + 1)
     q, found, psi_best = _pick_chunked(chain, target, psi, q0)
-    for _ in range(_REFINE):
+    for _ in range(_REFINE if q0 is not None else 1):  # a margin is flat near its best: one pass
         local = torch.linspace(-step, step, _LOCAL, dtype=target.dtype, device=target.device)
         q, found, psi_best = _pick_chunked(chain, target, psi_best[:, None] + local, q0)
         step = 2 * step / (_LOCAL - 1)  # the next window spans the neighbours of the best
@@ -343,17 +345,20 @@ def _pick(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tup
     ``q0 (B, 7)`` or None -> ``q (B, 7)`` clamped into the limits, ``found (B,)`` bool (the
     candidate is valid) and its arm angle ``(B,)``."""
     sol = iiwa(chain, target, psi)
-    q = sol.q.flatten(-3, -2)  # (B, K * 8, 7)
+    joints = sol.q.movedim(-1, 0).flatten(-2)  # (7, B, K * 8), contiguous (the layout q is stored in)
     valid, reachable = sol.valid.flatten(-2), sol.reachable.flatten(-2)
-    lim = chain.limits.to(q)
-    if q0 is None:
-        cost = -torch.minimum(q - lim[0], lim[1] - q).amin(-1)  # minus the smallest margin
-    else:
-        diff = torch.remainder(q - q0[:, None, :] + math.pi, 2 * math.pi) - math.pi
-        cost = (diff * diff).sum(-1)
-    violation = ((lim[0] - q).clamp_min(0) + (q - lim[1]).clamp_min(0)).sum(-1)
-    big = 1e6  # valid first, then reachable by least violation, then the rest
-    key = torch.where(valid, cost, torch.where(reachable, big + violation, torch.full_like(cost, 2 * big)))
+    mids = chain.limits.mean(0).tolist()
+    halves = ((chain.limits[1] - chain.limits[0]) / 2).tolist()
+    cost = None
+    for j, qj in enumerate(joints):  # joint by joint: contiguous ops
+        if q0 is None:  # minus the margin to the nearest limit (negative outside)
+            term = (qj - mids[j]).abs() - halves[j]
+            cost = term if cost is None else torch.maximum(cost, term)
+        else:  # squared distance to q0; no wrapping: a joint cannot turn through its limits
+            diff = qj - q0[:, j, None]
+            cost = diff * diff if cost is None else torch.addcmul(cost, diff, diff)
+    big = 1e6  # valid candidates first, then the reachable ones, then the rest
+    key = torch.where(valid, cost, torch.where(reachable, big + cost, torch.full_like(cost, 2 * big)))
     best = key.argmin(-1, keepdim=True)  # (B, 1)
-    q_best = q.gather(-2, best[..., None].expand(-1, 1, 7)).squeeze(-2)
+    q_best = joints.gather(-1, best[None].expand(7, -1, -1))[..., 0].T  # (B, 7)
     return chain.clamp(q_best), valid.gather(-1, best).squeeze(-1), psi.gather(-1, best // 8).squeeze(-1)
