@@ -14,6 +14,7 @@ import envs
 from envs.core import ReachTask, keys_from_seeds, uniform
 from envs.reach import IiwaReachEnv, IiwaReachVectorEnv
 from envs.sb3 import IiwaReachVecEnv
+from iiwa_torch.ik import solve
 from iiwa_torch.robots import iiwa14
 
 # Datasheet values (robots.md), not read from the code under test.
@@ -238,17 +239,6 @@ def test_counter_based_random_numbers():
 
 
 # ------------------------------------------------------------------ goals and rewards
-def _dls_ik(chain, target: torch.Tensor, iters: int = 300) -> torch.Tensor:
-    """Damped least squares on position only, from the home posture (a test-local solver)."""
-    q = torch.tensor([0.0, 0.5, 0.0, -1.0, 0.0, 0.5, 0.0], dtype=torch.float64).expand(len(target), 7).clone()
-    for _ in range(iters):
-        err = target - chain.fk(q)[:, :3, 3]
-        jac = chain.jacobian(q)[:, :3]
-        dq = jac.transpose(1, 2) @ torch.linalg.solve(jac @ jac.transpose(1, 2) + 1e-4 * torch.eye(3), err[..., None])
-        q = chain.clamp(q + dq[..., 0])
-    return q
-
-
 def test_goals_are_reachable_and_respect_min_distance():
     vec = IiwaReachVectorEnv(64, goal_min_distance=0.3)
     obs, _ = vec.reset(seed=0)
@@ -259,20 +249,22 @@ def test_goals_are_reachable_and_respect_min_distance():
     # within the sphere the shoulder can reach: |p - shoulder| <= l_se + l_ew + flange (robots.md)
     shoulder = torch.tensor([0, 0, 0.360], dtype=torch.float64)
     assert ((goals - shoulder).norm(dim=-1) <= 0.420 + 0.400 + 0.126 + 1e-5).all()
-    chain = vec.task.robot
-    try:
-        from iiwa_torch.ik import solve  # the library's solver, when it exists
-    except ImportError:
-        solve = None
-    targets = goals[:16]
-    if solve is not None:
-        result = solve(chain, targets, mode="position")
-        assert result.success.all()
-        q = result.q
-    else:
-        q = _dls_ik(chain, targets)
-    assert chain.within_limits(q, tol=1e-9).all()
-    assert (chain.fk(q)[:, :3, 3] - targets).norm(dim=-1).max() < 1e-3
+    # the library's IK reaches them (position), within the limits
+    result = solve(_CHAIN, goals[:16], mode="position")
+    assert result.success.all() and _CHAIN.within_limits(result.q, tol=1e-9).all()
+    assert (_CHAIN.fk(result.q)[:, :3, 3] - goals[:16]).norm(dim=-1).max() < 1e-3
+
+
+def test_pose_goals_are_reachable():
+    obs, _ = IiwaReachVectorEnv(8, goal="pose").reset(seed=0)
+    g = torch.as_tensor(obs["desired_goal"], dtype=torch.float64)
+    x, y = g[:, 3:6], g[:, 6:9]
+    target = torch.eye(4, dtype=torch.float64).repeat(8, 1, 1)
+    target[:, :3, 0], target[:, :3, 1], target[:, :3, 2], target[:, :3, 3] = x, y, torch.linalg.cross(x, y), g[:, :3]
+    result = solve(_CHAIN, target, mode="pose")
+    assert result.success.all() and _CHAIN.within_limits(result.q, tol=1e-9).all()
+    reached = IiwaReachEnv(goal="pose").task.goal_of(_CHAIN.fk(result.q))
+    np.testing.assert_allclose(reached.numpy(), g.numpy(), atol=1e-3)
 
 
 def test_episode_length_covers_the_worst_joint_move_from_home():
