@@ -13,7 +13,7 @@ import torch
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import IKResult, minimize, solve
-from iiwa_torch.ik.gradient import _evaluate, _Kinematics, _Target
+from iiwa_torch.ik.gradient import _cholesky_solve, _evaluate, _Kinematics, _Target
 
 DTYPES = [torch.float64, torch.float32]
 
@@ -135,7 +135,7 @@ def test_unreachable_targets_give_finite_best_effort(dtype):
     # Position only, the best effort is the arm stretched toward the target: the miss is the
     # target's distance from the shoulder (0, 0, 0.36) minus the arm's length 0.946 m, unless
     # the joint limits forbid pointing straight at it.
-    result = solve(chain, far[:, :3, 3], mode="position", seeds=2, iterations=40)
+    result = solve(chain, far[:, :3, 3], mode="position", seeds=2, iterations=40, precision="input")
     shoulder = torch.tensor([0.0, 0.0, 0.36], dtype=dtype)
     bound = (far[:, :3, 3] - shoulder).norm(dim=-1) - 0.946
     tol, close = (1e-9, 1e-4) if dtype == torch.float64 else (1e-5, 1e-3)  # float32 converges less far
@@ -185,14 +185,47 @@ def test_minimize_gradients_finite_at_singularity():
 
 
 # ---------------------------------------------------------------- batching, seeds, null space
-def test_batched_equals_looped():
+@pytest.mark.parametrize("precision, atol", [("input", 1e-9), ("auto", 1e-3)])
+def test_batched_equals_looped(precision, atol):
+    # "auto" iterates these float64 targets in float32, whose rounding differs between the
+    # batch sizes' Cholesky paths (LAPACK for a few problems, unrolled for many): the same
+    # solution, up to where within the tolerance each run stopped.
     chain = robots.iiwa14()
     target, _ = reachable(chain, 1200, 17)
-    batched = solve(chain, target)
+    batched = solve(chain, target, precision=precision)
     for i in range(0, 1200, 100):
-        single = solve(chain, target[i : i + 1])
-        torch.testing.assert_close(single.q[0], batched.q[i], atol=1e-9, rtol=0)
+        single = solve(chain, target[i : i + 1], precision=precision)
+        torch.testing.assert_close(single.q[0], batched.q[i], atol=atol, rtol=0)
         assert bool(single.success[0]) == bool(batched.success[i])
+
+
+def test_float64_precision_choices():
+    # Both ways reach the default tolerance on float64 targets; tolerances below 1e-5 switch
+    # "auto" to float64 iterations, which reach 1e-9.
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 300, 25)
+    auto = solve(chain, target)
+    full = solve(chain, target, precision="input")
+    tight = solve(chain, target, pos_tol=1e-9, rot_tol=1e-9)  # below 1e-5: float64 iterations
+    for result in (auto, full, tight):
+        assert result.q.dtype == torch.float64 and result.success.all()
+    assert tight.pos_err.max() <= 1e-9 and tight.rot_err.max() <= 1e-9
+    with pytest.raises(ValueError, match="precision"):
+        solve(chain, target, precision="half")
+
+
+def test_cholesky_paths_match_linalg_solve():
+    gen = torch.Generator().manual_seed(26)
+    for batch in (50, 2000):  # LAPACK and unrolled paths
+        M = torch.randn(6, 9, batch, generator=gen, dtype=torch.float64)
+        A = (M[:, None] * M[None]).sum(2) + 1e-3 * torch.eye(6, dtype=torch.float64)[..., None]
+        rhs = torch.randn(6, 2, batch, generator=gen, dtype=torch.float64)
+        x = _cholesky_solve(A, rhs, 1e-12)
+        expected = torch.linalg.solve(A.permute(2, 0, 1), rhs.permute(2, 0, 1)).permute(1, 2, 0)
+        torch.testing.assert_close(x, expected, atol=1e-9, rtol=1e-9)
+        # a singular matrix (zero Jacobian) gives a finite answer, not NaN
+        zero = _cholesky_solve(torch.zeros_like(A), rhs, 1e-12)
+        assert torch.isfinite(zero).all()
 
 
 def test_batch_shape_and_q0_broadcast():

@@ -26,13 +26,15 @@ from .. import so3
 from ..dh import Convention, DHChain
 from .result import IKResult
 
-__all__ = ["Mode", "Optimizer", "solve", "minimize"]
+__all__ = ["Mode", "Optimizer", "Precision", "solve", "minimize"]
 
 Tensor = torch.Tensor
 Mode = Literal["pose", "position"]
 Optimizer = Literal["adam", "lbfgs"]
+Precision = Literal["auto", "input"]
 
 _POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
+_LAPACK_BATCH = 512  # up to this many slots, LAPACK's per-matrix Cholesky beats the unrolled one
 _MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
 _FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
 _LAMBDA0 = 1e-2  # initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
@@ -160,8 +162,13 @@ def _evaluate(
 
 def _cholesky_solve(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
     """Solve ``A x = rhs`` for symmetric positive definite ``A (m, m, b)`` (lower triangle read),
-    ``rhs (m, k, b)``, by Cholesky ``A = L L^T`` written out entry by entry over the batch.
-    Pivots are floored at ``floor`` so the result stays finite."""
+    ``rhs (m, k, b)``, by Cholesky ``A = L L^T``: LAPACK per matrix for small batches, else
+    written out entry by entry over the batch (fewer, larger kernels). Always finite: pivots
+    are floored at ``floor``, and a matrix LAPACK finds not positive definite gives ``x = 0``."""
+    if A.shape[2] <= _LAPACK_BATCH:
+        L, info = torch.linalg.cholesky_ex(A.permute(2, 0, 1))
+        x = torch.cholesky_solve(rhs.permute(2, 0, 1), L).permute(1, 2, 0)
+        return torch.where(info == 0, x, 0.0)
     m = A.shape[0]
     L = [[None] * m for _ in range(m)]  # L[i][j], (b,) each
     inv = [None] * m  # 1 / L[j][j]
@@ -345,6 +352,7 @@ def solve(
     rest: Tensor | None = None,
     rest_gain: float = 0.0,
     check_every: int = 2,
+    precision: Precision = "auto",
     generator: torch.Generator | None = None,
 ) -> IKResult:
     """Inverse kinematics for a batch of targets by damped least squares (Levenberg-Marquardt).
@@ -367,6 +375,9 @@ def solve(
             redundant arm (the iiwa) stays near ``rest`` (pass ``rest=q0`` when tracking).
         check_every: iterations between convergence checks (each check syncs and removes
             converged problems from the batch).
+        precision: ``"auto"``: float64 targets are iterated in float32 (half the memory
+            traffic) when both tolerances are at least 1e-5, and the answer is checked in
+            float64; ``"input"``: iterate in the target's dtype.
         generator: source of the random seeds (default: a fresh generator seeded with 0, so
             results are reproducible).
 
@@ -389,28 +400,32 @@ def solve(
     batch = _check_target(target, mode, None, None)
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
+    _check_choice(precision, get_args(Precision), "precision")
     dtype, device, n = target.dtype, target.device, chain.n_joints
+    loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
+    work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
     flat = target.reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
-    rest_flat = None if rest is None or rest_gain == 0 else _broadcast_q(rest, chain, batch, "rest", dtype)
+    rest_flat = None if rest is None or rest_gain == 0 else _broadcast_q(rest, chain, batch, "rest", work)
     if generator is None:
         generator = torch.Generator(device).manual_seed(0)
 
     with torch.no_grad():
-        kin = _Kinematics(chain, dtype, device)
-        lo, hi = (x[:, None] for x in _inner_limits(chain, dtype))  # (n, 1) each
-        first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", dtype).T, lo, hi).T
-        lam_min = 1e-12 if dtype == torch.float64 else 1e-6
+        flat = flat.to(work)
+        kin = _Kinematics(chain, work, device)
+        lo, hi = (x[:, None] for x in _inner_limits(chain, work))  # (n, 1) each
+        first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
+        lam_min = 1e-12 if work == torch.float64 else 1e-6
         weight = float(rot_weight)
         # Seeds: q0, then pool configurations ranked by pose distance to each target.
-        pool = chain.random_q(max(_POOL, seeds), generator=generator, dtype=dtype)
+        pool = chain.random_q(max(_POOL, seeds), generator=generator, dtype=work)
         distance = _pool_distance(chain, pool, flat, mode)  # (pool, b)
         tgt = _Target(
             None if mode == "position" else flat[:, :3, :3].permute(2, 1, 0).contiguous(),
             (flat if mode == "position" else flat[:, :3, 3]).T.contiguous(),
         )
-        best_q = torch.empty(n, b, dtype=dtype, device=device)
-        best_E = torch.full((b,), math.inf, dtype=dtype, device=device)
+        best_q = torch.empty(n, b, dtype=work, device=device)
+        best_E = torch.full((b,), math.inf, dtype=work, device=device)
         used = torch.zeros(b, dtype=torch.long, device=device)
         free_steps = min(_FREE_STEPS, iterations // 2)
         remaining, next_seed = torch.arange(b, device=device), 0
@@ -425,7 +440,7 @@ def solve(
                 best_q.copy_(q[:, :b])
             slot_tgt = tgt.take(problem)
             slot_rest = None if rest_flat is None else rest_flat[problem].T.contiguous()
-            lam = torch.full((q.shape[1],), _LAMBDA0, dtype=dtype, device=device)
+            lam = torch.full((q.shape[1],), _LAMBDA0, dtype=work, device=device)
             state = (q, *_evaluate(kin, q, slot_tgt, weight), lam)
             checked = 0
             for step in range(iterations):
@@ -443,10 +458,10 @@ def solve(
                 done = (pos_err <= 0.5 * pos_tol) & (rot_err <= 0.5 * rot_tol) & inside
                 # Converged slots rank below every error, the lowest seed number first, so the
                 # answer does not depend on how many seeds ran side by side.
-                key = torch.where(done, (number - seeds).to(dtype), torch.where(inside, E, math.inf))
+                key = torch.where(done, (number - seeds).to(work), torch.where(inside, E, math.inf))
                 best_E = _keep_best(best_q, best_E, q, key, problem)
                 running = torch.full_like(best_E, seeds).scatter_reduce_(
-                    0, problem[~done], number[~done].to(dtype), "amin"
+                    0, problem[~done], number[~done].to(work), "amin"
                 )
                 finished = (best_E < 0) & (best_E + seeds < running)  # no lower seed still running
                 keep = ~done & ~finished[problem]
@@ -459,7 +474,7 @@ def solve(
             next_seed += width
             remaining = remaining[best_E[remaining] >= 0]
 
-        q_out = best_q.T.reshape(*batch, n)
+        q_out = best_q.T.to(dtype).reshape(*batch, n)
         return _result(chain, q_out, target, mode, pos_tol, rot_tol, used.reshape(batch))
 
 
