@@ -1,33 +1,490 @@
-"""The ``iiwa-torch`` command."""
+"""The ``iiwa-torch`` command: forward and inverse kinematics, trajectories, robot tables, a demo.
+
+Angles are degrees on the command line unless ``--rad`` is given; lengths are metres.
+``--json`` prints one JSON object for scripts (always SI: metres and radians). Examples::
+
+    iiwa-torch fk 0 0 0 -90 60 0 0 --flange 0.090
+    iiwa-torch ik --pose 0.49 0 0.78 90 30 90 --flange 0.090 --method analytic
+    iiwa-torch traj --from-q 0 30 0 -60 0 60 0 --to-pose 0.5 0.2 0.6 180 0 180 --gif line.gif
+    iiwa-torch robots iiwa14
+    iiwa-torch demo
+"""
 
 from __future__ import annotations
 
 import argparse
+import csv
+import json
 import math
 import sys
+import tempfile
+import time
+from pathlib import Path
 
 import torch
 
+from . import robots, so3
+from .dh import DHChain
 
-def _demo(args: argparse.Namespace) -> int:
-    from . import robots
+_F64 = torch.float64
 
-    chain = robots.iiwa14(flange=0.090)
-    q = torch.zeros(7, dtype=torch.float64)
-    q[3], q[4] = -math.pi / 2, math.pi / 3
-    torch.set_printoptions(precision=4, sci_mode=False)
-    print(chain)
-    print("seed paper's validation pose, q4 = -90 deg, q5 = 60 deg, flange 0.090 m:")
-    print(chain.fk(q))
+
+# ---------------------------------------------------------------- output helpers
+def _console():
+    try:
+        from rich.console import Console
+    except ImportError:  # rich is an optional extra: fall back to plain text
+        return None
+    return Console(width=None if sys.stdout.isatty() else 160)  # pipes and files: no 80-column wrap
+
+
+def _table(title: str, columns: list[str], rows: list[list[str]]) -> None:
+    """Print a table with rich if it is installed, else as aligned plain text."""
+    console = _console()
+    if console is not None:
+        from rich.table import Table
+
+        table = Table(title=title, title_justify="left")
+        for col in columns:
+            table.add_column(col, justify="right")
+        for row in rows:
+            table.add_row(*row)
+        console.print(table)
+        return
+    widths = [max(len(c), *(len(r[i]) for r in rows)) for i, c in enumerate(columns)]
+    print(title)
+    for row in [columns, *rows]:
+        print("  ".join(cell.rjust(w) for cell, w in zip(row, widths)))
+
+
+def _say(text: str) -> None:
+    console = _console()
+    console.print(text, highlight=False) if console is not None else print(text)
+
+
+def _json(obj) -> None:
+    print(json.dumps(obj))
+
+
+def _fmt(values, digits: int = 4) -> list[str]:
+    return [f"{v:.{digits}f}" for v in values]
+
+
+# ---------------------------------------------------------------- argument helpers
+def _chain(args: argparse.Namespace) -> DHChain:
+    if args.flange is not None:
+        if args.robot not in ("iiwa14", "iiwa7"):
+            raise _UsageError(f"--flange applies to the iiwa presets only, not to {args.robot}")
+        return robots.PRESETS[args.robot](flange=args.flange)
+    return robots.PRESETS[args.robot]()
+
+
+class _UsageError(Exception):
+    """A bad combination of arguments: reported through argparse (exit status 2)."""
+
+
+def _angles(values: list[float], rad: bool) -> list[float]:
+    return list(values) if rad else [math.radians(v) for v in values]
+
+
+def _q(chain: DHChain, values: list[float] | None, rad: bool, name: str) -> torch.Tensor:
+    if len(values) != chain.n_joints:
+        raise _UsageError(f"{name} needs {chain.n_joints} joint angles for {chain.name}, got {len(values)}")
+    return torch.tensor(_angles(values, rad), dtype=_F64)
+
+
+def _pose(values: list[float], rad: bool, name: str) -> torch.Tensor:
+    """``x y z roll pitch yaw`` (6 numbers) or a row-major 4x4 matrix (16 numbers) -> (4, 4)."""
+    if len(values) == 16:
+        pose = torch.tensor(values, dtype=_F64).reshape(4, 4)
+        rot = pose[:3, :3]
+        if not torch.allclose(rot @ rot.T, torch.eye(3, dtype=_F64), atol=1e-6) or not torch.allclose(
+            pose[3], torch.tensor([0.0, 0, 0, 1], dtype=_F64)
+        ):
+            raise _UsageError(f"{name}: the 16 numbers are not a homogeneous transform with a rotation part")
+        return pose
+    if len(values) != 6:
+        raise _UsageError(
+            f"{name} needs x y z roll pitch yaw (6 numbers) or a 4x4 matrix (16 numbers), got {len(values)}"
+        )
+    pose = torch.eye(4, dtype=_F64)
+    pose[:3, 3] = torch.tensor(values[:3], dtype=_F64)
+    pose[:3, :3] = so3.rpy_to_matrix(torch.tensor(_angles(values[3:], rad), dtype=_F64))
+    return pose
+
+
+def _pose_summary(pose: torch.Tensor) -> dict:
+    return {
+        "pose": pose.tolist(),
+        "xyz_m": pose[:3, 3].tolist(),
+        "rpy_rad": so3.matrix_to_rpy(pose[:3, :3]).tolist(),
+    }
+
+
+def _print_pose(pose: torch.Tensor, rad: bool, title: str) -> None:
+    _table(title, ["", "c1", "c2", "c3", "c4"], [[f"r{i + 1}", *_fmt(row)] for i, row in enumerate(pose.tolist())])
+    rpy = so3.matrix_to_rpy(pose[:3, :3]).tolist()
+    unit = "rad" if rad else "deg"
+    rpy = rpy if rad else [math.degrees(v) for v in rpy]
+    _say(f"xyz (m): {' '.join(_fmt(pose[:3, 3].tolist()))}    rpy ({unit}): {' '.join(_fmt(rpy, 3))}")
+
+
+# ---------------------------------------------------------------- fk
+def _fk(args: argparse.Namespace) -> int:
+    chain = _chain(args)
+    q = _q(chain, args.q, args.rad, "fk")
+    pose = chain.fk(q)
+    inside = bool(chain.within_limits(q))
+    if args.plot:
+        from . import viz
+
+        viz.save_png(chain, q, args.plot, frames=True, title=f"{chain.name}  q = {_q_text(q)} deg")
+    if args.json:
+        _json({"robot": chain.name, "q_rad": q.tolist(), "within_limits": inside, **_pose_summary(pose)})
+    else:
+        _print_pose(pose, args.rad, f"{chain.name}: end-effector pose (m)")
+        if not inside:
+            _say("[yellow]warning: q is outside the joint limits[/yellow]")
+    if args.plot:
+        print(f"picture written to {args.plot}", file=sys.stderr)
     return 0
 
 
+def _q_text(q: torch.Tensor) -> str:
+    return " ".join(f"{math.degrees(v):.0f}" for v in q.tolist())
+
+
+# ---------------------------------------------------------------- ik
+def _ik(args: argparse.Namespace) -> int:
+    chain = _chain(args)
+    target = _pose(args.pose, args.rad, "--pose")
+    if args.method == "analytic":
+        q, valid, label = _ik_analytic(chain, target, args)
+    else:
+        q, valid, label = _ik_gradient(chain, target, args)
+    pos_vec, rot_vec = so3.pose_error(chain.fk(q), target.expand(q.shape[0], 4, 4))
+    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
+    if args.json:
+        sols = [
+            {"branch": b, "q_rad": qi, "valid": v, "pos_err_m": pe, "rot_err_rad": re}
+            for b, qi, v, pe, re in zip(label, q.tolist(), valid.tolist(), pos_err.tolist(), rot_err.tolist())
+        ]
+        _json({"robot": chain.name, "method": args.method, "target": target.tolist(), "solutions": sols})
+        return 0
+    unit = "rad" if args.rad else "deg"
+    rows = []
+    for b, qi, v, pe, re in zip(label, q.tolist(), valid.tolist(), pos_err.tolist(), rot_err.tolist()):
+        shown = qi if args.rad else [math.degrees(x) for x in qi]
+        rows.append([b, *_fmt(shown, 2), "yes" if v else "no", f"{pe:.1e}", f"{re:.1e}"])
+    cols = ["branch", *chain.joint_names, "valid", "pos err (m)", "rot err (rad)"]
+    _table(f"{chain.name}: IK solutions ({args.method}), joint angles in {unit}", cols, rows)
+    if not valid.any():
+        _say("[yellow]no valid solution (unreachable or outside the joint limits)[/yellow]")
+    return 0
+
+
+def _ik_analytic(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+    from .ik import analytic
+
+    if chain.n_joints == 7:
+        psi = args.psi if args.rad else math.radians(args.psi)
+        sol = analytic.iiwa(chain, target, psi)
+    elif chain.n_joints == 6:
+        sol = analytic.pieper(chain, target)
+    else:
+        raise _UsageError(
+            f"--method analytic needs a 7-joint iiwa or a 6R spherical-wrist arm; use gradient for {chain.name}"
+        )
+    labels = [f"{'+-'[k >> 2 & 1]}{'+-'[k >> 1 & 1]}{'+-'[k & 1]}" for k in range(sol.q.shape[-2])]
+    return sol.q.contiguous(), sol.valid, labels
+
+
+def _ik_gradient(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+    from .ik import solve
+
+    result = solve(chain, target, generator=torch.Generator().manual_seed(args.seed), pos_tol=1e-9, rot_tol=1e-8)
+    return result.q[None], result.success[None], ["lm"]
+
+
+# ---------------------------------------------------------------- traj
+def _traj(args: argparse.Namespace) -> int:
+    from . import trajectory
+
+    chain = _chain(args)
+    if (args.from_q is None) == (args.from_pose is None) or (args.to_q is None) == (args.to_pose is None):
+        raise _UsageError("give exactly one of --from-q/--from-pose and one of --to-q/--to-pose")
+    if args.steps < 2:
+        raise _UsageError(f"--steps must be at least 2, got {args.steps}")
+    q_start = None if args.from_q is None else _q(chain, args.from_q, args.rad, "--from-q")
+    q_end = None if args.to_q is None else _q(chain, args.to_q, args.rad, "--to-q")
+    if q_start is not None and q_end is not None:  # joint space: quintic
+        duration = args.duration or _auto_duration(chain, trajectory.shortest_duration, q_start, q_end)
+        qs = trajectory.jtraj(q_start, q_end, torch.linspace(0, duration, args.steps, dtype=_F64)).q
+        kind, worst = "joint-space quintic", None
+    else:  # Cartesian straight line, tracked by IK
+        pose0 = chain.fk(q_start) if q_start is not None else _pose(args.from_pose, args.rad, "--from-pose")
+        pose1 = chain.fk(q_end) if q_end is not None else _pose(args.to_pose, args.rad, "--to-pose")
+        if q_start is None:
+            q_start = _start_configuration(chain, pose0, args.method)
+        path = trajectory.ctraj(pose0, pose1, args.steps, profile="quintic")
+        result = trajectory.track(chain, path, q_start, method=args.method)
+        qs = result.q
+        duration = args.duration or _auto_duration(chain, trajectory.sampled_duration, qs)
+        kind, worst = f"Cartesian line tracked by {args.method} IK", result
+    times = torch.linspace(0, duration, args.steps, dtype=_F64)
+    ee = chain.fk(qs)[:, :3, 3]
+    written = []
+    if args.csv:
+        with open(args.csv, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["t_s", *(f"{n}_rad" for n in chain.joint_names), "x_m", "y_m", "z_m"])
+            for t, qi, p in zip(times.tolist(), qs.tolist(), ee.tolist()):
+                writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in qi), *(f"{v:.9f}" for v in p)])
+        written.append(args.csv)
+    if args.gif:
+        from . import viz
+
+        fps = max(1, round((args.steps - 1) / duration)) if args.fps is None else args.fps
+        viz.animate(chain, qs, args.gif, fps=fps, path=ee if worst is None else path, size=(args.size, args.size))
+        written.append(args.gif)
+    summary = {
+        "robot": chain.name,
+        "kind": kind,
+        "steps": args.steps,
+        "duration_s": duration,
+        "max_joint_step_rad": float(qs.diff(dim=0).abs().max()),
+        "files": written,
+    }
+    if worst is not None:
+        summary |= {
+            "max_pos_err_m": float(worst.pos_err.max()),
+            "max_rot_err_rad": float(worst.rot_err.max()),
+            "all_success": bool(worst.success.all()),
+        }
+    if args.json:
+        _json(summary | {"q_rad": qs.tolist(), "t_s": times.tolist()})
+    else:
+        _table(
+            f"{chain.name}: {kind}",
+            ["quantity", "value"],
+            [[k, f"{v:.4g}" if isinstance(v, float) else str(v)] for k, v in summary.items() if k != "files"],
+        )
+        for file in written:
+            _say(f"written: {file}")
+    return 0 if worst is None or bool(worst.success.all()) else 1
+
+
+def _auto_duration(chain: DHChain, rule, *args) -> float:
+    """The shortest duration within the speed limits (1 s for a chain without limits or no motion)."""
+    if chain.velocity_limits is None:
+        return 1.0
+    return float(rule(chain, *args)) or 1.0
+
+
+def _start_configuration(chain: DHChain, pose: torch.Tensor, method: str) -> torch.Tensor:
+    from .ik import analytic, solve
+
+    result = analytic.iiwa_solve(chain, pose) if method == "analytic" and chain.n_joints == 7 else solve(chain, pose)
+    if not bool(result.success):
+        raise _UsageError("the start pose is not reachable within the joint limits")
+    return result.q
+
+
+# ---------------------------------------------------------------- robots
+def _robots(args: argparse.Namespace) -> int:
+    if args.name is None:
+        chains = [fn() for fn in robots.PRESETS.values()]
+        if args.json:
+            _json([{"name": c.name, "joints": c.n_joints, "convention": c.convention.value} for c in chains])
+            return 0
+        rows = [
+            [c.name, str(c.n_joints), c.convention.value, "yes" if c.velocity_limits is not None else "no"]
+            for c in chains
+        ]
+        _table(
+            "robot presets (iiwa-torch robots NAME for the DH table)", ["name", "joints", "DH", "speed limits"], rows
+        )
+        return 0
+    if args.name not in robots.PRESETS:
+        raise _UsageError(f"unknown robot {args.name!r}; presets: {', '.join(robots.PRESETS)}")
+    chain = robots.PRESETS[args.name]()
+    vel = [None] * chain.n_joints if chain.velocity_limits is None else chain.velocity_limits.tolist()
+    lows, highs = chain.limits.tolist()
+    if args.json:
+        _json(
+            {
+                "name": chain.name,
+                "convention": chain.convention.value,
+                "dh_rows_a_alpha_d_offset": chain.dh.tolist(),
+                "limits_rad": chain.limits.tolist(),
+                "velocity_limits_rad_s": None if chain.velocity_limits is None else vel,
+                "tool": chain.tool.tolist(),
+            }
+        )
+        return 0
+    rows = []
+    for name, (a, al, d, off), lo, hi, v in zip(chain.joint_names, chain.dh.tolist(), lows, highs, vel):
+        deg = [math.degrees(x) for x in (al, off, lo, hi)]
+        speed = "-" if v is None else f"{math.degrees(v):.0f}"
+        rows.append(
+            [name, f"{a:.4f}", f"{deg[0]:.0f}", f"{d:.4f}", f"{deg[1]:.0f}", f"{deg[2]:.0f}", f"{deg[3]:.0f}", speed]
+        )
+    cols = ["joint", "a (m)", "alpha (deg)", "d (m)", "offset (deg)", "min (deg)", "max (deg)", "speed (deg/s)"]
+    _table(f"{chain.name}: {chain.convention.value} DH", cols, rows)
+    return 0
+
+
+# ---------------------------------------------------------------- demo
+def _demo(args: argparse.Namespace) -> int:
+    from . import trajectory
+    from .ik import analytic, solve
+
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="iiwa_torch_demo_"))
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(min(2, torch.get_num_threads()))
+
+    # 1. The seed paper's validation pose (flange 0.090 m): position (0.490, 0, 0.780).
+    paper = robots.iiwa14(flange=0.090)
+    q_val = torch.tensor([0, 0, 0, -math.pi / 2, math.pi / 3, 0, 0], dtype=_F64)
+    _print_pose(
+        paper.fk(q_val),
+        False,
+        "1. iiwa14 (flange 0.090 m) at q4 = -90 deg, q5 = 60 deg; the paper: xyz (0.490, 0, 0.780)",
+    )
+
+    # 2. Batched FK and IK timing.
+    chain = robots.iiwa14()
+    n = args.batch
+    q = chain.random_q(n, generator=torch.Generator().manual_seed(0))
+    timings = []
+    start = time.perf_counter()
+    poses = chain.fk(q)
+    timings.append(["fk", f"{n}", f"{1e3 * (time.perf_counter() - start):.1f}", "-"])
+    start = time.perf_counter()
+    result = solve(chain, poses)
+    timings.append(
+        [
+            "ik.solve (gradient)",
+            f"{n}",
+            f"{1e3 * (time.perf_counter() - start):.1f}",
+            f"{100 * result.success.double().mean():.2f}%",
+        ]
+    )
+    m = min(n, 1000)
+    start = time.perf_counter()
+    sol = analytic.iiwa(chain, poses[:m], analytic.iiwa_arm_angle(chain, q[:m]))
+    timings.append(
+        [
+            "ik.analytic.iiwa, 8 branches",
+            f"{m}",
+            f"{1e3 * (time.perf_counter() - start):.1f}",
+            f"{100 * sol.valid.any(-1).double().mean():.2f}%",
+        ]
+    )
+    _table(
+        f"2. batched kinematics, iiwa14, float64, {torch.get_num_threads()} threads",
+        ["call", "batch", "ms", "solved"],
+        timings,
+    )
+
+    # 3. A tracked Cartesian line.
+    q0 = torch.tensor([0, 30, 0, -80, 0, 70, 0], dtype=_F64).deg2rad()
+    pose0 = chain.fk(q0)
+    pose1 = pose0.clone()
+    pose1[:3, 3] += torch.tensor([0.0, 0.35, -0.15], dtype=_F64)
+    path = trajectory.ctraj(pose0, pose1, 40, profile="quintic")
+    track = trajectory.track(chain, path, q0, method="analytic")
+    duration = trajectory.sampled_duration(chain, track.q)
+    _table(
+        "3. straight line of 0.38 m tracked by the closed-form IK at a held arm angle",
+        ["steps", "max pos err (m)", "max rot err (rad)", "max joint step (deg)", "shortest duration (s)"],
+        [
+            [
+                "40",
+                f"{track.pos_err.max():.1e}",
+                f"{track.rot_err.max():.1e}",
+                f"{math.degrees(track.max_step):.2f}",
+                f"{duration:.2f}",
+            ]
+        ],
+    )
+    gif = out / "tracked_line.gif"
+    if not args.no_gif:
+        from . import viz
+
+        viz.animate(chain, track.q, gif, fps=12, path=path, size=(320, 320))
+        _say(f"animation written to {gif}")
+    return 0
+
+
+# ---------------------------------------------------------------- parser
+def _parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--robot", default="iiwa14", choices=list(robots.PRESETS), help="robot preset (default iiwa14)")
+    common.add_argument(
+        "--flange", type=float, help="iiwa wrist-to-flange length in m (default 0.126; the seed paper: 0.090)"
+    )
+    common.add_argument("--rad", action="store_true", help="angles in radians (default: degrees)")
+    common.add_argument("--json", action="store_true", help="print JSON (metres, radians) instead of tables")
+
+    parser = argparse.ArgumentParser(
+        prog="iiwa-torch", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("fk", parents=[common], help="joint angles -> end-effector pose")
+    p.add_argument("q", nargs="+", type=float, help="joint angles (deg unless --rad)")
+    p.add_argument("--plot", metavar="PNG", help="also draw the arm to this PNG file")
+    p.set_defaults(func=_fk)
+
+    p = sub.add_parser("ik", parents=[common], help="pose -> joint angles (all analytic branches, or gradient)")
+    p.add_argument(
+        "--pose",
+        nargs="+",
+        type=float,
+        required=True,
+        metavar="V",
+        help="x y z roll pitch yaw, or 16 numbers of a row-major 4x4",
+    )
+    p.add_argument("--method", choices=["analytic", "gradient"], default="analytic")
+    p.add_argument("--psi", type=float, default=0.0, help="iiwa arm angle for the analytic solver (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the gradient solver")
+    p.set_defaults(func=_ik)
+
+    p = sub.add_parser("traj", parents=[common], help="trajectory between configurations or poses -> CSV, animation")
+    p.add_argument("--from-q", nargs="+", type=float, metavar="Q")
+    p.add_argument("--from-pose", nargs="+", type=float, metavar="V", help="x y z roll pitch yaw, or a 4x4")
+    p.add_argument("--to-q", nargs="+", type=float, metavar="Q")
+    p.add_argument("--to-pose", nargs="+", type=float, metavar="V")
+    p.add_argument("--steps", type=int, default=50)
+    p.add_argument("--duration", type=float, help="seconds (default: the shortest within the speed limits)")
+    p.add_argument("--method", choices=["analytic", "gradient"], default="analytic", help="IK for Cartesian lines")
+    p.add_argument("--csv", metavar="FILE", help="write t, joint angles (rad) and end-effector xyz")
+    p.add_argument("--gif", metavar="FILE", help="write an animation (.gif, or .mp4 with ffmpeg)")
+    p.add_argument("--fps", type=int, help="animation frame rate (default: real time)")
+    p.add_argument("--size", type=int, default=360, help="animation size in pixels")
+    p.set_defaults(func=_traj)
+
+    p = sub.add_parser("robots", parents=[common], help="list presets, or print one's DH table")
+    p.add_argument("name", nargs="?", help="a preset name")
+    p.set_defaults(func=_robots)
+
+    p = sub.add_parser("demo", help="FK at the validation pose, batched FK/IK timing, a tracked line")
+    p.add_argument("--out", help="directory for the animation (default: a new temporary directory)")
+    p.add_argument("--batch", type=int, default=10_000, help="configurations in the timing (default 10000)")
+    p.add_argument("--no-gif", action="store_true", help="skip writing the animation")
+    p.set_defaults(func=_demo)
+    return parser
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="iiwa-torch", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("demo", help="an end-to-end demonstration").set_defaults(func=_demo)
+    parser = _parser()
     args = parser.parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (_UsageError, ValueError) as err:
+        sub = parser._subparsers._group_actions[0].choices[args.command]
+        sub.error(str(err))  # exits with status 2
 
 
 if __name__ == "__main__":

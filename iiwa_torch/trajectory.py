@@ -6,7 +6,8 @@
 - :func:`track`: IK at every pose of a Cartesian path, each step started from the previous
   solution, so the joint path has no jumps (gradient IK, or the closed forms);
 - :func:`shortest_duration`: the shortest rest-to-rest :func:`jtraj` duration that keeps
-  every joint within the chain's speed limits.
+  every joint within the chain's speed limits; :func:`sampled_duration` the same for any
+  path sampled at even times (e.g. a tracked one).
 
 Time arguments ``t`` are either a number of steps ``T`` (an int >= 2: samples evenly over a
 move of unit duration, so velocities are per unit of that normalised time) or a time vector
@@ -25,7 +26,17 @@ import torch
 from . import so3
 from .dh import DHChain
 
-__all__ = ["JointTrajectory", "TrackResult", "Method", "Profile", "jtraj", "ctraj", "track", "shortest_duration"]
+__all__ = [
+    "JointTrajectory",
+    "TrackResult",
+    "Method",
+    "Profile",
+    "jtraj",
+    "ctraj",
+    "track",
+    "shortest_duration",
+    "sampled_duration",
+]
 
 Tensor = torch.Tensor
 Method = Literal["gradient", "analytic"]
@@ -158,14 +169,33 @@ def shortest_duration(chain: DHChain, q0: Tensor, q1: Tensor, *, speed_scale: fl
     A quintic with zero boundary velocities peaks at ``15/8 |q1 - q0| / duration`` half way,
     so the answer is ``max_j 15/8 |q1_j - q0_j| / (speed_scale * vmax_j)`` (0 for no motion).
     """
+    vmax = _speed_limits(chain, speed_scale, q0.dtype)
+    chain.check_q(q0, "q0")
+    chain.check_q(q1, "q1")
+    return (_PEAK_SPEED * (q1 - q0).abs() / vmax).amax(-1)
+
+
+def sampled_duration(chain: DHChain, q: Tensor, *, speed_scale: float = 1.0) -> Tensor:
+    """Shortest duration (s) for a path sampled at evenly spaced times, ``q (..., T, n)``, such
+    that no joint's finite-difference speed ``|q[t + 1] - q[t]| / dt`` exceeds
+    ``speed_scale * chain.velocity_limits``: ``(...)``, equal to ``(T - 1) dt``.
+
+    Use it for paths without a closed form, e.g. the joint path of :func:`track`.
+    """
+    vmax = _speed_limits(chain, speed_scale, q.dtype)
+    chain.check_q(q)
+    if q.ndim < 2 or q.shape[-2] < 2:
+        raise ValueError(f"q must have shape (..., T, {chain.n_joints}) with T >= 2, got {tuple(q.shape)}")
+    dt = (q.diff(dim=-2).abs() / vmax).amax((-2, -1))
+    return (q.shape[-2] - 1) * dt
+
+
+def _speed_limits(chain: DHChain, speed_scale: float, dtype: torch.dtype) -> Tensor:
     if chain.velocity_limits is None:
         raise ValueError(f"chain {chain.name!r} has no velocity_limits; pass them to DHChain to time-scale")
     if isinstance(speed_scale, bool) or not isinstance(speed_scale, (int, float)) or not 0 < speed_scale <= 1:
         raise ValueError(f"speed_scale must be a number in (0, 1], got {speed_scale!r}")
-    chain.check_q(q0, "q0")
-    chain.check_q(q1, "q1")
-    vmax = speed_scale * chain.velocity_limits.to(q0.dtype)
-    return (_PEAK_SPEED * (q1 - q0).abs() / vmax).amax(-1)
+    return speed_scale * chain.velocity_limits.to(dtype)
 
 
 def track(
