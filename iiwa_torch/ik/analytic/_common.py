@@ -69,6 +69,21 @@ def acos_pair(c: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
     return cc, (1 - cc * cc).clamp_min(_TINY).sqrt(), ok
 
 
+def triangle(dist: Tensor, l1: float, l2: float, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The angle between two links ``l1, l2`` whose free ends are ``dist`` apart (law of
+    cosines): ``(cos, |sin|, ok)``, ``cos = (dist^2 - l1^2 - l2^2) / (2 l1 l2)`` clamped.
+
+    ``|sin|`` comes from the factored form ``(l1 + l2 - d)(l1 + l2 + d)(d - |l1 - l2|)(d + |l1 - l2|)
+    = (2 l1 l2 sin)^2``, not from ``1 - cos^2``: near the stretched or folded arm that keeps
+    its relative accuracy (``sqrt(1 - cos^2)`` loses half the digits, 3e-4 m in float32).
+    """
+    c = (dist * dist - (l1 * l1 + l2 * l2)) / (2 * l1 * l2)
+    ok = c.abs() <= 1 + tol
+    outer, inner = l1 + l2, abs(l1 - l2)
+    s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
+    return c.clamp(-1.0, 1.0), s2.clamp_min(_TINY).sqrt() / (2 * l1 * l2), ok
+
+
 def reach_tol(dtype: torch.dtype) -> float:
     """Slack on a cosine before a target counts as out of reach (rounding of ``|c| = 1``)."""
     return 1e-12 if dtype == torch.float64 else 1e-5

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from ...dh import DHChain
-from ._common import AnalyticSolutions, acos_pair, check_chain, finish, reach_tol, safe_atan2
+from ._common import AnalyticSolutions, check_chain, finish, reach_tol, safe_atan2, safe_norm2, triangle
 
 __all__ = ["planar3r"]
 
@@ -69,7 +69,7 @@ def planar3r(chain: DHChain, x, y, phi) -> AnalyticSolutions:
     wx = px - ch * reach_x + sh * reach_y
     wy = py - sh * reach_x - ch * reach_y
 
-    c2, s2_abs, ok = acos_pair((wx * wx + wy * wy - a1 * a1 - a2 * a2) / (2 * a1 * a2), reach_tol(dtype))
+    c2, s2_abs, ok = triangle(safe_norm2(wx, wy), a1, a2, reach_tol(dtype))
     sign = torch.tensor([1.0, -1.0], dtype=dtype, device=x.device)
     s2 = s2_abs[..., None] * sign  # (..., 2)
     c2 = c2[..., None].expand_as(s2)

@@ -39,7 +39,6 @@ import torch
 from ...dh import DHChain
 from ._common import (
     AnalyticSolutions,
-    acos_pair,
     check_chain,
     check_target,
     decompose_zxzxz,
@@ -48,7 +47,9 @@ from ._common import (
     reach_tol,
     rows_times,
     safe_atan2,
+    safe_norm2,
     sigma,
+    triangle,
     zxzx_t,
 )
 
@@ -90,9 +91,9 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
 
     # Waist (shoulder branch): Rz(-theta1) w = (X, -s1 D, wz) with X = +-sqrt(r^2 - D^2).
     lateral = d2 + d3
-    r2 = wx * wx + wy * wy
-    shoulder_ok = r2 >= lateral * lateral * (1 - tol) - tol
-    along = (r2 - lateral * lateral).clamp_min(1e-30).sqrt()
+    r = safe_norm2(wx, wy)
+    shoulder_ok = r >= abs(lateral) * (1 - tol)
+    along = ((r - abs(lateral)) * (r + abs(lateral))).clamp_min(1e-30).sqrt()  # sqrt(r^2 - D^2)
     sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device)
     big_x = along[..., None] * sign  # (..., 2)
     theta1 = safe_atan2(wy, wx)[..., None] - torch.atan2(torch.full_like(big_x, -s1 * lateral), big_x)
@@ -102,7 +103,7 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
     py = (s1 * (wz - d1))[..., None].expand_as(px)
     link3 = math.hypot(a3, d4)
     gamma = math.atan2(-s3 * d4, a3)
-    c_el, s_el_abs, elbow_ok = acos_pair((px * px + py * py - a2 * a2 - link3 * link3) / (2 * a2 * link3), tol)
+    c_el, s_el_abs, elbow_ok = triangle(safe_norm2(px, py), a2, link3, tol)
     s_el = s_el_abs[..., None] * sign  # (..., 2 shoulder, 2 elbow)
     c_el = c_el[..., None].expand_as(s_el)
     theta3 = torch.atan2(s_el, c_el) - gamma

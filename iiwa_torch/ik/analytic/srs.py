@@ -57,6 +57,7 @@ from ._common import (
     safe_atan2,
     safe_norm2,
     sigma,
+    triangle,
     zxzx_t,
 )
 
@@ -98,9 +99,8 @@ def _frames(chain: DHChain, target: Tensor) -> tuple[Tensor, Tensor]:
 def _elbow(geo: _Geometry, sw: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Both elbow branches from ``W - S``: ``theta_4 (..., 2)``, ``cos theta_4 (...)``,
     ``sin theta_4 (..., 2)`` and whether ``W`` is in reach ``(...)``."""
-    dist2 = (sw * sw).sum(-1)
-    c4 = -geo.sig[2] * geo.sig[3] * (dist2 - geo.d3**2 - geo.d5**2) / (2 * geo.d3 * geo.d5)
-    c4, s4_abs, ok = acos_pair(c4, tol)
+    c4, s4_abs, ok = triangle(safe_norm2(safe_norm2(sw[..., 0], sw[..., 1]), sw[..., 2]), geo.d3, geo.d5, tol)
+    c4 = -geo.sig[2] * geo.sig[3] * c4  # the triangle's angle is between z2 and z4, up to sign
     s4 = s4_abs[..., None] * torch.tensor([1.0, -1.0], dtype=sw.dtype, device=sw.device)
     return torch.atan2(s4, c4[..., None].expand_as(s4)), c4, s4, ok
 
