@@ -316,7 +316,7 @@ class TestIiwa:
         assert sol.q.dtype == torch.float32 and torch.isfinite(sol.q).all()
         assert 0.2 < sol.reachable.float().mean() < 0.9
         pos, rot = _closure(chain, sol.q, target)
-        assert pos[sol.reachable].max() < 1e-3 and rot[sol.reachable].max() < 1e-3
+        assert pos[sol.reachable].max() < 1e-4 and rot[sol.reachable].max() < 1e-4
 
     def test_bad_input(self):
         target = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
@@ -390,6 +390,25 @@ class TestIiwaSolve:
         pose_a, pose_b = chain.fk(ours.q[both]), chain.fk(theirs.q[both])
         pos, rot = pose_error(pose_a, pose_b)
         assert pos.norm(dim=-1).max() < 2e-4 and rot.norm(dim=-1).max() < 2e-3
+
+
+@pytest.mark.parametrize("name", ["planar3r", "puma560", "lrmate200ic", "iiwa14", "iiwa14-q3"])
+def test_float32_closure(name):
+    chain = robots.PRESETS[name.split("-")[0]]()
+    target = chain.fk(chain.random_q(N_POSES, generator=_gen(30))).float()
+    chain = chain.float()
+    if name == "planar3r":
+        sol = analytic.planar3r(chain, target[:, 0, 3], target[:, 1, 3], torch.atan2(target[:, 1, 0], target[:, 0, 0]))
+    elif name == "iiwa14":
+        sol = analytic.iiwa(chain, target, torch.linspace(-3, 3, 3)[None])
+        target = target[:, None]
+    elif name == "iiwa14-q3":
+        sol = analytic.iiwa_q3_locked(chain, target)
+    else:
+        sol = analytic.pieper(chain, target)
+    assert sol.q.dtype == torch.float32
+    pos, rot = _closure(chain, sol.q, target)
+    assert pos[sol.reachable].max() < 1e-4 and rot[sol.reachable].max() < 1e-4
 
 
 # ---------------------------------------------------------------- gradients
