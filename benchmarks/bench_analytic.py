@@ -171,7 +171,9 @@ def bench_peers(n_rtb: int, n_grad: int) -> dict:
 
 def sweep_success(n: int) -> dict:
     """``iiwa_solve`` on ``n`` reachable poses; every miss re-tried with a dense sweep and
-    with the gradient solver given 64 seeds (is the miss real?)."""
+    with the gradient solver given 64 seeds (is the miss real?). Also: the poses where a
+    plain grid of 16 arm angles has no in-limit branch (narrow feasible arm-angle
+    intervals, which ``iiwa_solve`` retries with a finer grid), and how both solvers fare there."""
     iiwa = robots.iiwa14()
     q = iiwa.random_q(n, generator=torch.Generator().manual_seed(2))
     target = iiwa.fk(q)
@@ -192,7 +194,19 @@ def sweep_success(n: int) -> dict:
         grad = solve(iiwa, target[missed], seeds=64, generator=torch.Generator().manual_seed(3))
         out["missed_dense_sweep_success"] = dense.success.tolist()
         out["missed_gradient_64_seeds_success"] = grad.success.tolist()
-    print(f"iiwa_solve on {n:,} poses: success {out['success']:.5f} in {seconds:.1f} s, missed {missed.numel()}")
+    grid = torch.linspace(-math.pi, math.pi, 17, dtype=torch.float64)[:-1][None]
+    narrow = torch.cat(
+        [~analytic.iiwa(iiwa, target[i : i + CHUNK], grid).valid.flatten(-2).any(-1) for i in range(0, n, CHUNK)]
+    ).nonzero().squeeze(-1)
+    out["grid16_without_valid_branch"] = narrow.numel()
+    if narrow.numel():
+        grad = solve(iiwa, target[narrow], generator=torch.Generator().manual_seed(4))
+        out["grid16_misses_iiwa_solve_success"] = res.success[narrow].float().mean().item()
+        out["grid16_misses_gradient_success"] = grad.success.float().mean().item()
+    print(
+        f"iiwa_solve on {n:,} poses: success {out['success']:.5f} in {seconds:.1f} s, missed {missed.numel()}; "
+        f"{narrow.numel()} poses without a valid branch on a 16-angle grid"
+    )
     return out
 
 
@@ -234,7 +248,10 @@ def main() -> None:
         + f"\nSuccess: sweep {peers['sweep_iiwa_success']:.4f}, gradient {peers['gradient_iiwa_success']:.4f}, "
         f"rtb ikine_LM {peers['rtb_iiwa_ikine_LM_success']:.3f}. "
         f"iiwa_solve on {sweep['poses']:,} reachable poses: success {sweep['success']:.5f}, "
-        f"{len(sweep['missed'])} missed.\n\nMachine: {info}\n"
+        f"{len(sweep['missed'])} missed; {sweep['grid16_without_valid_branch']} poses have no in-limit branch on a "
+        f"plain 16-angle grid (narrow feasible arm-angle intervals, found by the finer retry: "
+        f"success there {sweep.get('grid16_misses_iiwa_solve_success', float('nan')):.3f}, gradient solver "
+        f"{sweep.get('grid16_misses_gradient_success', float('nan')):.3f}).\n\nMachine: {info}\n"
     )
     print(md)
     payload = {"machine": info, "closed_forms": closed, "peers": peers, "sweep": sweep}
