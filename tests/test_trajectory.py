@@ -121,7 +121,9 @@ def test_ctraj_endpoints_straight_line_and_constant_speed(arm):
     torch.testing.assert_close(rel, rel[:1].expand_as(rel), rtol=0, atol=1e-10)
     # every pose is a proper transform
     rot = path[:, :3, :3]
-    torch.testing.assert_close(rot @ rot.transpose(-1, -2), torch.eye(3, dtype=F64).expand(31, 3, 3), rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        rot @ rot.transpose(-1, -2), torch.eye(3, dtype=F64).expand(31, 3, 3), rtol=0, atol=1e-12
+    )
 
 
 def test_ctraj_matches_spatialmath_interp(arm):
