@@ -109,7 +109,12 @@ class _Kinematics:
         return R, p, P
 
 
-_ROLL1, _ROLL2 = [1, 2, 0], [2, 0, 1]  # cross product a x b = a[R1] * b[R2] - a[R2] * b[R1]
+
+
+def _roll(vectors: Tensor, shift: int) -> Tensor:
+    """Components ``(x, y, z)`` of ``(3, 3, b)`` axis vectors rotated to ``(y, z, x)`` (shift 1)
+    or ``(z, x, y)`` (shift 2): then ``a x b = roll(a, 1) * roll(b, 2) - roll(a, 2) * roll(b, 1)``."""
+    return torch.roll(vectors, -shift, 1)
 
 
 class _Target:
@@ -119,7 +124,7 @@ class _Target:
         self.pos = pos
         self.rot = rot
         if rot is not None:
-            self.rot1, self.rot2 = rot[:, _ROLL1].contiguous(), rot[:, _ROLL2].contiguous()
+            self.rot1, self.rot2 = _roll(rot, 1), _roll(rot, 2)
 
     def take(self, keep: Tensor) -> _Target:
         out = _Target.__new__(_Target)
@@ -150,7 +155,7 @@ def _evaluate(
     if weight != 1:
         J[3:].mul_(weight)
     # log(R_t R^T): its skew part is sum_k r_k x t_k / 2 (r_k, t_k the axes), its trace sum_k r_k . t_k.
-    v = (R[:, _ROLL1] * target.rot2 - R[:, _ROLL2] * target.rot1).sum(0).mul_(0.5)  # sin(angle) * axis
+    v = (_roll(R, 1) * target.rot2 - _roll(R, 2) * target.rot1).sum(0).mul_(0.5)  # sin(angle) * axis
     cos = ((R * target.rot).sum((0, 1)) - 1) * 0.5
     sin = torch.addcmul(torch.addcmul(v[0] * v[0], v[1], v[1]), v[2], v[2]).sqrt()
     rot_err = torch.atan2(sin, cos)
