@@ -318,6 +318,20 @@ class TestIiwa:
         pos, rot = _closure(chain, sol.q, target)
         assert pos[sol.reachable].max() < 1e-4 and rot[sol.reachable].max() < 1e-4
 
+    def test_arm_angle_shapes_and_batched_equals_looped(self):
+        chain = IIWA["iiwa14"]
+        q = chain.random_q(5, generator=_gen(24))
+        target = chain.fk(q)
+        grid = torch.tensor([-2.0, 0.1, 1.5], dtype=torch.float64)
+        per_pose = analytic.iiwa(chain, target, 0.3).q  # one float for all poses
+        assert per_pose.shape == (5, 8, 7)
+        assert analytic.iiwa(chain, target, grid[None]).q.shape == (5, 3, 8, 7)
+        assert analytic.iiwa(chain, target[0], grid).q.shape == (3, 8, 7)
+        looped = torch.stack([analytic.iiwa(chain, target[k], 0.3).q for k in range(5)])
+        torch.testing.assert_close(looped, per_pose, rtol=0, atol=1e-12)
+        many = analytic.iiwa(chain, target[:, None].expand(5, 3, 4, 4), grid.expand(5, 3))
+        torch.testing.assert_close(many.q, analytic.iiwa(chain, target, grid[None]).q, rtol=0, atol=1e-12)
+
     def test_bad_input(self):
         target = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
         with pytest.raises(ValueError, match="iiwa"):
