@@ -1,0 +1,110 @@
+"""Drawing and animation: off-screen images of the right size, no pyplot state, GIF frame counts."""
+
+import math
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from iiwa_torch import robots, viz
+
+F64 = torch.float64
+Q_VALIDATION = torch.tensor([0, 0, 0, -math.pi / 2, math.pi / 3, 0, 0], dtype=F64)
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return robots.iiwa14(flange=0.090)
+
+
+def test_import_is_lazy():
+    code = (
+        "import sys, iiwa_torch, iiwa_torch.viz, iiwa_torch.trajectory, iiwa_torch.cli\n"
+        "assert 'matplotlib' not in sys.modules, 'matplotlib imported with iiwa_torch'\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_rendering_leaves_pyplot_alone(arm):
+    had_pyplot = "matplotlib.pyplot" in sys.modules
+    before = sys.modules["matplotlib.pyplot"].get_fignums() if had_pyplot else None
+    viz.render_rgb(arm, Q_VALIDATION, size=(64, 64))
+    if had_pyplot:  # another test imported it: no figure may have been added to its registry
+        assert sys.modules["matplotlib.pyplot"].get_fignums() == before
+    else:
+        assert "matplotlib.pyplot" not in sys.modules
+
+
+def test_render_rgb_size_dtype_and_content(arm):
+    img = viz.render_rgb(arm, Q_VALIDATION, size=(320, 240))
+    assert img.shape == (240, 320, 3) and img.dtype == np.uint8
+    orange = (img[..., 0] > 200) & (img[..., 1] > 100) & (img[..., 1] < 170) & (img[..., 2] < 60)
+    assert orange.sum() > 200  # the links are drawn (tab:orange)
+    with_goal = viz.render_rgb(arm, Q_VALIDATION, goal=torch.tensor([0.3, -0.4, 0.5], dtype=F64), size=(320, 240))
+    red = (with_goal[..., 0] > 180) & (with_goal[..., 1] < 80) & (with_goal[..., 2] < 80)
+    assert red.sum() > 20 and ((img[..., 0] > 180) & (img[..., 1] < 80) & (img[..., 2] < 80)).sum() < red.sum()
+
+
+def test_draw_chain_overlays_configurations_at_the_fk_points(arm):
+    from matplotlib.figure import Figure
+
+    ax = Figure().add_subplot(projection="3d")
+    qs = torch.stack([Q_VALIDATION, torch.zeros(7, dtype=F64), Q_VALIDATION * 0.5])
+    artists = viz.draw_chain(ax, arm, qs, color="k", alpha=0.5, label="arm")
+    lines = [a for a in artists if a in ax.lines]
+    assert len(lines) == 3  # one polyline per configuration
+    assert [line.get_label() for line in lines][0] == "arm" and lines[1].get_label().startswith("_")
+    for line, q in zip(lines, qs):
+        x, y, z = line.get_data_3d()
+        assert (x[0], y[0], z[0]) == (0.0, 0.0, 0.0)  # the base
+        np.testing.assert_allclose([x[-1], y[-1], z[-1]], arm.fk(q)[:3, 3].numpy(), atol=1e-12)  # the flange
+    # the validation pose's flange, from the seed paper: (0.490, 0, 0.780)
+    np.testing.assert_allclose([a[-1] for a in lines[0].get_data_3d()], [0.49, 0.0, 0.78], atol=1e-12)
+    with_frames = viz.draw_chain(ax, arm, Q_VALIDATION, frames=True)
+    assert len(with_frames) == 3 + 3 * 8  # links, joints, end effector, 3 axes of 8 frames
+
+
+def test_draw_chain_rejects_bad_shapes(arm):
+    from matplotlib.figure import Figure
+
+    ax = Figure().add_subplot(projection="3d")
+    with pytest.raises(ValueError, match=r"\(7,\) or \(k, 7\)"):
+        viz.draw_chain(ax, arm, torch.zeros(2, 3, 7, dtype=F64))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 7\)"):
+        viz.draw_chain(ax, arm, torch.zeros(6, dtype=F64))
+
+
+def test_animate_gif_has_one_frame_per_step(arm, tmp_path):
+    from PIL import Image
+
+    qs = Q_VALIDATION + torch.linspace(0, 0.6, 7, dtype=F64)[:, None]
+    out = viz.animate(arm, qs, tmp_path / "move.gif", fps=10, size=(160, 160))
+    with Image.open(out) as gif:
+        assert gif.n_frames == 7
+        assert gif.size == (160, 160)
+        assert gif.info["duration"] == 100
+    assert out.stat().st_size < 200_000
+
+
+def test_animate_rejects_bad_files_and_rates(arm, tmp_path):
+    qs = torch.zeros(3, 7, dtype=F64)
+    with pytest.raises(ValueError, match=r"\.gif or \.mp4"):
+        viz.animate(arm, qs, tmp_path / "x.avi")
+    with pytest.raises(ValueError, match="fps"):
+        viz.animate(arm, qs, tmp_path / "x.gif", fps=0)
+    if shutil.which("ffmpeg") is None:
+        with pytest.raises(RuntimeError, match="ffmpeg"):
+            viz.animate(arm, qs, tmp_path / "x.mp4")
+    else:
+        assert viz.animate(arm, qs, tmp_path / "x.mp4", size=(96, 96)).stat().st_size > 0
+
+
+def test_save_png(arm, tmp_path):
+    from PIL import Image
+
+    out = viz.save_png(arm, Q_VALIDATION, tmp_path / "arm.png", size=(200, 150), frames=True, title="validation")
+    with Image.open(out) as png:
+        assert png.size == (200, 150)
