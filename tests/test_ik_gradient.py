@@ -97,10 +97,11 @@ def test_position_only_always_succeeds(name, dtype):
 
 @pytest.mark.parametrize("name", ["puma560", "lrmate200ic", "iiwa7"])
 def test_other_arms_full_pose(name):
-    # 6-DOF arms have at most 8 branches and the joint limits cut some: more seeds.
+    # 6-DOF arms have at most 8 branches and the joint limits cut some: they get 32 seeds by
+    # default (measured on 3,000 poses: 96.7 % with 8 seeds on the LR Mate, 99.8 % with 32).
     chain = robots.PRESETS[name]()
     target, _ = reachable(chain, 300, 12)
-    result = solve(chain, target, seeds=32)
+    result = solve(chain, target)
     assert result.success.double().mean() >= 0.99
     assert within_limits(chain, result.q)
 

@@ -352,7 +352,7 @@ def solve(
     rot_weight: float = 1.0,
     pos_tol: float = 1e-4,
     rot_tol: float = 1e-3,
-    seeds: int = 8,
+    seeds: int | None = None,
     iterations: int = 16,
     rest: Tensor | None = None,
     rest_gain: float = 0.0,
@@ -373,7 +373,9 @@ def solve(
         rot_weight: metres per radian of rotation error in the least-squares objective.
         pos_tol, rot_tol: success tolerances, metres and radians (defaults 0.1 mm, 1 mrad).
         seeds: starting configurations per target: ``q0`` if given, then configurations drawn
-            within the limits from ``generator``, nearest in pose to the target first.
+            within the limits from ``generator``, nearest in pose to the target first. Default
+            8 for arms of 7 or more joints, 32 for fewer (a 6-joint arm has at most 8 branches
+            and its limits cut some). A seed costs only if the ones before it failed.
         iterations: LM iterations per seed before a problem that has not converged restarts.
         rest, rest_gain: optional ``(..., n)`` posture and gain (per iteration, 0 to 1): each
             step also moves ``rest_gain * (rest - q)`` inside the Jacobian's null space, so a
@@ -398,6 +400,7 @@ def solve(
     _check_choice(mode, get_args(Mode), "mode")
     for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
         _check_positive(value, name)
+    seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
     for value, name in ((seeds, "seeds"), (iterations, "iterations"), (check_every, "check_every")):
         _check_positive(value, name, integer=True)
     if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
