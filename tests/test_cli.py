@@ -1,0 +1,154 @@
+"""The ``iiwa-torch`` command: JSON outputs against the seed paper, fk -> ik round trips,
+trajectory files, and clear non-zero exits for bad arguments."""
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from iiwa_torch import robots, so3
+from iiwa_torch.cli import main
+
+F64 = torch.float64
+
+
+def _run_json(capsys, *argv):
+    assert main([*argv, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def _fails(capsys, *argv) -> str:
+    with pytest.raises(SystemExit) as exit_info:
+        main(list(argv))
+    assert exit_info.value.code != 0
+    return capsys.readouterr().err
+
+
+def test_fk_validation_pose_matches_the_seed_paper(capsys):
+    out = _run_json(capsys, "fk", "0", "0", "0", "-90", "60", "0", "0", "--flange", "0.090")
+    s3 = math.sqrt(3) / 2
+    expected = [[0, 0, 1, 0.490], [s3, 0.5, 0, 0], [-0.5, s3, 0, 0.780], [0, 0, 0, 1]]
+    torch.testing.assert_close(
+        torch.tensor(out["pose"], dtype=F64), torch.tensor(expected, dtype=F64), rtol=0, atol=1e-12
+    )
+    assert out["xyz_m"] == pytest.approx([0.49, 0.0, 0.78], abs=1e-12)
+    assert out["within_limits"] is True
+    rad = _run_json(
+        capsys, "fk", *(str(v) for v in [0, 0, 0, -math.pi / 2, math.pi / 3, 0, 0]), "--rad", "--flange", "0.09"
+    )
+    torch.testing.assert_close(torch.tensor(rad["pose"]), torch.tensor(out["pose"]), rtol=0, atol=1e-12)
+
+
+def test_fk_prints_a_table_with_xyz_and_rpy(capsys):
+    assert main(["fk", "0", "0", "0", "-90", "60", "0", "0", "--flange", "0.090"]) == 0
+    text = capsys.readouterr().out
+    assert "0.4900 0.0000 0.7800" in text and "rpy (deg)" in text
+
+
+@pytest.mark.parametrize(("robot", "method"), [("iiwa14", "analytic"), ("iiwa14", "gradient"), ("puma560", "analytic")])
+def test_fk_then_ik_returns_the_pose(capsys, robot, method):
+    chain = robots.PRESETS[robot]()
+    q_deg = [20, 35, -15, -70, 25, 40, 10][: chain.n_joints]
+    fk = _run_json(capsys, "fk", *map(str, q_deg), "--robot", robot)
+    flat = [str(v) for row in fk["pose"] for v in row]
+    extra = ["--psi", "0"] if robot == "iiwa14" and method == "analytic" else []
+    ik = _run_json(capsys, "ik", "--pose", *flat, "--robot", robot, "--method", method, *extra)
+    target = torch.tensor(fk["pose"], dtype=F64)
+    valid = [s for s in ik["solutions"] if s["valid"]]
+    assert valid, ik
+    if method == "analytic":
+        assert len(ik["solutions"]) == 8  # every branch is listed
+    for sol in valid:
+        q = torch.tensor(sol["q_rad"], dtype=F64)
+        pos, rot = so3.pose_error(chain.fk(q), target)  # recomputed here, not read from the output
+        assert pos.norm() < 1e-8 and rot.norm() < 1e-8
+    if robot == "puma560":  # the configuration we started from is one of the 8 branches
+        dist = min(max(abs(a - math.radians(b)) for a, b in zip(s["q_rad"], q_deg)) for s in valid)
+        assert dist < 1e-9
+
+
+def test_ik_from_xyz_rpy(capsys):
+    """The validation pose as x y z roll pitch yaw; shoulder and wrist are aligned there
+    (q2 = q6 = 0), so only q1 + q3 and q5 + q7 are determined."""
+    out = _run_json(capsys, "ik", "--pose", "0.49", "0", "0.78", "90", "30", "90", "--flange", "0.090")
+    found = []
+    for sol in out["solutions"]:
+        q1, q2, q3, q4, q5, q6, q7 = sol["q_rad"]
+        found.append(
+            sol["valid"] and max(abs(q2), abs(q6), abs(q1 + q3), abs(q4 + math.pi / 2), abs(q5 + q7 - math.pi / 3))
+        )
+    assert any(f is not False and f < 1e-9 for f in found)
+
+
+def test_traj_joint_space_writes_csv_and_gif(capsys, tmp_path):
+    from PIL import Image
+
+    csv_file, gif = tmp_path / "j.csv", tmp_path / "j.gif"
+    start, end = ["0", "30", "0", "-60", "0", "60", "0"], ["40", "30", "0", "-60", "0", "60", "0"]
+    files = ["--csv", str(csv_file), "--gif", str(gif), "--size", "96"]
+    out = _run_json(capsys, "traj", "--from-q", *start, "--to-q", *end, "--steps", "6", *files)
+    assert out["duration_s"] == pytest.approx(15 / 8 * 40 / 85)  # A1 moves 40 deg at 85 deg/s
+    with open(csv_file) as f:
+        rows = list(csv.reader(f))
+    assert len(rows) == 7 and rows[0][0] == "t_s" and float(rows[-1][2]) == pytest.approx(math.radians(30))
+    assert float(rows[-1][1]) == pytest.approx(math.radians(40), abs=1e-9)
+    with Image.open(gif) as im:
+        assert im.n_frames == 6
+
+
+def test_traj_cartesian_line_is_tracked(capsys, tmp_path):
+    start, goal = ["0", "30", "0", "-80", "0", "70", "0"], ["0.5", "0.3", "0.5", "180", "0", "180"]
+    out = _run_json(
+        capsys, "traj", "--from-q", *start, "--to-pose", *goal, "--steps", "15", "--csv", str(tmp_path / "c.csv")
+    )
+    assert out["all_success"] and out["max_pos_err_m"] < 1e-9 and out["max_joint_step_rad"] < 0.2
+    end = robots.iiwa14().fk(torch.tensor(out["q_rad"][-1], dtype=F64))
+    assert end[:3, 3].tolist() == pytest.approx([0.5, 0.3, 0.5], abs=1e-9)
+
+
+def test_robots_list_and_table(capsys):
+    names = [r["name"] for r in _run_json(capsys, "robots")]
+    assert names == list(robots.PRESETS)
+    table = _run_json(capsys, "robots", "iiwa14")
+    assert table["dh_rows_a_alpha_d_offset"][0] == pytest.approx([0, -math.pi / 2, 0.36, 0])
+    assert table["velocity_limits_rad_s"][3] == pytest.approx(math.radians(75))
+    assert main(["robots", "puma560"]) == 0 and "puma560" in capsys.readouterr().out
+
+
+def test_demo_runs(capsys, tmp_path):
+    assert main(["demo", "--batch", "64", "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "0.4900 0.0000 0.7800" in text and str(tmp_path / "tracked_line.gif") in text
+    assert (tmp_path / "tracked_line.gif").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["fk", "1", "2", "3"], "needs 7 joint angles for iiwa14, got 3"),
+        (["fk", "0", "0", "0", "0", "0", "x", "0"], "invalid float value"),
+        (["fk", "0", "0", "0", "0", "0", "0", "0", "--robot", "ur5"], "invalid choice"),
+        (["fk", "0", "0", "0", "0", "0", "0", "--robot", "puma560", "--flange", "0.1"], "iiwa presets only"),
+        (["ik", "--pose", "1", "2", "3"], "6 numbers"),
+        (["ik", "--pose", *["1"] * 16], "not a homogeneous transform"),
+        (["ik", "--pose", "1", "0", "0", "0", "0", "0", "--robot", "planar3r"], "use gradient"),
+        (["traj", "--from-q", *["0"] * 7], "exactly one of"),
+        (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--steps", "1"], "at least 2"),
+        (["robots", "abb"], "unknown robot"),
+        (["frobnicate"], "invalid choice"),
+    ],
+)
+def test_bad_arguments_exit_non_zero_with_a_message(capsys, argv, message):
+    assert message in _fails(capsys, *argv)
+
+
+def test_console_script_exits_non_zero():
+    exe = Path(sys.executable).with_name("iiwa-torch")  # installed beside the interpreter
+    assert exe.exists(), "the iiwa-torch console script is not installed"
+    proc = subprocess.run([str(exe), "fk", "1", "2"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "needs 7 joint angles" in proc.stderr
