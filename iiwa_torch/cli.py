@@ -138,7 +138,9 @@ def _fk(args: argparse.Namespace) -> int:
     if args.plot:
         from . import viz
 
-        viz.save_png(chain, q, args.plot, frames=True, title=f"{chain.name}  q = {_q_text(q)} deg")
+        xyz = ", ".join(f"{v:.3f}" for v in pose[:3, 3].tolist())
+        title = f"{chain.name}, q = ({_q_text(q)}) deg\nend effector at ({xyz}) m"
+        viz.save_png(chain, q, args.plot, frames=True, title=title)
     if args.json:
         _json({"robot": chain.name, "q_rad": q.tolist(), "within_limits": inside, **_pose_summary(pose)})
     else:

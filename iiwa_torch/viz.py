@@ -101,15 +101,25 @@ def _scene(chain: DHChain, size: tuple[int, int], dpi: int, elev: float, azim: f
     fig.subplots_adjust(left=0, right=1, bottom=0, top=1)
     r = _reach(chain)
     centre = chain.base[:3, 3].cpu().numpy()
-    ax.set_xlim(centre[0] - 0.7 * r, centre[0] + 0.7 * r)
-    ax.set_ylim(centre[1] - 0.7 * r, centre[1] + 0.7 * r)
-    ax.set_zlim(centre[2] - 0.2 * r, centre[2] + 1.2 * r)
-    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlim(centre[0] - 0.6 * r, centre[0] + 0.6 * r)
+    ax.set_ylim(centre[1] - 0.6 * r, centre[1] + 0.6 * r)
+    ax.set_zlim(centre[2] - 0.1 * r, centre[2] + 1.1 * r)
+    ax.set_box_aspect((1, 1, 1), zoom=0.9)
     ax.view_init(elev=elev, azim=azim)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_zlabel("z (m)")
+    small = max(5, round(7 * min(size) / 400))
+    for name, axis in (("x", ax.xaxis), ("y", ax.yaxis), ("z", ax.zaxis)):
+        axis.set_label_text(f"{name} (m)", fontsize=small)
+        axis.set_tick_params(labelsize=small - 1, pad=0)
+        axis.set_major_locator(_locator())
+    base = chain.base[:3, 3].cpu().numpy()
+    ax.scatter(*base[:, None], color="0.2", marker="s", s=60, depthshade=False)  # the base
     return fig, canvas, ax
+
+
+def _locator():
+    from matplotlib.ticker import MaxNLocator
+
+    return MaxNLocator(5)
 
 
 def _goal_xyz(goal) -> np.ndarray:
@@ -127,12 +137,12 @@ def _draw_extras(ax, goal, path, title):
     if path is not None:
         p = np.asarray(torch.as_tensor(path, dtype=torch.float64).cpu())
         p = p[..., :3, 3] if p.shape[-2:] == (4, 4) else p
-        artists += ax.plot(p[:, 0], p[:, 1], p[:, 2], "--", color="tab:purple", lw=1.5)
+        artists += ax.plot(p[:, 0], p[:, 1], p[:, 2], "--", color="tab:purple", lw=2)
     if goal is not None:
         g = _goal_xyz(goal)
         artists.append(ax.scatter(g[:, 0], g[:, 1], g[:, 2], color="tab:red", marker="*", s=160, depthshade=False))
     if title:
-        artists.append(ax.text2D(0.03, 0.95, title, transform=ax.transAxes, fontsize=9))
+        artists.append(ax.text2D(0.02, 0.99, title, transform=ax.transAxes, fontsize=9, va="top"))
     return artists
 
 
@@ -216,8 +226,8 @@ def animate(
     images = []
     for t in range(q.shape[0]):
         drawn = draw_chain(ax, chain, q[t], frames=frames, color="tab:orange")
-        drawn += ax.plot(trace[: t + 1, 0], trace[: t + 1, 1], trace[: t + 1, 2], color="tab:blue", lw=1.5)
-        drawn.append(ax.text2D(0.03, 0.95, f"step {t + 1}/{q.shape[0]}", transform=ax.transAxes, fontsize=9))
+        drawn += ax.plot(trace[: t + 1, 0], trace[: t + 1, 1], trace[: t + 1, 2], color="tab:blue", lw=2.5)
+        drawn.append(ax.text2D(0.02, 0.99, f"step {t + 1}/{q.shape[0]}", transform=ax.transAxes, fontsize=9, va="top"))
         images.append(_to_rgb(canvas))
         for artist in drawn:
             artist.remove()
@@ -231,9 +241,11 @@ def animate(
 def _write_gif(images: list[np.ndarray], file: Path, fps: int) -> None:
     from PIL import Image
 
-    # One shared palette keeps the file small; frames are not merged (disposal 1 + no optimize).
-    first = Image.fromarray(images[0]).quantize(colors=64, method=Image.Quantize.MEDIANCUT)
-    frames = [first] + [Image.fromarray(im).quantize(palette=first, dither=Image.Dither.NONE) for im in images[1:]]
+    # One palette, from the first and last frames (the trace drawn so far is complete in the
+    # last), keeps the file small; frames are not merged (disposal 1 + no optimize).
+    both = Image.fromarray(np.concatenate([images[0], images[-1]], 0))
+    palette = both.quantize(colors=64, method=Image.Quantize.MEDIANCUT)
+    frames = [Image.fromarray(im).quantize(palette=palette, dither=Image.Dither.NONE) for im in images]
     frames[0].save(
         file, save_all=True, append_images=frames[1:], duration=round(1000 / fps), loop=0, optimize=False, disposal=1
     )
