@@ -73,12 +73,12 @@ def draw_chain(ax, chain: DHChain, q, *, frames: bool = False, color=None, alpha
     q = _as_q(chain, q)
     origins, rotations = _points(chain, q)
     scale = 0.08 * _reach(chain)
-    if color is None:
-        color = ax._get_lines.get_next_color()
     artists = []
     for i, pts in enumerate(origins):
         x, y, z = pts.T
-        artists += ax.plot(x, y, z, "-", color=color, lw=3, alpha=alpha, label=label if i == 0 else None)
+        links = ax.plot(x, y, z, "-", color=color, lw=3, alpha=alpha, label=label if i == 0 else None)
+        color = links[0].get_color()  # None picks the axes' next cycle colour, kept for the rest
+        artists += links
         artists.append(ax.scatter(x[:-1], y[:-1], z[:-1], color="0.25", s=14, alpha=alpha, depthshade=False))
         artists.append(ax.scatter(x[-1:], y[-1:], z[-1:], color=color, marker="s", s=40, alpha=alpha, depthshade=False))
         if frames:

@@ -67,6 +67,16 @@ def test_draw_chain_overlays_configurations_at_the_fk_points(arm):
     assert len(with_frames) == 3 + 3 * 8  # links, joints, end effector, 3 axes of 8 frames
 
 
+def test_draw_chain_default_colour_follows_the_cycle(arm):
+    from matplotlib.figure import Figure
+
+    ax = Figure().add_subplot(projection="3d")
+    first = viz.draw_chain(ax, arm, torch.zeros(2, 7, dtype=F64))
+    second = viz.draw_chain(ax, arm, Q_VALIDATION)
+    assert first[0].get_color() == first[3].get_color()  # both configurations of one call
+    assert second[0].get_color() != first[0].get_color()  # the next call: the next colour
+
+
 def test_draw_chain_rejects_bad_shapes(arm):
     from matplotlib.figure import Figure
 
