@@ -117,6 +117,11 @@ def jtraj(q0: Tensor, q1: Tensor, t, qd0: Tensor | None = None, qd1: Tensor | No
     for name, value in (("q0", q0), ("q1", q1), ("qd0", qd0), ("qd1", qd1)):
         if value is not None and not (isinstance(value, Tensor) and value.is_floating_point() and value.ndim >= 1):
             raise TypeError(f"{name} must be a float tensor of shape (..., n), got {value!r:.60}")
+    given = [x for x in (q0, q1, qd0, qd1) if x is not None]
+    try:
+        torch.broadcast_shapes(*(x.shape for x in given))
+    except RuntimeError:
+        raise ValueError(f"q0, q1, qd0, qd1 must broadcast together, got {[tuple(x.shape) for x in given]}") from None
     s, duration = _times(t, q0.dtype, q0.device)
     s, duration = s[..., None], duration[..., None]  # (..., T, 1), (..., 1, 1)
     delta = (q1 - q0)[..., None, :]  # (..., 1, n)

@@ -97,6 +97,13 @@ def test_jtraj_rejects_bad_times(t, error, match):
         jtraj(q0, q1, t)
 
 
+def test_jtraj_rejects_mismatched_joints():
+    with pytest.raises(ValueError, match="broadcast together"):
+        jtraj(torch.zeros(7, dtype=F64), torch.zeros(6, dtype=F64), 5)
+    with pytest.raises(TypeError, match="float tensor"):
+        jtraj(torch.zeros(7, dtype=torch.int64), torch.zeros(7, dtype=F64), 5)
+
+
 # ------------------------------------------------------------------ ctraj
 def _poses(arm, seed=0, batch=()):
     q = arm.random_q(*batch, 2, generator=torch.Generator().manual_seed(seed))
