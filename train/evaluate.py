@@ -39,6 +39,8 @@ import yaml
 TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
 METHODS = ("policy", "analytic_ik", "gradient_ik")
 SINGLE_GOALS = 20  # goals timed one at a time for the "single" wall time
+POSE_ENV = "IiwaReachPose-v0"
+ORIENTATION_TOL = 0.1  # rad: the pose env's default orientation threshold
 
 
 # ---------------------------------------------------------------------------- loading
@@ -108,51 +110,45 @@ def _median_time(fn, reps: int) -> float:
     return float(np.median(times))
 
 
-def run_policy(task, goals, model, vec_normalize) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    from train.rollout import GoalSet, policy_actor, rollout
+def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The deterministic policy on every goal (one batched rollout), then ``SINGLE_GOALS`` single-goal rollouts."""
+    from train.rollout import make_goal_set, policy_actor, rollout
 
-    steps = task.max_episode_steps or 50
     act = policy_actor(model, vec_normalize)
-    r = rollout(task, goals, act, steps)
-
-    def one(i: int) -> None:
-        sub = GoalSet(goals.pose[i : i + 1], goals.q_goal[i : i + 1],
-                      type(goals.state)(*(x[i : i + 1] for x in goals.state)))
-        rollout(task, sub, act, steps)
-
-    single = _median_time(one, SINGLE_GOALS)
+    r = rollout(goals, act)
+    one = make_goal_set(goals.env_id, 1, goals.seed, goals.env_kwargs)
+    single = _median_time(lambda i: rollout(one, act), SINGLE_GOALS)
     final = r.distance[-1]
     path = np.linalg.norm(np.diff(r.q, axis=0), axis=-1).sum(0)  # (n,) rad
     steps_hit = _steps_to_reach(r.distance, TOLERANCES["1cm"])
-    metrics = summarise(final, steps_hit, path, _limit_violations(task.robot, r.q), r.seconds / goals.n, single,
-                        goals.n)
-    metrics["touched_a_limit"] = float(np.mean(
-        ((np.abs(r.q - task.lower.double().numpy()) < 1e-6) | (np.abs(r.q - task.upper.double().numpy()) < 1e-6))
-        .any(axis=(0, 2))))
-    if task.goal_kind.value == "pose":
+    metrics = summarise(final, steps_hit, path, _limit_violations(chain, r.q), r.seconds / goals.n, single, goals.n)
+    lo, hi = chain.limits.numpy()
+    metrics["touched_a_limit"] = float(np.mean(((r.q - lo < 1e-4) | (hi - r.q < 1e-4)).any(axis=(0, 2))))
+    if goals.env_id == POSE_ENV:
         metrics["median_angle_rad"] = float(np.median(r.angle[-1]))
-        metrics["success_pose"] = float(np.mean((final < task.distance_threshold)
-                                                & (r.angle[-1] < task.orientation_threshold)))
-    return metrics, {"final_error": final, "path": path, "curve": np.median(r.distance, axis=1)}
+        tol = goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL)
+        ok = (final < TOLERANCES["1cm"]) & (r.angle[-1] < tol)
+        metrics["success_pose"] = float(np.mean(ok))
+    return metrics, {"final_error": final, "path": path, "home": r.q[0, 0]}
 
 
-def run_ik(name: str, task, goals) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """One IK method on every goal: batched once, then ``SINGLE_GOALS`` goals one by one."""
+def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """One IK method on every goal from ``home``: batched once, then ``SINGLE_GOALS`` goals one by one."""
     import torch
 
-    robot, home = task.robot, task.home.double()
-    position_only = task.goal_kind.value == "position"
+    home = torch.as_tensor(home, dtype=torch.float64)
+    position_only = goals.env_id != POSE_ENV
     if name == "analytic_ik":
         from iiwa_torch.ik.analytic import iiwa_solve
 
         def solve(pose):
-            return iiwa_solve(robot, pose, home.expand(pose.shape[0], -1))
+            return iiwa_solve(chain, pose, home.expand(pose.shape[0], -1))
     else:
         from iiwa_torch.ik import solve as gradient_solve
 
         def solve(pose):
             target = pose[:, :3, 3] if position_only else pose
-            return gradient_solve(robot, target, home.expand(pose.shape[0], -1), mode="position" if position_only
+            return gradient_solve(chain, target, home.expand(pose.shape[0], -1), mode="position" if position_only
                                   else "pose", generator=torch.Generator().manual_seed(0))
 
     start = time.perf_counter()
@@ -160,13 +156,14 @@ def run_ik(name: str, task, goals) -> tuple[dict[str, Any], dict[str, np.ndarray
     batched = (time.perf_counter() - start) / goals.n
     single = _median_time(lambda i: solve(goals.pose[i : i + 1]), SINGLE_GOALS)
     q = result.q.double()
-    pose = robot.fk(q)
+    pose = chain.fk(q)
     final = (pose[:, :3, 3] - goals.pose[:, :3, 3]).norm(dim=-1).numpy()
     delta = (q - home).numpy()
     path = np.linalg.norm(delta, axis=-1)
-    steps = np.ceil(np.max(np.abs(delta) / task.max_step.double().numpy(), axis=-1))  # full-speed straight move
+    max_step = chain.velocity_limits.double().numpy() * dt  # rad per env step at full speed
+    steps = np.ceil(np.max(np.abs(delta) / max_step, axis=-1))  # a straight full-speed joint move
     steps[final >= TOLERANCES["1cm"]] = np.nan
-    metrics = summarise(final, steps, path, _limit_violations(robot, q), batched, single, goals.n)
+    metrics = summarise(final, steps, path, _limit_violations(chain, q), batched, single, goals.n)
     metrics["solver_success"] = float(result.success.double().mean())
     if not position_only:
         from iiwa_torch.so3 import pose_error
@@ -174,7 +171,7 @@ def run_ik(name: str, task, goals) -> tuple[dict[str, Any], dict[str, np.ndarray
         _, rot = pose_error(pose, goals.pose)
         angle = rot.norm(dim=-1).numpy()
         metrics["median_angle_rad"] = float(np.median(angle))
-        ok = (final < task.distance_threshold) & (angle < task.orientation_threshold)
+        ok = (final < TOLERANCES["1cm"]) & (angle < goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL))
         metrics["success_pose"] = float(np.mean(ok))
     return metrics, {"final_error": final, "path": path}
 
@@ -328,17 +325,19 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     from train.rollout import make_goal_set
     from train.train import machine_info
 
+    torch.set_num_threads(1)
     model, vec_normalize, config = load_policy(model_dir)
     env_id = config["env_id"]
-    task = IiwaReachVecEnv(1, env_id, **(config["hyperparams"].get("env_kwargs") or {})).task
-    task_goals = make_goal_set(task, n_goals, seed)
-    torch.set_num_threads(1)
+    env_kwargs = config["hyperparams"].get("env_kwargs") or {}
+    task = IiwaReachVecEnv(1, env_id, **env_kwargs).task
+    chain, dt = task.robot, task.dt
+    goals = make_goal_set(env_id, n_goals, seed, env_kwargs)
 
     metrics, data = {}, {}
-    metrics["policy"], data["policy"] = run_policy(task, task_goals, model, vec_normalize)
+    metrics["policy"], data["policy"] = run_policy(goals, model, vec_normalize, chain)
     for name in ("analytic_ik", "gradient_ik"):
         try:
-            metrics[name], data[name] = run_ik(name, task, task_goals)
+            metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt)
         except ImportError as err:  # a solver not installed in this checkout: say so, keep the rest
             metrics[name] = {"error": f"unavailable: {err}"}
     evaluations = []
@@ -356,6 +355,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         "goals": n_goals,
         "seed": seed,
         "episode_steps": task.max_episode_steps,
+        "dt": dt,
         "tolerances_m": TOLERANCES,
         "methods": metrics,
         "verdict": verdict(metrics),

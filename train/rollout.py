@@ -1,50 +1,73 @@
-"""Fixed, seeded goal sets and batched closed-loop rollouts on the pure reaching task.
+"""Fixed, seeded goal sets and closed-loop rollouts, through the public SB3 VecEnv only.
 
-The training's periodic evaluation and ``train.evaluate`` both use these: a goal set is
-the FK of configurations drawn uniformly within the joint limits from a seeded
-``torch.Generator`` (the env's own goal distribution, from a separate random stream, so
-the goals are held out from training), every arm starting at the task's ``home``
-posture. A rollout runs the task's pure ``step`` for a fixed number of steps without
-early termination or auto-reset, so the final distance says whether the controller
-reaches the goal *and stays there*.
+The training's periodic evaluation and ``train.evaluate`` both use these. A goal set is
+the first episode of ``n`` environments of ``envs.sb3.IiwaReachVecEnv`` seeded
+``base + i``, with ``base = 2**40 + seed * 2**20``: training seeds its environments with
+small integers, so these goals are held out from training. Every arm starts at home.
+
+A rollout runs the policy for the env's ``max_episode_steps`` with
+``terminate_on_success=False``: no early stop, so the final distance says whether the
+controller reached the goal *and stayed there*. Joint angles are read back from the
+observation's documented ``cos q``, ``sin q`` entries.
+
+For the IK solvers a goal set also carries full goal poses: for position goals, the
+orientation comes from ``IiwaReachPose-v0`` with the same seeds (the same configuration
+is drawn for the goal; this is checked position by position).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
 
-from envs.core import ReachState, ReachTask, StartKind, keys_from_seeds
+__all__ = ["GoalSet", "Rollout", "make_goal_set", "rollout", "policy_actor", "held_out_seed"]
 
-__all__ = ["GoalSet", "Rollout", "make_goal_set", "rollout", "policy_actor"]
+POSE_ENV = "IiwaReachPose-v0"
+
+
+def held_out_seed(seed: int) -> int:
+    """First environment seed of goal set ``seed`` (far from the small seeds training uses)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**20:
+        raise ValueError(f"seed must be an int in [0, 2**20), got {seed!r}")
+    return 2**40 + seed * 2**20
+
+
+def _env(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None):
+    from envs.sb3 import IiwaReachVecEnv
+
+    options = {**(env_kwargs or {}), "terminate_on_success": False, "start": "home"}
+    return IiwaReachVecEnv(n, env_id, seed=held_out_seed(seed), **options)
 
 
 @dataclass(frozen=True)
 class GoalSet:
-    """``n`` goals: ``pose (n, 4, 4)`` float64 (the FK of ``q_goal``), ``q_goal (n, nj)``, and the
-    task's start ``state`` whose ``goal`` rows are these goals."""
+    """``n`` goals of ``env_id``: ``desired_goal (n, g)`` float32 as the env observes them and
+    ``pose (n, 4, 4)`` float64 goal poses (for the IK solvers), start ``q_home (nj,)``."""
 
-    pose: torch.Tensor
-    q_goal: torch.Tensor
-    state: ReachState
+    env_id: str
+    seed: int
+    env_kwargs: dict[str, Any] = field(repr=False)
+    desired_goal: np.ndarray = field(repr=False)
+    pose: torch.Tensor = field(repr=False)
 
     @property
     def n(self) -> int:
-        return self.pose.shape[0]
+        return self.desired_goal.shape[0]
 
 
 @dataclass(frozen=True)
 class Rollout:
-    """A batched rollout of ``T`` steps over ``n`` goals (numpy, float64).
+    """A closed-loop rollout of ``T`` steps over ``n`` goals (numpy float64).
 
-    distance: ``(T + 1, n)`` position error (m) before each step and after the last one.
-    angle: ``(T + 1, n)`` orientation error (rad; zero for position goals).
+    distance: ``(T + 1, n)`` position error (m) at reset and after each step.
+    angle: ``(T + 1, n)`` orientation error (rad; zeros for position goals and at reset).
     q: ``(T + 1, n, nj)`` joint angles (rad) along the way.
-    seconds: wall time of the whole rollout (policy and task), s.
+    seconds: wall time of the whole rollout (policy and env), s.
     """
 
     distance: np.ndarray
@@ -53,53 +76,86 @@ class Rollout:
     seconds: float
 
 
-def make_goal_set(task: ReachTask, n: int, seed: int) -> GoalSet:
-    """``n`` seeded goals for ``task`` (reachable by construction), all starting at ``task.home``."""
+def _pose_from_goal(goal: np.ndarray) -> torch.Tensor:
+    """Pose goals ``(n, 9)`` (position, first two rotation columns) -> ``(n, 4, 4)`` float64."""
+    g = torch.as_tensor(goal, dtype=torch.float64)
+    x, y = g[:, 3:6], g[:, 6:9]
+    x = x / x.norm(dim=-1, keepdim=True)  # float32 round-off: re-orthonormalise
+    y = y - (x * y).sum(-1, keepdim=True) * x
+    y = y / y.norm(dim=-1, keepdim=True)
+    pose = torch.eye(4, dtype=torch.float64).repeat(g.shape[0], 1, 1)
+    pose[:, :3, 0], pose[:, :3, 1], pose[:, :3, 2], pose[:, :3, 3] = x, y, torch.linalg.cross(x, y), g[:, :3]
+    return pose
+
+
+def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None = None) -> GoalSet:
+    """``n`` held-out goals of ``env_id`` (one of ``envs.ENV_IDS``) for goal-set ``seed``."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive int, got {n!r}")
-    gen = torch.Generator().manual_seed(int(seed))
-    robot = task.robot
-    q_goal = robot.random_q(n, generator=gen, dtype=torch.float64).to(task.device)  # (n, nj)
-    pose = robot.fk(q_goal)  # (n, 4, 4) float64
-    if task.start_kind is not StartKind.HOME:
-        raise ValueError("goal sets start at the task's home posture: build the task with start='home'")
-    start = task.initial_state(keys_from_seeds(range(n), task.device))
-    return GoalSet(pose=pose, q_goal=q_goal, state=start._replace(goal=task.goal_of(pose).to(task.dtype)))
+    env_kwargs = dict(env_kwargs or {})
+    desired = _env(env_id, n, seed, env_kwargs).reset()["desired_goal"]
+    pose_goal = desired if env_id == POSE_ENV else _env(POSE_ENV, n, seed, env_kwargs).reset()["desired_goal"]
+    if not np.allclose(pose_goal[:, :3], desired[:, :3], atol=1e-6):
+        raise RuntimeError(f"{POSE_ENV} and {env_id} draw different goals for the same seeds: no goal poses")
+    return GoalSet(env_id, seed, env_kwargs, desired, _pose_from_goal(pose_goal))
 
 
 Actor = Callable[[dict[str, np.ndarray]], np.ndarray]
 
 
-def rollout(task: ReachTask, goals: GoalSet, act: Actor, steps: int) -> Rollout:
-    """Run ``act`` (observation dict of ``(n, ...)`` float32 arrays -> ``(n, nj)`` actions) for ``steps`` steps."""
-    state = goals.state
-    dists, angles, qs = [], [], []
+def rollout(goals: GoalSet, act: Actor) -> Rollout:
+    """Run ``act`` (observation dict of ``(n, ...)`` arrays -> ``(n, nj)`` actions) on every goal."""
+    env = _env(goals.env_id, goals.n, goals.seed, goals.env_kwargs)
+    steps = env.task.max_episode_steps
+    nj = env.action_space.shape[0]
 
-    def record(s: ReachState) -> None:
-        dist, angle, _ = task.errors(s.achieved.float(), s.goal.float())
-        dists.append(dist)
-        angles.append(torch.zeros_like(dist) if angle is None else angle)  # None for position goals
-        qs.append(s.q)
+    def joints(observation: np.ndarray) -> np.ndarray:  # observation starts with cos q, sin q
+        return np.arctan2(observation[..., nj : 2 * nj], observation[..., :nj])
 
     start = time.perf_counter()
-    record(state)
-    for _ in range(steps):
-        obs = task.split(task.observe(state).cpu().numpy())
-        action = task.check_action(act(obs), goals.n)
-        state, _ = task.step(state, action)
-        record(state)
+    obs = env.reset()
+    if not np.array_equal(obs["desired_goal"], goals.desired_goal):
+        raise RuntimeError("the env no longer draws this goal set's goals for its seeds")
+    dist = [np.linalg.norm(obs["achieved_goal"][:, :3] - obs["desired_goal"][:, :3], axis=-1)]
+    angle = [np.zeros(goals.n)]
+    q = [joints(obs["observation"])]
+    for t in range(steps):
+        obs, _, done, infos = env.step(act(obs))
+        dist.append(np.array([i["distance"] for i in infos]))
+        angle.append(np.array([i.get("orientation_error", 0.0) for i in infos]))
+        last = np.stack([i["terminal_observation"]["observation"] for i in infos]) if t == steps - 1 \
+            else obs["observation"]
+        q.append(joints(last))
     seconds = time.perf_counter() - start
-    as_np = lambda xs: torch.stack(xs).double().cpu().numpy()
-    return Rollout(distance=as_np(dists), angle=as_np(angles), q=as_np(qs), seconds=seconds)
+    if not all(i.get("TimeLimit.truncated", False) for i in infos):
+        raise RuntimeError(f"expected every episode to end by time limit after {steps} steps")
+    return Rollout(np.array(dist, dtype=np.float64), np.array(angle, dtype=np.float64),
+                   np.array(q, dtype=np.float64), seconds)
 
 
 def policy_actor(model, vec_normalize=None) -> Actor:
-    """A deterministic SB3 policy as an actor; ``vec_normalize``: the training's ``VecNormalize`` (or None)."""
+    """A deterministic SB3 policy as an actor: one network call per step for the whole batch.
+
+    ``vec_normalize``: the training's ``VecNormalize`` (or None); its observation statistics
+    are applied in torch exactly as ``VecNormalize.normalize_obs`` does. The actions are
+    those of ``model.predict(obs, deterministic=True)`` before its clipping to the action
+    box (the env clips them to ``[-1, 1]``).
+    """
+    policy = model.policy
+    policy.set_training_mode(False)
+    stats = {}
+    if vec_normalize is not None and vec_normalize.norm_obs:
+        for key in vec_normalize.norm_obs_keys:
+            rms = vec_normalize.obs_rms[key]
+            std = np.sqrt(rms.var + vec_normalize.epsilon)
+            stats[key] = (torch.as_tensor(rms.mean, dtype=torch.float32), torch.as_tensor(std, dtype=torch.float32))
+    clip = float(vec_normalize.clip_obs) if vec_normalize is not None else 0.0
 
     def act(obs: dict[str, np.ndarray]) -> np.ndarray:
-        if vec_normalize is not None:
-            obs = vec_normalize.normalize_obs(obs)
-        action, _ = model.predict(obs, deterministic=True)
-        return action
+        x = {key: torch.as_tensor(value, dtype=torch.float32) for key, value in obs.items()}
+        for key, (mean, std) in stats.items():
+            x[key] = ((x[key] - mean) / std).clamp(-clip, clip)
+        with torch.no_grad():
+            return policy._predict(x, deterministic=True).numpy()
 
     return act

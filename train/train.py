@@ -41,7 +41,7 @@ ALGOS = ("ppo", "sac")
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 _TRAINER_KEYS = {
     "n_envs", "n_timesteps", "policy", "normalize", "env_kwargs", "features_extractor_kwargs",
-    "eval_freq", "eval_goals", "checkpoint_freq", "her",
+    "eval_freq", "eval_goals", "checkpoint_freq", "her", "log_distance_bonus",
 }
 _ACTIVATIONS = ("tanh", "relu", "elu")
 EVAL_SEED = 10_000  # goal-set seed of the periodic evaluation; train.evaluate defaults to another
@@ -114,6 +114,8 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
     if hp.get("her") is not None:
         if algo != "sac":
             raise ValueError("her (a replay-buffer option) needs an off-policy algo (sac)")
+        if hp.get("log_distance_bonus") is not None:
+            raise ValueError("log_distance_bonus cannot be combined with her: relabelled rewards would not include it")
         kwargs["replay_buffer_class"] = HerReplayBuffer
         kwargs["replay_buffer_kwargs"] = dict(hp["her"])
     return kwargs
@@ -173,6 +175,19 @@ def make_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any] | N
     return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
 
 
+def build_venv(env_id: str, hp: dict[str, Any], seed: int):
+    """``make_env`` plus ``VecMonitor`` (episode return, length and success in the logs) and, if the
+    hyper-parameters ask, the ``LogDistanceBonus`` reward term (before any normalisation)."""
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from train.wrappers import LogDistanceBonus
+
+    venv = VecMonitor(make_env(env_id, hp["n_envs"], seed, hp.get("env_kwargs")))
+    if hp.get("log_distance_bonus") is not None:
+        venv = LogDistanceBonus(venv, **hp["log_distance_bonus"])
+    return venv
+
+
 def wrap_normalize(venv, hp: dict[str, Any], gamma: float):
     """VecNormalize on the ``observation`` key (goals stay in metres for the goal-delta features)."""
     from stable_baselines3.common.vec_env import VecNormalize
@@ -221,37 +236,59 @@ def _callbacks(run: Path, hp: dict[str, Any], env_id: str, env_kwargs: dict[str,
         """Every ``eval_freq`` env steps: success on a fixed goal set; every ``checkpoint_freq``: a checkpoint."""
 
         def _on_training_start(self) -> None:
-            self.task = None
-            if env_id.startswith("Iiwa"):
+            import envs
+
+            self.goals, self.task = None, None
+            if env_id in envs.ENV_IDS:
                 from envs.sb3 import IiwaReachVecEnv
 
-                task = IiwaReachVecEnv(1, env_id, **env_kwargs).task
-                self.task, self.goals = task, make_goal_set(task, hp["eval_goals"], EVAL_SEED)
+                self.task = IiwaReachVecEnv(1, env_id, **env_kwargs).task
+                self.goals = make_goal_set(env_id, hp["eval_goals"], EVAL_SEED, env_kwargs)
             self.next_eval = (self.num_timesteps // hp["eval_freq"] + 1) * hp["eval_freq"]
             self.next_ckpt = (self.num_timesteps // hp["checkpoint_freq"] + 1) * hp["checkpoint_freq"]
             if not clock["evaluations"]:
                 self._evaluate()
 
+        def _final_distances(self) -> tuple[np.ndarray, float, float, np.ndarray | None]:
+            """Final distances (m), success threshold (m), seconds and final angles (rad; None for position
+            goals): our task on the fixed goal set;
+            another goal env (e.g. panda-gym) by ``eval_goals`` seeded episodes, as it defines them."""
+            vec_normalize = self.model.get_vec_normalize_env()
+            if self.task is not None:
+                r = rollout(self.goals, policy_actor(self.model, vec_normalize))
+                angle = r.angle[-1] if self.task.goal_kind.value == "pose" else None
+                return r.distance[-1], self.task.distance_threshold, r.seconds, angle
+            start = time.perf_counter()
+            env = make_env(env_id, 1, EVAL_SEED, env_kwargs)
+            obs, final = env.reset(), []
+            while len(final) < hp["eval_goals"]:
+                if vec_normalize is not None:
+                    obs = vec_normalize.normalize_obs(obs)
+                action, _ = self.model.predict(obs, deterministic=True)
+                obs, _, done, infos = env.step(action)
+                if done[0]:
+                    last = infos[0]["terminal_observation"]
+                    final.append(float(np.linalg.norm(last["achieved_goal"] - last["desired_goal"])))
+            threshold = float(env.get_attr("unwrapped")[0].task.distance_threshold)  # panda-gym's task attribute
+            env.close()
+            return np.array(final), threshold, time.perf_counter() - start, None
+
         def _evaluate(self) -> None:
-            if self.task is None:
-                return
             wall = clock["elapsed"] + time.perf_counter() - clock["start"]
-            r = rollout(self.task, self.goals, policy_actor(self.model, self.model.get_vec_normalize_env()),
-                        self.task.max_episode_steps or 50)
-            final = r.distance[-1]
+            final, threshold, seconds, angle = self._final_distances()
             entry = {
                 "steps": int(self.num_timesteps),
                 "wall_time": round(wall, 2),
-                "success": float(np.mean(final < self.task.distance_threshold)),
+                "success": float(np.mean(final < threshold)),
                 "median_distance": float(np.median(final)),
                 "p95_distance": float(np.percentile(final, 95)),
-                "eval_seconds": round(r.seconds, 3),
+                "eval_seconds": round(seconds, 3),
                 "loadavg": os.getloadavg()[0],
             }
-            if self.task.goal_kind.value == "pose":
-                entry["median_angle"] = float(np.median(r.angle[-1]))
-                entry["success_pose"] = float(np.mean((final < self.task.distance_threshold)
-                                                      & (r.angle[-1] < self.task.orientation_threshold)))
+            if angle is not None:  # pose goals: success needs the orientation too
+                entry["success_position"] = entry["success"]
+                entry["success"] = float(np.mean((final < threshold) & (angle < self.task.orientation_threshold)))
+                entry["median_angle"] = float(np.median(angle))
             clock["evaluations"].append(entry)
             (run / "evaluations.json").write_text(json.dumps(clock["evaluations"], indent=1))
             for key in ("success", "median_distance", "p95_distance"):
@@ -359,7 +396,7 @@ def train(args: argparse.Namespace) -> Path:
         clock["elapsed"], clock["evaluations"] = state["elapsed"], state["evaluations"]
         steps_done = state["num_timesteps"]
         # new episodes after a resume: do not replay the seeds of the first start
-        venv = make_env(env_id, hp["n_envs"], seed + steps_done, env_kwargs)
+        venv = build_venv(env_id, hp, seed + steps_done)
         if (checkpoint / "vecnormalize.pkl").exists():
             from stable_baselines3.common.vec_env import VecNormalize
 
@@ -371,7 +408,7 @@ def train(args: argparse.Namespace) -> Path:
         print(f"resuming {run} from {checkpoint.name}: {model.num_timesteps} of {total} steps", flush=True)
     else:
         kwargs = algo_kwargs(algo, hp)
-        venv = wrap_normalize(make_env(env_id, hp["n_envs"], seed, env_kwargs), hp, kwargs.get("gamma", 0.99))
+        venv = wrap_normalize(build_venv(env_id, hp, seed), hp, kwargs.get("gamma", 0.99))
         model = algo_class[algo](hp["policy"], venv, seed=seed, device="cpu", verbose=args.verbose,
                                  tensorboard_log=str(run / "tb"), **kwargs)
         if args.resume:
