@@ -202,9 +202,10 @@ def last_frame_target(chain: DHChain, target: Tensor) -> Tensor:
     a, alpha, d, _ = chain.dh[-1].tolist()
     ca, sa = math.cos(alpha), math.sin(alpha)
     last = torch.tensor([[1.0, 0, 0, a], [0, ca, -sa, 0], [0, sa, ca, d], [0, 0, 0, 1]], dtype=torch.float64)
-    flange = (last.to(chain.tool) @ chain.tool).to(target.dtype)
-    base_inv = torch.linalg.inv(chain.base).to(target.dtype)
-    return base_inv @ target @ torch.linalg.inv(flange)
+    flange_inv = torch.linalg.inv(last.to(chain.tool) @ chain.tool).to(target.dtype)
+    if not torch.equal(chain.base, torch.eye(4, dtype=chain.base.dtype, device=chain.base.device)):
+        target = torch.linalg.inv(chain.base).to(target.dtype) @ target
+    return target @ flange_inv
 
 
 # ---------------------------------------------------------------- joint limits

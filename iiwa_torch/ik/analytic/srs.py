@@ -240,8 +240,11 @@ def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
     vx, vz = c2 * a[..., None] - s2 * b[..., None], c[..., None].expand_as(c2)
     theta1 = safe_atan2(sw[..., 1], sw[..., 0])[..., None, None] - safe_atan2(-sig[0] * vz, vx)
 
-    r04_t = zxzx_t(theta3, theta4, sig[2], sig[3])[..., None, :, :] @ zxzx_t(theta1, theta2, sig[0], sig[1])
-    m = rows_times(r04_t, rot)  # columns 0, 2 of R_04^T R
+    # Columns 0, 2 of R_04^T R = R_24^T (R_02^T R): first one product per pose for the 4 arm
+    # branches, then one per elbow branch for its 2 shoulder branches.
+    y = rows_times(zxzx_t(theta1, theta2, sig[0], sig[1]), rot)  # (..., 2 e, 2 s, 3, 2)
+    y = y.movedim(-3, -2).flatten(-2)  # (..., 2 e, 3, 2 s * 2)
+    m = (zxzx_t(theta3, theta4, sig[2], sig[3]) @ y).unflatten(-1, (2, 2)).movedim(-2, -3)  # (..., 2 e, 2 s, 3, 2)
     t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2 elbow, 2 shoulder, 2 wrist)
     # Reorder the branch dims to (..., 2 shoulder, 2 elbow, 2 wrist).
     thetas = [
