@@ -41,16 +41,16 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
 
 
 def _compute_reward(task: ReachTask, achieved_goal, desired_goal):
-    """Batched reward on numpy (or torch) goals ``(..., g)``; numpy in, float32 numpy out."""
+    """Batched reward on goals ``(..., g)`` (numpy, or torch): numpy in, float32 numpy out."""
     if isinstance(achieved_goal, torch.Tensor) and isinstance(desired_goal, torch.Tensor):
-        return task.reward(achieved_goal.float(), desired_goal.float())
+        return task.reward(achieved_goal.float().movedim(-1, 0), desired_goal.float().movedim(-1, 0))
     ag = torch.as_tensor(np.asarray(achieved_goal, dtype=np.float32))
     dg = torch.as_tensor(np.asarray(desired_goal, dtype=np.float32))
     if ag.shape[-1:] != (task.goal_size,) or dg.shape[-1:] != (task.goal_size,):
         raise ValueError(
             f"goals must have shape (..., {task.goal_size}), got {tuple(ag.shape)} and {tuple(dg.shape)}"
         )
-    return task.reward(ag, dg).numpy()
+    return task.reward(ag.movedim(-1, 0), dg.movedim(-1, 0)).numpy()
 
 
 def _info(task: ReachTask, success, distance, angle) -> dict[str, Any]:
@@ -168,7 +168,7 @@ class IiwaReachEnv(gym.Env):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         self._state, res = self.task.step(self._state, self.task.check_action(action, 1))
-        packed = self.task.pack(self._state, res).cpu().numpy()[0]
+        packed = self.task.pack(self._state, res).cpu().numpy()[:, 0]
         d = packed.shape[0] - 6
         obs = self.task.split(packed[:d])
         reward, term, trunc, success, dist, angle = packed[d:].tolist()
@@ -182,7 +182,7 @@ class IiwaReachEnv(gym.Env):
         ``iiwa_torch.viz.animate(env.unwrapped.task.robot, qs, "episode.gif")``)."""
         if self._state is None:
             raise RuntimeError("call reset() first")
-        return self._state.q[0].double().cpu().numpy()
+        return self._state.q[:, 0].double().cpu().numpy()
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
         """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out); ``info`` is unused."""
@@ -197,7 +197,7 @@ class IiwaReachEnv(gym.Env):
             raise RuntimeError("call reset() before render()")
         from iiwa_torch.viz import render_rgb
 
-        image = render_rgb(self.task.robot, self._state.q[0], goal=self._state.goal[0, :3], size=(480, 480))
+        image = render_rgb(self.task.robot, self._state.q[:, 0], goal=self._state.goal[:3, 0], size=(480, 480))
         if self.render_mode == "rgb_array":
             return image
         import matplotlib.pyplot as plt  # "human": show the same picture in a pyplot window
@@ -309,4 +309,5 @@ class IiwaReachVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before render()")
         from iiwa_torch.viz import render_rgb
 
-        return tuple(render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(self._state.q, self._state.goal))
+        state = self._state
+        return tuple(render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(state.q.T, state.goal.T))

@@ -145,4 +145,5 @@ class IiwaReachVecEnv(VecEnv):
             return [None for _ in range(self.num_envs)]
         from iiwa_torch.viz import render_rgb
 
-        return [render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(self._state.q, self._state.goal)]
+        state = self._state
+        return [render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(state.q.T, state.goal.T)]

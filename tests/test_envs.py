@@ -160,7 +160,7 @@ def test_joint_limits_never_exceeded_and_velocity_reflects_clamping():
     lim = np.radians(IIWA14_LIMIT_DEG)
     for _ in range(150):
         vec.step(np.sign(rng.uniform(-1, 1, size=(64, 7))) * 5)  # saturating, often against a limit
-        q = vec._state.q.double().numpy()
+        q = vec._state.q.T.double().numpy()
         assert (np.abs(q) <= lim + 1e-6).all()
     at_limit = np.isclose(np.abs(q), lim, atol=1e-6)
     assert at_limit.any()  # the test did push joints into their limits
@@ -263,7 +263,7 @@ def test_pose_goals_are_reachable():
     target[:, :3, 0], target[:, :3, 1], target[:, :3, 2], target[:, :3, 3] = x, y, torch.linalg.cross(x, y), g[:, :3]
     result = solve(_CHAIN, target, mode="pose")
     assert result.success.all() and _CHAIN.within_limits(result.q, tol=1e-9).all()
-    reached = IiwaReachEnv(goal="pose").task.goal_of(_CHAIN.fk(result.q))
+    reached = IiwaReachEnv(goal="pose").task.goal_of(_CHAIN.fk(result.q)).T
     np.testing.assert_allclose(reached.numpy(), g.numpy(), atol=1e-3)
 
 
@@ -291,8 +291,9 @@ def test_rewards_and_success_against_numpy():
     angle = np.arccos(np.clip((np.einsum("nij,nij->n", rot[0], rot[1]) - 1) / 2, -1, 1))
     np.testing.assert_allclose(pose.compute_reward(pa, pd, None), -(d + 0.1 * angle), atol=2e-4)
     # a batched call equals one call per row, bit for bit (what SB3's checker and HER rely on)
-    one_by_one = np.array([pose.compute_reward(pa[i], pd[i], None) for i in range(50)])
-    np.testing.assert_array_equal(pose.compute_reward(pa, pd, None), one_by_one)
+    for env, a, b in [(pose, pa, pd), (dense, ag, dg)]:
+        one_by_one = np.array([env.compute_reward(a[i], b[i], None) for i in range(50)])
+        np.testing.assert_array_equal(env.compute_reward(a, b, None), one_by_one)
 
 
 def test_pose_success_needs_the_orientation_too():
@@ -303,8 +304,8 @@ def test_pose_success_needs_the_orientation_too():
     turned = np.array([c, s, 0, -s, c, 0], dtype=np.float32)
     c, s = math.cos(0.05), math.sin(0.05)
     slight = np.array([c, s, 0, -s, c, 0], dtype=np.float32)
-    achieved = torch.as_tensor(np.stack([np.r_[p, ident]] * 2))
-    dist, angle, ok = env.task.errors(achieved, torch.as_tensor(np.stack([np.r_[p, turned], np.r_[p, slight]])))
+    achieved = torch.as_tensor(np.stack([np.r_[p, ident]] * 2)).T  # goals components first
+    dist, angle, ok = env.task.errors(achieved, torch.as_tensor(np.stack([np.r_[p, turned], np.r_[p, slight]])).T)
     np.testing.assert_allclose(angle.numpy(), [0.15, 0.05], atol=1e-5)
     assert ok.tolist() == [False, True]
 
