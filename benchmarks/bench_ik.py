@@ -3,7 +3,8 @@
     python benchmarks/bench_ik.py [--quick]
 
 Solvers, all on the same targets (FK of seeded random configurations within the limits):
-- ours: ``iiwa_torch.ik.solve`` (batched LM), float32 and float64, 1 and 2 threads;
+- ours: ``iiwa_torch.ik.solve`` (batched LM), float32, float64 (``precision="auto"``: float32
+  iterations, float64 check; and ``"input"``: float64 iterations), 1 and 2 threads;
 - pytorch_kinematics ``PseudoInverseIK`` (batched torch, float32; the settings the issue
   measured: 10 retries, 50 iterations, ``early_stopping_any_converged``, regularisation 1e-6)
   and its ``PseudoInverseIKWithSVD`` variant, on the chain loaded from our URDF export;
@@ -164,11 +165,14 @@ def main() -> None:
 
     # Ours is timed before and after the peers (the medians pool both), as the load on a
     # shared machine drifts over the minutes the peers take.
-    configs = [(threads, dtype) for threads in (1, 2) for dtype in (torch.float32, torch.float64)]
+    # float64 runs twice: precision="auto" (iterations in float32, answer checked in float64)
+    # and precision="input" (float64 iterations).
+    kinds = [(torch.float32, "auto"), (torch.float64, "auto"), (torch.float64, "input")]
+    configs = [(threads, dtype, precision) for threads in (1, 2) for dtype, precision in kinds]
     samples = {config: [] for config in configs}
-    for threads, dtype in configs:
+    for threads, dtype, precision in configs:
         torch.set_num_threads(threads)
-        ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype])
+        ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
     torch.set_num_threads(1)
     for variant in ("PseudoInverseIK", "PseudoInverseIKWithSVD"):
         report(f"pytorch_kinematics {variant}, float32, 1 thread", pytorch_kinematics(target, variant))
@@ -177,10 +181,12 @@ def main() -> None:
             f"roboticstoolbox ik_LM (C++), {'defaults' if tol is None else f'tol={tol:g}'}",
             roboticstoolbox(target, tol),
         )
-    for threads, dtype in configs:
+    for threads, dtype, precision in configs:
         torch.set_num_threads(threads)
-        row = ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype])
-        report(f"iiwa-torch solve, {str(dtype)[6:]}, {threads} thread{'s' if threads > 1 else ''}", row)
+        row = ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
+        iterated = "float32 iterations" if precision == "auto" and dtype == torch.float64 else "same-dtype iterations"
+        label = f"{str(dtype)[6:]} ({iterated})" if dtype == torch.float64 else "float32"
+        report(f"iiwa-torch solve, {label}, {threads} thread{'s' if threads > 1 else ''}", row)
     torch.set_num_threads(1)
 
     # Success/time trade-off of ours (float32, 1 thread) as seeds and iterations vary.

@@ -8,10 +8,10 @@
 
 How :func:`solve` is fast on a CPU: the inner loop keeps every quantity batch last, as
 ``(rows, batch)`` tensors, so each operation is one elementwise kernel over the whole batch
-(no batched ``4x4`` products, no per-problem LAPACK call: the damped ``6x6`` normal equations
-are solved by a Cholesky factorisation written out over the batch). Problems that converge
-leave the batch every ``check_every`` iterations, and the ones that stall restart from their
-next seed, so the batch shrinks as the solve goes on.
+(no batched ``4x4`` products; for large batches no per-problem LAPACK call either: the
+damped ``6x6`` normal equations are solved by a Cholesky factorisation written out over the
+batch). Problems that converge leave the batch every ``check_every`` iterations, and the ones
+that stall restart from their next seed, so the batch shrinks as the solve goes on.
 """
 
 from __future__ import annotations
@@ -107,8 +107,6 @@ class _Kinematics:
             p = p + (R * self.tool[:3, 3, None, None]).sum(0)
             R = torch.einsum("kcb,kj->jcb", R, self.tool[:3, :3])
         return R, p, P
-
-
 
 
 def _roll(vectors: Tensor, shift: int) -> Tensor:
@@ -368,7 +366,7 @@ def solve(
             (``mode="position"``), metres, in the chain's world frame. The dtype (float32 or
             float64) and device of the solve and of the result follow it.
         q0: optional ``(..., n)`` first seed (broadcast to the targets), e.g. the previous
-            solution when tracking; clamped into the joint limits.
+            solution when tracking; an angle outside its limits is shifted by 2 pi or clamped.
         mode: ``"pose"`` (position and orientation) or ``"position"`` (orientation free).
         rot_weight: metres per radian of rotation error in the least-squares objective.
         pos_tol, rot_tol: success tolerances, metres and radians (defaults 0.1 mm, 1 mrad).
