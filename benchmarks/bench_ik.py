@@ -8,7 +8,7 @@ Solvers, all on the same targets (FK of seeded random configurations within the 
 - pytorch_kinematics ``PseudoInverseIK`` (batched torch, float32; the settings the issue
   measured: 10 retries, 50 iterations, ``early_stopping_any_converged``, regularisation 1e-6)
   and its ``PseudoInverseIKWithSVD`` variant, on the chain loaded from our URDF export;
-- roboticstoolbox ``ETS.ik_LM`` (C++, one call per target) at its defaults and at tol 1e-7,
+- roboticstoolbox ``ETS.ik_LM`` (C++, one call per target) at its defaults, tol 1e-7 and tol 1e-10,
   on an ETS built from the same DH table and limits.
 
 Every answer is scored by the same code: our ``chain.fk`` and ``so3.pose_error`` (after a
