@@ -1,9 +1,10 @@
 """Shared pieces of the closed-form solvers: the result type, guarded trigonometry,
 structure checks, the spherical-joint decomposition and the joint-limit bookkeeping.
 
-Guarded trigonometry: every ``acos`` is written as ``atan2(+-sqrt(1 - c^2), c)`` with
-``c`` clamped to ``[-1, 1]`` and the square root's argument clamped to at least ``_TINY``,
-and every ``atan2(y, x)`` whose arguments may both vanish replaces ``x`` by 1 there. So
+Guarded trigonometry: every ``acos`` is written as ``atan2(+-s, c)`` with ``c`` clamped to
+``[-1, 1]`` and ``s`` the square root of ``1 - c^2`` (or of its factored form for a law of
+cosines, :func:`triangle`) clamped to at least ``_TINY``, and every ``atan2(y, x)`` whose
+arguments may both vanish replaces ``x`` by 1 there. So
 values are finite everywhere (also in unreachable branches and at singularities) and so
 are gradients: an infinite local derivative in a branch a caller masks out would
 otherwise turn into NaN through ``0 * inf`` in the backward pass.
@@ -33,7 +34,7 @@ class AnalyticSolutions:
     Attributes:
         q: ``(..., B, n)`` joint angles (radians) of the ``B`` branches (a view with each
             joint's values contiguous in memory; ``.contiguous()`` it if needed), each joint wrapped
-            into its limits when a turn of 2 pi gets it there (else into ``(-pi, pi]``).
+            into its limits when a turn of 2 pi gets it there (else into ``[-pi, pi]``).
             Always finite; meaningful only where ``reachable``.
         valid: ``(..., B)`` bool, ``reachable & within_limits``.
         reachable: ``(..., B)`` bool, the branch exists geometrically (the target is in reach).

@@ -38,6 +38,7 @@ import torch
 
 from ...dh import DHChain
 from ._common import (
+    _TINY,
     AnalyticSolutions,
     check_chain,
     check_target,
@@ -93,7 +94,7 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
     lateral = d2 + d3
     r = safe_norm2(wx, wy)
     shoulder_ok = r >= abs(lateral) * (1 - tol)
-    along = ((r - abs(lateral)) * (r + abs(lateral))).clamp_min(1e-30).sqrt()  # sqrt(r^2 - D^2)
+    along = ((r - abs(lateral)) * (r + abs(lateral))).clamp_min(_TINY).sqrt()  # sqrt(r^2 - D^2)
     sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device)
     big_x = along[..., None] * sign  # (..., 2)
     theta1 = safe_atan2(wy, wx)[..., None] - torch.atan2(torch.full_like(big_x, -s1 * lateral), big_x)
@@ -109,7 +110,7 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
     theta3 = torch.atan2(s_el, c_el) - gamma
     theta2 = safe_atan2(py, px)[..., None] - safe_atan2(link3 * s_el, a2 + link3 * c_el)
 
-    # Wrist: R_03^T R_06 Rz(-theta6)... = Rz(theta4) Rx(alpha4) Rz(theta5) Rx(alpha5) Rz(theta6).
+    # Wrist: R_03^T (R_05 Rz(theta6)) = Rz(theta4) Rx(alpha4) Rz(theta5) Rx(alpha5) Rz(theta6).
     r03_t = zxzx_t(theta1[..., None].expand_as(theta2), theta2 + theta3, s1, s3)  # (..., 2, 2, 3, 3), alpha2 = 0
     m = rows_times(r03_t, frame5[..., :3, :3])  # columns 0, 2 of R_03^T R
     theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5)  # (..., 2, 2, 2)
