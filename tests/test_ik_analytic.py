@@ -406,6 +406,32 @@ class TestIiwaSolve:
         assert pos.norm(dim=-1).max() < 2e-4 and rot.norm(dim=-1).max() < 2e-3
 
 
+SINGULAR = {  # joint index -> value: wrist or shoulder aligned, arm stretched
+    "iiwa14": [{5: 0.0}, {1: 0.0}, {3: 0.0}, {1: 0.0, 3: 0.0}, {1: 0.0, 3: 0.0, 5: 0.0}],
+    "puma560": [{4: 0.0}, {2: -math.pi / 2 + math.atan2(0.0203, 0.4318)}],
+    "lrmate200ic": [{4: 0.0}],
+}
+
+
+@pytest.mark.parametrize("name", list(SINGULAR))
+def test_singular_configurations_are_finite_and_exact(name):
+    # At singular configurations the branches stay finite, and every reachable one still
+    # reproduces the pose (only the sum/difference of the aligned joints is determined).
+    chain = robots.PRESETS[name]()
+    for pins in SINGULAR[name]:
+        q = chain.random_q(500, generator=_gen(40))
+        for joint, value in pins.items():
+            q[:, joint] = value
+        target = chain.fk(q)
+        if name == "iiwa14":
+            sol = analytic.iiwa(chain, target, analytic.iiwa_arm_angle(chain, q))
+        else:
+            sol = analytic.pieper(chain, target)
+        assert torch.isfinite(sol.q).all() and sol.reachable.any(-1).all(), pins
+        pos, rot = _closure(chain, sol.q, target)
+        assert pos[sol.reachable].max() < TOL and rot[sol.reachable].max() < TOL, pins
+
+
 @pytest.mark.parametrize("name", ["planar3r", "puma560", "lrmate200ic", "iiwa14", "iiwa14-q3"])
 def test_float32_closure(name):
     chain = robots.PRESETS[name.split("-")[0]]()
