@@ -466,14 +466,13 @@ def solve(
                 # answer does not depend on how many seeds ran side by side.
                 key = torch.where(done, (number - seeds).to(work), torch.where(inside, E, math.inf))
                 best_E = _keep_best(best_q, best_E, q, key, problem)
-                running = torch.full_like(best_E, seeds).scatter_reduce_(
-                    0, problem[~done], number[~done].to(work), "amin"
-                )
+                still = torch.where(done, seeds, number).to(work)  # seed numbers still running
+                running = torch.full_like(best_E, seeds).scatter_reduce_(0, problem, still, "amin")
                 finished = (best_E < 0) & (best_E + seeds < running)  # no lower seed still running
-                keep = ~done & ~finished[problem]
-                if not keep.all():
+                keep = (~done & ~finished[problem]).nonzero().squeeze(1)
+                if keep.numel() < problem.numel():
                     problem, number, slot_tgt = problem[keep], number[keep], slot_tgt.take(keep)
-                    state = tuple(s[..., keep] for s in state)
+                    state = tuple(s.index_select(s.ndim - 1, keep) for s in state)
                     slot_rest = None if slot_rest is None else slot_rest[:, keep]
                 if not problem.numel():
                     break
