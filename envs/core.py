@@ -402,7 +402,8 @@ class ReachTask:
         makes them so from the envs' ``(n, nj)`` batches.
         """
         a = torch.clamp(action, -1.0, 1.0)
-        q = torch.clamp(torch.addcmul(state.q, a, self._max_step_c), self._lower_c, self._upper_c)
+        # minimum/maximum: clamp with tensor bounds was measured 2-3x slower
+        q = torch.maximum(torch.minimum(torch.addcmul(state.q, a, self._max_step_c), self._upper_c), self._lower_c)
         # the motion actually made, over the speed limit; this clamp only removes float rounding (1e-6)
         velocity = torch.clamp((q - state.q) / self._max_step_c, -1.0, 1.0)
         achieved = self.goal_of(self.robot.fk(q.T))
