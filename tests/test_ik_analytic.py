@@ -30,9 +30,11 @@ def _closure(chain: DHChain, q: torch.Tensor, target: torch.Tensor) -> tuple[tor
     return pos.norm(dim=-1), rot.norm(dim=-1)
 
 
-def _contains(q_branches: torch.Tensor, q: torch.Tensor, tol: float = 1e-7) -> torch.Tensor:
-    """``(..., B, n), (..., n) -> (...)``: some branch equals ``q`` modulo 2 pi."""
-    return (_wrap(q_branches - q[..., None, :]).abs().amax(-1) < tol).any(-1)
+def _contains(q_branches: torch.Tensor, q: torch.Tensor, tol: float = 1e-7, among=None) -> torch.Tensor:
+    """``(..., B, n), (..., n) -> (...)``: some branch (of those ``among``, a ``(..., B)`` mask)
+    equals ``q`` modulo 2 pi."""
+    hit = _wrap(q_branches - q[..., None, :]).abs().amax(-1) < tol
+    return (hit if among is None else hit & among).any(-1)
 
 
 def _distinct(q_branches: torch.Tensor, tol: float = 1e-6) -> torch.Tensor:
@@ -130,7 +132,8 @@ class TestPieper:
         target = chain.fk(q)
         sol = analytic.pieper(chain, target)
         assert sol.q.shape == (N_POSES, 8, 6)
-        assert _contains(sol.q, q).all()
+        # q is within limits, so its branch must be valid: wrapped into the limits (PUMA q3 < -pi).
+        assert _contains(sol.q, q, among=sol.valid).all()
         pos, rot = _closure(chain, sol.q, target)
         pos, rot = pos[sol.reachable], rot[sol.reachable]
         assert pos.max() < TOL and rot.max() < TOL
@@ -243,7 +246,7 @@ class TestIiwa:
         psi = analytic.iiwa_arm_angle(chain, q)
         sol = analytic.iiwa(chain, target, psi)
         assert sol.q.shape == (N_POSES, 8, 7)
-        assert sol.reachable.all() and _contains(sol.q, q).all()
+        assert sol.reachable.all() and _contains(sol.q, q, among=sol.valid).all()
         pos, rot = _closure(chain, sol.q, target)
         assert pos.max() < TOL and rot.max() < TOL
         # One arm angle is one elbow position: every branch has the arm angle asked for.
