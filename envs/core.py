@@ -4,8 +4,8 @@ Robot, task and env are kept apart:
 
 - the robot is a :class:`~iiwa_torch.dh.DHChain` (kinematics, joint limits, joint speeds);
 - the task, :class:`ReachTask`, is immutable configuration (time step, goal kind, reward,
-  thresholds) with pure batched methods over a :class:`ReachState` (a tuple of
-  ``(num_envs, ...)`` tensors): ``initial_state(keys)``, ``restart(state, idx)``,
+  thresholds) with pure batched methods over a :class:`ReachState` (a tuple of tensors
+  with one column per environment): ``initial_state(keys)``, ``restart(state, idx)``,
   ``step(state, action)`` (the one step) and ``step_autoreset(state, action)`` (the step,
   same-step auto-reset and one transfer to numpy, for the vector envs);
 - the envs (``envs.reach``, ``envs.sb3``) only convert to and from numpy and keep the
@@ -467,7 +467,7 @@ class ReachTask:
 
         One transfer to numpy for the whole batch (plus one for the finished columns). The
         returned observation of a finished environment is the first of its next episode;
-        its last observation is in ``final_obs`` (rows ``final_index``).
+        its last observation is in ``final_obs`` (environments ``final_index``).
         """
         state, res = self.step(state, action)
         out = self.pack(state, res)  # a new tensor of our own, updated in place below
