@@ -226,9 +226,9 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
     for theta, off, lo, hi in zip(thetas, offsets, lows, highs):
         q = theta - off
         q = q - _TWO_PI * torch.round(q * (1 / _TWO_PI))  # [-pi, pi]; 3x faster than remainder
-        if lo < -math.pi:  # a turn up may get it inside
+        if hi > math.pi:  # below the range, a turn up may get it inside
             q = torch.where((q < lo) & (q + _TWO_PI <= hi), q + _TWO_PI, q)
-        if hi >= math.pi:
+        if lo < -math.pi:  # above the range, a turn down may
             q = torch.where((q > hi) & (q - _TWO_PI >= lo), q - _TWO_PI, q)
         qs.append(q)
         inside.append((q >= lo) & (q <= hi))
