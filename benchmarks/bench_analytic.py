@@ -163,6 +163,8 @@ def bench_peers(n_rtb: int, n_grad: int) -> dict:
     seconds = time.perf_counter() - start
     result["sweep_iiwa_poses_per_s"] = n_grad / seconds
     result["sweep_iiwa_success"] = sweep.success.float().mean().item()
+    result["gradient_misses"] = int((~grad.success).sum())
+    result["gradient_misses_solved_by_sweep"] = int((~grad.success & sweep.success).sum())
     result["poses"] = {"rtb": n_rtb, "batched": n_grad}
     for key, value in result.items():
         print(f"{key:<40}{value}")
@@ -245,7 +247,8 @@ def main() -> None:
         + markdown_table(headers, rows)
         + "\nAgainst the peers (same run):\n\n"
         + markdown_table(["comparison", "ours", "peer", "ratio"], ratio)
-        + f"\nSuccess: sweep {peers['sweep_iiwa_success']:.4f}, gradient {peers['gradient_iiwa_success']:.4f}, "
+        + f"\nSuccess: sweep {peers['sweep_iiwa_success']:.4f}, gradient {peers['gradient_iiwa_success']:.4f} "
+        f"({peers['gradient_misses_solved_by_sweep']} of its {peers['gradient_misses']} misses solved by the sweep), "
         f"rtb ikine_LM {peers['rtb_iiwa_ikine_LM_success']:.3f}. "
         f"iiwa_solve on {sweep['poses']:,} reachable poses: success {sweep['success']:.5f}, "
         f"{len(sweep['missed'])} missed; {sweep['grid16_without_valid_branch']} poses have no in-limit branch on a "
