@@ -43,6 +43,7 @@ Method = Literal["gradient", "analytic"]
 Profile = Literal["linear", "quintic"]
 
 _PEAK_SPEED = 15 / 8  # peak of d/ds (10 s^3 - 15 s^4 + 6 s^5), at s = 1/2
+_LOG_STEPS, _ZOOM_STEPS, _ZOOMS = 24, 9, 3  # analytic tracking: arm-angle offsets 1e-6..pi either side, then zooms
 
 
 @dataclass(frozen=True)
@@ -220,11 +221,13 @@ def track(
         poses: ``(..., T, 4, 4)`` end-effector poses (m), e.g. from :func:`ctraj`.
         q0: ``(..., n)`` configuration to start from (rad), normally one that reaches ``poses[..., 0]``.
         method: ``"gradient"``: :func:`iiwa_torch.ik.solve` from the previous solution only (one
-            seed, no random restart, so no jump; ``rest_gain`` pulls the redundant iiwa toward
-            ``q0`` in the null space). ``"analytic"``: the closed form (the iiwa at the arm angle
-            of ``q0`` held along the path, or Pieper's 6R arms), taking the branch nearest to the
-            previous solution; where that is outside the limits, :func:`~iiwa_torch.ik.analytic.iiwa_solve`
-            from the previous solution instead.
+            seed, no random restart elsewhere; ``rest_gain`` pulls the redundant iiwa toward
+            ``q0`` in the null space). ``"analytic"``: the closed forms, taking the solution nearest to
+            the previous one: among Pieper's 8 branches for 6R arms; for the iiwa, among the 8
+            branches at arm angles near the previous one's (a log-spaced search, then zooms; about
+            600 candidates per pose and step, exact to rounding), or, where none of those is within
+            the limits, :func:`~iiwa_torch.ik.analytic.iiwa_solve` over the whole arm-angle circle.
+            Both methods thus take (close to) the smallest joint step at each pose.
         pos_tol, rot_tol: success tolerances at each pose (m, rad).
         rest_gain: null-space gain of the gradient method (0 to 1).
 
@@ -240,7 +243,7 @@ def track(
     if method == "gradient":
         step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain)
     else:
-        step = _analytic_stepper(chain, q0, pos_tol, rot_tol)
+        step = _analytic_stepper(chain, pos_tol, rot_tol)
     q_prev = q0.to(poses.dtype)
     qs = []
     for k in range(poses.shape[-3]):  # sequential by nature: each step starts from the last
@@ -261,43 +264,77 @@ def _gradient_stepper(chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float
 
     def step(pose: Tensor, q_prev: Tensor) -> Tensor:
         result = solve(
-            chain, pose, q_prev, pos_tol=pos_tol, rot_tol=rot_tol, seeds=1, iterations=50,
-            rest=q0.to(pose.dtype), rest_gain=rest_gain,
+            chain,
+            pose,
+            q_prev,
+            pos_tol=pos_tol,
+            rot_tol=rot_tol,
+            seeds=1,
+            iterations=50,
+            rest=q0.to(pose.dtype),
+            rest_gain=rest_gain,
         )
         return result.q
 
     return step
 
 
-def _analytic_stepper(chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float):
+def _nearest(chain: DHChain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Of the candidates ``sol.q (..., B, n)`` (closed-form branches), the one nearest to
+    ``q_prev (..., n)``: valid ones first, then reachable ones (clamped). Returns ``q (..., n)``,
+    its index ``(...)`` and whether it is valid ``(...)``."""
+    dist = (sol.q - q_prev[..., None, :]).square().sum(-1)  # (..., B)
+    key = torch.where(sol.valid, dist, torch.where(sol.reachable, dist + 1e6, torch.full_like(dist, math.inf)))
+    best = key.argmin(-1)
+    q = sol.q.gather(-2, best[..., None, None].expand(*best.shape, 1, chain.n_joints)).squeeze(-2)
+    return chain.clamp(q), best, sol.valid.gather(-1, best[..., None]).squeeze(-1)
+
+
+def _near_arm_angle(chain: DHChain, pose: Tensor, q_prev: Tensor) -> tuple[Tensor, Tensor]:
+    """iiwa: the closed-form solution of ``pose (B, 4, 4)`` nearest to ``q_prev (B, 7)`` over
+    arm angles near the previous one's: offsets from 1e-6 to pi either side on a log scale,
+    then ``_ZOOMS`` finer rounds around the best (0 is in every round, so the pick never gets
+    farther). Near a shoulder or wrist alignment the nearest solution sits in an arm-angle
+    window of about a milliradian, which an even grid misses. Returns ``q``, ``found``."""
     from .ik import analytic
 
-    if chain.n_joints == 7:
-        psi = analytic.iiwa_arm_angle(chain, q0)  # (...), held along the path
+    steps = torch.logspace(-6, math.log10(math.pi), _LOG_STEPS, dtype=pose.dtype, device=pose.device)
+    offsets = torch.cat([-steps.flip(0), torch.zeros_like(steps[:1]), steps]).expand(pose.shape[0], -1)  # (B, K)
+    unit = torch.linspace(-1, 1, _ZOOM_STEPS, dtype=pose.dtype, device=pose.device)
+    ratio = steps[1] / steps[0] - 1  # relative spacing of the log grid
+    centre = analytic.iiwa_arm_angle(chain, q_prev)
+    width = None
+    for _ in range(1 + _ZOOMS):
+        sol = analytic.iiwa(chain, pose, centre[:, None] + offsets)  # q (B, K, 8, 7)
+        flat = type(sol)(*(x.flatten(1, 2) for x in (sol.q, sol.valid, sol.reachable, sol.within_limits)))
+        q, best, found = _nearest(chain, flat, q_prev)
+        chosen = offsets.gather(-1, (best // 8)[:, None])  # (B, 1): 8 branches per arm angle
+        centre = centre + chosen[:, 0]
+        width = ratio * chosen.abs() + 1e-6 if width is None else 2 * width / (_ZOOM_STEPS - 1)
+        offsets = unit * width
+    return q, found
 
-        def candidates(pose: Tensor):
-            return analytic.iiwa(chain, pose, psi)
-    elif chain.n_joints == 6:
 
-        def candidates(pose: Tensor):
-            return analytic.pieper(chain, pose)
-    else:
+def _analytic_stepper(chain: DHChain, pos_tol: float, rot_tol: float):
+    from .ik import analytic
+
+    if chain.n_joints not in (6, 7):
         raise ValueError(
             f"method='analytic' tracks 7-joint iiwa-like arms and 6R spherical-wrist arms; "
             f"{chain.name!r} has {chain.n_joints} joints (use method='gradient')"
         )
 
     def step(pose: Tensor, q_prev: Tensor) -> Tensor:
-        sol = candidates(pose)  # q (..., B, n)
-        dist = (sol.q - q_prev[..., None, :]).square().sum(-1)  # (..., B)
-        # valid branches first, then reachable ones (clamped below), nearest to the last step
-        key = torch.where(sol.valid, dist, torch.where(sol.reachable, dist + 1e6, torch.full_like(dist, math.inf)))
-        best = key.argmin(-1)
-        q = chain.clamp(sol.q.gather(-2, best[..., None, None].expand(*best.shape, 1, chain.n_joints)).squeeze(-2))
-        missed = ~sol.valid.any(-1)
-        if chain.n_joints == 7 and missed.any():  # the held arm angle left the limits: sweep it
-            fallback = analytic.iiwa_solve(chain, pose, q_prev, pos_tol=pos_tol, rot_tol=rot_tol).q
-            q = torch.where(missed[..., None], fallback, q)
-        return q
+        if chain.n_joints == 6:
+            return _nearest(chain, analytic.pieper(chain, pose), q_prev)[0]
+        batch = torch.broadcast_shapes(pose.shape[:-2], q_prev.shape[:-1])
+        target = pose.expand(*batch, 4, 4).reshape(-1, 4, 4)
+        q_ref = q_prev.expand(*batch, 7).reshape(-1, 7)
+        q, found = _near_arm_angle(chain, target, q_ref)
+        if not found.all():  # no arm angle near the last one is within the limits: the whole circle
+            lost = ~found
+            q = q.clone()
+            q[lost] = analytic.iiwa_solve(chain, target[lost], q_ref[lost], pos_tol=pos_tol, rot_tol=rot_tol).q
+        return q.reshape(*batch, 7)
 
     return step

@@ -191,12 +191,22 @@ def test_track_reachable_line_accurate_and_continuous(arm, method):
     torch.testing.assert_close(res.pos_err, pos.norm(dim=-1), rtol=0, atol=1e-15)
 
 
-def test_track_analytic_holds_the_arm_angle(arm):
-    from iiwa_torch.ik.analytic import iiwa_arm_angle
+@pytest.mark.parametrize("method", ["gradient", "analytic"])
+def test_track_through_a_shoulder_alignment_stays_continuous(arm, method):
+    """q2 passes through 0 (joints 1 and 3 aligned) on this line: only q1 + q3 is fixed there,
+    and holding the arm angle would swing q1 and q3 by ~1.4 rad; the smallest step is 0.016 rad."""
+    q0 = torch.tensor([0.341, 0.07, -0.014, -1.315, 0.048, 0.819, 0.405], dtype=F64)
+    res = track(arm, _line(arm, q0, [-0.006, -0.092, -0.082], 30), q0, method=method)
+    assert res.pos_err.max() <= 1e-6 and bool(res.success.all())
+    assert res.max_step < 0.03
+    assert res.q[:, 1].min() < 0 < res.q[:, 1].max()  # it really crosses q2 = 0
 
-    res = track(arm, _line(arm, Q_START, [0.1, 0.0, 0.1], 20), Q_START, method="analytic")
-    psi = iiwa_arm_angle(arm, res.q)
-    torch.testing.assert_close(psi, iiwa_arm_angle(arm, Q_START).expand(20), rtol=0, atol=1e-9)
+
+def test_track_analytic_and_gradient_agree_away_from_singularities(arm):
+    path = _line(arm, Q_START, [0.0, 0.3, -0.2], 40)
+    a, g = (track(arm, path, Q_START, method=m) for m in ("analytic", "gradient"))
+    # both take (close to) the smallest joint step at each pose, so the paths nearly coincide
+    assert (a.q - g.q).abs().max() < 0.02
 
 
 def test_track_batched_paths(arm):
