@@ -375,7 +375,7 @@ def _demo(args: argparse.Namespace) -> int:
     path = trajectory.ctraj(pose0, pose1, 30, profile="quintic")
     track = trajectory.track(chain, path, q0, method="analytic")
     duration = trajectory.sampled_duration(chain, track.q)
-    _say("\n3. a straight line of 0.38 m, tracked by the closed-form IK at a held arm angle")
+    _say("\n3. a straight line of 0.38 m, tracked by the closed-form IK (nearest solution at each step)")
     _table(
         "ik along the line",
         ["steps", "max pos err (m)", "max rot err (rad)", "max joint step (deg)", "shortest duration (s)"],
