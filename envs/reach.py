@@ -240,6 +240,9 @@ class IiwaReachVectorEnv(VectorEnv):
     - ``reset(seed=s)`` seeds environment ``i`` with ``s + i`` (a list of seeds works too):
       the batch then runs exactly like single envs reset with those seeds.
     - ``step`` accepts a numpy array or a torch tensor of shape ``(num_envs, 7)``.
+    - Observations are ``(num_envs, ...)`` float32 views of one array per step, stored one
+      component per memory row (Fortran order), which keeps the batched step fast; each
+      step returns new arrays, so earlier observations stay valid.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": _RENDER_FPS, "autoreset_mode": AutoresetMode.SAME_STEP}

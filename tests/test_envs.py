@@ -170,6 +170,18 @@ def test_joint_limits_never_exceeded_and_velocity_reflects_clamping():
     assert np.abs(vel[at_limit]).max() < 1e-5
 
 
+def test_returned_observations_are_not_overwritten_by_later_steps():
+    vec = IiwaReachVectorEnv(16, max_episode_steps=3)
+    first, _ = vec.reset(seed=0)
+    kept = {k: v.copy() for k, v in first.items()}
+    for _ in range(5):  # through auto-resets
+        vec.step(np.ones((16, 7), dtype=np.float32))
+    for k in kept:
+        np.testing.assert_array_equal(first[k], kept[k])
+    # the observation's tail is the achieved goal, stored once
+    np.testing.assert_array_equal(first["observation"][:, -3:], first["achieved_goal"])
+
+
 def test_bad_actions_raise_clear_errors():
     env = IiwaReachEnv()
     env.reset(seed=0)
