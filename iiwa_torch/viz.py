@@ -104,7 +104,7 @@ def _scene(chain: DHChain, size: tuple[int, int], dpi: int, elev: float, azim: f
     ax.set_xlim(centre[0] - 0.6 * r, centre[0] + 0.6 * r)
     ax.set_ylim(centre[1] - 0.6 * r, centre[1] + 0.6 * r)
     ax.set_zlim(centre[2] - 0.1 * r, centre[2] + 1.1 * r)
-    ax.set_box_aspect((1, 1, 1), zoom=0.9)
+    ax.set_box_aspect((1, 1, 1), zoom=0.85)
     ax.view_init(elev=elev, azim=azim)
     small = max(5, round(7 * min(size) / 400))
     for name, axis in (("x", ax.xaxis), ("y", ax.yaxis), ("z", ax.zaxis)):
