@@ -240,6 +240,13 @@ def track(
     chain.check_q(q0, "q0")
     if poses.ndim < 3:
         raise ValueError(f"poses must have shape (..., T, 4, 4), got {tuple(poses.shape)}")
+    try:
+        torch.broadcast_shapes(poses.shape[:-3], q0.shape[:-1])
+    except RuntimeError:
+        raise ValueError(
+            f"the batch shapes of poses {tuple(poses.shape)} (..., T, 4, 4) and q0 {tuple(q0.shape)} (..., n) "
+            "do not broadcast"
+        ) from None
     if method == "gradient":
         step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain)
     else:

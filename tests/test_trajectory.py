@@ -243,6 +243,8 @@ def test_track_rejects_bad_method_and_shapes(arm):
         track(arm, path, Q_START, method="newton")
     with pytest.raises(ValueError, match=r"\(\.\.\., T, 4, 4\)"):
         track(arm, path[0], Q_START)
+    with pytest.raises(ValueError, match="do not broadcast"):
+        track(arm, path.expand(2, 3, 4, 4), Q_START.expand(3, 7))
     with pytest.raises(ValueError, match="planar3r"):
         track(robots.planar3r(), path, torch.zeros(3, dtype=F64), method="analytic")
 
