@@ -157,8 +157,9 @@ def _evaluate(
     cos = ((R * target.rot).sum((0, 1)) - 1) * 0.5
     sin = torch.addcmul(torch.addcmul(v[0] * v[0], v[1], v[1]), v[2], v[2]).sqrt()
     rot_err = torch.atan2(sin, cos)
-    tiny = torch.finfo(q.dtype).eps
-    e_rot = v * torch.where(sin > tiny, rot_err / sin.clamp_min(tiny), 1.0)  # |e_rot| <= angle, finite
+    # angle / sin: |e_rot| <= angle and finite, also at a half turn (below eps the vector only
+    # shrinks, for angles that small it does not matter)
+    e_rot = v * (rot_err / sin.clamp_min(torch.finfo(q.dtype).eps))
     e = torch.cat([e_pos, e_rot * weight])
     return J, e, pos_err.square() + (weight * rot_err).square(), pos_err, rot_err
 
@@ -222,9 +223,11 @@ def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_m
     free = None
     if limits is not None:  # box constraint: joints at a limit that E pushes outward are frozen
         lo, hi = limits
-        descent = (J * e[:, None]).sum(0)  # J^T e (n, b)
-        free = ~(((q <= lo) & (descent < 0)) | ((q >= hi) & (descent > 0)))
-        free = free.to(q.dtype)
+        descent = (J * e[:, None]).sum(0)  # J^T e (n, b), where E wants each joint to go
+        # 1 where a unit move along the descent, projected into the limits, still moves the
+        # joint, else 0; float arithmetic throughout (boolean ops are several times slower here).
+        moved = torch.minimum(torch.maximum(q + torch.sign(descent), lo), hi) - q
+        free = moved.abs_().sign_()
     if rest is None:
         dq = _damped_solve(J, e[:, None], lam, lam_min, free)[:, 0]
     else:  # pull toward the rest posture inside the (damped) null space of J, while the damping
@@ -235,16 +238,17 @@ def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_m
         dq = sol[:, 0] + pull - sol[:, 1]
     q_new = q + dq if limits is None else torch.minimum(torch.maximum(q + dq, lo), hi)
     J_new, e_new, E_new, pos_new, rot_new = _evaluate(kin, q_new, target, weight)
-    ok = E_new < E
-    kept = ok.to(q.dtype)  # lerp with weight 0 or 1 is exact, and faster than where on big tensors
+    kept = (E_new < E).to(q.dtype)  # lerp with weight 0 or 1 is exact, and ~10x faster than where
     return (
-        torch.where(ok, q_new, q),
+        torch.lerp(q, q_new, kept),
         torch.lerp(J, J_new, kept),
         torch.lerp(e, e_new, kept),
-        torch.where(ok, E_new, E),
-        torch.where(ok, pos_new, pos_err),
-        torch.where(ok, rot_new, rot_err),
-        torch.where(ok, lam * _DAMP_DOWN, lam * _DAMP_UP).clamp_(lam_min, lam_max),
+        torch.lerp(E, E_new, kept),
+        torch.lerp(pos_err, pos_new, kept),
+        torch.lerp(rot_err, rot_new, kept),
+        (lam * torch.lerp(torch.full_like(lam, _DAMP_UP), torch.full_like(lam, _DAMP_DOWN), kept)).clamp_(
+            lam_min, lam_max
+        ),
     )
 
 
