@@ -98,9 +98,9 @@ def _pose(values: list[float], rad: bool, name: str) -> torch.Tensor:
     if len(values) == 16:
         pose = torch.tensor(values, dtype=_F64).reshape(4, 4)
         rot = pose[:3, :3]
-        if not torch.allclose(rot @ rot.T, torch.eye(3, dtype=_F64), atol=1e-6) or not torch.allclose(
-            pose[3], torch.tensor([0.0, 0, 0, 1], dtype=_F64)
-        ):
+        orthonormal = torch.allclose(rot @ rot.T, torch.eye(3, dtype=_F64), atol=1e-6)
+        bottom = torch.allclose(pose[3], torch.tensor([0.0, 0, 0, 1], dtype=_F64))
+        if not (orthonormal and bottom and torch.linalg.det(rot) > 0):
             raise _UsageError(f"{name}: the 16 numbers are not a homogeneous transform with a rotation part")
         return pose
     if len(values) != 6:
@@ -424,7 +424,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("fk", parents=[common], help="joint angles -> end-effector pose")
     p.add_argument("q", nargs="+", type=float, help="joint angles (deg unless --rad)")
     p.add_argument("--plot", metavar="PNG", help="also draw the arm to this PNG file")
-    p.set_defaults(func=_fk)
+    p.set_defaults(func=_fk, parser=p)
 
     p = sub.add_parser("ik", parents=[common], help="pose -> joint angles (all analytic branches, or gradient)")
     p.add_argument(
@@ -438,7 +438,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--method", choices=["analytic", "gradient"], default="analytic")
     p.add_argument("--psi", type=float, default=0.0, help="iiwa arm angle for the analytic solver (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the gradient solver")
-    p.set_defaults(func=_ik)
+    p.set_defaults(func=_ik, parser=p)
 
     p = sub.add_parser("traj", parents=[common], help="trajectory between configurations or poses -> CSV, animation")
     p.add_argument("--from-q", nargs="+", type=float, metavar="Q")
@@ -452,17 +452,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--gif", metavar="FILE", help="write an animation (.gif, or .mp4 with ffmpeg)")
     p.add_argument("--fps", type=int, help="animation frame rate (default: real time)")
     p.add_argument("--size", type=int, default=360, help="animation size in pixels")
-    p.set_defaults(func=_traj)
+    p.set_defaults(func=_traj, parser=p)
 
     p = sub.add_parser("robots", parents=[common], help="list presets, or print one's DH table")
     p.add_argument("name", nargs="?", help="a preset name")
-    p.set_defaults(func=_robots)
+    p.set_defaults(func=_robots, parser=p)
 
     p = sub.add_parser("demo", help="FK at the validation pose, batched FK/IK timing, a tracked line")
     p.add_argument("--out", help="directory for the animation (default: a new temporary directory)")
     p.add_argument("--batch", type=int, default=10_000, help="configurations in the timing (default 10000)")
     p.add_argument("--no-gif", action="store_true", help="skip writing the animation")
-    p.set_defaults(func=_demo)
+    p.set_defaults(func=_demo, parser=p)
     return parser
 
 
@@ -471,9 +471,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (_UsageError, ValueError) as err:
-        sub = parser._subparsers._group_actions[0].choices[args.command]
-        sub.error(str(err))  # exits with status 2
+    except (_UsageError, ValueError) as err:  # the library's ValueErrors name the bad input too
+        args.parser.error(str(err))  # the subcommand's usage and the message; exit status 2
 
 
 if __name__ == "__main__":

@@ -136,6 +136,11 @@ def test_demo_runs(capsys, tmp_path):
         (["fk", "0", "0", "0", "0", "0", "0", "--robot", "puma560", "--flange", "0.1"], "iiwa presets only"),
         (["ik", "--pose", "1", "2", "3"], "6 numbers"),
         (["ik", "--pose", *["1"] * 16], "not a homogeneous transform"),
+        (
+            ["ik", "--pose", "1", "0", "0", "0", "0", "-1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1"],
+            "homogeneous",
+        ),
+        (["fk", "0", "0", "0", "nan", "0", "0", "0"], "NaN or inf"),
         (["ik", "--pose", "1", "0", "0", "0", "0", "0", "--robot", "planar3r"], "use gradient"),
         (["traj", "--from-q", *["0"] * 7], "exactly one of"),
         (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--steps", "1"], "at least 2"),
