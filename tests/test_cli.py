@@ -111,6 +111,13 @@ def test_traj_cartesian_line_is_tracked(capsys, tmp_path):
     assert end[:3, 3].tolist() == pytest.approx([0.5, 0.3, 0.5], abs=1e-9)
 
 
+def test_traj_between_poses_solves_the_start_first(capsys):
+    start, goal = ["0.5", "0.0", "0.5", "180", "0", "180"], ["0.5", "0.2", "0.5", "180", "0", "180"]
+    out = _run_json(capsys, "traj", "--from-pose", *start, "--to-pose", *goal, "--steps", "5", "--method", "gradient")
+    ends = robots.iiwa14().fk(torch.tensor(out["q_rad"], dtype=F64)[[0, -1]])[:, :3, 3]
+    assert ends.tolist() == [pytest.approx([0.5, 0.0, 0.5], abs=1e-6), pytest.approx([0.5, 0.2, 0.5], abs=1e-6)]
+
+
 def test_robots_list_and_table(capsys):
     names = [r["name"] for r in _run_json(capsys, "robots")]
     assert names == list(robots.PRESETS)
