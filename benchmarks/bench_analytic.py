@@ -97,12 +97,17 @@ def runs(fn, repeats: int) -> list[float]:
 
 def bench_closed_forms(n: int, repeats: int) -> list[dict]:
     """Each closed form on ``n`` poses: median and best of ``repeats`` calls (the machine is
-    shared: the best is what the code does when it gets the cores), then FK closure."""
+    shared: the best is what the code does when it gets the cores), on all torch threads
+    and on one, then FK closure."""
     rows = []
+    threads = torch.get_num_threads()
     for dtype in (torch.float32, torch.float64):
         for name, chain, target, fn in cases(n, dtype):
             times = runs(lambda fn=fn, target=target: fn(target), repeats)
             seconds, best = statistics.median(times), min(times)
+            torch.set_num_threads(1)
+            best_1 = min(runs(lambda fn=fn, target=target: fn(target), repeats))
+            torch.set_num_threads(threads)
             sol = fn(target)
             branches = sol.reachable.numel()
             pos, rot, count = closure(chain, sol.q, target, sol.reachable)
@@ -116,6 +121,7 @@ def bench_closed_forms(n: int, repeats: int) -> list[dict]:
                     "seconds_best": best,
                     "branches_per_s": branches / seconds,
                     "branches_per_s_best": branches / best,
+                    "branches_per_s_best_1_thread": branches / best_1,
                     "reachable_fraction": count / branches,
                     "valid_fraction": sol.valid.float().mean().item(),
                     "closure_max_pos_m": pos,
@@ -241,12 +247,12 @@ def main() -> None:
 
     headers = [
         "solver", "dtype", "branches", "s per call (median)", "M branches/s (median)", "M branches/s (best)",
-        "reachable", "valid", "closure m / rad",
+        "M branches/s (best, 1 thread)", "reachable", "valid", "closure m / rad",
     ]
     rows = [
         [
             r["solver"], r["dtype"], f"{r['branches']:,}", f"{r['seconds']:.3f}", f"{r['branches_per_s'] / 1e6:.2f}",
-            f"{r['branches_per_s_best'] / 1e6:.2f}",
+            f"{r['branches_per_s_best'] / 1e6:.2f}", f"{r['branches_per_s_best_1_thread'] / 1e6:.2f}",
             f"{r['reachable_fraction']:.3f}", f"{r['valid_fraction']:.3f}",
             f"{r['closure_max_pos_m']:.1e} / {r['closure_max_rot_rad']:.1e}",
         ]
