@@ -475,10 +475,9 @@ def solve(
                 # answer does not depend on how many seeds ran side by side.
                 key = torch.where(done, (number - seeds).to(work), E)
                 best_E = _keep_best(best_q, best_E, q, key, problem)
-                still = torch.where(done, seeds, number).to(work)  # seed numbers still running
-                running = torch.full_like(best_E, seeds).scatter_reduce_(0, problem, still, "amin")
-                finished = (best_E < 0) & (best_E + seeds < running)  # no lower seed still running
-                keep = (~done & ~finished[problem]).nonzero().squeeze(1)
+                # A slot runs on while no lower-numbered seed of its problem has converged.
+                winner = torch.where(best_E < 0, best_E + seeds, seeds)  # lowest converged seed number
+                keep = (~done & (number < winner[problem])).nonzero().squeeze(1)
                 if keep.numel() < problem.numel():
                     problem, number, slot_tgt = problem[keep], number[keep], slot_tgt.take(keep)
                     state = tuple(_take(s, keep) for s in state)
