@@ -129,6 +129,15 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
         tol = goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL)
         ok = (final < TOLERANCES["1cm"]) & (r.angle[-1] < tol)
         metrics["success_pose"] = float(np.mean(ok))
+    failed = final >= TOLERANCES["1cm"]
+    if failed.any():
+        radius = np.linalg.norm(goals.desired_goal[:, :2], axis=-1)
+        metrics["failures"] = {
+            "count": int(failed.sum()),
+            "median_final_error_m": float(np.median(final[failed])),
+            "median_goal_radius_m": float(np.median(radius[failed])),
+            "median_goal_radius_all_m": float(np.median(radius)),
+        }
     return metrics, {"final_error": final, "path": path, "home": r.q[0, 0]}
 
 
@@ -177,27 +186,46 @@ def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[s
 
 
 # ---------------------------------------------------------------------------- verdict and report
+def _cmp(policy: float, other: float, lower_wins: bool = True) -> str:
+    return "wins" if (policy < other) == lower_wins else "loses"
+
+
 def verdict(m: dict[str, dict[str, Any]]) -> list[str]:
     """Plain sentences: where the policy loses to the IK solvers and where it wins."""
     p = m["policy"]
-    lines = []
     ik = {k: v for k, v in m.items() if k != "policy" and "error" not in v}
+    lines = []
     for name, v in ik.items():
-        ratio = p["median_error_m"] / max(v["median_error_m"], 1e-15)
+        orders = math.log10(max(p["median_error_m"], 1e-15) / max(v["median_error_m"], 1e-15))
         lines.append(f"Accuracy: the policy loses to {name}: median final error {1e3 * p['median_error_m']:.2f} mm "
-                     f"against {1e3 * v['median_error_m']:.2g} mm ({ratio:.0e}x); success at 1 mm "
+                     f"against {1e3 * v['median_error_m']:.1e} mm ({orders:.0f} orders of magnitude); success at "
+                     f"1 cm {100 * p['success@1cm']:.1f}% against {100 * v['success@1cm']:.1f}%, at 1 mm "
                      f"{100 * p['success@1mm']:.1f}% against {100 * v['success@1mm']:.1f}%.")
-        faster = p["time_per_goal_batched_s"] < v["time_per_goal_batched_s"]
-        lines.append(f"Time per goal (batched): the policy {'wins' if faster else 'loses'} against {name}: "
-                     f"{1e6 * p['time_per_goal_batched_s']:.1f} us for all 50 closed-loop steps against "
-                     f"{1e6 * v['time_per_goal_batched_s']:.1f} us for one solve. Single goal: "
-                     f"{1e3 * p['time_per_goal_single_s']:.2f} ms against {1e3 * v['time_per_goal_single_s']:.2f} ms.")
-        shorter = p["median_path_length_rad"] < v["median_path_length_rad"]
-        lines.append(f"Joint-space path: the policy's median {p['median_path_length_rad']:.2f} rad is "
-                     f"{'shorter' if shorter else 'longer'} than {name}'s straight move to its solution "
-                     f"({v['median_path_length_rad']:.2f} rad).")
+    for name, v in ik.items():
+        if p["median_steps_to_reach"] is not None and v["median_steps_to_reach"] is not None:
+            won = _cmp(p["median_steps_to_reach"], v["median_steps_to_reach"])
+            lines.append(f"Steps to within 1 cm: the policy {won} against {name}: median "
+                         f"{p['median_steps_to_reach']:.0f} steps against "
+                         f"{v['median_steps_to_reach']:.0f} for a straight full-speed joint move to its solution.")
+        lines.append(f"Wall time per goal against {name}: batched, the policy "
+                     f"{_cmp(p['time_per_goal_batched_s'], v['time_per_goal_batched_s'])} "
+                     f"({1e6 * p['time_per_goal_batched_s']:.0f} us for all its closed-loop steps against "
+                     f"{1e6 * v['time_per_goal_batched_s']:.0f} us for one solve); one goal at a time it "
+                     f"{_cmp(p['time_per_goal_single_s'], v['time_per_goal_single_s'])} "
+                     f"({1e3 * p['time_per_goal_single_s']:.1f} ms against "
+                     f"{1e3 * v['time_per_goal_single_s']:.1f} ms).")
+        lines.append(f"Joint-space path against {name}: the policy "
+                     f"{_cmp(p['median_path_length_rad'], v['median_path_length_rad'])} (median "
+                     f"{p['median_path_length_rad']:.2f} rad against {v['median_path_length_rad']:.2f} rad "
+                     f"for the straight move).")
+    if "failures" in p:
+        f = p["failures"]
+        lines.append(f"Where the policy fails ({f['count']} goals beyond 1 cm): goals far from the base axis "
+                     f"(median radius {f['median_goal_radius_m']:.2f} m against {f['median_goal_radius_all_m']:.2f} m "
+                     f"for all goals), near the edge of the workspace where the arm is almost stretched; there it "
+                     f"stalls at a median {1e3 * f['median_final_error_m']:.0f} mm.")
     lines.append("What the policy is and the IK is not: a closed-loop controller that produces the whole motion "
-                 "within the joint speed limits and corrects itself every 50 ms (a goal that moves is just a new "
+                 "within the joint speed limits and corrects itself every step (a goal that moves is just a new "
                  "observation), at one small network evaluation per step. The IK gives an end configuration only; "
                  "the motion to it (and its timing) is left to a trajectory generator.")
     return lines

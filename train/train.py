@@ -22,6 +22,7 @@ override them. The run directory gets:
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import platform
@@ -167,12 +168,15 @@ def make_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any] | N
     import gymnasium
     from stable_baselines3.common.env_util import make_vec_env
 
+    module, _, name = env_id.rpartition(":")
     try:
-        gymnasium.spec(env_id)
-    except (gymnasium.error.Error, ModuleNotFoundError) as err:
+        if module:
+            importlib.import_module(module)  # registers its ids, as gymnasium.make("module:Id") does
+        gymnasium.spec(name)
+    except (gymnasium.error.Error, ImportError) as err:
         raise ValueError(f"unknown env id {env_id!r}: use one of {list(envs.ENV_IDS)} or a registered "
                          f"gymnasium id ('module:Id' imports the module first) ({err})") from None
-    return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
+    return make_vec_env(name, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
 
 
 def build_venv(env_id: str, hp: dict[str, Any], seed: int):
