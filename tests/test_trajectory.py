@@ -82,6 +82,16 @@ def test_jtraj_batched_equals_looped_and_per_pair_durations():
             torch.testing.assert_close(batched.qd[i, j], single.qd, rtol=0, atol=1e-14)
 
 
+def test_jtraj_one_pair_many_durations_with_velocities():
+    q0, q1 = _pair()
+    qd0 = torch.full((7,), 0.3, dtype=F64)
+    t = torch.linspace(0, 1, 9, dtype=F64) * torch.tensor([1.0, 3.0], dtype=F64)[:, None]  # (2, 9)
+    tr = jtraj(q0, q1, t, qd0=qd0)
+    assert tr.q.shape == (2, 9, 7)
+    torch.testing.assert_close(tr.qd[:, 0], qd0.expand(2, 7), rtol=0, atol=1e-12)
+    torch.testing.assert_close(tr.q[1], jtraj(q0, q1, t[1], qd0=qd0).q, rtol=0, atol=1e-14)
+
+
 def test_jtraj_gradients():
     q0, q1 = (x.requires_grad_() for x in _pair(3))
     assert torch.autograd.gradcheck(lambda a, b: jtraj(a, b, 7).q, (q0, q1))
