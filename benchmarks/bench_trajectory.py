@@ -1,0 +1,213 @@
+"""Trajectories on the iiwa 14: iiwa-torch against roboticstoolbox, one run.
+
+    python benchmarks/bench_trajectory.py [--quick]
+
+- jtraj: 10,000 start/goal pairs x 50 steps; ours in one batched call, roboticstoolbox's
+  ``jtraj`` one pair per call (timed on 300 pairs, per pair);
+- ctraj: 10,000 pose pairs x 50 steps; ours batched, roboticstoolbox's ``ctraj`` (spatialmath
+  ``SE3.interp``) one pair per call;
+- tracking one 0.36 m line of 50 poses: ours ``track`` (analytic and gradient) against
+  roboticstoolbox ``ETS.ik_LM`` (C++) called at each pose, warm-started from the last answer
+  (tol 1e-10, so that it reaches our 1e-6 m), all scored by our FK;
+- tracking 256 lines x 30 poses at once (ours; the peer's per-line time scales linearly).
+
+Values are checked against the peer where both compute the same thing. Writes
+results/trajectory.json and results/trajectory.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from common import machine, markdown_table, save, timeit  # noqa: E402
+
+from iiwa_torch import robots, so3  # noqa: E402
+from iiwa_torch.trajectory import ctraj, jtraj, track  # noqa: E402
+
+F64 = torch.float64
+CHAIN = robots.iiwa14()
+Q_START = torch.tensor([0.1, 0.5, 0.1, -1.2, 0.2, 0.8, 0.3], dtype=F64)
+
+
+def peer_ets():
+    import roboticstoolbox as rtb
+
+    links = [
+        rtb.RevoluteDH(a=a, alpha=al, d=d, offset=o, qlim=[lo, hi])
+        for (a, al, d, o), lo, hi in zip(CHAIN.dh.tolist(), *CHAIN.limits.tolist())
+    ]
+    return rtb.DHRobot(links, tool=CHAIN.tool.numpy()).ets()
+
+
+def per_call(fn, items, repeats: int) -> float:
+    """Median over ``repeats`` of the seconds per item of ``fn`` called on each item in turn."""
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for item in items:
+            fn(item)
+        samples.append((time.perf_counter() - start) / len(items))
+    return float(np.median(samples))
+
+
+def bench_jtraj(pairs: int, peer_pairs: int, repeats: int) -> dict:
+    import roboticstoolbox as rtb
+
+    g = torch.Generator().manual_seed(0)
+    q0, q1 = CHAIN.random_q(2, pairs, generator=g)
+    t = torch.linspace(0, 2.0, 50, dtype=F64)
+    ours = timeit(lambda: jtraj(q0, q1, t), repeats=repeats, min_time=0.1)
+    mine = jtraj(q0[:peer_pairs], q1[:peer_pairs], t)
+    a, b, tn = q0.numpy(), q1.numpy(), t.numpy()
+    peer = per_call(lambda i: rtb.jtraj(a[i], b[i], tn), range(peer_pairs), repeats)
+    ref = np.stack([rtb.jtraj(a[i], b[i], tn).q for i in range(peer_pairs)])
+    return {
+        "pairs": pairs,
+        "steps": 50,
+        "ours s (batched)": ours,
+        "ours us/pair": ours / pairs * 1e6,
+        "roboticstoolbox us/pair": peer * 1e6,
+        "speed-up": peer / (ours / pairs),
+        "max |q ours - q rtb| rad": float(np.abs(mine.q.numpy() - ref).max()),
+    }
+
+
+def bench_ctraj(pairs: int, peer_pairs: int, repeats: int) -> dict:
+    import roboticstoolbox as rtb
+    from spatialmath import SE3
+
+    g = torch.Generator().manual_seed(1)
+    T0, T1 = CHAIN.fk(CHAIN.random_q(2, pairs, generator=g))
+    ours = timeit(lambda: ctraj(T0, T1, 50), repeats=repeats, min_time=0.1)
+    mine = ctraj(T0[:peer_pairs], T1[:peer_pairs], 50)
+    s = np.linspace(0, 1, 50)
+    a = [SE3(x, check=False) for x in T0[:peer_pairs].numpy()]
+    b = [SE3(x, check=False) for x in T1[:peer_pairs].numpy()]
+    peer = per_call(lambda i: rtb.ctraj(a[i], b[i], s=s), range(peer_pairs), repeats)
+    ref = np.stack([np.stack(rtb.ctraj(a[i], b[i], s=s).A) for i in range(peer_pairs)])
+    return {
+        "pairs": pairs,
+        "steps": 50,
+        "ours s (batched)": ours,
+        "ours us/pair": ours / pairs * 1e6,
+        "roboticstoolbox us/pair": peer * 1e6,
+        "speed-up": peer / (ours / pairs),
+        "max |pose ours - pose rtb|": float(np.abs(mine.numpy() - ref).max()),
+    }
+
+
+def line(q0: torch.Tensor, offset, steps: int) -> torch.Tensor:
+    T0 = CHAIN.fk(q0)
+    T1 = T0.clone()
+    T1[..., :3, 3] += torch.as_tensor(offset, dtype=F64)
+    return ctraj(T0, T1, steps)
+
+
+def score(q: torch.Tensor, path: torch.Tensor) -> dict:
+    pos, rot = so3.pose_error(CHAIN.fk(q), path)
+    return {
+        "max pos err m": float(pos.norm(dim=-1).max()),
+        "max rot err rad": float(rot.norm(dim=-1).max()),
+        "max joint step rad": float(q.diff(dim=-2).abs().max()),
+        "within limits": bool(CHAIN.within_limits(q, tol=1e-9).all()),
+    }
+
+
+def bench_track_one(repeats: int) -> dict:
+    path = line(Q_START, [0.0, 0.3, -0.2], 50)
+    rows = {}
+    for method in ("analytic", "gradient"):
+        seconds = timeit(lambda m=method: track(CHAIN, path, Q_START, method=m), repeats=repeats, min_time=0.0)
+        rows[f"ours track({method})"] = {"s/line": seconds} | score(track(CHAIN, path, Q_START, method=method).q, path)
+    ets = peer_ets()
+    goals = path.numpy()
+
+    def peer() -> torch.Tensor:
+        q, out = Q_START.numpy(), []
+        for goal in goals:
+            q = ets.ik_LM(goal, q0=q, tol=1e-10)[0]
+            out.append(q)
+        return torch.tensor(np.stack(out))
+
+    seconds = timeit(peer, repeats=repeats, min_time=0.0)
+    rows["roboticstoolbox ik_LM per pose (C++)"] = {"s/line": seconds} | score(peer(), path)
+    return rows
+
+
+def bench_track_batch(lines: int, repeats: int) -> dict:
+    g = torch.Generator().manual_seed(2)
+    q0 = Q_START + 0.2 * torch.randn(lines, 7, generator=g, dtype=F64)
+    path = line(q0, 0.1 * torch.randn(lines, 3, generator=g, dtype=F64), 30)
+    rows = {}
+    for method in ("analytic", "gradient"):
+        seconds = timeit(lambda m=method: track(CHAIN, path, q0, method=m), repeats=repeats, min_time=0.0)
+        res = track(CHAIN, path, q0, method=method)
+        ok = res.success.all(-1)
+        rows[f"ours track({method})"] = {
+            "lines": lines,
+            "steps": 30,
+            "s (all lines)": seconds,
+            "ms/line": seconds / lines * 1e3,
+            "lines solved": float(ok.double().mean()),
+            "solved lines with a step > 0.1 rad": int((res.max_step[ok] > 0.1).sum()),
+        }
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smaller batches, fewer repeats (a smoke run)")
+    args = parser.parse_args()
+    pairs, peer_pairs, lines, repeats = (1_000, 50, 32, 1) if args.quick else (10_000, 300, 256, 3)
+    results = {"machine": machine()}
+    results["jtraj"] = bench_jtraj(pairs, peer_pairs, repeats)
+    print("jtraj", results["jtraj"], flush=True)
+    results["ctraj"] = bench_ctraj(pairs, peer_pairs, repeats)
+    print("ctraj", results["ctraj"], flush=True)
+    results["track one line"] = bench_track_one(repeats)
+    print("track one line", results["track one line"], flush=True)
+    results["track many lines"] = bench_track_batch(lines, repeats)
+    print("track many lines", results["track many lines"], flush=True)
+    results["machine"]["loadavg_at_end"] = os.getloadavg()
+
+    md = ["# Trajectory benchmark\n", f"`python benchmarks/bench_trajectory.py{' --quick' if args.quick else ''}`; "]
+    m = results["machine"]
+    md.append(f"{m['cpu']}, torch {m['torch']}, {m['torch_threads']} threads, load {m['loadavg_1_5_15']}\n\n")
+    rows = [
+        [name, r["pairs"], f"{r['ours us/pair']:.2f}", f"{r['roboticstoolbox us/pair']:.0f}", f"{r['speed-up']:.0f}x"]
+        for name, r in (("jtraj", results["jtraj"]), ("ctraj", results["ctraj"]))
+    ]
+    md.append(markdown_table(["call (50 steps)", "pairs", "ours us/pair (batched)", "rtb us/pair", "speed-up"], rows))
+    md.append("\n")
+    rows = [
+        [name, f"{r['s/line'] * 1e3:.0f}", f"{r['max pos err m']:.1e}", f"{r['max joint step rad']:.3f}"]
+        for name, r in results["track one line"].items()
+    ]
+    md.append(markdown_table(["tracking one line, 50 poses", "ms", "max pos err (m)", "max joint step (rad)"], rows))
+    md.append("\n")
+    rows = [
+        [
+            name,
+            r["lines"],
+            f"{r['ms/line']:.1f}",
+            f"{100 * r['lines solved']:.1f}%",
+            r["solved lines with a step > 0.1 rad"],
+        ]
+        for name, r in results["track many lines"].items()
+    ]
+    md.append(
+        markdown_table(["tracking lines at once, 30 poses", "lines", "ms/line", "solved", "jumps > 0.1 rad"], rows)
+    )
+    path = save("trajectory_quick" if args.quick else "trajectory", results, "".join(md))
+    print("".join(md))
+    print(f"written: {path}")
+
+
+if __name__ == "__main__":
+    main()
