@@ -253,8 +253,6 @@ def _write_gif(images: list[np.ndarray], file: Path, fps: int) -> None:
 
 def _write_mp4(images: list[np.ndarray], file: Path, fps: int) -> None:
     h, w, _ = images[0].shape
-    cmd = [
-        "ffmpeg", "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{w}x{h}",
-        "-r", str(fps), "-i", "-", "-pix_fmt", "yuv420p", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", str(file),
-    ]
+    cmd = "ffmpeg -loglevel error -y -f rawvideo -pix_fmt rgb24".split() + ["-s", f"{w}x{h}", "-r", str(fps)]
+    cmd += ["-i", "-", "-pix_fmt", "yuv420p", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", str(file)]
     subprocess.run(cmd, input=b"".join(im.tobytes() for im in images), check=True)
