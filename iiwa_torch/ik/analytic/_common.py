@@ -91,53 +91,70 @@ def reach_tol(dtype: torch.dtype) -> float:
 
 
 # ---------------------------------------------------------------- rotations
-def zxzx_t(a: Tensor, b: Tensor, sig_a: float, sig_b: float) -> Tensor:
-    """The transpose of ``Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b)`` for ``sin(alpha) = sig_a,
-    sig_b = +-1``: ``a, b (...) -> (..., 3, 3)``, written out (no matrix products)."""
+def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float) -> list[list]:
+    """Entries ``A[i][k]`` of ``A = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b)`` for ``sin(alpha) =
+    sig_a, sig_b = +-1``: tensors broadcast from ``a, b (...)`` (a structural zero is 0.0).
+
+    Kept as separate contiguous tensors ("structure of arrays"): products of such matrices
+    are then a few elementwise kernels over the batch, with no batched 3x3 product and no
+    strided access."""
     ca, sa, cb, sb = torch.cos(a), torch.sin(a), torch.cos(b), torch.sin(b)
     k = sig_a * sig_b
-    return torch.stack(
-        [
-            ca * cb, sa * cb, sig_a * sb,
-            k * sa, -k * ca, torch.zeros_like(cb),
-            sig_b * ca * sb, sig_b * sa * sb, -k * cb,
-        ],
-        -1,
-    ).unflatten(-1, (3, 3))  # fmt: skip
+    return [
+        [ca * cb, k * sa, sig_b * ca * sb],
+        [sa * cb, -k * ca, sig_b * sa * sb],
+        [sig_a * sb, 0.0, -k * cb],
+    ]
 
 
-def rows_times(rows: Tensor, rot: Tensor) -> Tensor:
-    """Columns 0 and 2 of ``A rot`` for ``A = rows (*batch, *g, 3, 3)`` and ``rot (*batch, 3, 3)``
-    (broadcastable): ``(*batch, *g, 3, 2)``, as one product per pose over all ``g`` branches
-    (``rot`` is not copied per branch)."""
+def transpose_times(a: list[list], b: list[list]) -> list[list]:
+    """Entries of ``A^T B`` for entries ``a`` (3 x 3) and ``b`` (3 x m), skipping zeros."""
+    out = []
+    for i in range(3):
+        row = []
+        for j in range(len(b[0])):
+            terms = [a[k][i] * b[k][j] for k in range(3) if not (isinstance(a[k][i], float) and a[k][i] == 0.0)]
+            row.append(functools.reduce(torch.add, terms))
+        out.append(row)
+    return out
+
+
+def entries(m: Tensor) -> list[list]:
+    """``m (..., 3, c)`` -> its entries ``(3 x c)``, each a contiguous ``(...)`` tensor."""
+    r = m.movedim((-2, -1), (0, 1)).contiguous()
+    return [[r[k, j] for j in range(r.shape[1])] for k in range(3)]
+
+
+def rows_times(rows: Tensor, rot: Tensor) -> list[list]:
+    """Entries ``(3 x 2)`` of columns 0 and 2 of ``A rot`` for ``A = rows (*batch, *g, 3, 3)``
+    and ``rot (*batch, 3, 3)`` (broadcastable), each ``(*batch, *g)``: one product per pose
+    over all ``g`` branches (``rot`` is not copied per branch)."""
     batch = rows.shape[: rot.ndim - 2]
     right = rot[..., :, 0::2].expand(*batch, 3, 2).reshape(-1, 3, 2)
     flat = rows.reshape(right.shape[0], -1, 3)  # (B, G * 3, 3)
-    return (flat @ right).reshape(*rows.shape[:-1], 2)
+    return entries((flat @ right).reshape(*rows.shape[:-1], 2))
 
 
-def decompose_zxzxz(m: Tensor, sig_a: float, sig_b: float) -> tuple[Tensor, Tensor, Tensor]:
+def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float) -> tuple[Tensor, Tensor, Tensor]:
     """All angles of ``M = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b) Rz(c)`` for twists with
     ``sin(alpha) = sig_a, sig_b = +-1``: a spherical joint triple (shoulder or wrist).
 
-    ``m (..., 3, 2)``, the columns 0 and 2 of ``M`` (all it takes) ``-> a, b, c``, each
-    ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1 is its flip ``(a + pi, -b, c + pi)``
-    (angles not wrapped). ``M[2,2] = -sig_a sig_b cos b``, ``M[0:2, 2] = sig_b sin b (cos a,
-    sin a)``. ``c`` is taken from what is left once ``a`` and ``b`` are fixed, so the triple
-    reproduces ``M`` exactly also at ``sin b = 0`` (the singularity, where only ``a +- c`` is
-    determined and ``a`` is set to 0, or pi in the flip).
+    ``m``: the entries ``(3 x 2)`` of the columns 0 and 2 of ``M`` (all it takes), each
+    ``(...)`` ``-> a, b, c``, each ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1 is
+    its flip ``(a + pi, -b, c + pi)`` (angles not wrapped). ``M[2,2] = -sig_a sig_b cos b``,
+    ``M[0:2, 2] = sig_b sin b (cos a, sin a)``. ``c`` is taken from what is left once ``a``
+    and ``b`` are fixed, so the triple reproduces ``M`` exactly also at ``sin b = 0`` (the
+    singularity, where only ``a +- c`` is determined and ``a`` is set to 0, or pi in the flip).
     """
-    m = m.movedim((-2, -1), (0, 1)).contiguous()  # entries contiguous: ~10x faster elementwise ops
-    m02, m12, m22 = m[0, 1], m[1, 1], m[2, 1]
+    (m00, m02), (m10, m12), (m20, m22) = m
     sb = safe_norm2(m02, m12)  # sin b >= 0
     cb = -sig_a * sig_b * m22
     b = torch.atan2(sb, cb)
     a = safe_atan2(sig_b * m12, sig_b * m02)
     ca, sa = torch.cos(a), torch.sin(a)
-    m0, m1, m2 = m[0, 0], m[1, 0], m[2, 0]
-    # First column of Rz(c) = (Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b))^T m e_x.
-    cos_c = cb * (ca * m0 + sa * m1) + sig_a * sb * m2
-    sin_c = sig_a * sig_b * (sa * m0 - ca * m1)
+    # First column of Rz(c) = (Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b))^T M e_x.
+    cos_c = cb * (ca * m00 + sa * m10) + sig_a * sb * m20
+    sin_c = sig_a * sig_b * (sa * m00 - ca * m10)
     c = safe_atan2(sin_c, cos_c)
     return torch.stack([a, a + math.pi], -1), torch.stack([b, -b], -1), torch.stack([c, c + math.pi], -1)
 

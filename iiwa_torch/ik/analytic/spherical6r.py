@@ -43,15 +43,16 @@ from ._common import (
     check_chain,
     check_target,
     decompose_zxzxz,
+    entries,
     finish,
     last_frame_target,
     reach_tol,
-    rows_times,
     safe_atan2,
     safe_norm2,
     sigma,
+    transpose_times,
     triangle,
-    zxzx_t,
+    zxzx,
 )
 
 __all__ = ["pieper"]
@@ -111,8 +112,9 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
     theta2 = safe_atan2(py, px)[..., None] - safe_atan2(link3 * s_el, a2 + link3 * c_el)
 
     # Wrist: R_03^T (R_05 Rz(theta6)) = Rz(theta4) Rx(alpha4) Rz(theta5) Rx(alpha5) Rz(theta6).
-    r03_t = zxzx_t(theta1[..., None].expand_as(theta2), theta2 + theta3, s1, s3)  # (..., 2, 2, 3, 3), alpha2 = 0
-    m = rows_times(r03_t, frame5[..., :3, :3])  # columns 0, 2 of R_03^T R
+    r03 = zxzx(theta1[..., None], theta2 + theta3, s1, s3)  # entries (..., 2, 2); alpha2 = 0
+    rot = entries(frame5[..., :3, 0:3:2])  # columns 0, 2 of R (per pose)
+    m = transpose_times(r03, [[v[..., None, None] for v in row] for row in rot])  # R_03^T R
     theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5)  # (..., 2, 2, 2)
     thetas = [theta1[..., None, None], theta2[..., None], theta3[..., None], theta4, theta5, theta6]
     reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None]

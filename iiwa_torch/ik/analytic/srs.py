@@ -50,6 +50,7 @@ from ._common import (
     check_chain,
     check_target,
     decompose_zxzxz,
+    entries,
     finish,
     last_frame_target,
     reach_tol,
@@ -57,8 +58,9 @@ from ._common import (
     safe_atan2,
     safe_norm2,
     sigma,
+    transpose_times,
     triangle,
-    zxzx_t,
+    zxzx,
 )
 
 __all__ = ["iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
@@ -123,7 +125,7 @@ def _split(geo: _Geometry, cols: tuple[Tensor, Tensor, Tensor], theta4: Tensor, 
     sig = geo.sig
     x3, y3, z3 = cols
     # R_03 Rx(alpha3)^T = Rz(theta1) Rx(alpha1) Rz(theta2) Rx(alpha2) Rz(theta3): columns x3, s3 y3.
-    t1, t2, t3 = decompose_zxzxz(torch.stack([x3, sig[2] * y3], -1), sig[0], sig[1])  # (..., E, 2)
+    t1, t2, t3 = decompose_zxzxz(entries(torch.stack([x3, sig[2] * y3], -1)), sig[0], sig[1])  # (..., E, 2)
     # R_04 = R_03 Rz(theta4) Rx(alpha4), one per elbow branch; its transpose has these rows.
     c4, s4 = c4[..., None], s4[..., None]
     r04_t = torch.stack([c4 * x3 + s4 * y3, sig[3] * z3, sig[3] * (s4 * x3 - c4 * y3)], -2)
@@ -240,12 +242,11 @@ def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
     vx, vz = c2 * a[..., None] - s2 * b[..., None], c[..., None].expand_as(c2)
     theta1 = safe_atan2(sw[..., 1], sw[..., 0])[..., None, None] - safe_atan2(-sig[0] * vz, vx)
 
-    # Columns 0, 2 of R_04^T R = R_24^T (R_02^T R): first one product per pose for the 4 arm
-    # branches, then one per elbow branch for its 2 shoulder branches.
-    y = rows_times(zxzx_t(theta1, theta2, sig[0], sig[1]), rot)  # (..., 2 e, 2 s, 3, 2)
-    y = y.movedim(-3, -2).flatten(-2)  # (..., 2 e, 3, 2 s * 2)
-    m = (zxzx_t(theta3, theta4, sig[2], sig[3]) @ y).unflatten(-1, (2, 2)).movedim(-2, -3)  # (..., 2 e, 2 s, 3, 2)
-    t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2 elbow, 2 shoulder, 2 wrist)
+    # Columns 0, 2 of R_04^T R = R_24^T (R_02^T R), entry by entry over the batch.
+    rot_02 = [[v[..., None, None] for v in row] for row in entries(rot[..., :, 0:3:2])]
+    y = transpose_times(zxzx(theta1, theta2, sig[0], sig[1]), rot_02)  # (..., 2 e, 2 s)
+    r24 = zxzx(theta3[..., None], theta4[..., None], sig[2], sig[3])  # (..., 2 e, 1)
+    t5, t6, t7 = decompose_zxzxz(transpose_times(r24, y), sig[4], sig[5])  # (..., 2 elbow, 2 shoulder, 2 wrist)
     # Reorder the branch dims to (..., 2 shoulder, 2 elbow, 2 wrist).
     thetas = [
         theta1.transpose(-1, -2)[..., None],
