@@ -131,6 +131,7 @@ def main() -> None:
         "iiwa-torch": ours,
         "pytorch_kinematics": pytorch_kinematics,
         "matmul chain": matmul_chain,
+        "torch.compile": compiled,
         "copy floor": floor,
     }
     records, rows = [], []
@@ -157,7 +158,7 @@ def main() -> None:
                     t = times["iiwa-torch"]
                     pk_ratio = times["pytorch_kinematics"] / t
                     floor_ratio = t / times["copy floor"] if "copy floor" in times else float("nan")
-                    mm = times.get("matmul chain")
+                    mm, tc = times.get("matmul chain"), times.get("torch.compile")
                     rows.append(
                         [
                             op,
@@ -168,6 +169,7 @@ def main() -> None:
                             f"{times['pytorch_kinematics'] / batch * 1e9:,.0f}",
                             f"**{pk_ratio:.1f}x**",
                             f"{mm / t:.1f}x" if mm else "",
+                            f"{tc / t:.1f}x" if tc else "",
                             f"{floor_ratio:.1f}x",
                         ]
                     )
@@ -184,6 +186,7 @@ def main() -> None:
         "pytorch_kinematics ns/config",
         "speed-up vs pk",
         "speed-up vs matmul chain",
+        "speed-up vs torch.compile",
         "ours / copy floor",
     ]
     md = markdown_table(headers, rows)

@@ -159,6 +159,7 @@ class DHChain(nn.Module):
         self.register_buffer("velocity_limits", vel)
         # Python-float copies of the geometry for the kernel: the constants of each joint.
         self._steps = [(a, _exact(math.cos(al)), _exact(math.sin(al)), d) for a, al, d, _ in dh.tolist()]
+        self._has_base = not torch.equal(self.base, torch.eye(4, dtype=torch.float64))
         self._has_tool = not torch.equal(self.tool, torch.eye(4, dtype=torch.float64))
         coeffs = _link_coefficients(dh, self.convention)  # (n, 3, 16)
         self.register_buffer("_link_trig", coeffs[:, :2], persistent=False)
@@ -245,25 +246,26 @@ class DHChain(nn.Module):
         return torch.stack([torch.stack(f, 1) for f in (frames if keep else [(x, y, z, p)])], 0)
 
     def _frames_matmul(self, q: Tensor, keep: bool) -> Tensor:
-        """Small batches, few ops: each ``A_i`` is linear in the cosine and sine of its
-        angle, so one batched product with constant coefficients builds them all; then a
-        chain of 4x4 products."""
+        """Small batches, few ops: ``(b, n) -> (F, b, 4, 4)`` full matrices. Each ``A_i`` is
+        linear in the cosine and sine of its angle, so one batched product with constant
+        coefficients builds them all; then a chain of 4x4 products."""
         n, b, dtype = self.n_joints, q.shape[0], q.dtype
         theta = (q + self.dh[:, 3].to(dtype)).T  # (n, b)
         trig = torch.stack([torch.cos(theta), torch.sin(theta)], -1)  # (n, b, 2)
         links = torch.baddbmm(self._link_const.to(dtype), trig, self._link_trig.to(dtype)).view(n, b, 4, 4)
-        frame = self.base.to(dtype).expand(b, 4, 4)
-        frames = [frame]
-        for i in range(n):
+        base = self.base.to(dtype).expand(b, 4, 4)
+        frame = torch.bmm(base, links[0]) if self._has_base else links[0]
+        frames = [base, frame]
+        for i in range(1, n):
             frame = torch.bmm(frame, links[i])
             frames.append(frame)
-        stacked = torch.stack(frames, 0) if keep else frame[None]  # (F, b, 4, 4)
-        return stacked[:, :, :3].permute(0, 2, 3, 1)  # (F, 3, 4, b), a view
+        return torch.stack(frames, 0) if keep else frame[None]
 
     def _frames(self, q: Tensor, keep: bool) -> Tensor:
         """``(b, n) -> (F, 3, 4, b)`` with the kernel that is faster for this batch size."""
-        kernel = self._frames_matmul if q.shape[0] <= _SMALL_BATCH else self._frames_elementwise
-        return kernel(q, keep)
+        if q.shape[0] <= _SMALL_BATCH:
+            return self._frames_matmul(q, keep)[:, :, :3].permute(0, 2, 3, 1)  # a view
+        return self._frames_elementwise(q, keep)
 
     def _end_position(self, last: Tensor) -> Tensor:
         """``(3, 4, b)`` last link frame -> ``(3, b)`` end-effector (tool) position."""
@@ -293,7 +295,10 @@ class DHChain(nn.Module):
         return out.reshape(*q.shape[:-1], *shape)
 
     def _end_pose(self, qb: Tensor) -> Tensor:
-        pose = self._poses(self._frames(qb, keep=False))[:, 0]
+        if qb.shape[0] <= _SMALL_BATCH:
+            pose = self._frames_matmul(qb, keep=False)[0]
+        else:
+            pose = self._poses(self._frames_elementwise(qb, keep=False))[:, 0]
         return pose @ self.tool.to(qb.dtype) if self._has_tool else pose
 
     def _jacobian(self, qb: Tensor) -> Tensor:
