@@ -125,16 +125,6 @@ def entries(m: Tensor) -> list[list]:
     return [[r[k, j] for j in range(r.shape[1])] for k in range(3)]
 
 
-def rows_times(rows: Tensor, rot: Tensor) -> list[list]:
-    """Entries ``(3 x 2)`` of columns 0 and 2 of ``A rot`` for ``A = rows (*batch, *g, 3, 3)``
-    and ``rot (*batch, 3, 3)`` (broadcastable), each ``(*batch, *g)``: one product per pose
-    over all ``g`` branches (``rot`` is not copied per branch)."""
-    batch = rows.shape[: rot.ndim - 2]
-    right = rot[..., :, 0::2].expand(*batch, 3, 2).reshape(-1, 3, 2)
-    flat = rows.reshape(right.shape[0], -1, 3)  # (B, G * 3, 3)
-    return entries((flat @ right).reshape(*rows.shape[:-1], 2))
-
-
 def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float) -> tuple[Tensor, Tensor, Tensor]:
     """All angles of ``M = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b) Rz(c)`` for twists with
     ``sin(alpha) = sig_a, sig_b = +-1``: a spherical joint triple (shoulder or wrist).

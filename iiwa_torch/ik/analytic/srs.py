@@ -54,7 +54,6 @@ from ._common import (
     finish,
     last_frame_target,
     reach_tol,
-    rows_times,
     safe_atan2,
     safe_norm2,
     sigma,
@@ -107,31 +106,16 @@ def _elbow(geo: _Geometry, sw: Tensor, tol: float) -> tuple[Tensor, Tensor, Tens
     return torch.atan2(s4, c4[..., None].expand_as(s4)), c4, s4, ok
 
 
-def _reference(u: Tensor) -> tuple[Tensor, Tensor]:
-    """Unit ``u (..., 3)`` along ``SW`` -> ``(v_ref, w_ref)``, each ``(..., 3)`` (module doc)."""
-    ux, uy, uz = u.unbind(-1)
+def _reference(u: tuple) -> tuple[tuple, tuple]:
+    """Unit ``u`` along ``SW`` (3 components) -> ``(v_ref, w_ref)``, 3 components each (module doc)."""
+    ux, uy, uz = u
     b = safe_atan2(uy, ux)
     cb, sb = torch.cos(b), torch.sin(b)
-    rho = safe_norm2(ux, uy)
-    v_ref = torch.stack([-uz * cb, -uz * sb, rho], -1)
-    w_ref = torch.stack([sb, -cb, torch.zeros_like(cb)], -1)
-    return v_ref, w_ref
+    return (-uz * cb, -uz * sb, safe_norm2(ux, uy)), (sb, -cb, 0.0)
 
 
-def _split(geo: _Geometry, cols: tuple[Tensor, Tensor, Tensor], theta4: Tensor, c4: Tensor, s4: Tensor, rot: Tensor):
-    """Columns ``x3, y3, z3 (..., 2, 3)`` of ``R_03`` and ``theta_4`` (its cos ``(..., 1)``,
-    sin ``(..., 2)``) of both elbow branches, and ``R_06 Rz(theta7) (..., 3, 3)`` -> the 7
-    joint angles, each broadcastable to ``(..., 2 shoulder, 2 elbow, 2 wrist)``."""
-    sig = geo.sig
-    x3, y3, z3 = cols
-    # R_03 Rx(alpha3)^T = Rz(theta1) Rx(alpha1) Rz(theta2) Rx(alpha2) Rz(theta3): columns x3, s3 y3.
-    t1, t2, t3 = decompose_zxzxz(entries(torch.stack([x3, sig[2] * y3], -1)), sig[0], sig[1])  # (..., E, 2)
-    # R_04 = R_03 Rz(theta4) Rx(alpha4), one per elbow branch; its transpose has these rows.
-    c4, s4 = c4[..., None], s4[..., None]
-    r04_t = torch.stack([c4 * x3 + s4 * y3, sig[3] * z3, sig[3] * (s4 * x3 - c4 * y3)], -2)
-    t5, t6, t7 = decompose_zxzxz(rows_times(r04_t, rot), sig[4], sig[5])  # (..., E, 2)
-    shoulder = [t.transpose(-1, -2)[..., None] for t in (t1, t2, t3)]
-    return [*shoulder, theta4[..., None, :, None], *(t[..., None, :, :] for t in (t5, t6, t7))]
+def _dot(a: tuple, b: tuple) -> Tensor:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
 def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
@@ -163,25 +147,42 @@ def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
     tol = reach_tol(target.dtype)
     theta4, c4, s4, reachable = _elbow(geo, sw, tol)
 
-    dist = safe_norm2(safe_norm2(sw[..., 0], sw[..., 1]), sw[..., 2])
-    u = sw / dist[..., None]
+    # Vectors as 3 separate component tensors: every step below is elementwise over the batch.
+    sx, sy, sz = sw.unbind(-1)
+    dist = safe_norm2(safe_norm2(sx, sy), sz)
+    u = (sx / dist, sy / dist, sz / dist)
     v_ref, w_ref = _reference(u)
-    cp, sp = torch.cos(psi)[..., None], torch.sin(psi)[..., None]
-    v = cp * v_ref + sp * w_ref  # elbow direction off the SW line
-    n = cp * w_ref - sp * v_ref  # u x v: normal of the S, E, W plane
+    cp, sp = torch.cos(psi), torch.sin(psi)
+    v = tuple(cp * p + sp * q for p, q in zip(v_ref, w_ref))  # elbow direction off the SW line
+    n = tuple(cp * q - sp * p for p, q in zip(v_ref, w_ref))  # u x v: normal of the S, E, W plane
     # Angle alpha at S between u and the upper arm e, from theta4 itself (so that E and
     # theta4 agree exactly): dist u = d3 e + d5 f with e.f = -s3 s4 cos(theta4), |e x f| = |sin theta4|.
-    cos_a = ((geo.d3 - geo.sig[2] * geo.sig[3] * geo.d5 * c4) / dist)[..., None]
-    sin_a = (geo.d5 * s4[..., 0].abs() / dist)[..., None]
-    e = cos_a * u + sin_a * v  # upper arm, z_2
-    x_dir = sin_a * u - cos_a * v  # e x n
-    # Columns of R_03: x3 = s3 kappa (e x n), y3 = s3 e, z3 = kappa n with kappa = s3 s4 sign(sin theta4).
-    s3 = geo.sig[2]
-    kappa = s3 * geo.sig[3] * torch.tensor([1.0, -1.0], dtype=u.dtype, device=u.device)[:, None]  # (2, 1)
-    x3 = s3 * kappa * x_dir[..., None, :]  # (..., 2, 3)
-    cols = (x3, (s3 * e)[..., None, :].expand_as(x3), kappa * n[..., None, :])
-    shape = x3.shape[:-1]
-    thetas = _split(geo, cols, theta4.expand(shape), c4[..., None].expand(shape), s4.expand(shape), rot)
+    sig = geo.sig
+    cos_a = (geo.d3 - sig[2] * sig[3] * geo.d5 * c4) / dist
+    sin_a = geo.d5 * s4[..., 0].abs() / dist
+    e = tuple(cos_a * p + sin_a * q for p, q in zip(u, v))  # upper arm, z_2
+    x_dir = tuple(sin_a * p - cos_a * q for p, q in zip(u, v))  # e x n
+    # Columns of R_03, per elbow branch (last dim): x3 = s3 kappa (e x n), y3 = s3 e, z3 = kappa n
+    # with kappa = s3 s4 sign(sin theta4).
+    kappa = sig[2] * sig[3] * torch.tensor([1.0, -1.0], dtype=u[0].dtype, device=u[0].device)
+    x3 = tuple(sig[2] * kappa * p[..., None] for p in x_dir)  # (..., 2)
+    y3 = tuple(sig[2] * p[..., None] for p in e)  # (..., 1)
+    z3 = tuple(kappa * p[..., None] for p in n)  # (..., 2)
+    # Shoulder: R_03 Rx(alpha3)^T = Rz(theta1) Rx(alpha1) Rz(theta2) Rx(alpha2) Rz(theta3), columns x3, s3 y3.
+    t1, t2, t3 = decompose_zxzxz([[x3[k], sig[2] * y3[k]] for k in range(3)], sig[0], sig[1])  # (..., 1|2, 2)
+    # Wrist: R_04 = R_03 Rz(theta4) Rx(alpha4), then columns 0, 2 of R_04^T R.
+    c4 = c4[..., None]
+    r04 = (
+        tuple(c4 * p + s4 * q for p, q in zip(x3, y3)),
+        tuple(sig[3] * p for p in z3),
+        tuple(sig[3] * (s4 * p - c4 * q) for p, q in zip(x3, y3)),
+    )
+    cols = entries(rot[..., :, 0:3:2])  # 3 x 2, per pose
+    cols = [tuple(cols[k][j][..., None] for k in range(3)) for j in range(2)]
+    m = [[_dot(r04[i], cols[j]) for j in range(2)] for i in range(3)]
+    t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2, 2)
+    shoulder = [t.transpose(-1, -2)[..., None] for t in (t1, t2, t3)]
+    thetas = [*shoulder, theta4[..., None, :, None], *(t[..., None, :, :] for t in (t5, t6, t7))]
     return finish(chain, thetas, reachable[..., None, None, None], branch_dims=3)
 
 
@@ -194,11 +195,11 @@ def iiwa_arm_angle(chain: DHChain, q: Tensor) -> Tensor:
     base_rot = chain.base[:3, :3].to(q.dtype)
     points = (frames[..., [1, 3, 5], :3, 3] - chain.base[:3, 3].to(q.dtype)) @ base_rot
     s, e, w = points.unbind(-2)
-    sw = w - s
-    u = sw / safe_norm2(safe_norm2(sw[..., 0], sw[..., 1]), sw[..., 2])[..., None]
-    v_ref, w_ref = _reference(u)
-    se = e - s
-    return safe_atan2((se * w_ref).sum(-1), (se * v_ref).sum(-1))
+    sx, sy, sz = (w - s).unbind(-1)
+    dist = safe_norm2(safe_norm2(sx, sy), sz)
+    v_ref, w_ref = _reference((sx / dist, sy / dist, sz / dist))
+    se = (e - s).unbind(-1)
+    return safe_atan2(_dot(se, w_ref), _dot(se, v_ref))
 
 
 def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
