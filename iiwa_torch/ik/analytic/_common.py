@@ -217,15 +217,14 @@ def last_frame_target(chain: DHChain, target: Tensor) -> Tensor:
 
 
 # ---------------------------------------------------------------- joint limits
-def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int) -> AnalyticSolutions:
-    """DH angles -> :class:`AnalyticSolutions`.
+def joint_angles(chain: DHChain, thetas: list[Tensor]) -> tuple[list[Tensor], Tensor]:
+    """DH angles -> joint angles and whether all are within the limits.
 
-    ``thetas`` holds one tensor per joint, each broadcastable to the common shape
-    ``(..., b_1, ..., b_m)`` whose last ``m = branch_dims`` dims index the branch signs (a
-    joint that does not depend on a sign has size 1 there, so it is wrapped and checked
-    once, not once per branch). Each joint gets its offset removed, is wrapped into
-    ``[-pi, pi]`` and then shifted by 2 pi if that brings it within its limits.
-    ``reachable`` broadcasts to the common shape too. Returns ``q (..., B, n)``.
+    ``thetas`` holds one tensor per joint, all broadcastable together (a joint that does not
+    depend on some branch sign has size 1 in that dim, so it is wrapped and checked once, not
+    once per branch). Each joint gets its offset removed, is wrapped into ``[-pi, pi]`` and
+    then shifted by 2 pi if that brings it within its limits. Returns the joint angles (same
+    shapes) and the broadcast ``within`` mask.
     """
     offsets = chain.dh[:, 3].tolist()
     lows, highs = chain.limits.tolist()
@@ -239,11 +238,26 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
             q = torch.where((q > hi) & (q - _TWO_PI >= lo), q - _TWO_PI, q)
         qs.append(q)
         inside.append((q >= lo) & (q <= hi))
+    return qs, reduce_grouped(torch.logical_and, inside)
+
+
+def reduce_grouped(op, tensors: list[Tensor]) -> Tensor:
+    """``op``-reduce broadcastable tensors, those of equal shape first: branch-independent
+    joints are small, and broadcasting ops are the slow ones, so this saves full-size work."""
+    groups: dict[torch.Size, Tensor] = {}
+    for t in tensors:
+        groups[t.shape] = op(groups[t.shape], t) if t.shape in groups else t
+    return functools.reduce(op, sorted(groups.values(), key=lambda t: t.numel()))
+
+
+def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int) -> AnalyticSolutions:
+    """DH angles -> :class:`AnalyticSolutions` (see :func:`joint_angles`).
+
+    The joints and ``reachable`` broadcast to a common shape ``(..., b_1, ..., b_m)`` whose
+    last ``m = branch_dims`` dims index the branch signs. Returns ``q (..., B, n)``.
+    """
+    qs, within = joint_angles(chain, thetas)
     shape = torch.broadcast_shapes(*(q.shape for q in qs), reachable.shape)
-    groups: dict[torch.Size, Tensor] = {}  # AND the masks of equal shape first: fewer full-size ops
-    for ok in inside:
-        groups[ok.shape] = groups[ok.shape] & ok if ok.shape in groups else ok
-    within = functools.reduce(torch.logical_and, groups.values())
     # Joint-major memory (each joint's values contiguous, as chain.fk wants them): q is a
     # non-contiguous view; the branch dims flatten without a copy.
     q = torch.stack([q.expand(shape) for q in qs], 0).movedim(0, -1).flatten(-1 - branch_dims, -2)

@@ -52,8 +52,10 @@ from ._common import (
     decompose_zxzxz,
     entries,
     finish,
+    joint_angles,
     last_frame_target,
     reach_tol,
+    reduce_grouped,
     safe_atan2,
     safe_norm2,
     sigma,
@@ -131,6 +133,13 @@ def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
         :class:`AnalyticSolutions` with ``q (..., [K,] 8, 7)``, branch ``k = 4 shoulder +
         2 elbow + wrist`` (module doc).
     """
+    thetas, reachable = _iiwa_thetas(chain, target, psi)
+    return finish(chain, thetas, reachable, branch_dims=3)
+
+
+def _iiwa_thetas(chain: DHChain, target: Tensor, psi) -> tuple[list[Tensor], Tensor]:
+    """:func:`iiwa` before assembly: the 7 DH angles, each broadcastable to
+    ``(..., [K,] 2 shoulder, 2 elbow, 2 wrist)``, and ``reachable`` (broadcastable too)."""
     geo = _Geometry(chain)
     rot, sw = _frames(chain, target)
     psi = torch.as_tensor(psi, dtype=target.dtype, device=target.device)
@@ -183,7 +192,7 @@ def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
     t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2, 2)
     shoulder = [t.transpose(-1, -2)[..., None] for t in (t1, t2, t3)]
     thetas = [*shoulder, theta4[..., None, :, None], *(t[..., None, :, :] for t in (t5, t6, t7))]
-    return finish(chain, thetas, reachable[..., None, None, None], branch_dims=3)
+    return thetas, reachable[..., None, None, None]
 
 
 def iiwa_arm_angle(chain: DHChain, q: Tensor) -> Tensor:
@@ -349,21 +358,25 @@ def _pick(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tup
     """Best of the ``K * 8`` candidates of each pose: ``target (B, 4, 4)``, ``psi (B, K)``,
     ``q0 (B, 7)`` or None -> ``q (B, 7)`` clamped into the limits, ``found (B,)`` bool (the
     candidate is valid) and its arm angle ``(B,)``."""
-    sol = iiwa(chain, target, psi)
-    joints = sol.q.movedim(-1, 0).flatten(-2)  # (7, B, K * 8), contiguous (the layout q is stored in)
-    valid, reachable = sol.valid.flatten(-2), sol.reachable.flatten(-2)
+    thetas, reachable = _iiwa_thetas(chain, target, psi)
+    qs, within = joint_angles(chain, thetas)  # per joint, only as large as its branches need
+    batch = target.shape[0]
     mids = chain.limits.mean(0).tolist()
     halves = ((chain.limits[1] - chain.limits[0]) / 2).tolist()
-    cost = None
-    for j, qj in enumerate(joints):  # joint by joint: contiguous ops
-        if q0 is None:  # minus the margin to the nearest limit (negative outside)
-            term = (qj - mids[j]).abs() - halves[j]
-            cost = term if cost is None else torch.maximum(cost, term)
-        else:  # squared distance to q0; no wrapping: a joint cannot turn through its limits
-            diff = qj - q0[:, j, None]
-            cost = diff * diff if cost is None else torch.addcmul(cost, diff, diff)
+    if q0 is None:  # minus the margin to the nearest limit (negative outside)
+        cost = reduce_grouped(torch.maximum, [(qj - mid).abs() - half for qj, mid, half in zip(qs, mids, halves)])
+    else:  # squared distance to q0; no wrapping: a joint cannot turn through its limits
+        diffs = [qj - q0[:, j].view(batch, 1, 1, 1, 1) for j, qj in enumerate(qs)]
+        cost = reduce_grouped(torch.add, [d * d for d in diffs])
+    shape = cost.shape  # (B, K, 2, 2, 2)
+    valid = (reachable & within).expand(shape)
     big = 1e6  # valid candidates first, then the reachable ones, then the rest
     key = torch.where(valid, cost, torch.where(reachable, big + cost, torch.full_like(cost, 2 * big)))
-    best = key.argmin(-1, keepdim=True)  # (B, 1)
-    q_best = joints.gather(-1, best[None].expand(7, -1, -1))[..., 0].T  # (B, 7)
-    return chain.clamp(q_best), valid.gather(-1, best).squeeze(-1), psi.gather(-1, best // 8).squeeze(-1)
+    best = key.reshape(batch, -1).argmin(-1)  # (B,)
+    index = torch.unravel_index(best, shape[1:])  # arm angle, shoulder, elbow, wrist
+    rows = torch.arange(batch, device=best.device)
+    zero = torch.zeros_like(best)
+    q_best = torch.stack(
+        [qj[(rows,) + tuple(ix if n > 1 else zero for ix, n in zip(index, qj.shape[1:]))] for qj in qs], -1
+    )
+    return chain.clamp(q_best), valid[(rows, *index)], psi.gather(-1, index[0][:, None]).squeeze(-1)
