@@ -66,6 +66,24 @@ def test_kernel_handles_modified_dh_base_and_tool():
     torch.testing.assert_close(e.T, torch.cat(so3.pose_error(chain.fk(q), target), -1), atol=1e-9, rtol=0)
 
 
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_kernel_rotation_error_near_half_turn(dtype):
+    # Targets turned by pi - d about an axis from the current pose: the error angle is pi - d
+    # (closed form) and the error vector stays finite with length at most the angle.
+    chain = robots.iiwa14()
+    q = chain.random_q(6, generator=torch.Generator().manual_seed(4), dtype=dtype)
+    pose = chain.fk(q)
+    angles = torch.tensor([math.pi, math.pi - 1e-7, math.pi - 1e-4, 3.0, 1e-8, 0.0], dtype=dtype)
+    axis = torch.nn.functional.normalize(torch.tensor([[0.3, -0.5, 0.8]], dtype=dtype), dim=-1)
+    target = pose.clone()
+    target[:, :3, :3] = so3.exp(axis * angles[:, None]) @ pose[:, :3, :3]
+    _, e, E, pos, rot = _evaluate(_Kinematics(chain, dtype, q.device), q.T.contiguous(), target_layout(target), 1.0)
+    assert torch.isfinite(e).all() and torch.isfinite(E).all()
+    tol = 1e-6 if dtype == torch.float64 else 1e-3
+    torch.testing.assert_close(rot, angles, atol=tol, rtol=0)
+    assert (e[3:].norm(dim=0) <= rot + tol).all()
+
+
 # ---------------------------------------------------------------- success on reachable targets
 @pytest.mark.parametrize(
     "dtype, precision", [(torch.float64, "auto"), (torch.float64, "input"), (torch.float32, "auto")]
