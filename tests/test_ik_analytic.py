@@ -392,6 +392,19 @@ class TestIiwaSolve:
         excess = _wrap(near.q - ref).norm(dim=-1) - _wrap(q - ref).norm(dim=-1)
         assert (excess <= 0.05).float().mean() >= 0.97 and excess.median() < 0.01
 
+    def test_batch_shapes_and_unreachable(self):
+        chain = IIWA["iiwa14"]
+        q = chain.random_q(2, 3, generator=_gen(25))
+        target = chain.fk(q)
+        assert analytic.iiwa_solve(chain, target[:0]).q.shape == (0, 3, 7)
+        res = analytic.iiwa_solve(chain, target, q0=q[0, 0])  # q0 broadcast over the batch
+        assert res.q.shape == (2, 3, 7) and res.success.all()
+        far = target.clone()
+        far[..., 0, 3] = 5.0
+        res = analytic.iiwa_solve(chain, far)
+        assert not res.success.any() and chain.within_limits(res.q).all() and torch.isfinite(res.q).all()
+        assert (res.pos_err > 3).all()
+
     def test_agrees_with_the_gradient_solver(self):
         ik = pytest.importorskip("iiwa_torch.ik")
         if not hasattr(ik, "solve"):

@@ -315,7 +315,10 @@ def iiwa_solve(
             q0 = torch.broadcast_to(q0.to(target.dtype), (*batch, 7)).reshape(-1, 7)
         except RuntimeError:
             raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
-    q_best, found = _sweep(chain, flat, q0, num_psi)
+    if flat.shape[0] == 0:  # no poses
+        q_best, found = flat.new_zeros(0, 7), torch.zeros(0, dtype=torch.bool, device=flat.device)
+    else:
+        q_best, found = _sweep(chain, flat, q0, num_psi)
     missed = (~found).nonzero().squeeze(-1)
     if missed.numel():  # narrow feasible arm-angle intervals: once more, 16 times finer
         q_fine, found_fine = _sweep(chain, flat[missed], None if q0 is None else q0[missed], 16 * num_psi)
@@ -349,7 +352,7 @@ def _pick_chunked(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None
     chunk = max(1, _CANDIDATES // (8 * psi.shape[-1]))
     picks = [
         _pick(chain, target[i : i + chunk], psi[i : i + chunk], None if q0 is None else q0[i : i + chunk])
-        for i in range(0, max(target.shape[0], 1), chunk)
+        for i in range(0, target.shape[0], chunk)
     ]
     return tuple(torch.cat(parts) for parts in zip(*picks))
 
