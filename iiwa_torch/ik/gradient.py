@@ -87,21 +87,24 @@ class _Kinematics:
         """``q (n, b)`` -> end axes ``R (3, 3, b)`` (axis x/y/z, component), end position
         ``p (3, b)`` and points on the joint axes ``P (3, n, b)``; the joint axes themselves
         are written into ``Z (3, n, b)``."""
-        n, b = q.shape
+        b = q.shape[1]
         theta = q + self.offsets
         c, s = torch.cos(theta), torch.sin(theta)
-        P = q.new_empty(3, n, b)
+        axes, points = [], []
         x, y, z, p = self.base[:3, :, None].expand(3, 4, b).unbind(1)
         for i, (a, ca, sa, d) in enumerate(self.steps):
             if self.modified:
                 y, z = self._twist(y, z, ca, sa)
                 p = torch.add(p, x, alpha=a) if a else p
-            Z[:, i], P[:, i] = z, p
+            axes.append(z)
+            points.append(p)
             x, y = torch.addcmul(c[i] * x, s[i], y), torch.addcmul(c[i] * y, s[i], x, value=-1)
             p = torch.add(p, z, alpha=d) if d else p
             if not self.modified:
                 p = torch.add(p, x, alpha=a) if a else p
                 y, z = self._twist(y, z, ca, sa)
+        torch.stack(axes, 1, out=Z)
+        P = torch.stack(points, 1)  # (3, n, b)
         R = torch.stack([x, y, z])  # (3, 3, b)
         if self.tool is not None:
             p = p + (R * self.tool[:3, 3, None, None]).sum(0)
