@@ -25,6 +25,8 @@ from enum import Enum
 import torch
 from torch import nn
 
+from ._checks import check_finite, check_float_tensor
+
 __all__ = ["Convention", "DHChain"]
 
 Tensor = torch.Tensor
@@ -185,20 +187,14 @@ class DHChain(nn.Module):
         """Raise a clear ``TypeError``/``ValueError`` unless ``q`` is a finite ``(..., n)`` float tensor
         on this chain's device."""
         n = self.n_joints
-        if not isinstance(q, torch.Tensor):
-            raise TypeError(f"{name} must be a torch.Tensor of shape (..., {n}), got {type(q).__name__}")
-        if not q.is_floating_point():
-            raise TypeError(f"{name} must be a float32 or float64 tensor, got {q.dtype}")
+        check_float_tensor(q, name, f"(..., {n})")
         if q.ndim == 0 or q.shape[-1] != n:
             raise ValueError(f"{name} must have shape (..., {n}), got {tuple(q.shape)}")
         if q.device != self.dh.device:
             raise ValueError(
                 f"{name} is on {q.device} but the chain is on {self.dh.device}; use chain.to({str(q.device)!r})"
             )
-        # One cheap reduction; the elementwise test only runs if the sum is not finite.
-        if not math.isfinite(q.detach().sum()) and not torch.isfinite(q).all():
-            bad = (~torch.isfinite(q)).nonzero()[0].tolist()
-            raise ValueError(f"{name} contains NaN or inf (first at index {tuple(bad)}); joint angles must be finite")
+        check_finite(q, name)
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""

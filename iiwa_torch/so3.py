@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import torch
 
+from ._checks import check_finite, check_float_tensor
+
 __all__ = [
     "skew",
     "exp",
@@ -146,14 +148,10 @@ def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
 
 def check_pose(pose: torch.Tensor, name: str = "pose") -> None:
     """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` tensor."""
-    if not isinstance(pose, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor of shape (..., 4, 4), got {type(pose).__name__}")
-    if not pose.is_floating_point():
-        raise TypeError(f"{name} must be a float32 or float64 tensor, got {pose.dtype}")
+    check_float_tensor(pose, name, "(..., 4, 4)")
     if pose.shape[-2:] != (4, 4):
         raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(pose.shape)}")
-    if not torch.isfinite(pose).all():
-        raise ValueError(f"{name} contains NaN or inf")
+    check_finite(pose, name)
 
 
 def pose_error(pose: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -13,7 +13,6 @@ have no visuals and a token inertia (kinematics only).
 
 from __future__ import annotations
 
-import math
 from xml.sax.saxutils import quoteattr
 
 import torch
@@ -64,6 +63,4 @@ def to_urdf(chain: DHChain, name: str | None = None) -> str:
         f'<child link="tool0"/>{_origin(tool)}</joint>'
     )
     lines.append("</robot>")
-    if not all(math.isfinite(v) for v in dh.flatten().tolist()):
-        raise ValueError("the chain's DH table is not finite")
     return "\n".join(lines) + "\n"

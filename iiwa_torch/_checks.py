@@ -1,0 +1,29 @@
+"""Input checks shared by the library: clear errors that name what was expected and what came."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def all_finite(x: torch.Tensor) -> bool:
+    """True if no element is NaN or inf. One reduction; the elementwise test runs only when
+    the sum is not finite (a NaN/inf, or an overflow of huge finite values)."""
+    return math.isfinite(x.detach().sum()) or bool(torch.isfinite(x).all())
+
+
+def check_float_tensor(x, name: str, shape: str) -> None:
+    """Raise ``TypeError`` unless ``x`` is a float32/float64 tensor; ``shape`` (e.g.
+    ``"(..., 4, 4)"``) goes into the message."""
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor of shape {shape}, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name} must be a float32 or float64 tensor, got {x.dtype}")
+
+
+def check_finite(x: torch.Tensor, name: str) -> None:
+    """Raise ``ValueError`` naming the first NaN/inf element of ``x``, if any."""
+    if not all_finite(x):
+        bad = tuple((~torch.isfinite(x)).nonzero()[0].tolist())
+        raise ValueError(f"{name} contains NaN or inf (first at index {bad})")
