@@ -68,12 +68,14 @@ class Rollout:
     angle: ``(T + 1, n)`` orientation error (rad; zeros for position goals and at reset).
     q: ``(T + 1, n, nj)`` joint angles (rad) along the way.
     seconds: wall time of the whole rollout (policy and env), s.
+    act_seconds: the part of it spent in ``act`` (the policy alone), s.
     """
 
     distance: np.ndarray
     angle: np.ndarray
     q: np.ndarray
     seconds: float
+    act_seconds: float
 
 
 def _pose_from_goal(goal: np.ndarray) -> torch.Tensor:
@@ -119,8 +121,12 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
     dist = [np.linalg.norm(obs["achieved_goal"][:, :3] - obs["desired_goal"][:, :3], axis=-1)]
     angle = [np.zeros(goals.n)]
     q = [joints(obs["observation"])]
+    act_seconds = 0.0
     for t in range(steps):
-        obs, _, done, infos = env.step(act(obs))
+        tic = time.perf_counter()
+        action = act(obs)
+        act_seconds += time.perf_counter() - tic
+        obs, _, done, infos = env.step(action)
         dist.append(np.array([i["distance"] for i in infos]))
         angle.append(np.array([i.get("orientation_error", 0.0) for i in infos]))
         last = np.stack([i["terminal_observation"]["observation"] for i in infos]) if t == steps - 1 \
@@ -130,7 +136,7 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
     if not all(i.get("TimeLimit.truncated", False) for i in infos):
         raise RuntimeError(f"expected every episode to end by time limit after {steps} steps")
     return Rollout(np.array(dist, dtype=np.float64), np.array(angle, dtype=np.float64),
-                   np.array(q, dtype=np.float64), seconds)
+                   np.array(q, dtype=np.float64), seconds, act_seconds)
 
 
 def policy_actor(model, vec_normalize=None) -> Actor:

@@ -1,0 +1,76 @@
+"""Copy a finished run into ``train/policies/NAME`` with a record of how it was made.
+
+    python -m train.ship --run runs/ppo_reach --name ppo_iiwa_reach
+
+Copies ``model.zip``, ``vecnormalize.pkl``, ``config.yaml``, ``train_info.json`` and
+``evaluations.json`` (the learning curve) and writes ``RECORD.md``: the command, seed,
+commit, training wall time, steps per second and load average. Then evaluate it:
+``python -m train.evaluate --model train/policies/NAME --goals 1000 --seed 0 --out train/policies/NAME/report``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import yaml
+
+POLICIES = Path(__file__).resolve().parent / "policies"
+FILES = ("model.zip", "vecnormalize.pkl", "config.yaml", "train_info.json", "evaluations.json")
+
+
+def ship(run: Path, name: str) -> Path:
+    """Copy the run's final files to ``train/policies/<name>`` and write its ``RECORD.md``."""
+    if not (run / "train_info.json").exists():
+        raise FileNotFoundError(f"{run} has no train_info.json: is it a finished train.train run?")
+    dest = POLICIES / name
+    dest.mkdir(parents=True, exist_ok=True)
+    for f in FILES:
+        if (run / f).exists():
+            shutil.copy2(run / f, dest / f)
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    info = json.loads((run / "train_info.json").read_text())
+    last = info["final_evaluation"] or {}
+    load = info["machine"]["loadavg"]
+    lines = [
+        f"# {name}: {config['algo'].upper()} on {config['env_id']}",
+        "",
+        "Trained with (from the repository root):",
+        "",
+        f"    {config['command']}",
+        "",
+        f"- seed: {config['seed']}",
+        f"- commit: {config['commit']} (\"+dirty\": train/ or envs/ had uncommitted changes when the run started)",
+        f"- env steps: {info['num_timesteps']:,}; training wall time: {info['wall_time']:.0f} s "
+        f"({info['steps_per_second']:,.0f} env steps/s)",
+        f"- machine: {info['machine']['cpu']}, {info['machine']['cpu_count']} CPUs shared with other users, "
+        f"load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} (1/5/15 min), "
+        f"torch threads {info['machine']['torch_threads']}, torch {info['machine']['torch']}",
+        f"- last periodic evaluation (goal-set seed 10,000, {len(json.loads((run / 'evaluations.json').read_text()))}"
+        f" evaluations in evaluations.json): success at 1 cm {100 * last.get('success', float('nan')):.1f}%, "
+        f"median final distance {1000 * last.get('median_distance', float('nan')):.2f} mm",
+        "",
+        "The held-out comparison with the IK solvers is in report/ (train.evaluate, 1,000 goals, seed 0).",
+        "",
+    ]
+    (dest / "RECORD.md").write_text("\n".join(lines))
+    return dest
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m train.ship", description=__doc__.split("\n\n")[0])
+    p.add_argument("--run", required=True, type=Path, help="finished run directory")
+    p.add_argument("--name", required=True, help="folder name under train/policies/")
+    args = p.parse_args(argv)
+    try:
+        print(ship(args.run, args.name))
+    except FileNotFoundError as err:
+        p.error(str(err))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
