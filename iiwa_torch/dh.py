@@ -30,6 +30,7 @@ from ._checks import check_finite, check_float_tensor
 __all__ = ["Convention", "DHChain"]
 
 Tensor = torch.Tensor
+Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
 _BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
 _SMALL_BATCH = 128  # up to this many configurations the 4x4-product kernel is faster (measured)
 
@@ -215,23 +216,32 @@ class DHChain(nn.Module):
         return lim[0] + u * (lim[1] - lim[0])
 
     # ------------------------------------------------------------------ kinematics
-    # Both kernels return frames "batch last": a (F, 3, 4, b) tensor of frame, row, column
-    # (x, y, z axes, origin) and configuration, with F = n + 1 (base and links) if ``keep``,
-    # else 1 (the last link). Batch last keeps every elementwise op contiguous.
+    # Inside, frames are "batch last": a (F, 3, 4, b) tensor of frame, row, column (x, y, z
+    # axes, origin) and configuration, with F = n + 1 (base and links) if ``keep``, else 1
+    # (the last link). Batch last keeps every elementwise op contiguous.
 
-    def _frames_elementwise(self, q: Tensor, keep: bool) -> Tensor:
-        """Large batches: the moving frame's axis columns are rotated with elementwise
-        multiply-adds over the whole block; the constant twists (``alpha`` of 0 or +-pi/2)
-        are swaps and sign flips. No 4x4 products."""
-        theta = (q + self.dh[:, 3].to(q.dtype)).T.contiguous()  # (n, b)
+    def frames_batch_last(self, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
+        """The elementwise kernel itself, for hot loops that keep a batch-last layout (IK).
+
+        ``q (n, b)``: joint angles, batch last, not checked. Returns ``(frames, axes)``:
+        ``frames`` holds ``(x, y, z, p)``, the axis columns and the origin of a frame, each
+        ``(3, b)``, for the base and every link if ``keep`` (else only the last link);
+        ``axes`` holds ``(z_i, p_i)``, joint i's axis and a point on it (if ``keep``). The
+        tool is not applied. The moving frame's axes are rotated with elementwise
+        multiply-adds over the whole batch; the constant twists (``alpha`` of 0 or +-pi/2)
+        are swaps and sign flips; no 4x4 products.
+        """
+        theta = (q + self.dh[:, 3, None].to(q.dtype)).contiguous()  # (n, b)
         c, s = torch.cos(theta), torch.sin(theta)
-        x, y, z, p = self.base.to(q.dtype)[:3, :, None].expand(3, 4, q.shape[0]).unbind(1)  # each (3, b)
-        frames = [(x, y, z, p)]
+        x, y, z, p = self.base.to(q.dtype)[:3, :, None].expand(3, 4, q.shape[1]).unbind(1)  # each (3, b)
+        frames, axes = [(x, y, z, p)], []
         modified = self.convention is Convention.MODIFIED
         for i, (a, ca, sa, d) in enumerate(self._steps):
             if modified:
                 y, z = _rotate_x(y, z, ca, sa)
                 p = torch.add(p, x, alpha=a) if a else p
+            if keep:
+                axes.append((z, p))
             x, y = _rotate_z(x, y, c[i], s[i])
             p = torch.add(p, z, alpha=d) if d else p
             if not modified:
@@ -239,7 +249,12 @@ class DHChain(nn.Module):
                 y, z = _rotate_x(y, z, ca, sa)
             if keep:
                 frames.append((x, y, z, p))
-        return torch.stack([torch.stack(f, 1) for f in (frames if keep else [(x, y, z, p)])], 0)
+        return (frames if keep else [(x, y, z, p)]), axes
+
+    def _frames_elementwise(self, q: Tensor, keep: bool) -> Tensor:
+        """Large batches: ``(b, n) -> (F, 3, 4, b)`` through :meth:`frames_batch_last`."""
+        frames, _ = self.frames_batch_last(q.T, keep)
+        return torch.stack([torch.stack(f, 1) for f in frames], 0)
 
     def _frames_matmul(self, q: Tensor, keep: bool) -> Tensor:
         """Small batches, few ops: ``(b, n) -> (F, b, 4, 4)`` full matrices. Each ``A_i`` is

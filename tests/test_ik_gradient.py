@@ -13,7 +13,7 @@ import torch
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import IKResult, minimize, solve
-from iiwa_torch.ik.gradient import _cholesky_solve, _evaluate, _Kinematics, _Target
+from iiwa_torch.ik.gradient import _cholesky_solve, _evaluate, _Target
 
 DTYPES = [torch.float64, torch.float32]
 
@@ -39,7 +39,7 @@ def test_kernel_matches_chain_jacobian_and_pose_error(name):
     chain = robots.PRESETS[name]()
     q = chain.random_q(64, generator=torch.Generator().manual_seed(0))
     target, _ = reachable(chain, 64, 1)
-    J, e, E, pos, rot = _evaluate(_Kinematics(chain, q.dtype, q.device), q.T.contiguous(), target_layout(target), 0.5)
+    J, e, E, pos, rot = _evaluate(chain, q.T.contiguous(), target_layout(target), 0.5)
     ref_J = chain.jacobian(q)
     ref_pos, ref_rot = so3.pose_error(chain.fk(q), target)
     scale = torch.tensor([1, 1, 1, 0.5, 0.5, 0.5], dtype=q.dtype)
@@ -61,7 +61,7 @@ def test_kernel_handles_modified_dh_base_and_tool():
     chain = DHChain(table, convention="modified", base=base, tool=tool)
     q = chain.random_q(32, generator=torch.Generator().manual_seed(2))
     target, _ = reachable(chain, 32, 3)
-    J, e, _, _, _ = _evaluate(_Kinematics(chain, q.dtype, q.device), q.T.contiguous(), target_layout(target), 1.0)
+    J, e, _, _, _ = _evaluate(chain, q.T.contiguous(), target_layout(target), 1.0)
     torch.testing.assert_close(J.permute(2, 0, 1), chain.jacobian(q), atol=1e-12, rtol=0)
     torch.testing.assert_close(e.T, torch.cat(so3.pose_error(chain.fk(q), target), -1), atol=1e-9, rtol=0)
 
@@ -77,7 +77,7 @@ def test_kernel_rotation_error_near_half_turn(dtype):
     axis = torch.nn.functional.normalize(torch.tensor([[0.3, -0.5, 0.8]], dtype=dtype), dim=-1)
     target = pose.clone()
     target[:, :3, :3] = so3.exp(axis * angles[:, None]) @ pose[:, :3, :3]
-    _, e, E, pos, rot = _evaluate(_Kinematics(chain, dtype, q.device), q.T.contiguous(), target_layout(target), 1.0)
+    _, e, E, pos, rot = _evaluate(chain, q.T.contiguous(), target_layout(target), 1.0)
     assert torch.isfinite(e).all() and torch.isfinite(E).all()
     tol = 1e-6 if dtype == torch.float64 else 1e-3
     torch.testing.assert_close(rot, angles, atol=tol, rtol=0)

@@ -23,7 +23,7 @@ from typing import Literal, get_args
 import torch
 
 from .. import so3
-from ..dh import Convention, DHChain
+from ..dh import DHChain
 from .result import IKResult
 
 __all__ = ["Mode", "Optimizer", "Precision", "solve", "minimize"]
@@ -53,63 +53,20 @@ def _check_positive(value, name: str, integer: bool = False) -> None:
 
 
 # ---------------------------------------------------------------------- batch-last kinematics
-class _Kinematics:
-    """End pose and Jacobian ingredients of a chain, batch last, for the solver's inner loop.
-
-    The same maths as :class:`DHChain` (whose tests this is checked against), kept as
-    ``(3, b)`` axis columns so no layout change happens inside the loop.
-    """
-
-    def __init__(self, chain: DHChain, dtype: torch.dtype, device: torch.device) -> None:
-        def exact(v: float) -> float:  # cos/sin of a multiple of pi/2 snapped to 0 or +-1
-            return float(round(v)) if abs(v - round(v)) < 1e-12 else v
-
-        self.n = chain.n_joints
-        self.modified = chain.convention is Convention.MODIFIED
-        self.steps = [(a, exact(math.cos(al)), exact(math.sin(al)), d) for a, al, d, _ in chain.dh.tolist()]
-        self.offsets = chain.dh[:, 3].to(dtype=dtype, device=device)[:, None]  # (n, 1)
-        self.base = chain.base.to(dtype=dtype, device=device)
-        tool = chain.tool.to(dtype=dtype, device=device)
-        self.tool = (
-            None if torch.equal(chain.tool, torch.eye(4, dtype=chain.tool.dtype, device=chain.tool.device)) else tool
-        )
-
-    @staticmethod
-    def _twist(y: Tensor, z: Tensor, ca: float, sa: float) -> tuple[Tensor, Tensor]:
-        """Rotate the frame axes y, z about x by the constant angle with cosine ca, sine sa."""
-        if ca == 0.0:
-            return (z, -y) if sa > 0 else (-z, y)
-        if sa == 0.0:
-            return (y, z) if ca > 0 else (-y, -z)
-        return torch.add(ca * y, z, alpha=sa), torch.add(ca * z, y, alpha=-sa)
-
-    def __call__(self, q: Tensor, Z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``q (n, b)`` -> end axes ``R (3, 3, b)`` (axis x/y/z, component), end position
-        ``p (3, b)`` and points on the joint axes ``P (3, n, b)``; the joint axes themselves
-        are written into ``Z (3, n, b)``."""
-        b = q.shape[1]
-        theta = q + self.offsets
-        c, s = torch.cos(theta), torch.sin(theta)
-        axes, points = [], []
-        x, y, z, p = self.base[:3, :, None].expand(3, 4, b).unbind(1)
-        for i, (a, ca, sa, d) in enumerate(self.steps):
-            if self.modified:
-                y, z = self._twist(y, z, ca, sa)
-                p = torch.add(p, x, alpha=a) if a else p
-            axes.append(z)
-            points.append(p)
-            x, y = torch.addcmul(c[i] * x, s[i], y), torch.addcmul(c[i] * y, s[i], x, value=-1)
-            p = torch.add(p, z, alpha=d) if d else p
-            if not self.modified:
-                p = torch.add(p, x, alpha=a) if a else p
-                y, z = self._twist(y, z, ca, sa)
-        torch.stack(axes, 1, out=Z)
-        P = torch.stack(points, 1)  # (3, n, b)
-        R = torch.stack([x, y, z])  # (3, 3, b)
-        if self.tool is not None:
-            p = p + (R * self.tool[:3, 3, None, None]).sum(0)
-            R = torch.einsum("kcb,kj->jcb", R, self.tool[:3, :3])
-        return R, p, P
+def _kinematics(chain: DHChain, q: Tensor, Z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``q (n, b)`` -> end axes ``R (3, 3, b)`` (axis x/y/z, component), end position ``p (3, b)``
+    and points on the joint axes ``P (3, n, b)``; the joint axes are written into ``Z (3, n, b)``.
+    Uses the chain's own batch-last kernel, so no layout change happens inside the loop."""
+    frames, axes = chain.frames_batch_last(q)
+    torch.stack([z for z, _ in axes], 1, out=Z)
+    P = torch.stack([p for _, p in axes], 1)
+    x, y, z, p = frames[-1]
+    R = torch.stack([x, y, z])  # (3, 3, b)
+    if chain._has_tool:
+        tool = chain.tool.to(q.dtype)
+        p = p + (R * tool[:3, 3, None, None]).sum(0)
+        R = torch.einsum("kcb,kj->jcb", R, tool[:3, :3])
+    return R, p, P
 
 
 def _roll(vectors: Tensor, dim: int) -> Tensor:
@@ -138,7 +95,7 @@ class _Target:
 
 
 def _evaluate(
-    kin: _Kinematics, q: Tensor, target: _Target, weight: float
+    chain: DHChain, q: Tensor, target: _Target, weight: float
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """``q (n, b)`` -> weighted Jacobian ``J (m, n, b)``, weighted error ``e (m, b)`` (m = 6 or 3),
     squared weighted error ``E (b,)``, position error ``(b,)`` m, rotation error ``(b,)`` rad."""
@@ -146,7 +103,7 @@ def _evaluate(
     pose = target.rot is not None
     J = q.new_empty(6 if pose else 3, n, b)
     Z = J[3:] if pose else q.new_empty(3, n, b)  # the angular rows are the joint axes
-    R, p, P = kin(q, Z)
+    R, p, P = _kinematics(chain, q, Z)
     e_pos = target.pos - p
     pos_err = torch.addcmul(torch.addcmul(e_pos[0] * e_pos[0], e_pos[1], e_pos[1]), e_pos[2], e_pos[2]).sqrt()
     lever = p[:, None] - P  # (3, n, b)
@@ -221,7 +178,7 @@ def _damped_solve(J: Tensor, rhs: Tensor, lam: Tensor, floor: float, free: Tenso
 
 
 # ---------------------------------------------------------------------- solve
-def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_max):
+def _lm_step(chain, state, target, weight, limits, rest, rest_gain, lam_min, lam_max):
     """One Levenberg-Marquardt step for every slot. ``state`` is ``(q, J, e, E, pos_err,
     rot_err, lam)``; a step is kept where it lowers ``E``, and the damping follows.
     ``limits`` is ``(lo, hi)``, each ``(n, 1)``, or None for an unconstrained step."""
@@ -243,7 +200,7 @@ def _lm_step(kin, state, target, weight, limits, rest, rest_gain, lam_min, lam_m
         sol = _damped_solve(J, torch.stack([e, (J * pull).sum(1)], 1), lam, lam_min, free)
         dq = sol[:, 0] + pull - sol[:, 1]
     q_new = q + dq if limits is None else torch.minimum(torch.maximum(q + dq, lo), hi)
-    J_new, e_new, E_new, pos_new, rot_new = _evaluate(kin, q_new, target, weight)
+    J_new, e_new, E_new, pos_new, rot_new = _evaluate(chain, q_new, target, weight)
     kept = (E_new < E).to(q.dtype)  # lerp with weight 0 or 1 is exact, and ~10x faster than where
     return (
         torch.lerp(q, q_new, kept),
@@ -430,7 +387,6 @@ def solve(
 
     with torch.no_grad():
         flat = flat.to(work)
-        kin = _Kinematics(chain, work, device)
         lo, hi = (x[:, None] for x in _inner_limits(chain, work))  # (n, 1) each
         first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
         lam_min = 1e-12 if work == torch.float64 else 1e-6
@@ -460,7 +416,7 @@ def solve(
                 best_q.copy_(q[:, :b])
             slot_tgt = tgt.take(problem)
             slot_rest = None if rest_flat is None else rest_flat[problem].T.contiguous()
-            J, e, E, pos_err, rot_err = _evaluate(kin, q, slot_tgt, weight)
+            J, e, E, pos_err, rot_err = _evaluate(chain, q, slot_tgt, weight)
             # Initial damping: 1% of the squared error, at most _LAMBDA0: a seed near its answer
             # (tracking) starts with nearly Gauss-Newton steps (measured: 2.7 instead of 4.1
             # iterations from 0.05 rad away; no change from random seeds).
@@ -469,9 +425,9 @@ def solve(
             for step in range(iterations):
                 if step == free_steps and step:  # the unconstrained start ends: into the limits
                     q = _into_limits(state[0], lo, hi)
-                    state = (q, *_evaluate(kin, q, slot_tgt, weight), state[-1])
+                    state = (q, *_evaluate(chain, q, slot_tgt, weight), state[-1])
                 limits = None if step < free_steps else (lo, hi)
-                state = _lm_step(kin, state, slot_tgt, weight, limits, slot_rest, rest_gain, lam_min, 1e4)
+                state = _lm_step(chain, state, slot_tgt, weight, limits, slot_rest, rest_gain, lam_min, 1e4)
                 if (step + 1) % check_every and step + 1 < iterations:
                     continue
                 used.index_add_(0, problem, torch.full_like(problem, step + 1 - checked))
