@@ -423,10 +423,9 @@ def train(args: argparse.Namespace) -> Path:
     previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     interrupted = False
     try:
-        remaining = total - model.num_timesteps
-        if remaining > 0:
-            model.learn(remaining, callback=callback, reset_num_timesteps=False, progress_bar=args.progress_bar,
-                        tb_log_name="run")
+        # learn(0) still starts the callback (goal set, clock) when the run is already complete
+        model.learn(max(total - model.num_timesteps, 0), callback=callback, reset_num_timesteps=False,
+                    progress_bar=args.progress_bar, tb_log_name="run")
     except KeyboardInterrupt:
         interrupted = True
     finally:
