@@ -375,8 +375,11 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         evaluations = json.loads((model_dir / "evaluations.json").read_text())
     compare = {}
     for p in compare_paths:
-        blob = json.loads(Path(p).read_text())
-        compare[blob.get("label", Path(p).stem)] = blob["evaluations"] if isinstance(blob, dict) else blob
+        blob = json.loads(Path(p).read_text())  # {"label", "evaluations"} or a run's evaluations.json list
+        if isinstance(blob, dict):
+            compare[blob["label"]] = blob["evaluations"]
+        else:
+            compare[Path(p).parent.name] = blob
     out.mkdir(parents=True, exist_ok=True)
     report = {
         "env_id": env_id,

@@ -6,6 +6,11 @@ Copies ``model.zip``, ``vecnormalize.pkl``, ``config.yaml``, ``train_info.json``
 ``evaluations.json`` (the learning curve) and writes ``RECORD.md``: the command, seed,
 commit, training wall time, steps per second and load average. Then evaluate it:
 ``python -m train.evaluate --model train/policies/NAME --goals 1000 --seed 0 --out train/policies/NAME/report``.
+
+    python -m train.ship --run runs/panda --curve train/policies/panda.json --label "PandaReach-v3"
+
+keeps only the learning curve of a run (with its command and machine record), for
+``train.evaluate --compare``.
 """
 
 from __future__ import annotations
@@ -60,13 +65,37 @@ def ship(run: Path, name: str) -> Path:
     return dest
 
 
+def export_curve(run: Path, out: Path, label: str) -> Path:
+    """Write ``{"label", "command", "train_info", "evaluations"}`` of a finished run to ``out``."""
+    if not (run / "train_info.json").exists():
+        raise FileNotFoundError(f"{run} has no train_info.json: is it a finished train.train run?")
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    blob = {
+        "label": label,
+        "command": config["command"],
+        "commit": config["commit"],
+        "train_info": json.loads((run / "train_info.json").read_text()),
+        "evaluations": json.loads((run / "evaluations.json").read_text()),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(blob, indent=1))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m train.ship", description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True, type=Path, help="finished run directory")
-    p.add_argument("--name", required=True, help="folder name under train/policies/")
+    p.add_argument("--name", help="folder name under train/policies/")
+    p.add_argument("--curve", type=Path, help="write only the learning curve to this JSON file")
+    p.add_argument("--label", help="label of the curve (with --curve)")
     args = p.parse_args(argv)
+    if (args.name is None) == (args.curve is None):
+        p.error("give either --name (ship the policy) or --curve FILE --label TEXT (keep the learning curve)")
     try:
-        print(ship(args.run, args.name))
+        if args.name:
+            print(ship(args.run, args.name))
+        else:
+            print(export_curve(args.run, args.curve, args.label or args.run.name))
     except FileNotFoundError as err:
         p.error(str(err))
     return 0

@@ -299,7 +299,7 @@ def _callbacks(run: Path, hp: dict[str, Any], env_id: str, env_kwargs: dict[str,
                 self.logger.record(f"eval/{key}", entry[key])
             if self.verbose:
                 print(f"[eval] steps={entry['steps']} wall={entry['wall_time']:.0f}s "
-                      f"success@1cm={entry['success']:.3f} "
+                      f"success={entry['success']:.3f} "
                       f"median={1000 * entry['median_distance']:.1f}mm p95={1000 * entry['p95_distance']:.1f}mm",
                       flush=True)
 
