@@ -285,6 +285,17 @@ class DHChain(nn.Module):
         t = self.tool.to(last.dtype)[:3, 3]
         return last[:, 3] + (last[:, :3] * t[None, :, None]).sum(1)
 
+    def _axes(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(b, n)`` -> joint axes ``z (n, 3, b)``, a point on each ``(n, 3, b)`` and the end
+        position ``(3, b)``: what the Jacobian needs, without stacking whole frames."""
+        if q.shape[0] <= _SMALL_BATCH:
+            frames = self._frames(q, keep=True)  # (n + 1, 3, 4, b)
+            axes = frames[:-1] if self.convention is Convention.STANDARD else frames[1:]
+            return axes[:, :, 2], axes[:, :, 3], self._end_position(frames[-1])
+        frames, axes = self.frames_batch_last(q.T)
+        z, origin = (torch.stack(column) for column in zip(*axes))
+        return z, origin, self._end_position(torch.stack(frames[-1], 1))
+
     @staticmethod
     def _poses(frames: Tensor) -> Tensor:
         """``(F, 3, 4, b)`` -> ``(b, F, 4, 4)`` homogeneous matrices."""
@@ -313,10 +324,8 @@ class DHChain(nn.Module):
         return pose @ self.tool.to(qb.dtype) if self._has_tool else pose
 
     def _jacobian(self, qb: Tensor) -> Tensor:
-        frames = self._frames(qb, keep=True)  # (n + 1, 3, 4, b)
-        axes = frames[:-1] if self.convention is Convention.STANDARD else frames[1:]
-        z, origin = axes[:, :, 2], axes[:, :, 3]  # (n, 3, b)
-        lever = self._end_position(frames[-1]) - origin
+        z, origin, end = self._axes(qb)  # (n, 3, b), (n, 3, b), (3, b)
+        lever = end - origin
         jac = torch.cat([torch.linalg.cross(z, lever, dim=1), z], 1)  # (n, 6, b)
         return jac.permute(2, 1, 0)
 
