@@ -14,7 +14,7 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 demo: $(VENV)/.installed
-	$(VENV)/bin/iiwa-torch demo && $(PY) -m train.evaluate --model train/policies/ppo_iiwa_reach --goals 1000 --seed 0 --out reports/demo
+	$(VENV)/bin/iiwa-torch demo && $(PY) -m train.evaluate --model train/policies/ppo_iiwa_reach --goals 1000 --seed 0 --out reports/demo --compare train/policies/panda_gym_reach_sac.json
 
 test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2
