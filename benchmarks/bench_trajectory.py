@@ -56,6 +56,19 @@ def per_call(fn, items, repeats: int) -> float:
     return float(np.median(samples))
 
 
+def _against_peer(pairs: int, ours: float, peer: float, error_name: str, error: float) -> dict:
+    """One record: our batched time for ``pairs`` 50-step trajectories, the peer's time per pair."""
+    return {
+        "pairs": pairs,
+        "steps": 50,
+        "ours s (batched)": ours,
+        "ours us/pair": ours / pairs * 1e6,
+        "roboticstoolbox us/pair": peer * 1e6,
+        "speed-up": peer / (ours / pairs),
+        error_name: float(error),
+    }
+
+
 def bench_jtraj(pairs: int, peer_pairs: int, repeats: int) -> dict:
     import roboticstoolbox as rtb
 
@@ -67,15 +80,7 @@ def bench_jtraj(pairs: int, peer_pairs: int, repeats: int) -> dict:
     a, b, tn = q0.numpy(), q1.numpy(), t.numpy()
     peer = per_call(lambda i: rtb.jtraj(a[i], b[i], tn), range(peer_pairs), repeats)
     ref = np.stack([rtb.jtraj(a[i], b[i], tn).q for i in range(peer_pairs)])
-    return {
-        "pairs": pairs,
-        "steps": 50,
-        "ours s (batched)": ours,
-        "ours us/pair": ours / pairs * 1e6,
-        "roboticstoolbox us/pair": peer * 1e6,
-        "speed-up": peer / (ours / pairs),
-        "max |q ours - q rtb| rad": float(np.abs(mine.q.numpy() - ref).max()),
-    }
+    return _against_peer(pairs, ours, peer, "max |q ours - q rtb| rad", np.abs(mine.q.numpy() - ref).max())
 
 
 def bench_ctraj(pairs: int, peer_pairs: int, repeats: int) -> dict:
@@ -91,15 +96,7 @@ def bench_ctraj(pairs: int, peer_pairs: int, repeats: int) -> dict:
     b = [SE3(x, check=False) for x in T1[:peer_pairs].numpy()]
     peer = per_call(lambda i: rtb.ctraj(a[i], b[i], s=s), range(peer_pairs), repeats)
     ref = np.stack([np.stack(rtb.ctraj(a[i], b[i], s=s).A) for i in range(peer_pairs)])
-    return {
-        "pairs": pairs,
-        "steps": 50,
-        "ours s (batched)": ours,
-        "ours us/pair": ours / pairs * 1e6,
-        "roboticstoolbox us/pair": peer * 1e6,
-        "speed-up": peer / (ours / pairs),
-        "max |pose ours - pose rtb|": float(np.abs(mine.numpy() - ref).max()),
-    }
+    return _against_peer(pairs, ours, peer, "max |pose ours - pose rtb|", np.abs(mine.numpy() - ref).max())
 
 
 def line(q0: torch.Tensor, offset, steps: int) -> torch.Tensor:
