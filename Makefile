@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 export OMP_WAIT_POLICY := PASSIVE
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,8 +20,10 @@ test: $(VENV)/.installed
 	$(PY) -m pytest -q -n 2
 	$(VENV)/bin/ruff check .
 
+# Not tests: side-by-side runs against the peers, results in benchmarks/results/ (the env
+# benchmark also needs the peers of the bench extra: pip install -e '.[bench]').
 bench: $(VENV)/.installed
-	$(PY) benchmarks/bench_fk.py
+	for b in fk ik analytic trajectory; do $(PY) benchmarks/bench_$$b.py || exit 1; done
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
