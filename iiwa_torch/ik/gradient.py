@@ -23,6 +23,7 @@ from typing import Literal, get_args
 import torch
 
 from .. import so3
+from .._checks import check_finite
 from ..dh import DHChain
 from .result import IKResult
 
@@ -286,8 +287,7 @@ def _check_target(target: Tensor, mode: str, dtype: torch.dtype | None, batch: t
             )
         if target.ndim == 0 or target.shape[-1] != 3:
             raise ValueError(f"target must have shape (..., 3) in position mode, got {tuple(target.shape)}")
-        if not torch.isfinite(target).all():
-            raise ValueError("target contains NaN or inf")
+        check_finite(target, "target")
         found = target.shape[:-1]
     if dtype is not None and target.dtype != dtype:
         raise ValueError(f"target must have the dtype of q0 ({dtype}), got {target.dtype}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ..._checks import check_finite
 from ...dh import DHChain
 from ._common import AnalyticSolutions, check_chain, finish, reach_tol, safe_atan2, safe_norm2, triangle
 
@@ -51,8 +52,7 @@ def planar3r(chain: DHChain, x, y, phi) -> AnalyticSolutions:
         dtype = torch.promote_types(dtype, other)
     x, y, phi = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=dtype, device=chain.dh.device) for v in (x, y, phi)))
     for name, v in (("x", x), ("y", y), ("phi", phi)):
-        if not torch.isfinite(v).all():
-            raise ValueError(f"{name} contains NaN or inf")
+        check_finite(v, name)
 
     # Pose of frame 3 in frame 0 (base and tool stripped), in the plane: heading h, origin p.
     base, tool = chain.base.to(dtype), chain.tool.to(dtype)

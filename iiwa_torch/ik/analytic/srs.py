@@ -41,6 +41,7 @@ import math
 
 import torch
 
+from ..._checks import check_finite
 from ...dh import DHChain
 from ...so3 import pose_error
 from ..result import IKResult
@@ -151,8 +152,7 @@ def _iiwa_thetas(chain: DHChain, target: Tensor, psi) -> tuple[list[Tensor], Ten
             f"psi must have shape (...) or (..., K) for targets of shape (..., 4, 4) = {tuple(target.shape)}, "
             f"got {tuple(psi.shape)}"
         )
-    if not torch.isfinite(psi).all():
-        raise ValueError("psi contains NaN or inf")
+    check_finite(psi, "psi")
     tol = reach_tol(target.dtype)
     theta4, c4, s4, reachable = _elbow(geo, sw, tol)
 
@@ -232,8 +232,7 @@ def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
     geo = _Geometry(chain)
     rot, sw = _frames(chain, target)
     theta3 = torch.as_tensor(q3, dtype=target.dtype, device=target.device) + float(chain.dh[2, 3])
-    if not torch.isfinite(theta3).all():
-        raise ValueError("q3 contains NaN or inf")
+    check_finite(theta3, "q3")
     tol = reach_tol(target.dtype)
     sig = geo.sig
     theta4, _, _, reachable = _elbow(geo, sw, tol)  # (..., 2)
