@@ -47,3 +47,88 @@ class GoalDeltaExtractor(BaseFeaturesExtractor):
         delta = desired - achieved  # (B, G)
         scaled = (delta.unsqueeze(-2) * self.inv_scales).clamp(-1.0, 1.0).flatten(-2)  # (B, S * G)
         return torch.cat([observations["observation"], achieved, desired, scaled], dim=-1)
+
+
+class JointGoalExtractor(GoalDeltaExtractor):
+    """:class:`GoalDeltaExtractor` plus joint-space features of the position error, from the robot's Jacobian.
+
+    The network sees the goal error in metres, but acts in joint space, through a Jacobian that
+    changes over the workspace and loses rank near the stretched arm. This extractor computes,
+    for each damping ``lambda`` (m), the damped-least-squares joint step that would remove the
+    position error ``e = desired[:3] - achieved[:3]`` (m):
+
+        dq = J_p^T (J_p J_p^T + lambda^2 I)^-1 e        (rad; J_p: the Jacobian's position rows, m/rad)
+
+    expressed in actions, ``u = dq / max_step`` (``max_step``: rad per step at ``|a| = 1``), and
+    shrunk as a whole to ``u / max(1, max_i |u_i|)`` so that it stays in ``[-1, 1]`` with its
+    direction kept. It also appends ``J_p^T e / |e|`` (m; the steepest-descent direction, defined
+    at any rank) and each joint's place within its limits, ``2 (q - lower) / (upper - lower) - 1``.
+
+    Everything is computed inside the network from the observation, so it stays correct when
+    HER relabels ``desired_goal``. It needs the raw observation: its first ``2 nj`` entries are
+    ``cos q``, ``sin q`` (``q = atan2(sin q, cos q)``), so train without ``VecNormalize`` (the
+    observation entries are all O(1): cosines, sines, velocities in ``[-1, 1]``, metres).
+
+    Args:
+        observation_space: a ``Dict`` with ``observation`` (starting with ``cos q, sin q``),
+            ``achieved_goal`` and ``desired_goal`` (starting with the position, m).
+        robot: name of the chain in ``iiwa_torch.robots.PRESETS`` (the env's robot).
+        max_step: ``(nj,)`` joint motion per step at full action, rad (the env task's ``max_step``).
+        scales: goal-delta scales, m (see :class:`GoalDeltaExtractor`).
+        dampings: the ``lambda`` values, m, all > 0.
+
+    Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj)`` features.
+    """
+
+    def __init__(self, observation_space: spaces.Dict, robot: str = "iiwa14",
+                 max_step: Sequence[float] | None = None, scales: Sequence[float] = (0.3, 0.03, 0.003),
+                 dampings: Sequence[float] = (0.1, 0.01)):
+        from iiwa_torch.robots import PRESETS
+
+        super().__init__(observation_space, scales)
+        if robot not in PRESETS:
+            raise ValueError(f"robot must be one of {sorted(PRESETS)}, got {robot!r}")
+        chain = PRESETS[robot]()
+        nj = chain.n_joints
+        if max_step is None or len(max_step) != nj or any(float(s) <= 0 for s in max_step):
+            raise ValueError(f"max_step must be {nj} positive numbers (rad per step), got {max_step!r}")
+        if len(dampings) == 0 or any(float(d) <= 0 for d in dampings):
+            raise ValueError(f"dampings must be a non-empty list of positive numbers (m), got {list(dampings)}")
+        obs_dim = int(observation_space["observation"].shape[0])
+        if obs_dim < 2 * nj or int(observation_space["desired_goal"].shape[0]) < 3:
+            raise ValueError(f"robot {robot!r} has {nj} joints: the observation needs >= {2 * nj} entries "
+                             f"(cos q, sin q) and the goal >= 3 (a position); got {obs_dim} and "
+                             f"{observation_space['desired_goal'].shape[0]}")
+        self.chain = chain  # float64 buffers; the joint features are computed in float64
+        self.nj = nj
+        #: columns of the output holding the DLS step (in actions) at the first damping
+        self.step_columns = (self._features_dim, self._features_dim + nj)
+        self._features_dim += (len(dampings) + 2) * nj
+        self.register_buffer("max_step", torch.tensor([float(s) for s in max_step], dtype=torch.float64))
+        self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in dampings], dtype=torch.float64))
+
+    def joint_features(self, q: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
+        """``q (B, nj)`` rad and position ``error (B, 3)`` m -> ``(B, (len(dampings) + 2) * nj)`` float64:
+        the shrunk DLS steps in actions per damping, ``J_p^T e / |e|`` (m), the place within the limits."""
+        q, e = q.double(), error.double()
+        jp = self.chain.jacobian(q)[..., :3, :]  # (B, 3, nj) m/rad
+        jjt = jp @ jp.transpose(-1, -2)  # (B, 3, 3)
+        eye = torch.eye(3, dtype=q.dtype, device=q.device)
+        a = jjt.unsqueeze(1) + self.damping_sq[:, None, None] * eye  # (B, L, 3, 3)
+        x = torch.linalg.solve(a, e[:, None, :, None].expand(-1, a.shape[1], 3, 1))  # (B, L, 3, 1)
+        dq = (jp.transpose(-1, -2).unsqueeze(1) @ x).squeeze(-1)  # (B, L, nj) rad
+        u = dq / self.max_step
+        u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
+        grad = (jp.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1) / e.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+        lower, upper = self.chain.limits.to(q.dtype)
+        place = 2.0 * (q - lower) / (upper - lower) - 1.0
+        return torch.cat([u.flatten(1), grad, place], dim=-1)
+
+    def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
+        base = super().forward(observations)
+        obs, nj = observations["observation"], self.nj
+        q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
+        error = observations["desired_goal"][:, :3] - observations["achieved_goal"][:, :3]
+        with torch.no_grad():  # no parameters upstream: features only
+            joint = self.joint_features(q, error)
+        return torch.cat([base, joint.to(base.dtype)], dim=-1)

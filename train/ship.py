@@ -2,8 +2,8 @@
 
     python -m train.ship --run runs/ppo_reach --name ppo_iiwa_reach
 
-Copies ``model.zip``, ``vecnormalize.pkl``, ``config.yaml``, ``train_info.json`` and
-``evaluations.json`` (the learning curve) and writes ``RECORD.md``: the command, seed,
+Copies ``model.zip``, ``vecnormalize.pkl`` (removed if the run has none), ``config.yaml``,
+``train_info.json`` and ``evaluations.json`` (the learning curve) and writes ``RECORD.md``: the command, seed,
 commit, training wall time, steps per second and load average. Then evaluate it:
 ``python -m train.evaluate --model train/policies/NAME --goals 1000 --seed 0 --out train/policies/NAME/report``.
 
@@ -36,6 +36,8 @@ def ship(run: Path, name: str) -> Path:
     for f in FILES:
         if (run / f).exists():
             shutil.copy2(run / f, dest / f)
+        else:  # e.g. no vecnormalize.pkl: a stale one from a previous policy would be loaded with the new model
+            (dest / f).unlink(missing_ok=True)
     config = yaml.safe_load((run / "config.yaml").read_text())
     info = json.loads((run / "train_info.json").read_text())
     last = info["final_evaluation"] or {}

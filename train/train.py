@@ -42,8 +42,9 @@ ALGOS = ("ppo", "sac")
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 _TRAINER_KEYS = {
     "n_envs", "n_timesteps", "policy", "normalize", "env_kwargs", "features_extractor_kwargs",
-    "eval_freq", "eval_goals", "checkpoint_freq", "her", "log_distance_bonus",
+    "eval_freq", "eval_goals", "checkpoint_freq", "her", "log_distance_bonus", "features_extractor",
 }
+_EXTRACTORS = ("goal_delta", "joint")
 _ACTIVATIONS = ("tanh", "relu", "elu")
 EVAL_SEED = 10_000  # goal-set seed of the periodic evaluation; train.evaluate defaults to another
 
@@ -69,7 +70,27 @@ def load_hyperparams(algo: str, env_id: str, overrides: dict[str, Any] | None = 
         if not isinstance(value, (int, float)) or isinstance(value, bool) or value <= 0 or int(value) != value:
             raise ValueError(f"{key} must be a positive integer, got {value!r}")
         hp[key] = int(value)
+    kind = hp.get("features_extractor", "goal_delta")
+    if kind not in _EXTRACTORS:
+        raise ValueError(f"features_extractor must be one of {list(_EXTRACTORS)}, got {kind!r}")
+    if kind == "joint":
+        if hp.get("normalize", False):
+            raise ValueError("features_extractor 'joint' reads cos q, sin q from the raw observation: "
+                             "set normalize: false")
+        hp["features_extractor_kwargs"] = {**joint_feature_defaults(env_id, hp.get("env_kwargs")),
+                                           **(hp.get("features_extractor_kwargs") or {})}
     return hp
+
+
+def joint_feature_defaults(env_id: str, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The env's robot (``PRESETS`` name) and ``max_step`` (rad per step) for ``JointGoalExtractor``."""
+    import envs
+    from envs.sb3 import IiwaReachVecEnv
+
+    if env_id not in envs.ENV_IDS:
+        raise ValueError(f"features_extractor 'joint' needs one of our envs {list(envs.ENV_IDS)}, got {env_id!r}")
+    task = IiwaReachVecEnv(1, env_id, **(env_kwargs or {})).task
+    return {"robot": task.robot.name, "max_step": [round(float(s), 7) for s in task.max_step]}
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
@@ -96,7 +117,7 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
     import torch
     from stable_baselines3 import HerReplayBuffer
 
-    from train.features import GoalDeltaExtractor
+    from train.features import GoalDeltaExtractor, JointGoalExtractor
 
     kwargs = {k: v for k, v in hp.items() if k not in _TRAINER_KEYS}
     for key in ("learning_rate", "clip_range"):
@@ -109,9 +130,14 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
             raise ValueError(f"policy_kwargs.activation_fn must be one of {list(_ACTIVATIONS)}, got {name!r}")
         policy_kwargs["activation_fn"] = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU, "elu": torch.nn.ELU}[name]
     if "features_extractor_kwargs" in hp:
-        policy_kwargs["features_extractor_class"] = GoalDeltaExtractor
+        extractors = {"goal_delta": GoalDeltaExtractor, "joint": JointGoalExtractor}
+        policy_kwargs["features_extractor_class"] = extractors[hp.get("features_extractor", "goal_delta")]
         policy_kwargs["features_extractor_kwargs"] = dict(hp["features_extractor_kwargs"])
     kwargs["policy_kwargs"] = policy_kwargs
+    if hp.get("policy") == "ResidualDLSPolicy":
+        from train.residual import ResidualDLSPolicy
+
+        kwargs["policy"] = ResidualDLSPolicy
     if hp.get("her") is not None:
         if algo != "sac":
             raise ValueError("her (a replay-buffer option) needs an off-policy algo (sac)")
@@ -413,7 +439,8 @@ def train(args: argparse.Namespace) -> Path:
     else:
         kwargs = algo_kwargs(algo, hp)
         venv = wrap_normalize(build_venv(env_id, hp, seed), hp, kwargs.get("gamma", 0.99))
-        model = algo_class[algo](hp["policy"], venv, seed=seed, device="cpu", verbose=args.verbose,
+        policy = kwargs.pop("policy", hp["policy"])
+        model = algo_class[algo](policy, venv, seed=seed, device="cpu", verbose=args.verbose,
                                  tensorboard_log=str(run / "tb"), **kwargs)
         if args.resume:
             print(f"resuming {run}: no checkpoint yet, starting from step 0", flush=True)

@@ -1,0 +1,96 @@
+"""The joint-space features of ``train.features.JointGoalExtractor``, against independent values.
+
+The damped-least-squares step is checked against numpy's least squares on the stacked
+system ``[J_p; lambda I] dq = [e; 0]`` (the same minimiser, solved another way), with
+``J_p`` from central finite differences of the forward kinematics, not from the Jacobian.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+
+from iiwa_torch.robots import iiwa14
+from train.features import GoalDeltaExtractor, JointGoalExtractor
+
+MAX_STEP = [0.0742, 0.0742, 0.0873, 0.0654, 0.1134, 0.1178, 0.1178]  # rad per step (iiwa speeds x 0.05 s)
+
+
+def _space(obs_dim: int = 24, goal_dim: int = 3) -> spaces.Dict:
+    box = lambda n: spaces.Box(-10, 10, (n,))
+    return spaces.Dict({"observation": box(obs_dim), "achieved_goal": box(goal_dim), "desired_goal": box(goal_dim)})
+
+
+def _fd_position_jacobian(q: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """``(nj,)`` rad -> ``(3, nj)`` m/rad by central differences of the end-effector position."""
+    chain = iiwa14()
+    cols = []
+    for i in range(q.size):
+        dq = np.zeros_like(q)
+        dq[i] = h
+        plus = chain.fk(torch.from_numpy(q + dq))[:3, 3].numpy()
+        minus = chain.fk(torch.from_numpy(q - dq))[:3, 3].numpy()
+        cols.append((plus - minus) / (2 * h))
+    return np.stack(cols, axis=1)
+
+
+def test_joint_features_match_least_squares_on_finite_difference_jacobians():
+    chain = iiwa14()
+    g = torch.Generator().manual_seed(3)
+    q = chain.random_q(5, generator=g)  # (5, 7) float64
+    q[0] = 0.0  # the stretched arm: J_p has rank 2, only the damping keeps the step finite
+    error = (torch.rand(5, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([[0.2], [0.02], [0.002],
+                                                                                      [1.0], [0.005]])
+    dampings = (0.1, 0.01)
+    ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=dampings)
+    achieved = chain.fk(q)[:, :3, 3]
+    obs = {"observation": torch.cat([q.cos(), q.sin(), torch.zeros(5, 7), achieved], -1).float(),
+           "achieved_goal": achieved.float(), "desired_goal": (achieved + error).float()}
+    out = ext(obs).double()
+    base = GoalDeltaExtractor(_space())(obs)
+    assert out.shape == (5, ext.features_dim) == (5, base.shape[1] + 4 * 7)
+    assert torch.equal(out[:, : base.shape[1]].float(), base)
+    joint = out[:, base.shape[1]:].numpy()
+    e = (obs["desired_goal"] - obs["achieved_goal"]).double().numpy()  # the error the network sees (float32)
+    for b in range(5):
+        jp = _fd_position_jacobian(q[b].numpy())
+        for k, lam in enumerate(dampings):
+            stacked = np.vstack([jp, lam * np.eye(7)])
+            dq = np.linalg.lstsq(stacked, np.concatenate([e[b], np.zeros(7)]), rcond=None)[0]
+            u = dq / np.array(MAX_STEP)
+            u = u / max(1.0, np.abs(u).max())
+            np.testing.assert_allclose(joint[b, 7 * k : 7 * k + 7], u, atol=2e-5, err_msg=f"goal {b} lambda {lam}")
+        np.testing.assert_allclose(joint[b, 14:21], jp.T @ e[b] / np.linalg.norm(e[b]), atol=2e-5)
+        lower, upper = chain.limits.numpy()
+        np.testing.assert_allclose(joint[b, 21:], 2 * (q[b].numpy() - lower) / (upper - lower) - 1, atol=1e-6)
+    assert np.all(np.abs(joint[:, :14]) <= 1.0 + 1e-9)
+
+
+def test_joint_features_at_the_limits_and_on_target_by_hand():
+    """At q = upper limits the place features are +1; with a zero error every step feature is zero."""
+    chain = iiwa14()
+    q = chain.limits[1].unsqueeze(0)
+    achieved = chain.fk(q)[:, :3, 3].float()
+    obs = {"observation": torch.cat([q.cos(), q.sin(), torch.zeros(1, 7)], -1).float(),
+           "achieved_goal": achieved, "desired_goal": achieved.clone()}
+    ext = JointGoalExtractor(_space(21), "iiwa14", MAX_STEP)
+    joint = ext(obs)[0, -28:]
+    assert torch.allclose(joint[21:], torch.ones(7), atol=1e-5)
+    assert torch.equal(joint[:21], torch.zeros(21))
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"robot": "nope", "max_step": MAX_STEP}, "robot must be one of"),
+    ({"robot": "iiwa14", "max_step": MAX_STEP[:3]}, "max_step must be 7 positive"),
+    ({"robot": "iiwa14", "max_step": MAX_STEP, "dampings": [0.0]}, "dampings"),
+])
+def test_joint_extractor_bad_options(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        JointGoalExtractor(_space(), **kwargs)
+
+
+def test_joint_extractor_needs_cos_sin_in_the_observation():
+    with pytest.raises(ValueError, match="needs >= 14"):
+        JointGoalExtractor(_space(obs_dim=10), "iiwa14", MAX_STEP)
