@@ -44,7 +44,7 @@ def matmul_chain(op: str, q: torch.Tensor):
     """The 4x4-product kernel on any batch size (what a plain torch chain does)."""
     if op != "fk":
         return None
-    return lambda: CHAIN._frames_matmul(q, keep=False)
+    return lambda: CHAIN._end_pose_matmul(q)
 
 
 # Compiled lazily, on first call (once per dtype).

@@ -311,11 +311,14 @@ class ReachTask:
         return int(torch.ceil((span / self.max_step).max() - 1e-4))  # 1e-4: float32 rounding of exact ratios
 
     # ------------------------------------------------------------------ pure functions
-    def goal_of(self, pose: Tensor) -> Tensor:
-        """``(..., 4, 4)`` end-effector poses -> ``(g, ...)`` goal vectors, components first:
-        the position, then (pose goals) the first two columns of the rotation matrix."""
+    def goal_of(self, q: Tensor) -> Tensor:
+        """``(..., nj)`` joint angles -> ``(g, ...)`` goal vectors, components first: the
+        end-effector position, then (pose goals) the first two columns of its rotation matrix.
+        Position goals take the chain's position-only kernel; for ``q`` the transpose of a
+        batch-last state, nothing is copied."""
         if self.goal_kind is GoalKind.POSITION:
-            return pose[..., :3, 3].movedim(-1, 0).contiguous()
+            return self.robot.position(q).movedim(-1, 0)
+        pose = self.robot.fk(q)
         return torch.cat([pose[..., :3, 3], pose[..., :3, 0], pose[..., :3, 1]], -1).movedim(-1, 0).contiguous()
 
     def errors(self, achieved: Tensor, desired: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
@@ -368,7 +371,7 @@ class ReachTask:
         configs = self.lower + u * (self.upper - self.lower)  # (n, k + 1, nj): the start (0), k goal candidates
         if self.start_kind is StartKind.HOME:
             configs = torch.cat([self.home.expand(n, 1, nj), configs[:, 1:]], 1)
-        goals = self.goal_of(self.robot.fk(configs))  # (g, n, k + 1)
+        goals = self.goal_of(configs)  # (g, n, k + 1)
         start_goal, candidates = goals[:, :, 0], goals[:, :, 1:]
         if k > 1:
             d = torch.linalg.vector_norm(candidates[:3] - start_goal[:3, :, None], dim=0)  # (n, k)
@@ -406,7 +409,7 @@ class ReachTask:
         q = torch.maximum(torch.minimum(torch.addcmul(state.q, a, self._max_step_c), self._upper_c), self._lower_c)
         # the motion actually made, over the speed limit; this clamp only removes float rounding (1e-6)
         velocity = torch.clamp((q - state.q) / self._max_step_c, -1.0, 1.0)
-        achieved = self.goal_of(self.robot.fk(q.T))
+        achieved = self.goal_of(q.T)
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         dist, angle, success = self.errors(*observed)  # the reward of the goals as observed, in float32
         reward = self._reward(dist, angle, success)

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from iiwa_torch import DHChain, robots
-from iiwa_torch.dh import _BLOCK, _SMALL_BATCH
+from iiwa_torch.dh import _BLOCK, _POSITION_BLOCK, _SMALL_BATCH
 
 ALL = [robots.iiwa14, robots.iiwa7, robots.puma560, robots.lrmate200ic, robots.planar3r]
 
@@ -72,6 +72,30 @@ def test_fk_matches_roboticstoolbox(preset):
     robot = _rtb_robot(chain)
     expected = np.stack([robot.fkine(qi).A for qi in q.numpy()])
     np.testing.assert_allclose(chain.fk(q).numpy(), expected, atol=1e-12)
+    np.testing.assert_allclose(chain.position(q).numpy(), expected[:, :3, 3], atol=1e-12)
+
+
+@pytest.mark.parametrize("modified", [False, True])
+def test_position_with_base_and_tool_matches_roboticstoolbox(modified):
+    sm = pytest.importorskip("spatialmath")
+    base = robots.iiwa14().fk(torch.full((7,), 0.2, dtype=torch.float64))
+    tool = robots.puma560().fk(torch.full((6,), -0.4, dtype=torch.float64))
+    chain = DHChain(robots.lrmate200ic().dh, convention="modified" if modified else "standard", base=base, tool=tool)
+    robot = _rtb_robot(chain, modified)
+    robot.base, robot.tool = sm.SE3(base.numpy(), check=False), sm.SE3(tool.numpy(), check=False)
+    q = sample(chain, _POSITION_BLOCK + 100, seed=21)  # two blocks of the position kernel
+    got = chain.position(q)
+    for i in [0, 1, 500, _POSITION_BLOCK, _POSITION_BLOCK + 99]:
+        np.testing.assert_allclose(got[i].numpy(), robot.fkine(q[i].numpy()).t, atol=1e-12)
+    for part in (q[:1], q[0], q[:50]):  # the 4x4-product kernel
+        np.testing.assert_allclose(chain.position(part).numpy(), chain.fk(part)[..., :3, 3].numpy(), atol=1e-14)
+
+
+def test_position_gradient_is_the_jacobian():
+    chain = robots.iiwa14()
+    for q in (sample(chain, 1, seed=22), sample(chain, _SMALL_BATCH + 1, seed=23)):
+        jac = torch.autograd.functional.jacobian(lambda x: chain.position(x).sum(0), q)  # (3, b, 7)
+        torch.testing.assert_close(jac.permute(1, 0, 2), chain.jacobian(q)[:, :3], atol=1e-12, rtol=0)
 
 
 def test_modified_convention_matches_roboticstoolbox():
@@ -80,6 +104,7 @@ def test_modified_convention_matches_roboticstoolbox():
     robot = _rtb_robot(chain, modified=True)
     expected = np.stack([robot.fkine(qi).A for qi in q.numpy()])
     np.testing.assert_allclose(chain.fk(q).numpy(), expected, atol=1e-12)
+    np.testing.assert_allclose(chain.position(q).numpy(), expected[:, :3, 3], atol=1e-12)
 
 
 def test_puma_matches_roboticstoolbox_model():
@@ -188,6 +213,8 @@ def test_leading_batch_shapes():
     assert chain.fk(q).shape == (2, 3, 5, 4, 4)
     assert chain.fk_all(q).shape == (2, 3, 5, 7, 4, 4)
     assert chain.jacobian(q).shape == (2, 3, 5, 6, 6)
+    assert chain.position(q).shape == (2, 3, 5, 3)
+    torch.testing.assert_close(chain.position(q)[1, 2, 3], chain.position(q[1, 2, 3]))
     torch.testing.assert_close(chain.fk(q)[1, 2, 3], chain.fk(q[1, 2, 3]))
     assert chain.fk(q[:0]).shape == (0, 3, 5, 4, 4)
 
@@ -289,7 +316,7 @@ def test_presets_limits_and_speeds():
 
 
 # ---------------------------------------------------------------- bad input
-@pytest.mark.parametrize("method", ["fk", "fk_all", "jacobian"])
+@pytest.mark.parametrize("method", ["fk", "fk_all", "jacobian", "position"])
 def test_bad_input(method):
     chain = robots.iiwa14()
     call = getattr(chain, method)

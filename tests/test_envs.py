@@ -39,9 +39,13 @@ def _policy(obs: dict, rng: np.random.Generator) -> np.ndarray:
 
 
 def _assert_obs_equal(a: dict, b: dict) -> None:
+    """Equal up to float32 rounding of the FK: one environment alone and a batch of them go
+    through different 4x4-product kernels (``mm`` and ``bmm``), which round differently in the
+    last bits. Joint angles, integrated without FK, are equal exactly."""
     assert a.keys() == b.keys()
     for k in a:
-        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        np.testing.assert_allclose(a[k], b[k], rtol=0, atol=1e-6, err_msg=k)
+    np.testing.assert_array_equal(a["observation"][..., :14], b["observation"][..., :14], err_msg="cos q, sin q")
 
 
 # ------------------------------------------------------------------ registration and checkers
@@ -85,7 +89,8 @@ def test_vector_env_matches_single_envs_through_resets(env_id):
         obs, reward, term, trunc, info = vec.step(action)
         for i, env in enumerate(singles):
             o, r, te, tr, inf = env.step(action[i])
-            assert (r, te, tr, inf["is_success"]) == (reward[i], term[i], trunc[i], info["is_success"][i])
+            assert (te, tr, inf["is_success"]) == (term[i], trunc[i], info["is_success"][i])
+            assert r == pytest.approx(reward[i], rel=2e-6, abs=1e-6)
             if te or tr:
                 ends["terminated" if te else "truncated"] += 1
                 assert info["_final_obs"][i]
@@ -275,7 +280,7 @@ def test_pose_goals_are_reachable():
     target[:, :3, 0], target[:, :3, 1], target[:, :3, 2], target[:, :3, 3] = x, y, torch.linalg.cross(x, y), g[:, :3]
     result = solve(_CHAIN, target, mode="pose")
     assert result.success.all() and _CHAIN.within_limits(result.q, tol=1e-9).all()
-    reached = IiwaReachEnv(goal="pose").task.goal_of(_CHAIN.fk(result.q)).T
+    reached = IiwaReachEnv(goal="pose").task.goal_of(result.q).T
     np.testing.assert_allclose(reached.numpy(), g.numpy(), atol=1e-3)
 
 
