@@ -8,7 +8,8 @@ episode ends (the vector envs reset themselves):
 - ``IiwaReach-v0`` through ``gymnasium.make`` (one arm per call, with gymnasium's wrappers);
 - ``IiwaReachVectorEnv`` (``gymnasium.make_vec``) at N = 1, 256, 4,096, 65,536 arms per call;
 - ``envs.sb3.IiwaReachVecEnv`` (the stable-baselines3 VecEnv) at N = 256 and 4,096;
-- ``chain.fk`` alone at N = 1 and the largest N: the floor of a step, which is one FK;
+- ``chain.position_batch_last`` alone at N = 1 and the largest N: the floor of a step, which
+  is one position-only FK (and ``chain.fk``, the full pose, for comparison);
 - panda-gym ``PandaReach-v3`` (PyBullet) and gymnasium-robotics ``FetchReach-v4`` (MuJoCo),
   if installed: ``pip install panda-gym gymnasium-robotics "mujoco<3.3"`` (gymnasium-robotics
   1.4.2 fails with MuJoCo >= 3.3 on this machine).
@@ -116,11 +117,13 @@ def main() -> None:
         vec.reset(seed=0)
         record("IiwaReachVectorEnv (make_vec), 1 thread", VECTOR_SIZES[-1], batched_runner(vec.step, VECTOR_SIZES[-1]))
         torch.set_num_threads(threads)
-    # the floor of a step: one FK of the batch (float32, as the env's state)
+    # the floor of a step: the kinematics of the batch (float32, as the env's state), which for
+    # position goals is the position-only kernel; the full pose for comparison
     chain = vec.unwrapped.task.robot
     for n in (1, vector_sizes[-1]):
         q = chain.random_q(n, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
-        record("chain.fk alone (the step's floor)", n, lambda q=q: chain.fk(q))
+        record("chain.position alone (the step's floor)", n, lambda q=q: chain.position_batch_last(q.T))
+        record("chain.fk alone (full pose)", n, lambda q=q: chain.fk(q))
     sb3 = {}
     for n in SB3_SIZES:
         venv = IiwaReachVecEnv(n, "IiwaReach-v0", seed=0)

@@ -312,14 +312,13 @@ class ReachTask:
 
     # ------------------------------------------------------------------ pure functions
     def goal_of(self, q: Tensor) -> Tensor:
-        """``(..., nj)`` joint angles -> ``(g, ...)`` goal vectors, components first: the
-        end-effector position, then (pose goals) the first two columns of its rotation matrix.
-        Position goals take the chain's position-only kernel; for ``q`` the transpose of a
-        batch-last state, nothing is copied."""
+        """Joint angles ``(nj, b)``, batch last -> goal vectors ``(g, b)``: the end-effector
+        position (the chain's position-only kernel), then for pose goals the first two columns
+        of its rotation matrix."""
         if self.goal_kind is GoalKind.POSITION:
-            return self.robot.position(q).movedim(-1, 0)
-        pose = self.robot.fk(q)
-        return torch.cat([pose[..., :3, 3], pose[..., :3, 0], pose[..., :3, 1]], -1).movedim(-1, 0).contiguous()
+            return self.robot.position_batch_last(q)
+        pose = self.robot.fk(q.T)
+        return torch.cat([pose[:, :3, 3], pose[:, :3, 0], pose[:, :3, 1]], -1).T.contiguous()
 
     def errors(self, achieved: Tensor, desired: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
         """Goals ``(g, ...)``, components first -> position distance (m), orientation angle
@@ -371,7 +370,7 @@ class ReachTask:
         configs = self.lower + u * (self.upper - self.lower)  # (n, k + 1, nj): the start (0), k goal candidates
         if self.start_kind is StartKind.HOME:
             configs = torch.cat([self.home.expand(n, 1, nj), configs[:, 1:]], 1)
-        goals = self.goal_of(configs)  # (g, n, k + 1)
+        goals = self.goal_of(configs.reshape(-1, nj).T).view(-1, n, k + 1)  # (g, n, k + 1)
         start_goal, candidates = goals[:, :, 0], goals[:, :, 1:]
         if k > 1:
             d = torch.linalg.vector_norm(candidates[:3] - start_goal[:3, :, None], dim=0)  # (n, k)
@@ -409,7 +408,7 @@ class ReachTask:
         q = torch.maximum(torch.minimum(torch.addcmul(state.q, a, self._max_step_c), self._upper_c), self._lower_c)
         # the motion actually made, over the speed limit; this clamp only removes float rounding (1e-6)
         velocity = torch.clamp((q - state.q) / self._max_step_c, -1.0, 1.0)
-        achieved = self.goal_of(q.T)
+        achieved = self.goal_of(q)
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         dist, angle, success = self.errors(*observed)  # the reward of the goals as observed, in float32
         reward = self._reward(dist, angle, success)
@@ -426,7 +425,7 @@ class ReachTask:
         no = torch.zeros_like(success)
         angle = torch.zeros_like(dist) if angle is None else angle
         status = StepResult(self._reward(dist, angle, success), no, no, success, dist, angle)
-        return self.unpack(self.pack(state, status).cpu().numpy())
+        return self.unpack(*(part.cpu().numpy() for part in self.pack(state, status)))
 
     @staticmethod
     def _rows(state: ReachState) -> list[Tensor]:
@@ -438,31 +437,34 @@ class ReachTask:
         observation dict of its numpy transpose."""
         return torch.cat(self._rows(state), 0).float()
 
-    def pack(self, state: ReachState, result: StepResult) -> Tensor:
-        """``(D + 6, n)`` float32: the observation rows, then reward, terminated, truncated,
-        success, distance and angle: everything a step returns, for one transfer.
+    def pack(self, state: ReachState, result: StepResult) -> tuple[Tensor, Tensor]:
+        """Everything a step returns, for two transfers: ``(D + 3, n)`` float32, the observation
+        rows then reward, distance and angle; and ``(3, n)`` bool, terminated, truncated and
+        success.
 
-        One ``cat`` of contiguous rows, written once: no strided writes (``out=`` views of a
-        preallocated buffer were measured 3-10x slower)."""
-        return torch.cat([*self._rows(state), torch.stack(result, 0)], 0).float()
+        Each is one ``cat``/``stack`` of rows of one dtype, written once: no strided writes
+        (``out=`` views of a preallocated buffer were measured 3-10x slower) and no type
+        promotion (a mixed bool and float ``stack`` costs 4x a plain one for one env)."""
+        floats = torch.cat([*self._rows(state), torch.stack([result.reward, result.distance, result.angle])], 0)
+        return floats.float(), torch.stack([result.terminated, result.truncated, result.success])
 
-    def unpack(self, packed: np.ndarray) -> Transition:
-        """``pack``'s output as numpy -> a :class:`Transition` without finished episodes.
+    def unpack(self, floats: np.ndarray, flags: np.ndarray) -> Transition:
+        """``pack``'s outputs as numpy -> a :class:`Transition` without finished episodes.
 
-        The observation arrays are ``(n, ...)`` views of ``packed.T`` (Fortran-ordered: one
-        memory row per component); rewards and flags are contiguous rows of ``packed``."""
+        The observation arrays are ``(n, ...)`` views of ``floats.T`` (Fortran-ordered: one
+        memory row per component); rewards and flags are contiguous rows."""
         d = self.packed_size
         empty = np.zeros(0, dtype=np.int64)
         return Transition(
-            obs=self.split(packed[:d].T),
-            reward=packed[d],
-            terminated=packed[d + 1] > 0.5,
-            truncated=packed[d + 2] > 0.5,
-            success=packed[d + 3] > 0.5,
-            distance=packed[d + 4],
-            angle=packed[d + 5],
+            obs=self.split(floats[:d].T),
+            reward=floats[d],
+            terminated=flags[0],
+            truncated=flags[1],
+            success=flags[2],
+            distance=floats[d + 1],
+            angle=floats[d + 2],
             final_index=empty,
-            final_obs=self.split(packed[:d, :0].T),
+            final_obs=self.split(floats[:d, :0].T),
         )
 
     def step_autoreset(self, state: ReachState, action: Tensor) -> tuple[ReachState, Transition]:
@@ -473,7 +475,7 @@ class ReachTask:
         its last observation is in ``final_obs`` (environments ``final_index``).
         """
         state, res = self.step(state, action)
-        out = self.pack(state, res)  # a new tensor of our own, updated in place below
+        out, flags = self.pack(state, res)  # new tensors of our own, updated in place below
         idx = (res.terminated | res.truncated).nonzero().squeeze(-1)  # which environments restart: one sync
         d = self.packed_size
         final = out[:d, idx]  # (D, m) copy: the finished episodes' last observations
@@ -488,7 +490,7 @@ class ReachTask:
                 goal=state.goal.index_copy(1, idx, fresh.goal), episode=state.episode.index_copy(0, idx, fresh.episode)
             )
             out[:d, idx] = self.observe(fresh)
-        tr = self.unpack(out.cpu().numpy())
+        tr = self.unpack(out.cpu().numpy(), flags.cpu().numpy())
         return state, tr._replace(final_index=idx.cpu().numpy(), final_obs=self.split(final.cpu().numpy().T))
 
     def split(self, packed: np.ndarray) -> dict[str, np.ndarray]:
@@ -517,16 +519,17 @@ class ReachTask:
             a = action.to(self.device, self.dtype)
         else:
             try:
-                arr = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
+                a = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
             except (TypeError, ValueError):
                 raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
-            finite = bool(np.isfinite(arr).all())
-            a = torch.from_numpy(arr)
-            a = a if self.device.type == "cpu" else a.to(self.device)
+            finite = bool(np.isfinite(a).all())
         if a.shape == (nj,) and n == 1:
             a = a[None]
         if a.shape != (n, nj):
             raise ValueError(f"action must have shape ({n}, {nj}) (or ({nj},) for one env), got {tuple(a.shape)}")
         if not finite:
             raise ValueError("action contains NaN or inf; actions must be finite (values outside [-1, 1] are clipped)")
-        return a.T.contiguous()
+        if isinstance(a, torch.Tensor):
+            return a.T.contiguous()
+        a = torch.from_numpy(np.ascontiguousarray(a.T))  # the transpose in numpy: cheaper for one env
+        return a if self.device.type == "cpu" else a.to(self.device)

@@ -168,13 +168,13 @@ class IiwaReachEnv(gym.Env):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         self._state, res = self.task.step(self._state, self.task.check_action(action, 1))
-        packed = self.task.pack(self._state, res).cpu().numpy()[:, 0]
-        d = packed.shape[0] - 6
-        obs = self.task.split(packed[:d])
-        reward, term, trunc, success, dist, angle = packed[d:].tolist()
+        floats, flags = (part.cpu().numpy()[:, 0] for part in self.task.pack(self._state, res))
+        d = floats.shape[0] - 3
+        reward, dist, angle = floats[d:].tolist()
+        term, trunc, success = flags.tolist()
         if self.render_mode == "human":
             self.render()
-        return obs, reward, term > 0.5, trunc > 0.5, _info(self.task, success > 0.5, dist, angle)
+        return self.task.split(floats[:d]), reward, term, trunc, _info(self.task, success, dist, angle)
 
     @property
     def joint_angles(self) -> np.ndarray:

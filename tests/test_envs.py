@@ -280,7 +280,7 @@ def test_pose_goals_are_reachable():
     target[:, :3, 0], target[:, :3, 1], target[:, :3, 2], target[:, :3, 3] = x, y, torch.linalg.cross(x, y), g[:, :3]
     result = solve(_CHAIN, target, mode="pose")
     assert result.success.all() and _CHAIN.within_limits(result.q, tol=1e-9).all()
-    reached = IiwaReachEnv(goal="pose").task.goal_of(result.q).T
+    reached = IiwaReachEnv(goal="pose").task.goal_of(result.q.T).T
     np.testing.assert_allclose(reached.numpy(), g.numpy(), atol=1e-3)
 
 
