@@ -50,7 +50,7 @@ def test_joint_features_match_least_squares_on_finite_difference_jacobians():
            "achieved_goal": achieved.float(), "desired_goal": (achieved + error).float()}
     out = ext(obs).double()
     base = GoalDeltaExtractor(_space())(obs)
-    assert out.shape == (5, ext.features_dim) == (5, base.shape[1] + 4 * 7)
+    assert out.shape == (5, ext.features_dim) == (5, base.shape[1] + 4 * 7 + 1)
     assert torch.equal(out[:, : base.shape[1]].float(), base)
     joint = out[:, base.shape[1]:].numpy()
     e = (obs["desired_goal"] - obs["achieved_goal"]).double().numpy()  # the error the network sees (float32)
@@ -64,7 +64,8 @@ def test_joint_features_match_least_squares_on_finite_difference_jacobians():
             np.testing.assert_allclose(joint[b, 7 * k : 7 * k + 7], u, atol=2e-5, err_msg=f"goal {b} lambda {lam}")
         np.testing.assert_allclose(joint[b, 14:21], jp.T @ e[b] / np.linalg.norm(e[b]), atol=2e-5)
         lower, upper = chain.limits.numpy()
-        np.testing.assert_allclose(joint[b, 21:], 2 * (q[b].numpy() - lower) / (upper - lower) - 1, atol=1e-6)
+        np.testing.assert_allclose(joint[b, 21:28], 2 * (q[b].numpy() - lower) / (upper - lower) - 1, atol=1e-6)
+        np.testing.assert_allclose(joint[b, 28], np.linalg.norm(e[b]), rtol=1e-6)
     assert np.all(np.abs(joint[:, :14]) <= 1.0 + 1e-9)
 
 
@@ -76,9 +77,9 @@ def test_joint_features_at_the_limits_and_on_target_by_hand():
     obs = {"observation": torch.cat([q.cos(), q.sin(), torch.zeros(1, 7)], -1).float(),
            "achieved_goal": achieved, "desired_goal": achieved.clone()}
     ext = JointGoalExtractor(_space(21), "iiwa14", MAX_STEP)
-    joint = ext(obs)[0, -28:]
-    assert torch.allclose(joint[21:], torch.ones(7), atol=1e-5)
-    assert torch.equal(joint[:21], torch.zeros(21))
+    joint = ext(obs)[0, -29:]
+    assert torch.allclose(joint[21:28], torch.ones(7), atol=1e-5)
+    assert torch.equal(joint[:21], torch.zeros(21)) and joint[28] == 0
 
 
 @pytest.mark.parametrize("kwargs, message", [

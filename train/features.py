@@ -62,7 +62,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
     expressed in actions, ``u = dq / max_step`` (``max_step``: rad per step at ``|a| = 1``), and
     shrunk as a whole to ``u / max(1, max_i |u_i|)`` so that it stays in ``[-1, 1]`` with its
     direction kept. It also appends ``J_p^T e / |e|`` (m; the steepest-descent direction, defined
-    at any rank) and each joint's place within its limits, ``2 (q - lower) / (upper - lower) - 1``.
+    at any rank), each joint's place within its limits, ``2 (q - lower) / (upper - lower) - 1``,
+    and the distance ``|e|`` (m).
 
     Everything is computed inside the network from the observation, so it stays correct when
     HER relabels ``desired_goal``. It needs the raw observation: its first ``2 nj`` entries are
@@ -77,7 +78,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         scales: goal-delta scales, m (see :class:`GoalDeltaExtractor`).
         dampings: the ``lambda`` values, m, all > 0.
 
-    Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj)`` features.
+    Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
 
     def __init__(self, observation_space: spaces.Dict, robot: str = "iiwa14",
@@ -103,13 +104,15 @@ class JointGoalExtractor(GoalDeltaExtractor):
         self.nj = nj
         #: columns of the output holding the DLS step (in actions) at the first damping
         self.step_columns = (self._features_dim, self._features_dim + nj)
-        self._features_dim += (len(dampings) + 2) * nj
+        self._features_dim += (len(dampings) + 2) * nj + 1
+        #: the column of the distance |e| (m)
+        self.distance_column = self._features_dim - 1
         self.register_buffer("max_step", torch.tensor([float(s) for s in max_step], dtype=torch.float64))
         self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in dampings], dtype=torch.float64))
 
     def joint_features(self, q: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
-        """``q (B, nj)`` rad and position ``error (B, 3)`` m -> ``(B, (len(dampings) + 2) * nj)`` float64:
-        the shrunk DLS steps in actions per damping, ``J_p^T e / |e|`` (m), the place within the limits."""
+        """``q (B, nj)`` rad and position ``error (B, 3)`` m -> ``(B, (len(dampings) + 2) * nj + 1)`` float64:
+        the shrunk DLS steps in actions per damping, ``J_p^T e / |e|`` (m), the place within the limits, |e| (m)."""
         q, e = q.double(), error.double()
         jp = self.chain.jacobian(q)[..., :3, :]  # (B, 3, nj) m/rad
         jjt = jp @ jp.transpose(-1, -2)  # (B, 3, 3)
@@ -119,10 +122,11 @@ class JointGoalExtractor(GoalDeltaExtractor):
         dq = (jp.transpose(-1, -2).unsqueeze(1) @ x).squeeze(-1)  # (B, L, nj) rad
         u = dq / self.max_step
         u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
-        grad = (jp.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1) / e.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+        distance = e.norm(dim=-1, keepdim=True)  # (B, 1)
+        grad = (jp.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1) / distance.clamp(min=1e-6)
         lower, upper = self.chain.limits.to(q.dtype)
         place = 2.0 * (q - lower) / (upper - lower) - 1.0
-        return torch.cat([u.flatten(1), grad, place], dim=-1)
+        return torch.cat([u.flatten(1), grad, place, distance], dim=-1)
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
         base = super().forward(observations)

@@ -4,9 +4,13 @@ A damped-least-squares (DLS) controller, ``a = dq / max_step`` with
 ``dq = J_p^T (J_p J_p^T + lambda^2 I)^-1 e`` (see :class:`train.features.JointGoalExtractor`),
 reaches most goals with sub-millimetre error, but it moves slowly to far goals and
 stalls against the joint limits or near the stretched-arm singularity. The policy here
-outputs ``mean = DLS step + Linear(latent)``: the network only learns the correction, and
-at initialisation (the last layer is scaled by 0.01, as SB3 does) it is the DLS
-controller. The Gaussian exploration noise, the value network and PPO itself are
+outputs ``mean = DLS step + g(d) Linear(latent)``, with ``g(d) = d / (d + s)`` of the
+distance ``d`` to the goal: the network only learns the correction, and at initialisation
+(the last layer is scaled by 0.01, as SB3 does) it is the DLS controller. The gate
+matters: an ungated correction is never exactly zero at the goal, and a bias ``b`` in the
+action holds the arm where the DLS step cancels it (measured: median final error from
+0.5 mm to 7-8 mm within 2 million steps). With the gate the correction fades below ``s``
+and the DLS step settles the arm. The Gaussian exploration noise, the value network and PPO itself are
 unchanged; the DLS step is computed from the observation inside the network, so
 ``model.predict`` on the env's raw observation is the whole controller.
 """
@@ -21,17 +25,18 @@ from train.features import JointGoalExtractor
 
 
 class _LatentWithBase(nn.Module):
-    """``features -> (cat(latent_pi, features[:, columns]), latent_vf)``: SB3's MLP extractor that also
-    carries the DLS step (``(B, nj)``, in actions) to the action head."""
+    """``features -> (cat(latent_pi, step, distance), latent_vf)``: SB3's MLP extractor that also
+    carries the DLS step (``(B, nj)``, in actions) and the distance (``(B, 1)``, m) to the action head."""
 
-    def __init__(self, inner: nn.Module, columns: tuple[int, int]):
+    def __init__(self, inner: nn.Module, step_columns: tuple[int, int], distance_column: int):
         super().__init__()
-        self.inner, self.columns = inner, columns
-        self.latent_dim_pi = inner.latent_dim_pi + columns[1] - columns[0]
+        self.inner, self.step_columns, self.distance_column = inner, step_columns, distance_column
+        self.latent_dim_pi = inner.latent_dim_pi + step_columns[1] - step_columns[0] + 1
         self.latent_dim_vf = inner.latent_dim_vf
 
     def _base(self, features: torch.Tensor) -> torch.Tensor:
-        return features[:, self.columns[0] : self.columns[1]]
+        c = self.distance_column
+        return torch.cat([features[:, self.step_columns[0] : self.step_columns[1]], features[:, c : c + 1]], -1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         latent_pi, latent_vf = self.inner(features)
@@ -45,23 +50,37 @@ class _LatentWithBase(nn.Module):
 
 
 class _ResidualHead(nn.Module):
-    """``cat(latent (B, L), base (B, nj)) -> linear(latent) + base``: the action mean."""
+    """``cat(latent (B, L), step (B, nj), d (B, 1)) -> step + d / (d + s) * linear(latent)``: the action mean."""
 
-    def __init__(self, linear: nn.Linear):
+    def __init__(self, linear: nn.Linear, gate_distance: float):
         super().__init__()
-        self.linear = linear
+        self.linear, self.gate_distance = linear, gate_distance
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
-        return self.linear(latent[:, : self.linear.in_features]) + latent[:, self.linear.in_features :]
+        n = self.linear.in_features
+        step, distance = latent[:, n:-1], latent[:, -1:]
+        return step + distance / (distance + self.gate_distance) * self.linear(latent[:, :n])
 
 
 class ResidualDLSPolicy(MultiInputActorCriticPolicy):
-    """``MultiInputPolicy`` with ``mean = DLS step + Linear(latent_pi)``.
+    """``MultiInputPolicy`` with ``mean = DLS step + d / (d + gate_distance) * Linear(latent_pi)``.
 
     Needs ``features_extractor_class=JointGoalExtractor`` (its first damping gives the
-    DLS step) and a shared features extractor (SB3's default for PPO); keyword arguments
-    are those of ``MultiInputActorCriticPolicy``.
+    DLS step) and a shared features extractor (SB3's default for PPO).
+
+    Args:
+        gate_distance: ``s`` (m, > 0): the correction is halved at this distance to the goal.
+        *args, **kwargs: those of ``MultiInputActorCriticPolicy``.
     """
+
+    def __init__(self, *args, gate_distance: float = 0.01, **kwargs):
+        if isinstance(gate_distance, bool) or not isinstance(gate_distance, (int, float)) or not gate_distance > 0:
+            raise ValueError(f"gate_distance must be a positive number (m), got {gate_distance!r}")
+        self.gate_distance = float(gate_distance)
+        super().__init__(*args, **kwargs)
+
+    def _get_constructor_parameters(self) -> dict:
+        return {**super()._get_constructor_parameters(), "gate_distance": self.gate_distance}
 
     def _build(self, lr_schedule) -> None:
         super()._build(lr_schedule)  # builds mlp_extractor, action_net, value_net and the optimizer
@@ -70,5 +89,6 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
                              f"got {type(self.features_extractor).__name__}, "
                              f"share_features_extractor={self.share_features_extractor}")
         # wrap the modules already built (same parameters, so the optimizer built above still holds them)
-        self.mlp_extractor = _LatentWithBase(self.mlp_extractor, self.features_extractor.step_columns)
-        self.action_net = _ResidualHead(self.action_net)
+        ext = self.features_extractor
+        self.mlp_extractor = _LatentWithBase(self.mlp_extractor, ext.step_columns, ext.distance_column)
+        self.action_net = _ResidualHead(self.action_net, self.gate_distance)

@@ -1,0 +1,85 @@
+"""``train.residual.ResidualDLSPolicy``: the action is the DLS step plus a gated correction, and a
+saved model loads in a fresh process (the custom classes are found by their import path)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from train import train as tr
+
+ROOT = Path(__file__).resolve().parents[1]
+HP = {"features_extractor": "joint", "normalize": False, "policy": "ResidualDLSPolicy", "n_envs": 8,
+      "n_steps": 8, "batch_size": 64, "policy_kwargs": {"net_arch": [16, 16], "gate_distance": 0.02}}
+
+
+def _model():
+    from stable_baselines3 import PPO
+
+    hp = tr.load_hyperparams("ppo", "IiwaReach-v0", HP)
+    kwargs = tr.algo_kwargs("ppo", hp)
+    policy = kwargs.pop("policy")
+    return PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)
+
+
+def test_action_is_dls_step_plus_gated_correction():
+    """With the last layer's weights zero and bias c: mean = step + d / (d + 0.02) * c, d the goal distance."""
+    model = _model()
+    obs = model.env.reset()
+    ext = model.policy.features_extractor
+    x = {k: torch.as_tensor(v) for k, v in obs.items()}
+    step = ext(x)[:, ext.step_columns[0] : ext.step_columns[1]].numpy()
+    d = np.linalg.norm(obs["desired_goal"] - obs["achieved_goal"], axis=-1, keepdims=True)
+    linear = model.policy.action_net.linear
+    c = np.linspace(-0.5, 0.5, 7).astype(np.float32)
+    with torch.no_grad():
+        linear.weight.zero_()
+        linear.bias.copy_(torch.from_numpy(c))
+    mean = model.policy.get_distribution(model.policy.obs_to_tensor(obs)[0]).distribution.mean.detach().numpy()
+    np.testing.assert_allclose(mean, step + d / (d + 0.02) * c, atol=1e-5)
+    # on the goal the correction vanishes: the action is the DLS step alone (zero error: zero step)
+    on_goal = {**obs, "desired_goal": obs["achieved_goal"].copy()}
+    action, _ = model.predict(on_goal, deterministic=True)
+    np.testing.assert_allclose(action, 0.0, atol=1e-6)
+
+
+def test_saved_model_loads_and_acts_the_same_in_a_fresh_process(tmp_path):
+    model = _model()
+    model.save(tmp_path / "model.zip")
+    obs = model.env.reset()
+    np.savez(tmp_path / "obs.npz", **obs)
+    expected, _ = model.predict(obs, deterministic=True)
+    code = ("import sys, numpy as np; from stable_baselines3 import PPO; "
+            "m = PPO.load(sys.argv[1] + '/model.zip', device='cpu'); o = dict(np.load(sys.argv[1] + '/obs.npz')); "
+            "np.save(sys.argv[1] + '/act.npy', m.predict(o, deterministic=True)[0]); "
+            "print(type(m.policy).__name__, m.policy.gate_distance)")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
+                         env={"OMP_WAIT_POLICY": "PASSIVE", "PATH": "/usr/bin:/bin"}, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["ResidualDLSPolicy", "0.02"]
+    np.testing.assert_array_equal(np.load(tmp_path / "act.npy"), expected)
+
+
+def test_residual_policy_needs_the_joint_extractor_and_a_positive_gate():
+    from stable_baselines3 import PPO
+
+    hp = tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, "features_extractor": "goal_delta"})
+    kwargs = tr.algo_kwargs("ppo", hp)
+    policy = kwargs.pop("policy")
+    with pytest.raises(ValueError, match="needs a shared JointGoalExtractor"):
+        PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", **kwargs)
+    with pytest.raises(ValueError, match="gate_distance must be a positive"):
+        _bad = {**HP, "policy_kwargs": {"gate_distance": 0}}
+        hp = tr.load_hyperparams("ppo", "IiwaReach-v0", _bad)
+        kwargs = tr.algo_kwargs("ppo", hp)
+        PPO(kwargs.pop("policy"), tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", **kwargs)
+
+
+def test_joint_features_need_raw_observations():
+    with pytest.raises(ValueError, match="set normalize: false"):
+        tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, "normalize": True})
