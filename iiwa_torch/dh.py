@@ -392,17 +392,19 @@ class DHChain(nn.Module):
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=top.dtype, device=top.device)
         return torch.cat([top, bottom.expand(*top.shape[:2], 1, 4)], -2)
 
-    def _blockwise(self, q: Tensor, shape: tuple[int, ...], fn) -> Tensor:
-        """Apply ``fn: (b, n) -> (b, *shape)`` to blocks of at most ``_BLOCK`` configurations
-        of ``q (..., n)`` (so each block's intermediates stay in the CPU cache) and return
-        ``(..., *shape)``."""
+    def _blockwise(self, q: Tensor, shape: tuple[int, ...], fn, *others: Tensor) -> Tensor:
+        """Apply ``fn: (b, n), *others' blocks -> (b, *shape)`` to blocks of at most ``_BLOCK``
+        configurations of ``q (..., n)`` (so each block's intermediates stay in the CPU cache)
+        and return ``(..., *shape)``. ``others`` share ``q``'s leading batch shape."""
         flat = q.reshape(-1, self.n_joints)
+        rest = [o.reshape(flat.shape[0], *o.shape[q.ndim - 1 :]) for o in others]
         if flat.shape[0] <= _BLOCK:
-            out = fn(flat)
+            out = fn(flat, *rest)
         else:
             out = q.new_empty(flat.shape[0], *shape)
             for start in range(0, flat.shape[0], _BLOCK):
-                out[start : start + _BLOCK] = fn(flat[start : start + _BLOCK])
+                block = slice(start, start + _BLOCK)
+                out[block] = fn(flat[block], *(o[block] for o in rest))
         return out.reshape(*q.shape[:-1], *shape)
 
     def _end_pose(self, qb: Tensor) -> Tensor:
@@ -415,6 +417,18 @@ class DHChain(nn.Module):
         if qb.shape[0] <= _SMALL_BATCH:
             return self._frames_matmul(qb).transpose(0, 1)
         return self._poses(self._frames_elementwise(qb, keep=True))
+
+    def _pose_vjp(self, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
+        """The backward pass of :meth:`fk`: angles ``(b, n)``, their end poses ``(b, 4, 4)`` and
+        the gradient of a loss with respect to those poses -> its gradient ``(b, n)`` with
+        respect to the angles, computed batch last:
+        ``dL/dq_i = z_i . ((p_e - p_i) x g + w)``, with ``g = dL/dp`` and ``w = sum_k R[:, k] x G[:, k]``
+        (``G = dL/dR``) the axial vector of ``R G^T``."""
+        z, origin, end = self._axes(q)  # (n, 3, b), (n, 3, b), (3, b)
+        g = grad[:, :3].permute(1, 2, 0).contiguous()  # (3, 4, b)
+        w = torch.linalg.cross(pose[:, :3, :3].permute(1, 2, 0), g[:, :3], dim=0).sum(1)  # (3, b)
+        moment = torch.linalg.cross(end, g[:, 3], dim=0) + w  # (3, b)
+        return (z * (moment - torch.linalg.cross(origin, g[:, 3].expand_as(origin), dim=1))).sum(1).T
 
     def _jacobian(self, qb: Tensor) -> Tensor:
         z, origin, end = self._axes(qb)  # (n, 3, b), (n, 3, b), (3, b)
@@ -470,7 +484,8 @@ class DHChain(nn.Module):
 class _EndPose(torch.autograd.Function):
     """``fk`` with a closed-form backward: the pose moves as ``dT/dq_i = [z_i]x T`` about
     joint i's axis, so ``dL/dq = J^T [g_p; w]``, with ``g_p = dL/dp`` and ``w`` the axial
-    vector of ``R (dL/dR)^T``. One Jacobian instead of replaying every op of the forward."""
+    vector of ``R (dL/dR)^T`` (:meth:`DHChain._pose_vjp`). The joint axes instead of
+    replaying every op of the forward."""
 
     @staticmethod
     def forward(q: Tensor, chain: DHChain) -> Tensor:
@@ -484,8 +499,4 @@ class _EndPose(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor):
         q, pose = ctx.saved_tensors
-        # axial vector of R G^T = sum over columns k of R[:, k] x G[:, k]
-        w = torch.linalg.cross(pose[..., :3, :3], grad[..., :3, :3], dim=-2).sum(-1)  # (..., 3)
-        twist = torch.cat([grad[..., :3, 3], w], -1)  # (..., 6)
-        jac = ctx.chain._blockwise(q, (6, ctx.chain.n_joints), ctx.chain._jacobian)
-        return (twist.unsqueeze(-1) * jac).sum(-2), None
+        return ctx.chain._blockwise(q, (ctx.chain.n_joints,), ctx.chain._pose_vjp, pose, grad), None
