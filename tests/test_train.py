@@ -44,10 +44,12 @@ def test_short_run_writes_checkpoint_and_final_model(tmp_path, algo, flags, step
     run = tmp_path / algo
     assert tr.main(["--algo", algo, "--env", "IiwaReach-v0", "--timesteps", str(steps), "--out", str(run),
                     "--no-progress-bar", *flags]) == 0
-    for name in ("model.zip", "config.yaml", "vecnormalize.pkl", "evaluations.json", "train_info.json"):
+    for name in ("model.zip", "config.yaml", "evaluations.json", "train_info.json"):
         assert (run / name).is_file(), name
+    normalize = yaml.safe_load((run / "config.yaml").read_text())["hyperparams"]["normalize"]
+    assert (run / "vecnormalize.pkl").is_file() == normalize
     ckpt = tr.latest_checkpoint(run)
-    assert ckpt is not None and (ckpt / "model.zip").is_file() and (ckpt / "vecnormalize.pkl").is_file()
+    assert ckpt is not None and (ckpt / "model.zip").is_file() and (ckpt / "vecnormalize.pkl").is_file() == normalize
     assert (ckpt / "replay_buffer.pkl").is_file() == (algo == "sac")
     state = json.loads((ckpt / "state.json").read_text())
     assert state["num_timesteps"] >= steps
@@ -168,7 +170,7 @@ def test_policy_actor_matches_sb3_predict():
     model, vec_normalize, config = ev.load_policy(_shipped()[0])
     obs = _env(config["env_id"], 16, 5, config["hyperparams"].get("env_kwargs")).reset()
     ours = np.clip(policy_actor(model, vec_normalize)(obs), -1, 1)
-    theirs, _ = model.predict(vec_normalize.normalize_obs(obs), deterministic=True)
+    theirs, _ = model.predict(obs if vec_normalize is None else vec_normalize.normalize_obs(obs), deterministic=True)
     np.testing.assert_allclose(ours, theirs, atol=1e-5)
 
 

@@ -68,7 +68,8 @@ def test_saved_model_loads_and_acts_the_same_in_a_fresh_process(tmp_path):
 def test_residual_policy_needs_the_joint_extractor_and_a_positive_gate():
     from stable_baselines3 import PPO
 
-    hp = tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, "features_extractor": "goal_delta"})
+    hp = tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, "features_extractor": "goal_delta",
+                                                          "features_extractor_kwargs": {"scales": [0.3]}})
     kwargs = tr.algo_kwargs("ppo", hp)
     policy = kwargs.pop("policy")
     with pytest.raises(ValueError, match="needs a shared JointGoalExtractor"):
