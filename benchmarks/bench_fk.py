@@ -48,7 +48,7 @@ def matmul_chain(op: str, q: torch.Tensor):
 
 
 # Compiled lazily, on first call (once per dtype).
-FUSED = torch.compile(lambda x: CHAIN._poses(CHAIN._frames_elementwise(x, keep=False)), dynamic=True)
+FUSED = torch.compile(CHAIN._end_pose, dynamic=True)
 
 
 def compiled(op: str, q: torch.Tensor):

@@ -83,6 +83,16 @@ def _multiply_add(u: Tensor, v: Tensor, w, sign: float) -> Tensor:
     return torch.addcmul(u, v, w, value=sign) if isinstance(w, Tensor) else torch.add(u, v, alpha=sign * w)
 
 
+def _combine(vectors: Sequence[Tensor], coefficients: Sequence[float], start: Tensor | None = None) -> Tensor:
+    """``start + sum_k c_k v_k`` for ``(3, b)`` vectors and Python-float coefficients, with no op
+    for a zero coefficient (nor for a lone unit one): a flange offset along z is one multiply-add."""
+    out = start
+    for v, c in zip(vectors, coefficients):
+        if c != 0.0:
+            out = (v if c == 1.0 else v * c) if out is None else torch.add(out, v, alpha=c)
+    return out
+
+
 def _exact(v: float) -> float:
     """Snap cos/sin of a multiple of pi/2 to exactly 0 or +-1 (6e-17 is rounding noise)."""
     return float(round(v)) if abs(v - round(v)) < 1e-12 else v
@@ -182,7 +192,7 @@ class DHChain(nn.Module):
         self._steps = [(a, _exact(math.cos(al)), _exact(math.sin(al)), d) for a, al, d, _ in dh.tolist()]
         self._has_base = not torch.equal(self.base, torch.eye(4, dtype=torch.float64))
         self._has_tool = not torch.equal(self.tool, torch.eye(4, dtype=torch.float64))
-        self._tool_point = tuple(self.tool[:3, 3].tolist())
+        self._tool_columns = self.tool[:3].T.tolist()  # its rotation's columns, then its translation
         # The small-batch kernel's constants: A_i = cos C0 + sin C1 + C2, per link; the "end"
         # set has the base folded into the first link and the tool into the last.
         links = _link_coefficients(dh, self.convention).view(n, 3, 4, 4)
@@ -317,7 +327,7 @@ class DHChain(nn.Module):
         """
         theta = (q + self._in(q.dtype, "_offsets")).contiguous()
         c, s = torch.cos(theta), torch.sin(theta)
-        v0, v1, v2 = self._tool_point
+        v0, v1, v2 = self._tool_columns[3]
         standard = self.convention is Convention.STANDARD
         for i, (a, ca, sa, d) in reversed(list(enumerate(self._steps))):
             if standard:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
@@ -334,9 +344,9 @@ class DHChain(nn.Module):
         base = self._in(q.dtype, "base")
         return torch.addmm(base[:3, 3, None], base[:3, :3], point)
 
-    def _frames_elementwise(self, q: Tensor, keep: bool) -> Tensor:
-        """Large batches: ``(b, n) -> (F, 3, 4, b)`` through :meth:`frames_batch_last`."""
-        frames, _ = self.frames_batch_last(q.T, keep)
+    def _frames_elementwise(self, q: Tensor) -> Tensor:
+        """Large batches: ``(b, n) -> (n + 1, 3, 4, b)`` through :meth:`frames_batch_last`."""
+        frames, _ = self.frames_batch_last(q.T)
         return torch.stack([torch.stack(f, 1) for f in frames], 0)
 
     def _link_matrices(self, q: Tensor, end: bool) -> tuple[Tensor, ...]:
@@ -367,12 +377,12 @@ class DHChain(nn.Module):
             frames = [base, *accumulate(links, product)]
         return torch.stack(frames).view(self.n_joints + 1, b, 4, 4)
 
-    def _end_position(self, last: Tensor) -> Tensor:
-        """``(3, 4, b)`` last link frame -> ``(3, b)`` end-effector (tool) position."""
+    def _tool_frame(self, frame: Frame) -> Frame:
+        """The last link frame ``(x, y, z, p)``, each ``(3, b)``, -> the end-effector (tool) frame."""
         if not self._has_tool:
-            return last[:, 3]
-        t = self._in(last.dtype, "tool")[:3, 3]
-        return last[:, 3] + (last[:, :3] * t[None, :, None]).sum(1)
+            return frame
+        axes, columns = frame[:3], self._tool_columns
+        return (*(_combine(axes, column) for column in columns[:3]), _combine(axes, columns[3], start=frame[3]))
 
     def _axes(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(b, n)`` -> joint axes ``z (n, 3, b)``, a point on each ``(n, 3, b)`` and the end
@@ -380,10 +390,10 @@ class DHChain(nn.Module):
         if q.shape[0] <= _SMALL_BATCH:
             frames = self._frames_matmul(q)[:, :, :3].permute(0, 2, 3, 1)  # (n + 1, 3, 4, b), a view
             axes = frames[:-1] if self.convention is Convention.STANDARD else frames[1:]
-            return axes[:, :, 2], axes[:, :, 3], self._end_position(frames[-1])
+            return axes[:, :, 2], axes[:, :, 3], self._tool_frame(frames[-1].unbind(1))[3]
         frames, axes = self.frames_batch_last(q.T)
         z, origin = (torch.stack(column) for column in zip(*axes))
-        return z, origin, self._end_position(torch.stack(frames[-1], 1))
+        return z, origin, self._tool_frame(frames[-1])[3]
 
     @staticmethod
     def _poses(frames: Tensor) -> Tensor:
@@ -410,13 +420,13 @@ class DHChain(nn.Module):
     def _end_pose(self, qb: Tensor) -> Tensor:
         if qb.shape[0] <= _SMALL_BATCH:
             return self._end_pose_matmul(qb)
-        pose = self._poses(self._frames_elementwise(qb, keep=False))[:, 0]
-        return pose @ self._in(qb.dtype, "tool") if self._has_tool else pose
+        frames, _ = self.frames_batch_last(qb.T, keep=False)
+        return self._poses(torch.stack(self._tool_frame(frames[0]), 1)[None])[:, 0]
 
     def _all_poses(self, qb: Tensor) -> Tensor:
         if qb.shape[0] <= _SMALL_BATCH:
             return self._frames_matmul(qb).transpose(0, 1)
-        return self._poses(self._frames_elementwise(qb, keep=True))
+        return self._poses(self._frames_elementwise(qb))
 
     def _pose_vjp(self, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
         """The backward pass of :meth:`fk`: angles ``(b, n)``, their end poses ``(b, 4, 4)`` and

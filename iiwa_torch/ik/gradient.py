@@ -61,13 +61,8 @@ def _kinematics(chain: DHChain, q: Tensor, Z: Tensor) -> tuple[Tensor, Tensor, T
     frames, axes = chain.frames_batch_last(q)
     torch.stack([z for z, _ in axes], 1, out=Z)
     P = torch.stack([p for _, p in axes], 1)
-    x, y, z, p = frames[-1]
-    R = torch.stack([x, y, z])  # (3, 3, b)
-    if chain._has_tool:
-        tool = chain.tool.to(q.dtype)
-        p = p + (R * tool[:3, 3, None, None]).sum(0)
-        R = torch.einsum("kcb,kj->jcb", R, tool[:3, :3])
-    return R, p, P
+    x, y, z, p = chain._tool_frame(frames[-1])
+    return torch.stack([x, y, z]), p, P  # (3, 3, b), (3, b), (3, n, b)
 
 
 def _roll(vectors: Tensor, dim: int) -> Tensor:
