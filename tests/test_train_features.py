@@ -95,3 +95,47 @@ def test_joint_extractor_bad_options(kwargs, message):
 def test_joint_extractor_needs_cos_sin_in_the_observation():
     with pytest.raises(ValueError, match="needs >= 14"):
         JointGoalExtractor(_space(obs_dim=10), "iiwa14", MAX_STEP)
+
+
+def _fd_weighted_jacobian(q: np.ndarray, w: float, h: float = 1e-6) -> np.ndarray:
+    """``(nj,)`` rad -> ``(6, nj)``: position rows (m/rad), then ``w`` times the angular-velocity rows,
+    each column ``log(R(q + h) R(q - h)^T) / 2h`` (scipy's rotation vector): central differences."""
+    from scipy.spatial.transform import Rotation
+
+    chain = iiwa14()
+    cols = []
+    for i in range(q.size):
+        dq = np.zeros_like(q)
+        dq[i] = h
+        plus, minus = chain.fk(torch.from_numpy(q + dq)).numpy(), chain.fk(torch.from_numpy(q - dq)).numpy()
+        omega = Rotation.from_matrix(plus[:3, :3] @ minus[:3, :3].T).as_rotvec() / (2 * h)
+        cols.append(np.concatenate([(plus[:3, 3] - minus[:3, 3]) / (2 * h), w * omega]))
+    return np.stack(cols, axis=1)
+
+
+def test_pose_goal_features_match_least_squares_with_scipy_rotation_errors():
+    """Pose goals (position, first two rotation columns): e = [e_p; w log(R_d R_a^T)], J = [J_p; w J_r]."""
+    from scipy.spatial.transform import Rotation
+
+    chain = iiwa14()
+    g = torch.Generator().manual_seed(5)
+    q = chain.random_q(4, generator=g)
+    target = chain.random_q(4, generator=g) * torch.tensor([[0.02], [0.2], [1.0], [0.0]], dtype=torch.float64) + q
+    w = 0.5
+    pose_a, pose_d = chain.fk(q), chain.fk(target)
+    goal = lambda p: torch.cat([p[:, :3, 3], p[:, :3, 0], p[:, :3, 1]], -1).float()  # the env's pose-goal layout
+    obs = {"observation": torch.cat([q.cos(), q.sin(), torch.zeros(4, 7), goal(pose_a)], -1).float(),
+           "achieved_goal": goal(pose_a), "desired_goal": goal(pose_d)}
+    ext = JointGoalExtractor(_space(30, 9), "iiwa14", MAX_STEP, dampings=(0.1,), orientation_weight=w)
+    joint = ext(obs)[:, -(3 * 7 + 1):].double().numpy()
+    for b in range(3):  # goal 3 is the achieved pose itself (checked below)
+        ra, rd = pose_a[b, :3, :3].numpy(), pose_d[b, :3, :3].numpy()
+        e = np.concatenate([(pose_d[b, :3, 3] - pose_a[b, :3, 3]).numpy(),
+                            w * Rotation.from_matrix(rd @ ra.T).as_rotvec()])
+        jw = _fd_weighted_jacobian(q[b].numpy(), w)
+        dq = np.linalg.lstsq(np.vstack([jw, 0.1 * np.eye(7)]), np.concatenate([e, np.zeros(7)]), rcond=None)[0]
+        u = dq / np.array(MAX_STEP)
+        np.testing.assert_allclose(joint[b, :7], u / max(1.0, np.abs(u).max()), atol=1e-4, err_msg=f"goal {b}")
+        np.testing.assert_allclose(joint[b, 7:14], jw.T @ e / np.linalg.norm(e), atol=1e-4)
+        np.testing.assert_allclose(joint[b, 21], np.linalg.norm(e), rtol=1e-4, atol=1e-6)
+    assert joint[3, 21] < 1e-6 and np.abs(joint[3, :7]).max() < 1e-3  # float32 goals: not exactly zero

@@ -201,10 +201,12 @@ def verdict(m: dict[str, dict[str, Any]]) -> list[str]:
     lines = []
     for name, v in ik.items():
         orders = math.log10(max(p["median_error_m"], 1e-15) / max(v["median_error_m"], 1e-15))
-        lines.append(f"Accuracy: the policy loses to {name}: median final error {1e3 * p['median_error_m']:.2f} mm "
-                     f"against {1e3 * v['median_error_m']:.1e} mm ({orders:.0f} orders of magnitude); success at "
-                     f"1 cm {100 * p['success@1cm']:.1f}% against {100 * v['success@1cm']:.1f}%, at 1 mm "
-                     f"{100 * p['success@1mm']:.1f}% against {100 * v['success@1mm']:.1f}%.")
+        ratio = f"{orders:.1f} orders of magnitude" if orders >= 0 else f"{-orders:.1f} orders of magnitude lower"
+        lines.append(f"Accuracy against {name}: median final error {1e3 * p['median_error_m']:.2g} mm against "
+                     f"{1e3 * v['median_error_m']:.2g} mm ({ratio}); success at 1 cm {100 * p['success@1cm']:.1f}% "
+                     f"against {100 * v['success@1cm']:.1f}%, at 1 mm {100 * p['success@1mm']:.1f}% against "
+                     f"{100 * v['success@1mm']:.1f}%; p95 final error {1e3 * p['p95_error_m']:.2g} mm against "
+                     f"{1e3 * v['p95_error_m']:.2g} mm.")
     for name, v in ik.items():
         if p["median_steps_to_reach"] is not None and v["median_steps_to_reach"] is not None:
             won = _cmp(p["median_steps_to_reach"], v["median_steps_to_reach"])

@@ -19,6 +19,8 @@ import torch
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
+from iiwa_torch import so3
+
 
 class GoalDeltaExtractor(BaseFeaturesExtractor):
     """Concatenate ``observation``, both goals and ``clip((desired - achieved) / s, -1, 1)`` per scale.
@@ -65,6 +67,11 @@ class JointGoalExtractor(GoalDeltaExtractor):
     at any rank), each joint's place within its limits, ``2 (q - lower) / (upper - lower) - 1``,
     and the distance ``|e|`` (m).
 
+    Pose goals (9 numbers: position, then the first two columns of the rotation matrix) use
+    the whole Jacobian, its rotation rows weighted by ``w = orientation_weight`` (m/rad), and
+    the error ``e = [e_p; w e_r]`` with ``e_r = log(R_desired R_achieved^T)`` (rotation vector
+    in the world frame, rad): the same formulas with 6 rows, and ``|e|`` combines both.
+
     Everything is computed inside the network from the observation, so it stays correct when
     HER relabels ``desired_goal``. It needs the raw observation: its first ``2 nj`` entries are
     ``cos q``, ``sin q`` (``q = atan2(sin q, cos q)``), so train without ``VecNormalize`` (the
@@ -72,18 +79,19 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     Args:
         observation_space: a ``Dict`` with ``observation`` (starting with ``cos q, sin q``),
-            ``achieved_goal`` and ``desired_goal`` (starting with the position, m).
+            ``achieved_goal`` and ``desired_goal`` (3 numbers, a position in m, or 9, a pose).
         robot: name of the chain in ``iiwa_torch.robots.PRESETS`` (the env's robot).
         max_step: ``(nj,)`` joint motion per step at full action, rad (the env task's ``max_step``).
         scales: goal-delta scales, m (see :class:`GoalDeltaExtractor`).
         dampings: the ``lambda`` values, m, all > 0.
+        orientation_weight: ``w``, m/rad (> 0), for pose goals only.
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
 
     def __init__(self, observation_space: spaces.Dict, robot: str = "iiwa14",
                  max_step: Sequence[float] | None = None, scales: Sequence[float] = (0.3, 0.03, 0.003),
-                 dampings: Sequence[float] = (0.1, 0.01)):
+                 dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5):
         from iiwa_torch.robots import PRESETS
 
         super().__init__(observation_space, scales)
@@ -95,11 +103,16 @@ class JointGoalExtractor(GoalDeltaExtractor):
             raise ValueError(f"max_step must be {nj} positive numbers (rad per step), got {max_step!r}")
         if len(dampings) == 0 or any(float(d) <= 0 for d in dampings):
             raise ValueError(f"dampings must be a non-empty list of positive numbers (m), got {list(dampings)}")
+        if not float(orientation_weight) > 0:
+            raise ValueError(f"orientation_weight must be a positive number (m/rad), got {orientation_weight!r}")
         obs_dim = int(observation_space["observation"].shape[0])
-        if obs_dim < 2 * nj or int(observation_space["desired_goal"].shape[0]) < 3:
+        goal_dim = int(observation_space["desired_goal"].shape[0])
+        if obs_dim < 2 * nj or goal_dim not in (3, 9):
             raise ValueError(f"robot {robot!r} has {nj} joints: the observation needs >= {2 * nj} entries "
-                             f"(cos q, sin q) and the goal >= 3 (a position); got {obs_dim} and "
-                             f"{observation_space['desired_goal'].shape[0]}")
+                             f"(cos q, sin q) and the goal 3 (a position) or 9 (a pose) numbers; got {obs_dim} "
+                             f"and {goal_dim}")
+        self.pose = goal_dim == 9
+        self.orientation_weight = float(orientation_weight)
         self.chain = chain  # float64 buffers; the joint features are computed in float64
         self.nj = nj
         #: columns of the output holding the DLS step (in actions) at the first damping
@@ -111,14 +124,18 @@ class JointGoalExtractor(GoalDeltaExtractor):
         self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in dampings], dtype=torch.float64))
 
     def joint_features(self, q: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
-        """``q (B, nj)`` rad and position ``error (B, 3)`` m -> ``(B, (len(dampings) + 2) * nj + 1)`` float64:
-        the shrunk DLS steps in actions per damping, ``J_p^T e / |e|`` (m), the place within the limits, |e| (m)."""
+        """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
+        DLS steps in actions per damping, ``J^T e / |e|`` (m), the place within the limits, ``|e|`` (m).
+
+        ``k = 3``: a position error (m), ``J = J_p``; ``k = 6``: ``[e_p; w e_r]`` (m), ``J = [J_p; w J_r]``."""
         q, e = q.double(), error.double()
-        jp = self.chain.jacobian(q)[..., :3, :]  # (B, 3, nj) m/rad
-        jjt = jp @ jp.transpose(-1, -2)  # (B, 3, 3)
-        eye = torch.eye(3, dtype=q.dtype, device=q.device)
-        a = jjt.unsqueeze(1) + self.damping_sq[:, None, None] * eye  # (B, L, 3, 3)
-        x = torch.linalg.solve(a, e[:, None, :, None].expand(-1, a.shape[1], 3, 1))  # (B, L, 3, 1)
+        k = e.shape[-1]
+        jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
+        jp = jac[..., :3, :] if k == 3 else torch.cat([jac[..., :3, :], self.orientation_weight * jac[..., 3:, :]], -2)
+        jjt = jp @ jp.transpose(-1, -2)  # (B, k, k)
+        eye = torch.eye(k, dtype=q.dtype, device=q.device)
+        a = jjt.unsqueeze(1) + self.damping_sq[:, None, None] * eye  # (B, L, k, k)
+        x = torch.linalg.solve(a, e[:, None, :, None].expand(-1, a.shape[1], k, 1))  # (B, L, k, 1)
         dq = (jp.transpose(-1, -2).unsqueeze(1) @ x).squeeze(-1)  # (B, L, nj) rad
         u = dq / self.max_step
         u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
@@ -132,7 +149,21 @@ class JointGoalExtractor(GoalDeltaExtractor):
         base = super().forward(observations)
         obs, nj = observations["observation"], self.nj
         q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
-        error = observations["desired_goal"][:, :3] - observations["achieved_goal"][:, :3]
+        desired, achieved = observations["desired_goal"], observations["achieved_goal"]
+        error = desired[:, :3] - achieved[:, :3]
         with torch.no_grad():  # no parameters upstream: features only
+            if self.pose:
+                rot = _rotation(desired[:, 3:]) @ _rotation(achieved[:, 3:]).transpose(-1, -2)
+                error = torch.cat([error.double(), self.orientation_weight * so3.log(rot)], -1)
             joint = self.joint_features(q, error)
         return torch.cat([base, joint.to(base.dtype)], dim=-1)
+
+
+def _rotation(columns: torch.Tensor) -> torch.Tensor:
+    """The first two columns of rotation matrices ``(B, 6)`` -> ``(B, 3, 3)`` float64, re-orthonormalised
+    (the goals are float32)."""
+    x, y = columns[:, :3].double(), columns[:, 3:6].double()
+    x = x / x.norm(dim=-1, keepdim=True)
+    y = y - (x * y).sum(-1, keepdim=True) * x
+    y = y / y.norm(dim=-1, keepdim=True)
+    return torch.stack([x, y, torch.linalg.cross(x, y)], dim=-1)
