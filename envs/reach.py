@@ -290,8 +290,7 @@ class IiwaReachVectorEnv(VectorEnv):
         info = _info(self.task, tr.success, tr.distance, tr.angle)
         if tr.final_index.size:
             final = np.full(self.num_envs, None, dtype=object)
-            for row, i in enumerate(tr.final_index.tolist()):  # finished environments only
-                final[i] = {k: v[row] for k, v in tr.final_obs.items()}
+            final[tr.final_index] = self.task.rows(tr.final_obs)  # finished environments only
             done = tr.terminated | tr.truncated
             info["final_obs"], info["_final_obs"] = final, done
             # the finished step's info (already in ``info``), under the name SyncVectorEnv uses

@@ -111,8 +111,8 @@ class IiwaReachVecEnv(VecEnv):
         if self.task.goal_kind is GoalKind.POSE:
             for info, angle in zip(infos, tr.angle.tolist()):
                 info["orientation_error"] = angle
-        for row, i in enumerate(tr.final_index.tolist()):  # finished environments only
-            infos[i]["terminal_observation"] = {k: v[row] for k, v in tr.final_obs.items()}
+        for i, last in zip(tr.final_index.tolist(), self.task.rows(tr.final_obs)):  # finished environments only
+            infos[i]["terminal_observation"] = last
         return tr.obs, tr.reward, tr.terminated | tr.truncated, infos
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
