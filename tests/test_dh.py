@@ -171,7 +171,7 @@ def test_jacobian_equals_autograd_and_finite_differences(preset):
         torch.testing.assert_close(chain.jacobian(q), fd, atol=1e-8, rtol=0)
 
 
-@pytest.mark.parametrize("batch", [3, _SMALL_BATCH + 5])
+@pytest.mark.parametrize("batch", [1, 3, _SMALL_BATCH + 5])
 def test_gradcheck_fk(batch):
     chain = robots.iiwa14()
     q = sample(chain, batch, seed=7).requires_grad_()
