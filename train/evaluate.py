@@ -227,8 +227,9 @@ def verdict(m: dict[str, dict[str, Any]]) -> list[str]:
                      f"for the straight move).")
     if "failures" in p:
         f = p["failures"]
-        lines.append(f"Where the policy fails ({f['count']} of the goals end beyond 1 cm): it stalls short of them, "
-                     f"at a median {1e3 * f['median_final_error_m']:.0f} mm; their median distance from the base "
+        goals = "goal ends" if f["count"] == 1 else "goals end"
+        lines.append(f"Where the policy fails ({f['count']} {goals} beyond 1 cm): at a median "
+                     f"{1e3 * f['median_final_error_m']:.0f} mm from the goal; their median distance from the base "
                      f"axis is {f['median_goal_radius_m']:.2f} m against {f['median_goal_radius_all_m']:.2f} m for "
                      f"all goals. The IK solvers have no such tail on these reachable goals.")
     lines.append("What the policy is and the IK is not: a closed-loop controller that produces the whole motion "

@@ -58,7 +58,7 @@ def ship(run: Path, name: str) -> Path:
         f"torch threads {info['machine']['torch_threads']}, torch {info['machine']['torch']}",
         f"- last periodic evaluation (goal-set seed 10,000, {len(json.loads((run / 'evaluations.json').read_text()))}"
         f" evaluations in evaluations.json): success at 1 cm {100 * last.get('success', float('nan')):.1f}%, "
-        f"median final distance {1000 * last.get('median_distance', float('nan')):.2f} mm",
+        f"median final distance {1000 * last.get('median_distance', float('nan')):.3g} mm",
         "",
         "The held-out comparison with the IK solvers is in report/ (train.evaluate, 1,000 goals, seed 0).",
         "",
