@@ -1,4 +1,4 @@
-"""FK, all frames, Jacobian and FK forward+backward: iiwa-torch against its peers, one run.
+"""FK, end position, all frames, Jacobian and FK forward+backward: iiwa-torch against its peers, one run.
 
     python benchmarks/bench_fk.py [--quick]
 
@@ -27,6 +27,7 @@ from iiwa_torch.urdf import to_urdf  # noqa: E402
 CHAIN = robots.iiwa14()
 SIZES = {
     "fk": [1, 1_000, 100_000, 1_000_000],
+    "position": [1, 1_000, 100_000, 1_000_000],
     "fk_all": [1, 1_000, 100_000],
     "jacobian": [1, 1_000, 10_000, 100_000],
     "fk_backward": [1, 1_000, 100_000],
@@ -64,6 +65,8 @@ def pytorch_kinematics(op: str, q: torch.Tensor):
     serial = pk.build_serial_chain_from_urdf(to_urdf(CHAIN).encode(), "tool0").to(dtype=q.dtype)
     if op == "fk":
         return lambda: serial.forward_kinematics(q).get_matrix()
+    if op == "position":  # pk has no position-only path: the pose's translation
+        return lambda: serial.forward_kinematics(q).get_matrix()[..., :3, 3]
     if op == "fk_all":
         return lambda: [t.get_matrix() for t in serial.forward_kinematics(q, end_only=False).values()]
     if op == "jacobian":
@@ -74,7 +77,8 @@ def pytorch_kinematics(op: str, q: torch.Tensor):
 
 def floor(op: str, q: torch.Tensor):
     """A plain copy of a tensor the size of the output: the memory-bound limit."""
-    shape = {"fk": (4, 4), "fk_all": (CHAIN.n_joints + 1, 4, 4), "jacobian": (6, CHAIN.n_joints)}.get(op)
+    n = CHAIN.n_joints
+    shape = {"fk": (4, 4), "position": (3,), "fk_all": (n + 1, 4, 4), "jacobian": (6, n)}.get(op)
     if shape is None:
         return None
     out = torch.empty(q.shape[0], *shape, dtype=q.dtype)
@@ -187,7 +191,8 @@ def main() -> None:
                     print(" | ".join(str(c) for c in rows[-1]), flush=True)
     torch.set_num_threads(1)
     cpp = per_call_cpp(CHAIN.random_q(1000, generator=g))
-    single = timeit(lambda: CHAIN.fk(CHAIN.random_q(1, generator=g)[0]))
+    one = CHAIN.random_q(1, generator=g)[0]
+    single = timeit(lambda: CHAIN.fk(one))
     headers = [
         "op",
         "batch",
