@@ -94,6 +94,11 @@ def _combine(vectors: Sequence[Tensor], coefficients: Sequence[float], start: Te
     return out
 
 
+def _numpy_ok(q: Tensor) -> bool:
+    """On the CPU with nothing to differentiate: one configuration may go through numpy."""
+    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
+
+
 def _exact(v: float) -> float:
     """Snap cos/sin of a multiple of pi/2 to exactly 0 or +-1 (6e-17 is rounding noise)."""
     return float(round(v)) if abs(v - round(v)) < 1e-12 else v
@@ -208,7 +213,7 @@ class DHChain(nn.Module):
         phase = dh[:, 3, None] + torch.tensor([math.pi / 2, 0.0], dtype=torch.float64)
         self.register_buffer("_trig_phase", phase[:, None], persistent=False)
         self.register_buffer("_offsets", dh[:, 3, None].clone(), persistent=False)  # (n, 1)
-        self._converted: dict[tuple[torch.dtype, str], Tensor] = {}
+        self._converted: dict[tuple[torch.dtype, str], Tensor | tuple[np.ndarray, ...]] = {}
 
     def _in(self, dtype: torch.dtype, name: str) -> Tensor:
         """Buffer ``name`` in ``dtype``, converted once and cached (``.to()`` and friends clear the
@@ -310,6 +315,8 @@ class DHChain(nn.Module):
         (for hot loops that keep a batch-last layout: the envs). Small batches take the 4x4
         product kernel, large ones :meth:`_position_horner` in blocks."""
         b = q.shape[1]
+        if b == 1 and _numpy_ok(q):
+            return torch.from_numpy(self._end_pose_numpy(q)[:3, 3:])
         if b <= _SMALL_BATCH:
             return self._end_pose_matmul(q.T)[:, :3, 3].T
         if b <= _POSITION_BLOCK:
@@ -363,19 +370,23 @@ class DHChain(nn.Module):
 
     def _end_pose_matmul(self, q: Tensor) -> Tensor:
         """Small batches, few ops: ``(b, n) -> (b, 4, 4)`` end pose (tool included), a chain of 4x4 products."""
-        if q.shape[0] == 1 and q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled()):
-            return self._end_pose_numpy(q)
+        if q.shape[0] == 1 and _numpy_ok(q):
+            return torch.from_numpy(self._end_pose_numpy(q)[None])
         product = torch.mm if q.shape[0] == 1 else torch.bmm
         return reduce(product, self._link_matrices(q, end=True)).view(q.shape[0], 4, 4)
 
-    def _end_pose_numpy(self, q: Tensor) -> Tensor:
-        """One configuration ``(1, n) -> (1, 4, 4)`` on the CPU, nothing to differentiate: the
+    def _end_pose_numpy(self, q: Tensor) -> np.ndarray:
+        """One configuration, ``(1, n)`` or ``(n, 1)`` -> its ``(4, 4)`` end pose: the
         same products as :meth:`_link_matrices` and :meth:`_end_pose_matmul`, in numpy. Its
         latency is all per-call overhead, and numpy's is about a third of torch's (measured:
         one call about half as long)."""
-        phase, coeffs, const = (self._in(q.dtype, name).numpy() for name in ("_trig_phase", "_end_trig", "_end_const"))
-        trig = np.sin(q.numpy().T[:, :, None] + phase)  # (n, 1, 2): cos, sin
-        return torch.from_numpy(reduce(np.matmul, (const + trig @ coeffs).reshape(-1, 4, 4))[None])
+        key = (q.dtype, "numpy")  # the constants as numpy arrays, cached (.numpy() costs 4 dispatches)
+        if key not in self._converted:
+            names = ("_trig_phase", "_end_trig", "_end_const")
+            self._converted[key] = tuple(self._in(q.dtype, name).numpy() for name in names)
+        phase, coeffs, const = self._converted[key]
+        trig = np.sin(q.numpy().reshape(-1, 1, 1) + phase)  # (n, 1, 2): cos, sin
+        return reduce(np.matmul, (const + trig @ coeffs).reshape(-1, 4, 4))
 
     def _frames_matmul(self, q: Tensor) -> Tensor:
         """Small batches: ``(b, n) -> (n + 1, b, 4, 4)``: the base and every link frame."""
