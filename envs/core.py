@@ -273,6 +273,7 @@ class ReachTask:
         if home.shape != (n,) or not torch.isfinite(home).all() or not bool(self.robot.within_limits(home)):
             raise ValueError(f"home must be {n} finite joint angles within the limits, got {home.tolist()}")
         self.home = home
+        self._home_goal = self.goal_of(home[:, None])  # (g, 1): every episode from home starts there
         self.lower, self.upper = lim[0], lim[1]
         self.max_step = (self.robot.velocity_limits * self.dt).to(dtype)  # (nj,) rad per step at |a| = 1
         # the same as columns (nj, 1), to broadcast along the state's rows
@@ -358,7 +359,7 @@ class ReachTask:
         an existing state goes on to the next episode of each environment; otherwise
         episode 0 starts from the keys of ``seeds`` (a ``None`` entry draws a seed from ``rng``)."""
         if state is not None and all(s is None for s in seeds):
-            return self.restart(state, torch.arange(len(seeds), device=self.device))[0]
+            return self._new_episodes(state.key, state.episode + 1)  # every environment's next episode
         fresh = rng.integers(2**63, size=len(seeds)).tolist()
         return self.initial_state(keys_from_seeds([f if s is None else s for f, s in zip(fresh, seeds)], self.device))
 
@@ -368,10 +369,13 @@ class ReachTask:
         k = _GOAL_CANDIDATES if self.goal_min_distance > 0 else 1
         u = uniform(key, episode, 0, nj * (k + 1), self.dtype).view(n, k + 1, nj)
         configs = self.lower + u * (self.upper - self.lower)  # (n, k + 1, nj): the start (0), k goal candidates
-        if self.start_kind is StartKind.HOME:
-            configs = torch.cat([self.home.expand(n, 1, nj), configs[:, 1:]], 1)
-        goals = self.goal_of(configs.reshape(-1, nj).T).view(-1, n, k + 1)  # (g, n, k + 1)
-        start_goal, candidates = goals[:, :, 0], goals[:, :, 1:]
+        if self.start_kind is StartKind.HOME:  # the start's draws are unused: the stream stays the same
+            start, start_goal = self.home.expand(n, nj), self._home_goal.expand(-1, n)
+            candidates = self.goal_of(configs[:, 1:].reshape(-1, nj).T).view(-1, n, k)  # (g, n, k)
+        else:
+            start = configs[:, 0]
+            goals = self.goal_of(configs.reshape(-1, nj).T).view(-1, n, k + 1)  # (g, n, k + 1)
+            start_goal, candidates = goals[:, :, 0], goals[:, :, 1:]
         if k > 1:
             d = torch.linalg.vector_norm(candidates[:3] - start_goal[:3, :, None], dim=0)  # (n, k)
             # the first candidate far enough, else the farthest: no loop, no sync
@@ -380,10 +384,10 @@ class ReachTask:
         else:
             goal = candidates[:, :, 0]
         return ReachState(
-            q=configs[:, 0].T.contiguous(),
+            q=start.T.clone(memory_format=torch.contiguous_format),  # never a view of home
             velocity=torch.zeros(nj, n, dtype=self.dtype, device=self.device),
             goal=goal.contiguous(),
-            achieved=start_goal.contiguous(),
+            achieved=start_goal.clone(memory_format=torch.contiguous_format),
             t=torch.zeros(n, dtype=torch.int64, device=self.device),
             key=key,
             episode=episode,
@@ -446,7 +450,8 @@ class ReachTask:
         (``out=`` views of a preallocated buffer were measured 3-10x slower) and no type
         promotion (a mixed bool and float ``stack`` costs 4x a plain one for one env)."""
         floats = torch.cat([*self._rows(state), torch.stack([result.reward, result.distance, result.angle])], 0)
-        return floats.float(), torch.stack([result.terminated, result.truncated, result.success])
+        floats = floats if floats.dtype == torch.float32 else floats.float()
+        return floats, torch.stack([result.terminated, result.truncated, result.success])
 
     def unpack(self, floats: np.ndarray, flags: np.ndarray) -> Transition:
         """``pack``'s outputs as numpy -> a :class:`Transition` without finished episodes.
