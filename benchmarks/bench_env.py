@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import warnings
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
@@ -102,7 +103,8 @@ def main() -> None:
         print(f"{name:<40} N={n:>6}  {n / seconds:>14,.0f} env-steps/s  {seconds * 1e6:>10,.1f} us/call", flush=True)
         return seconds
 
-    for name, env in peers().items():
+    found = peers()
+    for name, env in found.items():
         record(name, 1, single_env_runner(env))
     single = record("IiwaReach-v0 (gymnasium.make)", 1, single_env_runner(gym.make("IiwaReach-v0")))
     raw = {}
@@ -131,8 +133,18 @@ def main() -> None:
         sb3[n] = record("envs.sb3.IiwaReachVecEnv", n, batched_runner(venv.step, n))
 
     panda = next((s for name, n, s in results if name.startswith("panda-gym")), None)
+    # The same ratio with the two envs timed in alternation, so that a change of load on this
+    # shared machine hits both: the median of the per-round ratios.
+    rounds = []
+    if panda is not None and not args.quick:
+        panda_env = single_env_runner(found["panda-gym PandaReach-v3"])
+        iiwa_env = single_env_runner(gym.make("IiwaReach-v0"))
+        for _ in range(7):
+            rounds.append(timeit(panda_env, min_time=0.5, repeats=1) / timeit(iiwa_env, min_time=0.5, repeats=1))
+        print("single env / PandaReach-v3, alternating rounds:", ", ".join(f"{r:.1f}x" for r in rounds))
     checks = {
         "single env >= 10x PandaReach-v3 steps/s": None if panda is None else panda / single,
+        "the same, median of 7 alternating rounds": statistics.median(rounds) if rounds else None,
         "vector env env-steps/s at N=65,536, 2 threads (target 5,000,000)": (
             65_536 / raw[65_536] if 65_536 in raw else None
         ),
@@ -157,6 +169,7 @@ def main() -> None:
             {"env": name, "num_envs": n, "seconds_per_call": s, "env_steps_per_s": n / s} for name, n, s in results
         ],
         "checks": checks,
+        "single_vs_panda_alternating_rounds": rounds,
     }
     path = save("env_quick" if args.quick else "env", payload, md)
     print(f"wrote {path}")
