@@ -190,6 +190,15 @@ def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[s
 
 
 # ---------------------------------------------------------------------------- verdict and report
+def _design_note(config: dict[str, Any]) -> list[str]:
+    """What the policy is built on, when it is not a plain network (so the comparison stays honest)."""
+    if config["hyperparams"].get("policy") != "ResidualDLSPolicy":
+        return []
+    return ["How the policy is built: its action is a damped-least-squares joint step (the library's Jacobian, "
+            "inside the network) plus a learned correction that fades near the goal. What the DLS step achieves "
+            "alone, without the network, is measured in docs/training.md."]
+
+
 def _cmp(policy: float, other: float, lower_wins: bool = True) -> str:
     return "wins" if (policy < other) == lower_wins else "loses"
 
@@ -398,7 +407,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         "dt": dt,
         "tolerances_m": TOLERANCES,
         "methods": metrics,
-        "verdict": verdict(metrics),
+        "verdict": verdict(metrics) + _design_note(config),
         "training": json.loads((model_dir / "train_info.json").read_text())
         if (model_dir / "train_info.json").exists() else None,
         "machine": machine_info(),
