@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from iiwa_torch._checks import all_finite
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
 
@@ -499,7 +500,7 @@ class ReachTask:
         return state, tr._replace(final_index=idx.cpu().numpy(), final_obs=self.split(final.cpu().numpy().T))
 
     @staticmethod
-    def rows(obs: dict[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+    def obs_per_env(obs: dict[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
         """An observation dict of ``(m, ...)`` arrays -> ``m`` per-environment dicts of row views
         (for the finished episodes' last observations; dict literals over zipped rows: 1.7x a
         dict of indexed arrays per environment)."""
@@ -528,21 +529,19 @@ class ReachTask:
         """
         nj = self.n_joints
         if isinstance(action, torch.Tensor):
-            finite = bool(torch.isfinite(action).all())
+            finite = all_finite(action)
             a = action.to(self.device, self.dtype)
         else:
+            dtype = np.float32 if self.dtype == torch.float32 else np.float64
             try:
-                a = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
+                a = torch.from_numpy(np.asarray(action, dtype=dtype))
             except (TypeError, ValueError):
                 raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
-            finite = math.isfinite(a.sum()) or bool(np.isfinite(a).all())  # one reduction unless not finite
+            finite = all_finite(a)
         if a.shape == (nj,) and n == 1:
             a = a[None]
         if a.shape != (n, nj):
             raise ValueError(f"action must have shape ({n}, {nj}) (or ({nj},) for one env), got {tuple(a.shape)}")
         if not finite:
             raise ValueError("action contains NaN or inf; actions must be finite (values outside [-1, 1] are clipped)")
-        if isinstance(a, torch.Tensor):
-            return a.T.contiguous()
-        a = torch.from_numpy(np.ascontiguousarray(a.T))  # the transpose in numpy: cheaper for one env
-        return a if self.device.type == "cpu" else a.to(self.device)
+        return a.T.contiguous().to(self.device)

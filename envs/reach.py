@@ -290,7 +290,7 @@ class IiwaReachVectorEnv(VectorEnv):
         info = _info(self.task, tr.success, tr.distance, tr.angle)
         if tr.final_index.size:
             final = np.full(self.num_envs, None, dtype=object)
-            final[tr.final_index] = self.task.rows(tr.final_obs)  # finished environments only
+            final[tr.final_index] = self.task.obs_per_env(tr.final_obs)  # finished environments only
             done = tr.terminated | tr.truncated
             info["final_obs"], info["_final_obs"] = final, done
             # the finished step's info (already in ``info``), under the name SyncVectorEnv uses

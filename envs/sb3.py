@@ -111,7 +111,7 @@ class IiwaReachVecEnv(VecEnv):
         if self.task.goal_kind is GoalKind.POSE:
             for info, angle in zip(infos, tr.angle.tolist()):
                 info["orientation_error"] = angle
-        for i, last in zip(tr.final_index.tolist(), self.task.rows(tr.final_obs)):  # finished environments only
+        for i, last in zip(tr.final_index.tolist(), self.task.obs_per_env(tr.final_obs)):  # finished environments only
             infos[i]["terminal_observation"] = last
         return tr.obs, tr.reward, tr.terminated | tr.truncated, infos
 

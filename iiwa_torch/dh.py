@@ -290,6 +290,11 @@ class DHChain(nn.Module):
     # axes, origin) and configuration, with F = n + 1 (base and links) if ``keep``, else 1
     # (the last link). Batch last keeps every elementwise op contiguous.
 
+    def _cos_sin(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """``q (n, b)`` -> cosine and sine of the joint angles plus offsets, each ``(n, b)`` contiguous."""
+        theta = (q + self._in(q.dtype, "_offsets")).contiguous()
+        return torch.cos(theta), torch.sin(theta)
+
     def frames_batch_last(self, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
         """The elementwise kernel itself, for hot loops that keep a batch-last layout (IK).
 
@@ -301,8 +306,7 @@ class DHChain(nn.Module):
         multiply-adds over the whole batch; the constant twists (``alpha`` of 0 or +-pi/2)
         are swaps and sign flips; no 4x4 products.
         """
-        theta = (q + self._in(q.dtype, "_offsets")).contiguous()  # (n, b)
-        c, s = torch.cos(theta), torch.sin(theta)
+        c, s = self._cos_sin(q)
         x, y, z, p = self._in(q.dtype, "base")[:3, :, None].expand(3, 4, q.shape[1]).unbind(1)  # each (3, b)
         frames, axes = [(x, y, z, p)], []
         modified = self.convention is Convention.MODIFIED
@@ -344,8 +348,7 @@ class DHChain(nn.Module):
         work of :meth:`frames_batch_last`. Coordinates stay Python floats while they are
         constant (the tool point on the last axes), so those joints cost nothing.
         """
-        theta = (q + self._in(q.dtype, "_offsets")).contiguous()
-        c, s = torch.cos(theta), torch.sin(theta)
+        c, s = self._cos_sin(q)
         v0, v1, v2 = self._tool_columns[3]
         standard = self.convention is Convention.STANDARD
         for i, (a, ca, sa, d) in reversed(list(enumerate(self._steps))):
