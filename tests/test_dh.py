@@ -87,7 +87,7 @@ def test_position_with_base_and_tool_matches_roboticstoolbox(modified):
     got = chain.position(q)
     for i in [0, 1, 500, _POSITION_BLOCK, _POSITION_BLOCK + 99]:
         np.testing.assert_allclose(got[i].numpy(), robot.fkine(q[i].numpy()).t, atol=1e-12)
-    for part in (q[:1], q[0], q[:50]):  # the 4x4-product kernel
+    for part in (q[:1], q[0], q[:50]):  # one configuration in Python floats; the 4x4-product kernel
         np.testing.assert_allclose(chain.position(part).numpy(), chain.fk(part)[..., :3, 3].numpy(), atol=1e-14)
 
 
