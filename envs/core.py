@@ -129,11 +129,13 @@ def uniform(key: Tensor, episode: Tensor, start: int, count: int, dtype: torch.d
     return (h >> 8).to(dtype) * (2.0**-24)
 
 
-def _sum_sq3(v: Tensor) -> Tensor:
-    """``(3, ...) -> (...)``: the sum of squares over the 3 components, in the order 0, 1, 2
-    whatever the layout (3 terms are fewer than a SIMD vector, so torch's reduction is a plain
-    sequential loop both for one environment and for a batch: bit-identical results)."""
-    return (v * v).sum(0)
+def _distance_sq(u: Tensor, w: Tensor) -> Tensor:
+    """``(3, ...)`` twice -> ``(...)``: the squared distance, summed over the 3 components in the
+    order 0, 1, 2 whatever the layout (3 terms are fewer than a SIMD vector, so torch's
+    reduction is a plain sequential loop both for one environment and for a batch:
+    bit-identical results). The difference is squared in place: one pass less."""
+    d = u - w
+    return d.mul_(d).sum(0)
 
 
 # ---------------------------------------------------------------------------- state
@@ -161,20 +163,21 @@ class ReachState(NamedTuple):
 class StepResult(NamedTuple):
     """Per-environment outcome of one step, ``(n,)`` each: reward (obs dtype), the
     ``terminated``/``truncated``/``success`` bools, the position distance (m) and the
-    orientation error (rad, zero for position goals)."""
+    orientation error (rad; ``None`` for position goals)."""
 
     reward: Tensor
     terminated: Tensor
     truncated: Tensor
     success: Tensor
     distance: Tensor
-    angle: Tensor
+    angle: Tensor | None
 
 
 class Transition(NamedTuple):
     """A batched step as numpy, for the envs: ``obs`` dict of ``(n, ...)`` float32 arrays
     (after auto-reset), ``reward`` ``(n,)`` float32, ``terminated``/``truncated``/``success``
-    ``(n,)`` bool, ``distance`` (m) and ``angle`` (rad) ``(n,)`` float32, ``final_index`` the
+    ``(n,)`` bool, ``distance`` (m) and ``angle`` (rad; ``None`` for position goals) ``(n,)``
+    float32, ``final_index`` the
     ``(m,)`` rows that finished and ``final_obs`` their last observations ``(m, ...)``."""
 
     obs: dict
@@ -183,7 +186,7 @@ class Transition(NamedTuple):
     truncated: np.ndarray
     success: np.ndarray
     distance: np.ndarray
-    angle: np.ndarray
+    angle: np.ndarray | None
     final_index: np.ndarray
     final_obs: dict
 
@@ -267,6 +270,14 @@ class ReachTask:
         same = robot.dh.device == self.device and robot.dh.dtype == dtype
         self.robot = robot if same else copy.deepcopy(robot).to(device=self.device, dtype=dtype)
         n = self.robot.n_joints
+        # Sizes, plain attributes (read several times in every step; the task never changes):
+        self.n_joints = n
+        #: length of ``achieved_goal`` / ``desired_goal``: 3 (position) or 9 (pose);
+        self.goal_size = 3 if self.goal_kind is GoalKind.POSITION else 9
+        #: length of ``observation``: cos q, sin q, joint velocity (normalised), the achieved goal;
+        self.observation_size = 3 * n + self.goal_size
+        #: rows of :meth:`observe`: the observation, then the desired goal.
+        self.packed_size = self.observation_size + self.goal_size
         lim = self.robot.limits.to(dtype)
         if home is None:
             home = IIWA_HOME if n == 7 else [0.0] * n
@@ -280,30 +291,14 @@ class ReachTask:
         # the same as columns (nj, 1), to broadcast along the state's rows
         self._lower_c, self._upper_c = self.lower[:, None], self.upper[:, None]
         self._max_step_c = self.max_step[:, None]
+        # The thresholds as 0-dim float32 tensors (the errors are float32): comparing with a
+        # Python float wraps it in a new tensor at every call, more than doubling the op's cost.
+        self._distance_threshold = torch.tensor(self.distance_threshold, dtype=torch.float32)
         # Chordal threshold: ||R1 - R2||_F = 2 sqrt(2) sin(angle / 2), monotone in the angle.
-        self._chord_sq_threshold = 8.0 * math.sin(min(self.orientation_threshold, math.pi) / 2) ** 2
+        self._chord_sq_threshold = torch.tensor(8.0 * math.sin(min(self.orientation_threshold, math.pi) / 2) ** 2,
+                                                dtype=torch.float32)
         reach = float((self.robot.dh[:, 0].abs() + self.robot.dh[:, 2].abs()).sum() + self.robot.tool[:3, 3].norm())
         self.position_bound = float(self.robot.base[:3, 3].abs().max()) + reach  # |ee coordinate| <= this
-
-    # ------------------------------------------------------------------ sizes
-    @property
-    def n_joints(self) -> int:
-        return self.robot.n_joints
-
-    @property
-    def goal_size(self) -> int:
-        """Length of ``achieved_goal`` / ``desired_goal``: 3 (position) or 9 (pose)."""
-        return 3 if self.goal_kind is GoalKind.POSITION else 9
-
-    @property
-    def observation_size(self) -> int:
-        """Length of ``observation``: cos q, sin q, joint velocity (normalised), the achieved goal."""
-        return 3 * self.n_joints + self.goal_size
-
-    @property
-    def packed_size(self) -> int:
-        """Columns of :meth:`observe`: the observation, then the desired goal."""
-        return self.observation_size + self.goal_size
 
     def steps_to_reach_bound(self) -> int:
         """Steps a full-speed straight joint move needs, in the worst case, from ``home`` to any
@@ -331,14 +326,14 @@ class ReachTask:
         relabelled rewards rely on.
         """
         position = self.goal_kind is GoalKind.POSITION
-        dist = torch.sqrt(_sum_sq3(achieved - desired if position else achieved[:3] - desired[:3]))
-        ok = dist < self.distance_threshold
+        dist = (_distance_sq(achieved, desired) if position else _distance_sq(achieved[:3], desired[:3])).sqrt_()
+        ok = dist < self._distance_threshold
         if position:
             return dist, None, ok
         xa, ya, xd, yd = achieved[3:6], achieved[6:9], desired[3:6], desired[6:9]
         # ||Ra - Rd||_F^2 over the three columns (z = x cross y) = 8 sin^2(angle / 2)
         za, zd = torch.linalg.cross(xa, ya, dim=0), torch.linalg.cross(xd, yd, dim=0)
-        chord_sq = _sum_sq3(xa - xd) + _sum_sq3(ya - yd) + _sum_sq3(za - zd)
+        chord_sq = _distance_sq(xa, xd) + _distance_sq(ya, yd) + _distance_sq(za, zd)
         angle = 2 * torch.asin(torch.clamp(torch.sqrt(chord_sq / 8), max=1.0))
         return dist, angle, ok & (chord_sq < self._chord_sq_threshold)
 
@@ -408,11 +403,12 @@ class ReachTask:
         The actions must be finite, in the state's layout, dtype and device: ``check_action``
         makes them so from the envs' ``(n, nj)`` batches.
         """
-        a = torch.clamp(action, -1.0, 1.0)
-        # minimum/maximum: clamp with tensor bounds was measured 2-3x slower
-        q = torch.maximum(torch.minimum(torch.addcmul(state.q, a, self._max_step_c), self._upper_c), self._lower_c)
+        a = torch.clamp(action, -1.0, 1.0)  # not in place: the action may share the caller's memory
+        # in place on the new tensors: a third faster at n = 65,536 than new ones per op; and
+        # clamp_max_/clamp_min_, as clamp with tensor bounds was measured 2-3x slower
+        q = torch.addcmul(state.q, a, self._max_step_c).clamp_max_(self._upper_c).clamp_min_(self._lower_c)
         # the motion actually made, over the speed limit; this clamp only removes float rounding (1e-6)
-        velocity = torch.clamp((q - state.q) / self._max_step_c, -1.0, 1.0)
+        velocity = (q - state.q).div_(self._max_step_c).clamp_(-1.0, 1.0)
         achieved = self.goal_of(q)
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         dist, angle, success = self.errors(*observed)  # the reward of the goals as observed, in float32
@@ -420,7 +416,6 @@ class ReachTask:
         t = state.t + 1
         terminated = success if self.terminate_on_success else torch.zeros_like(success)
         truncated = torch.zeros_like(success) if self.max_episode_steps is None else t >= self.max_episode_steps
-        angle = torch.zeros_like(dist) if angle is None else angle
         new = ReachState(q, velocity, state.goal, achieved, t, state.key, state.episode)
         return new, StepResult(reward, terminated, truncated, success, dist, angle)
 
@@ -428,9 +423,8 @@ class ReachTask:
         """The observation and status of a state just reset, as numpy (one transfer)."""
         dist, angle, success = self.errors(state.achieved.float(), state.goal.float())
         no = torch.zeros_like(success)
-        angle = torch.zeros_like(dist) if angle is None else angle
         status = StepResult(self._reward(dist, angle, success), no, no, success, dist, angle)
-        return self.unpack(*(part.cpu().numpy() for part in self.pack(state, status)))
+        return self.unpack(*(part.numpy(force=True) for part in self.pack(state, status)))
 
     @staticmethod
     def _rows(state: ReachState) -> list[Tensor]:
@@ -443,14 +437,15 @@ class ReachTask:
         return torch.cat(self._rows(state), 0).float()
 
     def pack(self, state: ReachState, result: StepResult) -> tuple[Tensor, Tensor]:
-        """Everything a step returns, for two transfers: ``(D + 3, n)`` float32, the observation
-        rows then reward, distance and angle; and ``(3, n)`` bool, terminated, truncated and
-        success.
+        """Everything a step returns, for two transfers: ``(D + k, n)`` float32, the observation
+        rows then reward, distance and, for pose goals, angle (``k`` = 2 or 3); and ``(3, n)``
+        bool, terminated, truncated and success.
 
         Each is one ``cat``/``stack`` of rows of one dtype, written once: no strided writes
         (``out=`` views of a preallocated buffer were measured 3-10x slower) and no type
         promotion (a mixed bool and float ``stack`` costs 4x a plain one for one env)."""
-        floats = torch.cat([*self._rows(state), torch.stack([result.reward, result.distance, result.angle])], 0)
+        status = [result.reward, result.distance] + ([] if result.angle is None else [result.angle])
+        floats = torch.cat([*self._rows(state), torch.stack(status)], 0)
         floats = floats if floats.dtype == torch.float32 else floats.float()
         return floats, torch.stack([result.terminated, result.truncated, result.success])
 
@@ -468,7 +463,7 @@ class ReachTask:
             truncated=flags[1],
             success=flags[2],
             distance=floats[d + 1],
-            angle=floats[d + 2],
+            angle=floats[d + 2] if self.goal_kind is GoalKind.POSE else None,
             final_index=empty,
             final_obs=self.split(floats[:d, :0].T),
         )
@@ -496,8 +491,8 @@ class ReachTask:
                 goal=state.goal.index_copy(1, idx, fresh.goal), episode=state.episode.index_copy(0, idx, fresh.episode)
             )
             out[:d, idx] = self.observe(fresh)
-        tr = self.unpack(out.cpu().numpy(), flags.cpu().numpy())
-        return state, tr._replace(final_index=idx.cpu().numpy(), final_obs=self.split(final.cpu().numpy().T))
+        tr = self.unpack(out.numpy(force=True), flags.numpy(force=True))
+        return state, tr._replace(final_index=idx.numpy(force=True), final_obs=self.split(final.numpy(force=True).T))
 
     @staticmethod
     def obs_per_env(obs: dict[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
@@ -529,19 +524,17 @@ class ReachTask:
         """
         nj = self.n_joints
         if isinstance(action, torch.Tensor):
-            finite = all_finite(action)
             a = action.to(self.device, self.dtype)
-        else:
-            dtype = np.float32 if self.dtype == torch.float32 else np.float64
+        else:  # numpy all the way to the transposed copy: a fraction of torch's per-call cost
             try:
-                a = torch.from_numpy(np.asarray(action, dtype=dtype))
+                a = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
             except (TypeError, ValueError):
                 raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
-            finite = all_finite(a)
-        if a.shape == (nj,) and n == 1:
-            a = a[None]
-        if a.shape != (n, nj):
+        if tuple(a.shape) != (n, nj) and not (n == 1 and tuple(a.shape) == (nj,)):
             raise ValueError(f"action must have shape ({n}, {nj}) (or ({nj},) for one env), got {tuple(a.shape)}")
-        if not finite:
+        if not all_finite(a):
             raise ValueError("action contains NaN or inf; actions must be finite (values outside [-1, 1] are clipped)")
-        return a.T.contiguous().to(self.device)
+        if isinstance(a, torch.Tensor):
+            return a.reshape(n, nj).T.contiguous()
+        columns = torch.from_numpy(np.ascontiguousarray(a.reshape(n, nj).T))
+        return columns if self.device.type == "cpu" else columns.to(self.device)

@@ -157,7 +157,8 @@ class IiwaReachEnv(gym.Env):
         self._state = self.task.reset_all(self._state, [seed], self.np_random)
         tr = self.task.reset_transition(self._state)
         obs = {k: v[0] for k, v in tr.obs.items()}
-        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), float(tr.angle[0]))
+        angle = None if tr.angle is None else float(tr.angle[0])
+        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), angle)
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -168,13 +169,14 @@ class IiwaReachEnv(gym.Env):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         self._state, res = self.task.step(self._state, self.task.check_action(action, 1))
-        floats, flags = (part.cpu().numpy()[:, 0] for part in self.task.pack(self._state, res))
-        d = floats.shape[0] - 3
-        reward, dist, angle = floats[d:].tolist()
+        floats, flags = (part.numpy(force=True)[:, 0] for part in self.task.pack(self._state, res))
+        d = self.task.packed_size
+        reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
         term, trunc, success = flags.tolist()
         if self.render_mode == "human":
             self.render()
-        return self.task.split(floats[:d]), reward, term, trunc, _info(self.task, success, dist, angle)
+        info = _info(self.task, success, dist, angle[0] if angle else None)
+        return self.task.split(floats[:d]), reward, term, trunc, info
 
     @property
     def joint_angles(self) -> np.ndarray:

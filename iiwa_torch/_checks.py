@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 
-def all_finite(x: torch.Tensor) -> bool:
-    """True if no element is NaN or inf. A few numbers are read in Python (no torch op: one
-    call's latency); more take one reduction, and the elementwise test runs only when the sum
-    is not finite (a NaN/inf, or an overflow of huge finite values)."""
-    if x.numel() <= 64:
-        return all(map(math.isfinite, x.detach().reshape(-1).tolist()))
+def all_finite(x: torch.Tensor | np.ndarray) -> bool:
+    """True if no element of a tensor or numpy array is NaN or inf. A few numbers are read in
+    Python (no torch op: one call's latency); more take one reduction, and for a tensor the
+    elementwise test runs only when the sum is not finite (a NaN/inf, or an overflow of huge
+    finite values)."""
+    if (x.size if isinstance(x, np.ndarray) else x.numel()) <= 64:
+        return all(map(math.isfinite, x.reshape(-1).tolist()))
+    if isinstance(x, np.ndarray):
+        return bool(np.isfinite(x).all())
     return math.isfinite(x.detach().sum()) or bool(torch.isfinite(x).all())
 
 

@@ -200,10 +200,32 @@ def test_bad_actions_raise_clear_errors():
         vec.step(np.zeros((3, 7)))
     with pytest.raises(ValueError, match="NaN"):
         vec.step(torch.full((4, 7), float("nan")))
+    big = IiwaReachVectorEnv(16)  # 112 numbers: the whole-array check, not the per-number one
+    big.reset(seed=0)
+    actions = np.zeros((16, 7), dtype=np.float32)
+    actions[9, 3] = np.inf
+    with pytest.raises(ValueError, match="NaN or inf"):
+        big.step(actions)
     with pytest.raises(ValueError, match="goal"):
         IiwaReachEnv(goal="orientation")
     with pytest.raises(ValueError, match="dt"):
         IiwaReachEnv(dt=0.0)
+
+
+def test_out_of_range_actions_are_clipped_without_touching_the_callers_array():
+    env, twin = IiwaReachEnv(), IiwaReachEnv()
+    env.reset(seed=3), twin.reset(seed=3)
+    wild = np.array([4.0, -9.0, 0.5, 1.5, -1.0, 2.0, -0.25], dtype=np.float32)
+    kept = wild.copy()
+    obs, *_ = env.step(wild)  # one env: numpy passes the action to torch without a copy
+    np.testing.assert_array_equal(wild, kept)
+    clipped, *_ = twin.step(np.clip(wild, -1, 1))
+    np.testing.assert_array_equal(obs["observation"], clipped["observation"])
+    vec = IiwaReachVectorEnv(2)
+    vec.reset(seed=0)
+    batch = np.stack([wild, -wild])
+    vec.step(batch)
+    np.testing.assert_array_equal(batch, np.stack([kept, -kept]))
 
 
 def test_seeding_is_reproducible():
