@@ -14,6 +14,10 @@ episode ends (the vector envs reset themselves):
   if installed: ``pip install panda-gym gymnasium-robotics "mujoco<3.3"`` (gymnasium-robotics
   1.4.2 fails with MuJoCo >= 3.3 on this machine).
 
+The two ratios with targets (single env / PandaReach-v3, SB3 VecEnv / vector env at N = 256)
+are measured again with the two sides timed in alternation, 7 rounds of 0.5 s each, and
+their median reported: on a shared machine a change of load then hits both sides.
+
 Prints a table with the targets of the issue; writes results/env.json and results/env.md.
 """
 
@@ -66,6 +70,12 @@ def batched_runner(step_fn, n: int, seed: int = 0):
         step_fn(actions[state["i"]])
 
     return step
+
+
+def alternating_ratios(slow, fast, rounds: int = 7) -> list[float]:
+    """Per round, the time of one call of ``slow`` over one call of ``fast``, the two timed in
+    alternation (0.5 s each) so that a change of load on this shared machine hits both."""
+    return [timeit(slow, min_time=0.5, repeats=1) / timeit(fast, min_time=0.5, repeats=1) for _ in range(rounds)]
 
 
 def peers() -> dict[str, gym.Env]:
@@ -126,29 +136,37 @@ def main() -> None:
         q = chain.random_q(n, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
         record("chain.position alone (the step's floor)", n, lambda q=q: chain.position_batch_last(q.T))
         record("chain.fk alone (full pose)", n, lambda q=q: chain.fk(q))
-    sb3 = {}
+    sb3, sb3_runners = {}, {}
     for n in SB3_SIZES:
         venv = IiwaReachVecEnv(n, "IiwaReach-v0", seed=0)
         venv.reset()
-        sb3[n] = record("envs.sb3.IiwaReachVecEnv", n, batched_runner(venv.step, n))
+        sb3_runners[n] = batched_runner(venv.step, n)
+        sb3[n] = record("envs.sb3.IiwaReachVecEnv", n, sb3_runners[n])
 
     panda = next((s for name, n, s in results if name.startswith("panda-gym")), None)
-    # The same ratio with the two envs timed in alternation, so that a change of load on this
-    # shared machine hits both: the median of the per-round ratios.
-    rounds = []
-    if panda is not None and not args.quick:
-        panda_env = single_env_runner(found["panda-gym PandaReach-v3"])
-        iiwa_env = single_env_runner(gym.make("IiwaReach-v0"))
-        for _ in range(7):
-            rounds.append(timeit(panda_env, min_time=0.5, repeats=1) / timeit(iiwa_env, min_time=0.5, repeats=1))
-        print("single env / PandaReach-v3, alternating rounds:", ", ".join(f"{r:.1f}x" for r in rounds))
+    # The two ratios with targets again, timed in alternation: the median of per-round ratios.
+    rounds, sb3_rounds = [], []
+    if not args.quick:
+        if panda is not None:
+            panda_env = single_env_runner(found["panda-gym PandaReach-v3"])
+            rounds = alternating_ratios(panda_env, single_env_runner(gym.make("IiwaReach-v0")))
+            print("single env / PandaReach-v3, alternating rounds:", ", ".join(f"{r:.1f}x" for r in rounds))
+        vec = gym.make_vec("IiwaReach-v0", num_envs=256)
+        vec.reset(seed=0)
+        sb3_rounds = alternating_ratios(sb3_runners[256], batched_runner(vec.step, 256))
+        print("SB3 VecEnv / vector env at N=256, alternating rounds:", ", ".join(f"{r:.2f}" for r in sb3_rounds))
+    one_thread = [s for name, n, s in results if name.endswith("1 thread")]
     checks = {
         "single env >= 10x PandaReach-v3 steps/s": None if panda is None else panda / single,
-        "the same, median of 7 alternating rounds": statistics.median(rounds) if rounds else None,
+        "single env vs PandaReach-v3, median of 7 alternating rounds": statistics.median(rounds) if rounds else None,
         "vector env env-steps/s at N=65,536, 2 threads (target 5,000,000)": (
             65_536 / raw[65_536] if 65_536 in raw else None
         ),
+        "vector env env-steps/s at N=65,536, 1 thread": 65_536 / one_thread[0] if one_thread else None,
         "SB3 VecEnv / vector env time per step at N=256 (target <= 2)": sb3[256] / raw[256],
+        "SB3 / vector env at N=256, median of 7 alternating rounds": (
+            statistics.median(sb3_rounds) if sb3_rounds else None
+        ),
     }
     rows = []
     for name, n, seconds in results:
@@ -170,6 +188,7 @@ def main() -> None:
         ],
         "checks": checks,
         "single_vs_panda_alternating_rounds": rounds,
+        "sb3_vs_vector_env_alternating_rounds_n256": sb3_rounds,
     }
     path = save("env_quick" if args.quick else "env", payload, md)
     print(f"wrote {path}")
