@@ -86,22 +86,23 @@ def _enum(kind: type[Enum], value, name: str):
 _M32 = 0xFFFFFFFF
 
 
-def _mul32(x: Tensor, c: int) -> Tensor:
-    """``(x * c) mod 2**32`` for int64 ``x`` in ``[0, 2**32)`` and a constant ``c`` in ``[0, 2**32)``.
+def _mul32_(x: Tensor, c: int) -> Tensor:
+    """``x = (x * c) mod 2**32``, in place, for int64 ``x`` in ``[0, 2**32)`` and a constant
+    ``c`` in ``[0, 2**32)``.
 
     ``c`` is used as its signed 32-bit equal (``c - 2**32`` from ``2**31`` up), which is the
     same modulo ``2**32`` and keeps ``|x * c| < 2**63``: no int64 overflow, two ops.
     """
-    return (x * (c - 2**32 if c >= 2**31 else c)) & _M32
+    return x.mul_(c - 2**32 if c >= 2**31 else c).bitwise_and_(_M32)
 
 
 def _mix32(x: Tensor) -> Tensor:
-    """MurmurHash3's 32-bit finaliser: a bijection of ``[0, 2**32)`` that mixes all bits."""
+    """MurmurHash3's 32-bit finaliser: a bijection of ``[0, 2**32)`` that mixes all bits.
+    ``x`` is left alone; the rounds work in place on the new tensor (half the memory
+    traffic of a new tensor per op, for the all-environment resets of large batches)."""
     x = x ^ (x >> 16)
-    x = _mul32(x, 0x85EBCA6B)
-    x = x ^ (x >> 13)
-    x = _mul32(x, 0xC2B2AE35)
-    return x ^ (x >> 16)
+    _mul32_(x, 0x85EBCA6B).bitwise_xor_(x >> 13)
+    return _mul32_(x, 0xC2B2AE35).bitwise_xor_(x >> 16)
 
 
 def keys_from_seeds(seeds, device=None) -> Tensor:
@@ -125,8 +126,8 @@ def uniform(key: Tensor, episode: Tensor, start: int, count: int, dtype: torch.d
     """
     base = _mix32(key ^ _mix32((episode & _M32) ^ 0x7F4A7C15))  # (n,) start point
     steps = torch.tensor([(j * 0x9E3779B9) & _M32 for j in range(start, start + count)], device=key.device)
-    h = _mix32((base[:, None] + steps) & _M32)  # (n, count)
-    return (h >> 8).to(dtype) * (2.0**-24)
+    h = _mix32((base[:, None] + steps).bitwise_and_(_M32))  # (n, count)
+    return h.bitwise_right_shift_(8).to(dtype).mul_(2.0**-24)
 
 
 def _distance_sq(u: Tensor, w: Tensor) -> Tensor:
@@ -363,15 +364,17 @@ class ReachTask:
         """Start episode ``episode`` for each key: draw the start and the goal, compute FK once."""
         n, nj = key.shape[0], self.n_joints
         k = _GOAL_CANDIDATES if self.goal_min_distance > 0 else 1
-        u = uniform(key, episode, 0, nj * (k + 1), self.dtype).view(n, k + 1, nj)
-        configs = self.lower + u * (self.upper - self.lower)  # (n, k + 1, nj): the start (0), k goal candidates
-        if self.start_kind is StartKind.HOME:  # the start's draws are unused: the stream stays the same
-            start, start_goal = self.home.expand(n, nj), self._home_goal.expand(-1, n)
-            candidates = self.goal_of(configs[:, 1:].reshape(-1, nj).T).view(-1, n, k)  # (g, n, k)
+        # draws 0..nj-1 are the start, then k goal candidates; starts from home skip the start's
+        # draws (counter-based: the goals' draws stay the same, at half the hashing)
+        home = self.start_kind is StartKind.HOME
+        first = nj if home else 0
+        u = uniform(key, episode, first, nj * (k + 1) - first, self.dtype).view(n, -1, nj)
+        configs = self.lower + u * (self.upper - self.lower)  # (n, k or k + 1, nj)
+        goals = self.goal_of(configs.reshape(-1, nj).T).view(-1, n, configs.shape[1])  # (g, n, k or k + 1)
+        if home:
+            start, start_goal, candidates = self.home.expand(n, nj), self._home_goal.expand(-1, n), goals
         else:
-            start = configs[:, 0]
-            goals = self.goal_of(configs.reshape(-1, nj).T).view(-1, n, k + 1)  # (g, n, k + 1)
-            start_goal, candidates = goals[:, :, 0], goals[:, :, 1:]
+            start, start_goal, candidates = configs[:, 0], goals[:, :, 0], goals[:, :, 1:]
         if k > 1:
             d = torch.linalg.vector_norm(candidates[:3] - start_goal[:3, :, None], dim=0)  # (n, k)
             # the first candidate far enough, else the farthest: no loop, no sync
