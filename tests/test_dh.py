@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from iiwa_torch import DHChain, robots
-from iiwa_torch.dh import _BLOCK, _POSITION_BLOCK, _SMALL_BATCH
+from iiwa_torch.dh import _BLOCK, _POSITION_BLOCK, _SMALL_BATCH, _EndPose
 
 ALL = [robots.iiwa14, robots.iiwa7, robots.puma560, robots.lrmate200ic, robots.planar3r]
 
@@ -182,7 +182,10 @@ def test_gradcheck_fk(batch):
 def test_second_derivatives_through_fk():
     chain = robots.lrmate200ic()
     q = sample(chain, 2, seed=15).requires_grad_()
-    assert torch.autograd.gradgradcheck(lambda x: chain.fk(x)[..., :3, :], (q,))
+    assert torch.autograd.gradgradcheck(lambda x: chain.fk(x)[..., :3, :], (q,))  # autograd through the kernel
+    # the closed-form backward that fk takes above 128 configurations, on a batch small enough to check
+    assert torch.autograd.gradcheck(lambda x: _EndPose.apply(x, chain)[..., :3, :], (q,))
+    assert torch.autograd.gradgradcheck(lambda x: _EndPose.apply(x, chain)[..., :3, :], (q,))
 
 
 def test_closed_form_backward_equals_autograd_through_the_kernels():
