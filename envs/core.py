@@ -178,8 +178,8 @@ class Transition(NamedTuple):
     """A batched step as numpy, for the envs: ``obs`` dict of ``(n, ...)`` float32 arrays
     (after auto-reset), ``reward`` ``(n,)`` float32, ``terminated``/``truncated``/``success``
     ``(n,)`` bool, ``distance`` (m) and ``angle`` (rad; ``None`` for position goals) ``(n,)``
-    float32, ``final_index`` the
-    ``(m,)`` rows that finished and ``final_obs`` their last observations ``(m, ...)``."""
+    float32, ``final_index`` the ``(m,)`` rows that finished and ``final_obs`` their last
+    observations ``(m, ...)``."""
 
     obs: dict
     reward: np.ndarray
