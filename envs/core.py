@@ -534,7 +534,8 @@ class ReachTask:
             except (TypeError, ValueError):
                 raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
         if tuple(a.shape) != (n, nj) and not (n == 1 and tuple(a.shape) == (nj,)):
-            raise ValueError(f"action must have shape ({n}, {nj}) (or ({nj},) for one env), got {tuple(a.shape)}")
+            single = f" (or ({nj},))" if n == 1 else ""
+            raise ValueError(f"action must have shape ({n}, {nj}){single}, got {tuple(a.shape)}")
         if not all_finite(a):
             raise ValueError("action contains NaN or inf; actions must be finite (values outside [-1, 1] are clipped)")
         if isinstance(a, torch.Tensor):

@@ -36,8 +36,8 @@ Tensor = torch.Tensor
 Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
 _BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
 _POSITION_BLOCK = 65536  # the same for the position kernel, whose working set is a third (measured)
-_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 _SMALL_BATCH = 128  # up to this many configurations the 4x4-product kernel is faster (measured)
+_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 class Convention(str, Enum):
