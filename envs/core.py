@@ -146,13 +146,17 @@ class ReachState(NamedTuple):
     rows and elementwise ops run over long contiguous rows; measured 2x faster than
     ``(n, nj)`` rows at ``n = 65,536``). All tensors share the task's device.
 
-    q: ``(nj, n)`` joint angles, rad. velocity: ``(nj, n)`` last joint velocity over the
-    joint speed limits (in ``[-1, 1]``). goal: ``(g, n)`` desired goal. achieved: ``(g, n)``
-    achieved goal at ``q``. t: ``(n,)`` int64 steps taken this episode. key: ``(n,)`` int64
-    random key (from the seed). episode: ``(n,)`` int64 episode counter since seeding.
+    q: ``(nj, n)`` joint angles, rad. cos_q, sin_q: ``(nj, n)`` their cosines and sines (the
+    observation's first rows, which the position kernel reuses). velocity: ``(nj, n)`` last
+    joint velocity over the joint speed limits (in ``[-1, 1]``). goal: ``(g, n)`` desired
+    goal. achieved: ``(g, n)`` achieved goal at ``q``. t: ``(n,)`` int64 steps taken this
+    episode. key: ``(n,)`` int64 random key (from the seed). episode: ``(n,)`` int64 episode
+    counter since seeding.
     """
 
     q: Tensor
+    cos_q: Tensor
+    sin_q: Tensor
     velocity: Tensor
     goal: Tensor
     achieved: Tensor
@@ -309,12 +313,12 @@ class ReachTask:
         return int(torch.ceil((span / self.max_step).max() - 1e-4))  # 1e-4: float32 rounding of exact ratios
 
     # ------------------------------------------------------------------ pure functions
-    def goal_of(self, q: Tensor) -> Tensor:
+    def goal_of(self, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """Joint angles ``(nj, b)``, batch last -> goal vectors ``(g, b)``: the end-effector
-        position (the chain's position-only kernel), then for pose goals the first two columns
-        of its rotation matrix."""
+        position (the chain's position-only kernel, which reuses ``trig = (cos q, sin q)`` if
+        given), then for pose goals the first two columns of its rotation matrix."""
         if self.goal_kind is GoalKind.POSITION:
-            return self.robot.position_batch_last(q)
+            return self.robot.position_batch_last(q, trig)
         pose = self.robot.fk(q.T)
         return torch.cat([pose[:, :3, 3], pose[:, :3, 0], pose[:, :3, 1]], -1).T.contiguous()
 
@@ -382,8 +386,11 @@ class ReachTask:
             goal = candidates[:, torch.arange(n, device=d.device), score.argmax(-1)]
         else:
             goal = candidates[:, :, 0]
+        q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
         return ReachState(
-            q=start.T.clone(memory_format=torch.contiguous_format),  # never a view of home
+            q=q,
+            cos_q=torch.cos(q),
+            sin_q=torch.sin(q),
             velocity=torch.zeros(nj, n, dtype=self.dtype, device=self.device),
             goal=goal.contiguous(),
             achieved=start_goal.clone(memory_format=torch.contiguous_format),
@@ -412,14 +419,15 @@ class ReachTask:
         q = torch.addcmul(state.q, a, self._max_step_c).clamp_max_(self._upper_c).clamp_min_(self._lower_c)
         # the motion actually made, over the speed limit; this clamp only removes float rounding (1e-6)
         velocity = (q - state.q).div_(self._max_step_c).clamp_(-1.0, 1.0)
-        achieved = self.goal_of(q)
+        cos_q, sin_q = torch.cos(q), torch.sin(q)
+        achieved = self.goal_of(q, (cos_q, sin_q))
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         dist, angle, success = self.errors(*observed)  # the reward of the goals as observed, in float32
         reward = self._reward(dist, angle, success)
         t = state.t + 1
         terminated = success if self.terminate_on_success else torch.zeros_like(success)
         truncated = torch.zeros_like(success) if self.max_episode_steps is None else t >= self.max_episode_steps
-        new = ReachState(q, velocity, state.goal, achieved, t, state.key, state.episode)
+        new = ReachState(q, cos_q, sin_q, velocity, state.goal, achieved, t, state.key, state.episode)
         return new, StepResult(reward, terminated, truncated, success, dist, angle)
 
     def reset_transition(self, state: ReachState) -> Transition:
@@ -431,7 +439,7 @@ class ReachTask:
 
     @staticmethod
     def _rows(state: ReachState) -> list[Tensor]:
-        return [torch.cos(state.q), torch.sin(state.q), state.velocity, state.achieved, state.goal]
+        return [state.cos_q, state.sin_q, state.velocity, state.achieved, state.goal]
 
     def observe(self, state: ReachState) -> Tensor:
         """``(D, n)`` float32, ``D = packed_size``: the observation (which ends with the achieved
@@ -482,18 +490,19 @@ class ReachTask:
         out, flags = self.pack(state, res)  # new tensors of our own, updated in place below
         idx = (res.terminated | res.truncated).nonzero().squeeze(-1)  # which environments restart: one sync
         d = self.packed_size
-        final = out[:d, idx]  # (D, m) copy: the finished episodes' last observations
+        # (D, m) copy: the finished episodes' last observations (index_select: 2x faster than out[:d, idx])
+        final = out[:d].index_select(1, idx)
         if idx.numel():
             fresh = self._new_episodes(state.key[idx], state.episode[idx] + 1)
-            # q, velocity, achieved and t were created by this step: update them in place;
-            # goal and episode are the caller's tensors: copy them.
-            for name in ("q", "velocity", "achieved", "t"):
+            # q and what follows from it, velocity and t were created by this step: update them in
+            # place; goal and episode are the caller's tensors: copy them.
+            for name in ("q", "cos_q", "sin_q", "velocity", "achieved", "t"):
                 mine = getattr(state, name)
                 mine.index_copy_(mine.ndim - 1, idx, getattr(fresh, name))
             state = state._replace(
                 goal=state.goal.index_copy(1, idx, fresh.goal), episode=state.episode.index_copy(0, idx, fresh.episode)
             )
-            out[:d, idx] = self.observe(fresh)
+            out[:d].index_copy_(1, idx, self.observe(fresh))
         tr = self.unpack(out.numpy(force=True), flags.numpy(force=True))
         return state, tr._replace(final_index=idx.numpy(force=True), final_obs=self.split(final.numpy(force=True).T))
 

@@ -230,6 +230,9 @@ class DHChain(nn.Module):
         phase = dh[:, 3, None] + torch.tensor([math.pi / 2, 0.0], dtype=torch.float64)
         self.register_buffer("_trig_phase", phase[:, None], persistent=False)
         self.register_buffer("_offsets", dh[:, 3, None].clone(), persistent=False)  # (n, 1)
+        # cos and sin of the offsets (n, 1), to turn a caller's cos/sin of q into those of q + offset
+        self.register_buffer("_offset_trig", torch.stack([dh[:, 3].cos(), dh[:, 3].sin()])[..., None], persistent=False)
+        self._has_offsets = bool(dh[:, 3].any())
         self._converted: dict[tuple[torch.dtype, str], Tensor | tuple[np.ndarray, ...]] = {}
 
     def _in(self, dtype: torch.dtype, name: str) -> Tensor:
@@ -296,10 +299,19 @@ class DHChain(nn.Module):
     # axes, origin) and configuration, with F = n + 1 (base and links) if ``keep``, else 1
     # (the last link). Batch last keeps every elementwise op contiguous.
 
-    def _cos_sin(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        """``q (n, b)`` -> cosine and sine of the joint angles plus offsets, each ``(n, b)`` contiguous."""
-        theta = (q + self._in(q.dtype, "_offsets")).contiguous()
-        return torch.cos(theta), torch.sin(theta)
+    def _cos_sin(self, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+        """``q (n, b)`` -> cosine and sine of the joint angles plus offsets, each ``(n, b)`` contiguous.
+
+        ``trig``: the caller's cosine and sine of ``q`` itself, reused (rotated by the offsets
+        if the chain has any) instead of computed again."""
+        if trig is None:
+            theta = (q + self._in(q.dtype, "_offsets")).contiguous()
+            return torch.cos(theta), torch.sin(theta)
+        c, s = trig
+        if not self._has_offsets:
+            return c, s
+        co, so = self._in(q.dtype, "_offset_trig")  # cos(q + o) = c co - s so, sin(q + o) = s co + c so
+        return torch.addcmul(c * co, s, so, value=-1), torch.addcmul(s * co, c, so)
 
     def frames_batch_last(self, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
         """The elementwise kernel itself, for hot loops that keep a batch-last layout (IK).
@@ -331,20 +343,20 @@ class DHChain(nn.Module):
                 frames.append((x, y, z, p))
         return (frames if keep else [(x, y, z, p)]), axes
 
-    def position_batch_last(self, q: Tensor) -> Tensor:
+    def position_batch_last(self, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """The end-effector position alone: ``q (n, b)`` -> ``(3, b)``, batch last, not checked
         (for hot loops that keep a batch-last layout: the envs). One configuration is computed
         in Python floats, small batches take the 4x4 product kernel, large ones
-        :meth:`_position_horner` in blocks."""
+        :meth:`_position_horner` in blocks.
+
+        ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if the caller has them (the envs'
+        observations do): large batches then skip their own trigonometry."""
         b = q.shape[1]
         if b == 1 and _off_torch_ok(q):
             return self._position_floats(q)
         if b <= _SMALL_BATCH:
             return self._end_pose_matmul(q.T)[:, :3, 3].T
-        if b <= _POSITION_BLOCK:
-            return self._position_horner(q)
-        blocks = [self.position_batch_last(q[:, i : i + _POSITION_BLOCK]) for i in range(0, b, _POSITION_BLOCK)]
-        return torch.cat(blocks, 1)
+        return self._position_horner(q, trig)
 
     def _carry_tool_point(self, c, s) -> tuple:
         """Horner's scheme: the tool point carried through ``A_n, ..., A_1`` from the end of the
@@ -368,11 +380,16 @@ class DHChain(nn.Module):
                 v1, v2 = _rotate_x(v1, v2, ca, -sa)
         return v0, v1, v2
 
-    def _position_horner(self, q: Tensor) -> Tensor:
-        """``q (n, b)`` -> ``(3, b)`` end-effector positions, elementwise (:meth:`_carry_tool_point`)."""
-        c, s = self._cos_sin(q)
-        point = torch.stack([v if isinstance(v, Tensor) else c[0].new_full(c[0].shape, v)
-                             for v in self._carry_tool_point(c, s)])
+    def _position_horner(self, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        """``q (n, b)`` -> ``(3, b)`` end-effector positions, elementwise (:meth:`_carry_tool_point`),
+        in blocks of configurations that keep the working set in cache."""
+        c, s = self._cos_sin(q, trig)
+        blocks = []
+        for i in range(0, q.shape[1], _POSITION_BLOCK):
+            cb, sb = c[:, i : i + _POSITION_BLOCK], s[:, i : i + _POSITION_BLOCK]
+            blocks.append(torch.stack([v if isinstance(v, Tensor) else cb[0].new_full(cb[0].shape, v)
+                                       for v in self._carry_tool_point(cb, sb)]))
+        point = blocks[0] if len(blocks) == 1 else torch.cat(blocks, 1)
         if not self._has_base:
             return point
         base = self._in(q.dtype, "base")

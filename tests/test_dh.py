@@ -91,6 +91,14 @@ def test_position_with_base_and_tool_matches_roboticstoolbox(modified):
         np.testing.assert_allclose(chain.position(part).numpy(), chain.fk(part)[..., :3, 3].numpy(), atol=1e-14)
 
 
+@pytest.mark.parametrize("make", [robots.iiwa14, robots.lrmate200ic])  # no offsets; an offset of -pi/2
+def test_position_reuses_the_callers_cos_sin(make):
+    chain = make()
+    q = sample(chain, _SMALL_BATCH + 7, seed=24).T  # (n, b): the large-batch kernel
+    got = chain.position_batch_last(q, (q.cos(), q.sin()))
+    torch.testing.assert_close(got, chain.fk(q.T)[:, :3, 3].T, atol=1e-12, rtol=0)
+
+
 def test_position_gradient_is_the_jacobian():
     chain = robots.iiwa14()
     for q in (sample(chain, 1, seed=22), sample(chain, _SMALL_BATCH + 1, seed=23)):
