@@ -7,6 +7,8 @@ episode ends (the vector envs reset themselves):
 
 - ``IiwaReach-v0`` through ``gymnasium.make`` (one arm per call, with gymnasium's wrappers);
 - ``IiwaReachVectorEnv`` (``gymnasium.make_vec``) at N = 1, 256, 4,096, 65,536 arms per call;
+  the largest N also on 1 thread, and on 2 threads with ``OMP_WAIT_POLICY=ACTIVE`` in a child
+  process (the policy is read once, when torch loads; this script sets ``PASSIVE``);
 - ``envs.sb3.IiwaReachVecEnv`` (the stable-baselines3 VecEnv) at N = 256 and 4,096;
 - ``chain.position_batch_last`` alone at N = 1 and the largest N: the floor of a step, which
   is one position-only FK (and ``chain.fk``, the full pose, for comparison);
@@ -26,6 +28,8 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import subprocess
+import sys
 import warnings
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
@@ -36,6 +40,7 @@ import torch  # noqa: E402
 from common import machine, markdown_table, save, timeit  # noqa: E402
 
 import envs  # noqa: E402, F401  (registers the ids)
+from envs.core import ReachTask  # noqa: E402
 from envs.sb3 import IiwaReachVecEnv  # noqa: E402
 
 VECTOR_SIZES = [1, 256, 4_096, 65_536]
@@ -78,6 +83,25 @@ def alternating_ratios(slow, fast, rounds: int = 7) -> list[float]:
     return [timeit(slow, min_time=0.5, repeats=1) / timeit(fast, min_time=0.5, repeats=1) for _ in range(rounds)]
 
 
+def vector_runner(n: int):
+    vec = gym.make_vec("IiwaReach-v0", num_envs=n)
+    vec.reset(seed=0)
+    return batched_runner(vec.step, n)
+
+
+def largest_with_active_wait(timing: dict) -> float:
+    """Seconds per step of the vector env at the largest N on 2 threads, timed in a child
+    process with ``OMP_WAIT_POLICY=ACTIVE``: OpenMP's threads spin between ops instead of
+    sleeping. On an otherwise idle machine that is the fast setting (each op does not wait
+    for the other thread to wake); with another process busy on the cores, it can be ~100x
+    slower (which is why this script runs with ``PASSIVE``)."""
+    child = subprocess.run(
+        [sys.executable, __file__, "--largest-only", str(timing["min_time"]), str(timing["repeats"])],
+        env={**os.environ, "OMP_WAIT_POLICY": "ACTIVE"}, capture_output=True, text=True, check=True,
+    )
+    return float(child.stdout.split()[-1])
+
+
 def peers() -> dict[str, gym.Env]:
     found = {}
     try:
@@ -101,17 +125,25 @@ def peers() -> dict[str, gym.Env]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, short timings (a smoke run)")
+    parser.add_argument("--largest-only", nargs=2, type=float, metavar=("MIN_TIME", "REPEATS"),
+                        help=argparse.SUPPRESS)  # the child process of largest_with_active_wait
     args = parser.parse_args()
+    if args.largest_only:
+        min_time, repeats = args.largest_only
+        print(timeit(vector_runner(VECTOR_SIZES[-1]), min_time=min_time, repeats=int(repeats)))
+        return
     vector_sizes = [n for n in VECTOR_SIZES if n <= 4_096] if args.quick else VECTOR_SIZES
     timing = {"min_time": 0.05, "repeats": 3} if args.quick else {"min_time": 1.0, "repeats": 5}
     warnings.filterwarnings("ignore")
     results = []  # (name, arms per call, seconds per call)
 
-    def record(name: str, n: int, fn) -> float:
-        seconds = timeit(fn, **timing)
+    def report(name: str, n: int, seconds: float) -> float:
         results.append((name, n, seconds))
         print(f"{name:<40} N={n:>6}  {n / seconds:>14,.0f} env-steps/s  {seconds * 1e6:>10,.1f} us/call", flush=True)
         return seconds
+
+    def record(name: str, n: int, fn) -> float:
+        return report(name, n, timeit(fn, **timing))
 
     found = peers()
     for name, env in found.items():
@@ -119,19 +151,19 @@ def main() -> None:
     single = record("IiwaReach-v0 (gymnasium.make)", 1, single_env_runner(gym.make("IiwaReach-v0")))
     raw = {}
     for n in vector_sizes:
-        vec = gym.make_vec("IiwaReach-v0", num_envs=n)
-        vec.reset(seed=0)
-        raw[n] = record("IiwaReachVectorEnv (make_vec)", n, batched_runner(vec.step, n))
-    if not args.quick:  # the largest batch on one thread too: on a busy machine 2 threads can lose
+        raw[n] = record("IiwaReachVectorEnv (make_vec)", n, vector_runner(n))
+    largest = {}  # seconds per step at the largest N on 1 thread, and on 2 with OMP_WAIT_POLICY=ACTIVE
+    if not args.quick:
         threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        vec = gym.make_vec("IiwaReach-v0", num_envs=VECTOR_SIZES[-1])
-        vec.reset(seed=0)
-        record("IiwaReachVectorEnv (make_vec), 1 thread", VECTOR_SIZES[-1], batched_runner(vec.step, VECTOR_SIZES[-1]))
+        torch.set_num_threads(1)  # on a busy machine 2 threads can lose
+        largest["1 thread"] = record("IiwaReachVectorEnv (make_vec), 1 thread", VECTOR_SIZES[-1],
+                                     vector_runner(VECTOR_SIZES[-1]))
         torch.set_num_threads(threads)
+        largest["ACTIVE"] = report("IiwaReachVectorEnv (make_vec), 2 threads, OMP_WAIT_POLICY=ACTIVE",
+                                   VECTOR_SIZES[-1], largest_with_active_wait(timing))
     # the floor of a step: the kinematics of the batch (float32, as the env's state), which for
     # position goals is the position-only kernel; the full pose for comparison
-    chain = vec.unwrapped.task.robot
+    chain = ReachTask().robot  # the env's chain, in the state's dtype (float32)
     for n in (1, vector_sizes[-1]):
         q = chain.random_q(n, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
         record("chain.position alone (the step's floor)", n, lambda q=q: chain.position_batch_last(q.T))
@@ -155,14 +187,16 @@ def main() -> None:
         vec.reset(seed=0)
         sb3_rounds = alternating_ratios(sb3_runners[256], batched_runner(vec.step, 256))
         print("SB3 VecEnv / vector env at N=256, alternating rounds:", ", ".join(f"{r:.2f}" for r in sb3_rounds))
-    one_thread = [s for name, n, s in results if name.endswith("1 thread")]
     checks = {
         "single env >= 10x PandaReach-v3 steps/s": None if panda is None else panda / single,
         "single env vs PandaReach-v3, median of 7 alternating rounds": statistics.median(rounds) if rounds else None,
-        "vector env env-steps/s at N=65,536, 2 threads (target 5,000,000)": (
+        "vector env env-steps/s at N=65,536, 2 threads, PASSIVE (target 5,000,000)": (
             65_536 / raw[65_536] if 65_536 in raw else None
         ),
-        "vector env env-steps/s at N=65,536, 1 thread": 65_536 / one_thread[0] if one_thread else None,
+        "vector env env-steps/s at N=65,536, 2 threads, ACTIVE": (
+            65_536 / largest["ACTIVE"] if "ACTIVE" in largest else None
+        ),
+        "vector env env-steps/s at N=65,536, 1 thread": 65_536 / largest["1 thread"] if largest else None,
         "SB3 VecEnv / vector env time per step at N=256 (target <= 2)": sb3[256] / raw[256],
         "SB3 / vector env at N=256, median of 7 alternating rounds": (
             statistics.median(sb3_rounds) if sb3_rounds else None
