@@ -7,8 +7,9 @@ episode ends (the vector envs reset themselves):
 
 - ``IiwaReach-v0`` through ``gymnasium.make`` (one arm per call, with gymnasium's wrappers);
 - ``IiwaReachVectorEnv`` (``gymnasium.make_vec``) at N = 1, 256, 4,096, 65,536 arms per call;
-  the largest N also on 1 thread, and on 2 threads with ``OMP_WAIT_POLICY=ACTIVE`` in a child
-  process (the policy is read once, when torch loads; this script sets ``PASSIVE``);
+  the largest N also on 1 thread, and on 2 threads in child processes with OpenMP's default
+  wait policy and with ``OMP_WAIT_POLICY=ACTIVE`` (the policy is read once, when torch
+  loads; this script sets ``PASSIVE`` for itself);
 - ``envs.sb3.IiwaReachVecEnv`` (the stable-baselines3 VecEnv) at N = 256 and 4,096;
 - ``chain.position_batch_last`` alone at N = 1 and the largest N: the floor of a step, which
   is one position-only FK (and ``chain.fk``, the full pose, for comparison);
@@ -32,7 +33,8 @@ import subprocess
 import sys
 import warnings
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
+if "--largest-only" not in sys.argv:  # a child times the policy it was given (none: OpenMP's default)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
@@ -89,15 +91,19 @@ def vector_runner(n: int):
     return batched_runner(vec.step, n)
 
 
-def largest_with_active_wait(timing: dict) -> float:
+def largest_in_child(timing: dict, wait_policy: str | None) -> float:
     """Seconds per step of the vector env at the largest N on 2 threads, timed in a child
-    process with ``OMP_WAIT_POLICY=ACTIVE``: OpenMP's threads spin between ops instead of
-    sleeping. On an otherwise idle machine that is the fast setting (each op does not wait
-    for the other thread to wake); with another process busy on the cores, it can be ~100x
-    slower (which is why this script runs with ``PASSIVE``)."""
+    process with ``OMP_WAIT_POLICY=wait_policy`` (``None``: unset, OpenMP's default, which
+    spins a while before sleeping). With ``ACTIVE`` OpenMP's threads spin between ops: on an
+    otherwise idle machine the fast setting (no op waits for a sleeping thread to wake);
+    with another process busy on the cores, it can be ~100x slower (which is why this
+    script itself runs with ``PASSIVE``)."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if wait_policy is not None:
+        env["OMP_WAIT_POLICY"] = wait_policy
     child = subprocess.run(
         [sys.executable, __file__, "--largest-only", str(timing["min_time"]), str(timing["repeats"])],
-        env={**os.environ, "OMP_WAIT_POLICY": "ACTIVE"}, capture_output=True, text=True, check=True,
+        env=env, capture_output=True, text=True, check=True,
     )
     return float(child.stdout.split()[-1])
 
@@ -126,7 +132,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, short timings (a smoke run)")
     parser.add_argument("--largest-only", nargs=2, type=float, metavar=("MIN_TIME", "REPEATS"),
-                        help=argparse.SUPPRESS)  # the child process of largest_with_active_wait
+                        help=argparse.SUPPRESS)  # the child process of largest_in_child
     args = parser.parse_args()
     if args.largest_only:
         min_time, repeats = args.largest_only
@@ -152,15 +158,17 @@ def main() -> None:
     raw = {}
     for n in vector_sizes:
         raw[n] = record("IiwaReachVectorEnv (make_vec)", n, vector_runner(n))
-    largest = {}  # seconds per step at the largest N on 1 thread, and on 2 with OMP_WAIT_POLICY=ACTIVE
+    largest = {}  # seconds per step at the largest N: 1 thread; 2 threads with other wait policies
     if not args.quick:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # on a busy machine 2 threads can lose
         largest["1 thread"] = record("IiwaReachVectorEnv (make_vec), 1 thread", VECTOR_SIZES[-1],
                                      vector_runner(VECTOR_SIZES[-1]))
         torch.set_num_threads(threads)
-        largest["ACTIVE"] = report("IiwaReachVectorEnv (make_vec), 2 threads, OMP_WAIT_POLICY=ACTIVE",
-                                   VECTOR_SIZES[-1], largest_with_active_wait(timing))
+        for policy in (None, "ACTIVE"):
+            setting = f"2 threads, OMP_WAIT_POLICY={policy or 'unset'}"
+            largest[setting] = report(f"IiwaReachVectorEnv (make_vec), {setting}", VECTOR_SIZES[-1],
+                                      largest_in_child(timing, policy))
     # the floor of a step: the kinematics of the batch (float32, as the env's state), which for
     # position goals is the position-only kernel; the full pose for comparison
     chain = ReachTask().robot  # the env's chain, in the state's dtype (float32)
@@ -193,10 +201,7 @@ def main() -> None:
         "vector env env-steps/s at N=65,536, 2 threads, PASSIVE (target 5,000,000)": (
             65_536 / raw[65_536] if 65_536 in raw else None
         ),
-        "vector env env-steps/s at N=65,536, 2 threads, ACTIVE": (
-            65_536 / largest["ACTIVE"] if "ACTIVE" in largest else None
-        ),
-        "vector env env-steps/s at N=65,536, 1 thread": 65_536 / largest["1 thread"] if largest else None,
+        **{f"vector env env-steps/s at N=65,536, {setting}": 65_536 / s for setting, s in largest.items()},
         "SB3 VecEnv / vector env time per step at N=256 (target <= 2)": sb3[256] / raw[256],
         "SB3 / vector env at N=256, median of 7 alternating rounds": (
             statistics.median(sb3_rounds) if sb3_rounds else None
