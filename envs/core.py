@@ -5,9 +5,10 @@ Robot, task and env are kept apart:
 - the robot is a :class:`~iiwa_torch.dh.DHChain` (kinematics, joint limits, joint speeds);
 - the task, :class:`ReachTask`, is immutable configuration (time step, goal kind, reward,
   thresholds) with pure batched methods over a :class:`ReachState` (a tuple of tensors
-  with one column per environment): ``initial_state(keys)``, ``restart(state, idx)``,
-  ``step(state, action)`` (the one step) and ``step_autoreset(state, action)`` (the step,
-  same-step auto-reset and one transfer to numpy, for the vector envs);
+  with one column per environment): ``initial_state(keys)``, ``reset_all(state, seeds,
+  rng)``, ``step(state, action)`` (the one step) and ``step_autoreset(state, action)`` (the
+  step, same-step auto-reset of the finished environments and one transfer to numpy, for
+  the vector envs);
 - the envs (``envs.reach``, ``envs.sb3``) only convert to and from numpy and keep the
   current state.
 
@@ -398,14 +399,6 @@ class ReachTask:
             key=key,
             episode=episode,
         )
-
-    def restart(self, state: ReachState, idx: Tensor) -> tuple[ReachState, ReachState]:
-        """Start the next episode (same key, episode + 1) of the environments ``idx`` ``(m,)``.
-
-        Returns the whole new state and the ``m`` restarted environments alone.
-        """
-        fresh = self._new_episodes(state.key[idx], state.episode[idx] + 1)
-        return ReachState(*(old.index_copy(old.ndim - 1, idx, new) for old, new in zip(state, fresh))), fresh
 
     def step(self, state: ReachState, action: Tensor) -> tuple[ReachState, StepResult]:
         """Apply actions ``(nj, n)`` (clipped to ``[-1, 1]``): integrate, clamp to the limits, FK.
