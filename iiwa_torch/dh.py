@@ -232,7 +232,7 @@ class DHChain(nn.Module):
         self.register_buffer("_offsets", dh[:, 3, None].clone(), persistent=False)  # (n, 1)
         # cos and sin of the offsets (n, 1), to turn a caller's cos/sin of q into those of q + offset
         self.register_buffer("_offset_trig", torch.stack([dh[:, 3].cos(), dh[:, 3].sin()])[..., None], persistent=False)
-        self._has_offsets = bool(dh[:, 3].any())
+        self._has_offsets = any(self._offset_list)
         self._converted: dict[tuple[torch.dtype, str], Tensor | tuple[np.ndarray, ...]] = {}
 
     def _in(self, dtype: torch.dtype, name: str) -> Tensor:
