@@ -25,10 +25,11 @@ import time
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import torch  # noqa: E402
-from common import machine, markdown_table, save, timeit  # noqa: E402
+from common import markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import robots  # noqa: E402
 from iiwa_torch.ik import analytic, solve  # noqa: E402
+from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.so3 import pose_error  # noqa: E402
 
 K_PSI = 4  # arm angles per pose for the iiwa
@@ -269,7 +270,7 @@ def main() -> None:
          f"{peers['sweep_iiwa_poses_per_s']:,.0f}", f"{peers['rtb_iiwa_ikine_LM_poses_per_s']:,.0f}",
          f"**{peers['sweep_iiwa_poses_per_s'] / peers['rtb_iiwa_ikine_LM_poses_per_s']:.0f}x**"],
     ]
-    info = machine()
+    info = machine_info()
     md = (
         f"Closed-form IK, {n:,} poses (`python benchmarks/bench_analytic.py`):\n\n"
         + markdown_table(headers, rows)

@@ -41,11 +41,12 @@ if "--largest-only" not in sys.argv:  # a child times the policy it was given (n
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import machine, markdown_table, save, timeit  # noqa: E402
+from common import markdown_table, save, timeit  # noqa: E402
 
 import envs  # noqa: E402, F401  (registers the ids)
 from envs.core import ReachTask  # noqa: E402
 from envs.sb3 import IiwaReachVecEnv  # noqa: E402
+from iiwa_torch.runtime import machine_info  # noqa: E402
 
 VECTOR_SIZES = [1, 256, 4_096, 65_536]
 SB3_SIZES = [256, 4_096]
@@ -217,7 +218,7 @@ def main() -> None:
     md += "\n" + markdown_table(
         ["target", "measured"], [[k, "n/a" if v is None else f"{v:,.2f}"] for k, v in checks.items()]
     )
-    info = machine()
+    info = machine_info()
     md += f"\nMachine: {info}\n"
     print("\n" + md)
     payload = {

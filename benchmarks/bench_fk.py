@@ -19,9 +19,10 @@ import sys
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import torch  # noqa: E402
-from common import machine, markdown_table, save, timeit  # noqa: E402
+from common import markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import robots  # noqa: E402
+from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.urdf import to_urdf  # noqa: E402
 
 CHAIN = robots.iiwa14()
@@ -218,7 +219,7 @@ def main() -> None:
             f"\nPeak memory of one float32 FK of 1,000,000 configurations: {mem:.0f} MB"
             " (input 28 MB and output 64 MB included)\n"
         )
-    info = machine()
+    info = machine_info()
     md += f"\nMachine: {info}\n"
     print(md)
     path = save(

@@ -29,10 +29,11 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import machine, markdown_table, save  # noqa: E402
+from common import markdown_table, save  # noqa: E402
 
 from iiwa_torch import robots, so3  # noqa: E402
 from iiwa_torch.ik import solve  # noqa: E402
+from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.urdf import to_urdf  # noqa: E402
 
 CHAIN = robots.iiwa14()
@@ -224,7 +225,7 @@ def main() -> None:
         ]
         for r in tradeoff
     ]
-    info = machine()
+    info = machine_info()
     command = "python benchmarks/bench_ik.py" + (" --quick" if args.quick else "")
     markdown = (
         f"IK on {count:,} random reachable iiwa 14 poses (`{command}`). Ours: median of {2 * ((repeats + 1) // 2)} "

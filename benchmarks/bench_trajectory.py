@@ -25,9 +25,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import machine, markdown_table, save, timeit  # noqa: E402
+from common import markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import robots, so3  # noqa: E402
+from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.trajectory import ctraj, jtraj, track  # noqa: E402
 
 F64 = torch.float64
@@ -162,7 +163,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="smaller batches, fewer repeats (a smoke run)")
     args = parser.parse_args()
     pairs, peer_pairs, lines, repeats = (1_000, 50, 32, 1) if args.quick else (10_000, 300, 256, 3)
-    results = {"machine": machine()}
+    results = {"machine": machine_info()}
     results["jtraj"] = bench_jtraj(pairs, peer_pairs, repeats)
     print("jtraj", results["jtraj"], flush=True)
     results["ctraj"] = bench_ctraj(pairs, peer_pairs, repeats)
@@ -175,7 +176,7 @@ def main() -> None:
 
     md = ["# Trajectory benchmark\n", f"`python benchmarks/bench_trajectory.py{' --quick' if args.quick else ''}`; "]
     m = results["machine"]
-    md.append(f"{m['cpu']}, torch {m['torch']}, {m['torch_threads']} threads, load {m['loadavg_1_5_15']}\n\n")
+    md.append(f"{m['cpu']}, torch {m['torch']}, {m['torch_threads']} threads, load {m['loadavg']}\n\n")
     rows = [
         [name, r["pairs"], f"{r['ours us/pair']:.2f}", f"{r['roboticstoolbox us/pair']:.0f}", f"{r['speed-up']:.0f}x"]
         for name, r in (("jtraj", results["jtraj"]), ("ctraj", results["ctraj"]))

@@ -7,8 +7,6 @@ process busy on the cores, OpenMP's spin-wait made 2-thread ops ~100x slower her
 from __future__ import annotations
 
 import json
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -31,32 +29,6 @@ def timeit(fn, *, min_time: float = 0.2, repeats: int = 5, max_calls: int | None
                 break
         samples.append(elapsed / calls)
     return statistics.median(samples)
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def machine() -> dict:
-    """Facts that decide how to read the numbers: threads, OpenMP policy, load, CPU, versions."""
-    import torch
-
-    return {
-        "cpu": cpu_model(),
-        "cores": os.cpu_count(),
-        "torch": torch.__version__,
-        "torch_threads": torch.get_num_threads(),
-        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
-        "loadavg_1_5_15": os.getloadavg(),
-        "python": platform.python_version(),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-    }
 
 
 def save(name: str, payload: dict, markdown: str) -> Path:

@@ -25,7 +25,6 @@ import argparse
 import importlib
 import json
 import os
-import platform
 import shlex
 import shutil
 import signal
@@ -158,28 +157,6 @@ def git_commit() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return sha.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
-
-
-def machine_info() -> dict[str, Any]:
-    """Load average, CPU model and thread settings, recorded next to every wall time."""
-    import torch
-
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "loadavg": list(os.getloadavg()),
-        "cpu": cpu,
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
-        "torch": torch.__version__,
-    }
 
 
 # ---------------------------------------------------------------------------- environments
@@ -470,6 +447,8 @@ def train(args: argparse.Namespace) -> Path:
     model.save(run / "model.zip")
     if model.get_vec_normalize_env() is not None:
         model.get_vec_normalize_env().save(str(run / "vecnormalize.pkl"))
+    from iiwa_torch.runtime import machine_info
+
     info = {
         "num_timesteps": int(model.num_timesteps),
         "wall_time": round(wall, 1),
