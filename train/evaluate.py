@@ -369,7 +369,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
 
     from envs.sb3 import IiwaReachVecEnv
     from train.rollout import make_goal_set
-    from train.train import machine_info
+    from iiwa_torch.runtime import machine_info
 
     torch.set_num_threads(1)
     model, vec_normalize, config = load_policy(model_dir)
