@@ -16,7 +16,8 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .core import GoalKind, ReachState, ReachTask
+from .core import ReachState, ReachTask
+from .goals import GoalKind
 
 __all__ = ["IiwaReachEnv", "IiwaReachVectorEnv", "goal_env_spaces"]
 
@@ -26,9 +27,9 @@ _RENDER_FPS = 20  # 1 / dt at the default dt = 0.05 s
 
 def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
     """The observation space ``Dict(observation, achieved_goal, desired_goal)`` and the action space."""
-    nj, g = task.n_joints, task.goal_size
+    nj, g = task.arm.n_joints, task.goals.size
     goal_high = np.full(g, 1.0, dtype=np.float32)
-    goal_high[:3] = task.position_bound
+    goal_high[:3] = task.arm.position_bound
     obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), goal_high])
     observation = spaces.Dict(
         {
@@ -38,19 +39,6 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
         }
     )
     return observation, spaces.Box(-1.0, 1.0, shape=(nj,), dtype=np.float32)
-
-
-def _compute_reward(task: ReachTask, achieved_goal, desired_goal):
-    """Batched reward on goals ``(..., g)`` (numpy, or torch): numpy in, float32 numpy out."""
-    if isinstance(achieved_goal, torch.Tensor) and isinstance(desired_goal, torch.Tensor):
-        return task.reward(achieved_goal.float().movedim(-1, 0), desired_goal.float().movedim(-1, 0))
-    ag = torch.as_tensor(np.asarray(achieved_goal, dtype=np.float32))
-    dg = torch.as_tensor(np.asarray(desired_goal, dtype=np.float32))
-    if ag.shape[-1:] != (task.goal_size,) or dg.shape[-1:] != (task.goal_size,):
-        raise ValueError(
-            f"goals must have shape (..., {task.goal_size}), got {tuple(ag.shape)} and {tuple(dg.shape)}"
-        )
-    return task.reward(ag.movedim(-1, 0), dg.movedim(-1, 0)).numpy()
 
 
 def _info(task: ReachTask, success, distance, angle) -> dict[str, Any]:
@@ -168,15 +156,16 @@ class IiwaReachEnv(gym.Env):
         """Apply one joint-velocity command ``(7,)``; see the class docstring."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        self._state, res = self.task.step(self._state, self.task.check_action(action, 1))
-        floats, flags = (part.numpy(force=True)[:, 0] for part in self.task.pack(self._state, res))
-        d = self.task.packed_size
+        io = self.task.transport
+        self._state, res = self.task.step(self._state, io.check_action(action, 1))
+        floats, flags = (part.numpy(force=True)[:, 0] for part in io.pack(self._state, res))
+        d = io.packed_size
         reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
         term, trunc, success = flags.tolist()
         if self.render_mode == "human":
             self.render()
         info = _info(self.task, success, dist, angle[0] if angle else None)
-        return self.task.split(floats[:d]), reward, term, trunc, info
+        return io.split(floats[:d]), reward, term, trunc, info
 
     @property
     def joint_angles(self) -> np.ndarray:
@@ -187,8 +176,8 @@ class IiwaReachEnv(gym.Env):
         return self._state.q[:, 0].double().cpu().numpy()
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out); ``info`` is unused."""
-        return _compute_reward(self.task, achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
+        return self.task.goals.compute_reward(achieved_goal, desired_goal)
 
     def render(self):
         """``rgb_array``: an ``(H, W, 3)`` uint8 image of the arm, its end effector and the goal."""
@@ -287,12 +276,12 @@ class IiwaReachVectorEnv(VectorEnv):
         """Step all environments with ``(num_envs, 7)`` actions; finished ones restart in the same step."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        a = self.task.check_action(actions, self.num_envs)
+        a = self.task.transport.check_action(actions, self.num_envs)
         self._state, tr = self.task.step_autoreset(self._state, a)
         info = _info(self.task, tr.success, tr.distance, tr.angle)
         if tr.final_index.size:
             final = np.full(self.num_envs, None, dtype=object)
-            final[tr.final_index] = self.task.obs_per_env(tr.final_obs)  # finished environments only
+            final[tr.final_index] = self.task.transport.obs_per_env(tr.final_obs)  # finished environments only
             done = tr.terminated | tr.truncated
             info["final_obs"], info["_final_obs"] = final, done
             # the finished step's info (already in ``info``), under the name SyncVectorEnv uses
@@ -301,8 +290,8 @@ class IiwaReachVectorEnv(VectorEnv):
         return tr.obs, tr.reward, tr.terminated, tr.truncated, info
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out)."""
-        return _compute_reward(self.task, achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
+        return self.task.goals.compute_reward(achieved_goal, desired_goal)
 
     def render(self):
         """``rgb_array``: a tuple with one image per environment (slow for large ``num_envs``)."""
@@ -315,3 +304,4 @@ class IiwaReachVectorEnv(VectorEnv):
 
         state = self._state
         return tuple(render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(state.q.T, state.goal.T))
+
