@@ -121,9 +121,8 @@ class Transport:
         if isinstance(action, torch.Tensor):
             a = action.to(self.device, self.dtype)
         else:  # numpy all the way to the transposed copy: a fraction of torch's per-call cost
-            try:
-                with np.errstate(over="ignore"):  # a number beyond the dtype's range becomes inf: reported below
-                    a = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
+            try:  # a number beyond the dtype's range becomes inf (numpy warns): reported below
+                a = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
             except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
         if tuple(a.shape) != (n, nj) and not (n == 1 and tuple(a.shape) == (nj,)):
