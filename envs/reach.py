@@ -66,7 +66,8 @@ class IiwaReachEnv(gym.Env):
     ``Box(-1, 1, (7,), float32)``: joint velocities as fractions of the datasheet's
     maximum joint speeds (85, 85, 100, 75, 130, 135, 135 deg/s). Joint ``i`` moves by
     ``a_i * v_max_i * dt`` radians, then is clamped into its limits. Values outside
-    ``[-1, 1]`` are clipped; NaN/inf or a wrong shape raise ``ValueError``.
+    ``[-1, 1]`` are clipped; NaN/inf, a number beyond float32's range or a wrong shape raise
+    ``ValueError``.
 
     ## Observation Space
 
@@ -81,7 +82,7 @@ class IiwaReachEnv(gym.Env):
 
     ## Rewards
 
-    ``compute_reward(achieved_goal, desired_goal, info)`` (batched, numpy in and out):
+    ``compute_reward(achieved_goal, desired_goal, info)`` (batched, numpy or torch in, float32 numpy out):
 
     - dense (``IiwaReach-v0``): ``-d``, the distance in metres;
     - sparse (``IiwaReachSparse-v0``): ``0`` if successful, else ``-1``;
@@ -94,7 +95,8 @@ class IiwaReachEnv(gym.Env):
 
     ## Starting State
 
-    ``start="home"`` (default): ``q = (0, 30, 0, -60, 0, 30, 0)`` degrees, zero velocity.
+    ``start="home"`` (default): ``iiwa_torch.robots.IIWA_HOME``, ``q = (0, 30, 0, -60, 0, 30, 0)``
+    degrees, zero velocity.
     ``start="random"``: uniform within the joint limits. The goal is drawn at every reset;
     with ``goal_min_distance > 0`` goals nearer than that to the start are redrawn.
 
@@ -138,7 +140,7 @@ class IiwaReachEnv(gym.Env):
 
     @torch.inference_mode()
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Start an episode. ``reset(seed=s)`` makes the following episodes reproducible."""
+        """Start an episode. ``reset(seed=s)``, ``s`` in ``[0, 2**64)``, makes the following episodes reproducible."""
         super().reset(seed=seed)
         if options:
             raise ValueError(f"reset takes no options, got {options!r}")

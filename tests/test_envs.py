@@ -71,7 +71,7 @@ def test_gymnasium_and_sb3_checkers(env_id):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # any checker warning fails the test
         check_env(gym.make(env_id).unwrapped, skip_render_check=True)
-    # SB3's checker calls env.compute_reward, which gymnasium 1.x wrappers do not forward
+    # SB3's checker calls env.compute_reward, which gymnasium 1.x wrappers do not forward (docs/envs.md)
     sb3_check_env(gym.make(env_id).unwrapped, warn=True)
 
 
