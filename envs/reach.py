@@ -141,10 +141,11 @@ class IiwaReachEnv(gym.Env):
     @torch.inference_mode()
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start an episode. ``reset(seed=s)``, ``s`` in ``[0, 2**64)``, makes the following episodes reproducible."""
-        super().reset(seed=seed)
         if options:
             raise ValueError(f"reset takes no options, got {options!r}")
-        self._state = self.task.reset_all(self._state, [seed], self.np_random)
+        state = self.task.reset_all(self._state, [seed], self.np_random)  # checks the seed first
+        super().reset(seed=seed)
+        self._state = state
         tr = self.task.reset_transition(self._state)
         obs = {k: v[0] for k, v in tr.obs.items()}
         angle = None if tr.angle is None else float(tr.angle[0])
@@ -261,7 +262,6 @@ class IiwaReachVectorEnv(VectorEnv):
         if options:
             raise ValueError(f"reset takes no options, got {options!r}")
         if isinstance(seed, int) and not isinstance(seed, bool):
-            super().reset(seed=seed)
             seeds = [seed + i for i in range(self.num_envs)]
         elif seed is None or isinstance(seed, (list, tuple)):
             seeds = [None] * self.num_envs if seed is None else list(seed)
@@ -269,7 +269,10 @@ class IiwaReachVectorEnv(VectorEnv):
                 raise ValueError(f"seed must be an int or a list of {self.num_envs} ints/None, got {len(seeds)} seeds")
         else:
             raise ValueError(f"seed must be an int, a list of ints/None or None, got {seed!r}")
-        self._state = self.task.reset_all(self._state, seeds, self.np_random)
+        state = self.task.reset_all(self._state, seeds, self.np_random)  # checks the seeds first
+        if isinstance(seed, int):
+            super().reset(seed=seed)
+        self._state = state
         tr = self.task.reset_transition(self._state)
         return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle)
 
