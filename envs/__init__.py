@@ -8,7 +8,12 @@ stable-baselines3 ``VecEnv``; :func:`make_task` gives an id's task alone.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import gymnasium
+
+if TYPE_CHECKING:
+    from .core import ReachTask
 
 __all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs", "make_task"]
 
@@ -40,7 +45,7 @@ def register_envs() -> None:
         )
 
 
-def make_task(env_id: str, **env_kwargs):
+def make_task(env_id: str, **env_kwargs) -> ReachTask:
     """The :class:`envs.core.ReachTask` of ``env_id`` (one of :data:`ENV_IDS`): the id's
     registered options and ``max_episode_steps``, overridden by ``env_kwargs`` (any
     ``ReachTask`` option), without building an env."""
