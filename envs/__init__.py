@@ -3,14 +3,19 @@
 ``import envs`` registers the ids in :data:`ENV_IDS`; ``gymnasium.make("envs:IiwaReach-v0")``
 imports this package itself. ``gymnasium.make_vec(id, num_envs=N)`` returns the natively
 batched :class:`envs.reach.IiwaReachVectorEnv`; ``envs.sb3.IiwaReachVecEnv`` is the
-stable-baselines3 ``VecEnv``.
+stable-baselines3 ``VecEnv``; :func:`make_task` gives an id's task alone.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import gymnasium
 
-__all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs"]
+if TYPE_CHECKING:
+    from .core import ReachTask
+
+__all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs", "make_task"]
 
 #: Episode length of the registered ids: from the home posture, a straight full-speed joint
 #: move reaches any configuration within the limits in 48 steps (see ``docs/envs.md``).
@@ -38,6 +43,17 @@ def register_envs() -> None:
             max_episode_steps=MAX_EPISODE_STEPS,
             kwargs=dict(kwargs),
         )
+
+
+def make_task(env_id: str, **env_kwargs) -> ReachTask:
+    """The :class:`envs.core.ReachTask` of ``env_id`` (one of :data:`ENV_IDS`): the id's
+    registered options and ``max_episode_steps``, overridden by ``env_kwargs`` (any
+    ``ReachTask`` option), without building an env."""
+    if env_id not in _VARIANTS:
+        raise ValueError(f"env_id must be one of {list(ENV_IDS)}, got {env_id!r}")
+    from .core import ReachTask
+
+    return ReachTask(**{**_VARIANTS[env_id], "max_episode_steps": MAX_EPISODE_STEPS, **env_kwargs})
 
 
 register_envs()

@@ -16,7 +16,8 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .core import GoalKind, ReachState, ReachTask
+from .core import ReachState, ReachTask
+from .goals import GoalKind
 
 __all__ = ["IiwaReachEnv", "IiwaReachVectorEnv", "goal_env_spaces"]
 
@@ -26,9 +27,9 @@ _RENDER_FPS = 20  # 1 / dt at the default dt = 0.05 s
 
 def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
     """The observation space ``Dict(observation, achieved_goal, desired_goal)`` and the action space."""
-    nj, g = task.n_joints, task.goal_size
+    nj, g = task.arm.n_joints, task.goals.size
     goal_high = np.full(g, 1.0, dtype=np.float32)
-    goal_high[:3] = task.position_bound
+    goal_high[:3] = task.arm.position_bound
     obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), goal_high])
     observation = spaces.Dict(
         {
@@ -38,19 +39,6 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
         }
     )
     return observation, spaces.Box(-1.0, 1.0, shape=(nj,), dtype=np.float32)
-
-
-def _compute_reward(task: ReachTask, achieved_goal, desired_goal):
-    """Batched reward on goals ``(..., g)`` (numpy, or torch): numpy in, float32 numpy out."""
-    if isinstance(achieved_goal, torch.Tensor) and isinstance(desired_goal, torch.Tensor):
-        return task.reward(achieved_goal.float().movedim(-1, 0), desired_goal.float().movedim(-1, 0))
-    ag = torch.as_tensor(np.asarray(achieved_goal, dtype=np.float32))
-    dg = torch.as_tensor(np.asarray(desired_goal, dtype=np.float32))
-    if ag.shape[-1:] != (task.goal_size,) or dg.shape[-1:] != (task.goal_size,):
-        raise ValueError(
-            f"goals must have shape (..., {task.goal_size}), got {tuple(ag.shape)} and {tuple(dg.shape)}"
-        )
-    return task.reward(ag.movedim(-1, 0), dg.movedim(-1, 0)).numpy()
 
 
 def _info(task: ReachTask, success, distance, angle) -> dict[str, Any]:
@@ -78,7 +66,8 @@ class IiwaReachEnv(gym.Env):
     ``Box(-1, 1, (7,), float32)``: joint velocities as fractions of the datasheet's
     maximum joint speeds (85, 85, 100, 75, 130, 135, 135 deg/s). Joint ``i`` moves by
     ``a_i * v_max_i * dt`` radians, then is clamped into its limits. Values outside
-    ``[-1, 1]`` are clipped; NaN/inf or a wrong shape raise ``ValueError``.
+    ``[-1, 1]`` are clipped; NaN/inf, a number beyond float32's range or a wrong shape raise
+    ``ValueError``.
 
     ## Observation Space
 
@@ -93,7 +82,7 @@ class IiwaReachEnv(gym.Env):
 
     ## Rewards
 
-    ``compute_reward(achieved_goal, desired_goal, info)`` (batched, numpy in and out):
+    ``compute_reward(achieved_goal, desired_goal, info)`` (batched, numpy or torch in, float32 numpy out):
 
     - dense (``IiwaReach-v0``): ``-d``, the distance in metres;
     - sparse (``IiwaReachSparse-v0``): ``0`` if successful, else ``-1``;
@@ -106,7 +95,8 @@ class IiwaReachEnv(gym.Env):
 
     ## Starting State
 
-    ``start="home"`` (default): ``q = (0, 30, 0, -60, 0, 30, 0)`` degrees, zero velocity.
+    ``start="home"`` (default): ``iiwa_torch.robots.IIWA_HOME``, ``q = (0, 30, 0, -60, 0, 30, 0)``
+    degrees, zero velocity.
     ``start="random"``: uniform within the joint limits. The goal is drawn at every reset;
     with ``goal_min_distance > 0`` goals nearer than that to the start are redrawn.
 
@@ -150,11 +140,12 @@ class IiwaReachEnv(gym.Env):
 
     @torch.inference_mode()
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Start an episode. ``reset(seed=s)`` makes the following episodes reproducible."""
-        super().reset(seed=seed)
+        """Start an episode. ``reset(seed=s)``, ``s`` in ``[0, 2**64)``, makes the following episodes reproducible."""
         if options:
             raise ValueError(f"reset takes no options, got {options!r}")
-        self._state = self.task.reset_all(self._state, [seed], self.np_random)
+        state = self.task.reset_all(self._state, [seed], self.np_random)  # checks the seed first
+        super().reset(seed=seed)
+        self._state = state
         tr = self.task.reset_transition(self._state)
         obs = {k: v[0] for k, v in tr.obs.items()}
         angle = None if tr.angle is None else float(tr.angle[0])
@@ -168,15 +159,16 @@ class IiwaReachEnv(gym.Env):
         """Apply one joint-velocity command ``(7,)``; see the class docstring."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        self._state, res = self.task.step(self._state, self.task.check_action(action, 1))
-        floats, flags = (part.numpy(force=True)[:, 0] for part in self.task.pack(self._state, res))
-        d = self.task.packed_size
+        io = self.task.transport
+        self._state, res = self.task.step(self._state, io.check_action(action, 1))
+        floats, flags = (part.numpy(force=True)[:, 0] for part in io.pack(self._state, res))
+        d = io.packed_size
         reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
         term, trunc, success = flags.tolist()
         if self.render_mode == "human":
             self.render()
         info = _info(self.task, success, dist, angle[0] if angle else None)
-        return self.task.split(floats[:d]), reward, term, trunc, info
+        return io.split(floats[:d]), reward, term, trunc, info
 
     @property
     def joint_angles(self) -> np.ndarray:
@@ -187,8 +179,8 @@ class IiwaReachEnv(gym.Env):
         return self._state.q[:, 0].double().cpu().numpy()
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out); ``info`` is unused."""
-        return _compute_reward(self.task, achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
+        return self.task.goals.compute_reward(achieved_goal, desired_goal)
 
     def render(self):
         """``rgb_array``: an ``(H, W, 3)`` uint8 image of the arm, its end effector and the goal."""
@@ -270,7 +262,6 @@ class IiwaReachVectorEnv(VectorEnv):
         if options:
             raise ValueError(f"reset takes no options, got {options!r}")
         if isinstance(seed, int) and not isinstance(seed, bool):
-            super().reset(seed=seed)
             seeds = [seed + i for i in range(self.num_envs)]
         elif seed is None or isinstance(seed, (list, tuple)):
             seeds = [None] * self.num_envs if seed is None else list(seed)
@@ -278,7 +269,10 @@ class IiwaReachVectorEnv(VectorEnv):
                 raise ValueError(f"seed must be an int or a list of {self.num_envs} ints/None, got {len(seeds)} seeds")
         else:
             raise ValueError(f"seed must be an int, a list of ints/None or None, got {seed!r}")
-        self._state = self.task.reset_all(self._state, seeds, self.np_random)
+        state = self.task.reset_all(self._state, seeds, self.np_random)  # checks the seeds first
+        if isinstance(seed, int):
+            super().reset(seed=seed)
+        self._state = state
         tr = self.task.reset_transition(self._state)
         return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle)
 
@@ -287,12 +281,12 @@ class IiwaReachVectorEnv(VectorEnv):
         """Step all environments with ``(num_envs, 7)`` actions; finished ones restart in the same step."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        a = self.task.check_action(actions, self.num_envs)
+        a = self.task.transport.check_action(actions, self.num_envs)
         self._state, tr = self.task.step_autoreset(self._state, a)
         info = _info(self.task, tr.success, tr.distance, tr.angle)
         if tr.final_index.size:
             final = np.full(self.num_envs, None, dtype=object)
-            final[tr.final_index] = self.task.obs_per_env(tr.final_obs)  # finished environments only
+            final[tr.final_index] = self.task.transport.obs_per_env(tr.final_obs)  # finished environments only
             done = tr.terminated | tr.truncated
             info["final_obs"], info["_final_obs"] = final, done
             # the finished step's info (already in ``info``), under the name SyncVectorEnv uses
@@ -301,8 +295,8 @@ class IiwaReachVectorEnv(VectorEnv):
         return tr.obs, tr.reward, tr.terminated, tr.truncated, info
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out)."""
-        return _compute_reward(self.task, achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
+        return self.task.goals.compute_reward(achieved_goal, desired_goal)
 
     def render(self):
         """``rgb_array``: a tuple with one image per environment (slow for large ``num_envs``)."""
@@ -315,3 +309,4 @@ class IiwaReachVectorEnv(VectorEnv):
 
         state = self._state
         return tuple(render_rgb(self.task.robot, q, goal=g[:3]) for q, g in zip(state.q.T, state.goal.T))
+

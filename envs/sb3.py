@@ -26,9 +26,10 @@ import numpy as np
 import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
-from . import ENV_IDS, MAX_EPISODE_STEPS
-from .core import GoalKind, ReachState, ReachTask
-from .reach import _compute_reward, goal_env_spaces
+from . import MAX_EPISODE_STEPS, make_task
+from .core import ReachState
+from .goals import GoalKind
+from .reach import goal_env_spaces
 
 __all__ = ["IiwaReachVecEnv"]
 
@@ -68,12 +69,9 @@ class IiwaReachVecEnv(VecEnv):
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
-        if env_id not in ENV_IDS:
-            raise ValueError(f"env_id must be one of {list(ENV_IDS)}, got {env_id!r}")
         if render_mode is not None and render_mode != "rgb_array":
             raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}")
-        options = {**gymnasium.spec(env_id).kwargs, **task_options}
-        self.task = ReachTask(max_episode_steps=max_episode_steps, device=device, **options)
+        self.task = make_task(env_id, max_episode_steps=max_episode_steps, device=device, **task_options)
         self.env_id = env_id
         self.render_mode = render_mode  # read by VecEnv.__init__ through get_attr
         observation_space, action_space = goal_env_spaces(self.task)
@@ -100,7 +98,7 @@ class IiwaReachVecEnv(VecEnv):
     def step_async(self, actions: np.ndarray) -> None:
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        self._actions = self.task.check_action(actions, self.num_envs)
+        self._actions = self.task.transport.check_action(actions, self.num_envs)
 
     @torch.inference_mode()
     def step_wait(self):
@@ -111,13 +109,14 @@ class IiwaReachVecEnv(VecEnv):
         if self.task.goal_kind is GoalKind.POSE:
             for info, angle in zip(infos, tr.angle.tolist()):
                 info["orientation_error"] = angle
-        for i, last in zip(tr.final_index.tolist(), self.task.obs_per_env(tr.final_obs)):  # finished environments only
+        finished = self.task.transport.obs_per_env(tr.final_obs)  # finished environments only
+        for i, last in zip(tr.final_index.tolist(), finished):
             infos[i]["terminal_observation"] = last
         return tr.obs, tr.reward, tr.terminated | tr.truncated, infos
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)`` -> ``(...)`` float32 (numpy in, numpy out); ``info`` is unused."""
-        return _compute_reward(self.task, achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
+        return self.task.goals.compute_reward(achieved_goal, desired_goal)
 
     def close(self) -> None:
         self._state = None

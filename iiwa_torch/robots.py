@@ -9,10 +9,14 @@ import math
 
 from .dh import Convention, DHChain
 
-__all__ = ["iiwa14", "iiwa7", "puma560", "lrmate200ic", "planar3r", "PRESETS"]
+__all__ = ["iiwa14", "iiwa7", "puma560", "lrmate200ic", "planar3r", "PRESETS", "IIWA_HOME"]
 
 _PI2 = math.pi / 2
 _IIWA_LIMITS_DEG = (170, 120, 170, 120, 170, 120, 175)
+
+#: Home posture of both iiwa presets (radians): elbow and wrist bent, away from the
+#: stretched-out singularity at q = 0.
+IIWA_HOME = tuple(math.radians(v) for v in (0.0, 30.0, 0.0, -60.0, 0.0, 30.0, 0.0))
 
 
 def _deg(values) -> list[float]:

@@ -11,9 +11,11 @@ import pytest
 import torch
 
 import envs
-from envs.core import ReachTask, keys_from_seeds, uniform
+from envs.core import ReachTask
+from envs.goals import decode_pose_goal, encode_pose_goal
 from envs.reach import IiwaReachEnv, IiwaReachVectorEnv
 from envs.sb3 import IiwaReachVecEnv
+from envs.seeding import keys_from_seeds, uniform
 from iiwa_torch.ik import solve
 from iiwa_torch.robots import iiwa14
 
@@ -69,7 +71,7 @@ def test_gymnasium_and_sb3_checkers(env_id):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # any checker warning fails the test
         check_env(gym.make(env_id).unwrapped, skip_render_check=True)
-    # SB3's checker calls env.compute_reward, which gymnasium 1.x wrappers do not forward
+    # SB3's checker calls env.compute_reward, which gymnasium 1.x wrappers do not forward (docs/envs.md)
     sb3_check_env(gym.make(env_id).unwrapped, warn=True)
 
 
@@ -206,6 +208,13 @@ def test_bad_actions_raise_clear_errors():
     actions[9, 3] = np.inf
     with pytest.raises(ValueError, match="NaN or inf"):
         big.step(actions)
+    huge = np.zeros(7)
+    huge[2] = 1e300  # finite in float64, beyond float32's range
+    for bad in (huge, torch.as_tensor(huge)):
+        with pytest.raises(ValueError, match=r"beyond float32's range \(largest \|a\| = 1e\+300\)"):
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", "overflow encountered in cast", RuntimeWarning)  # numpy's
+                env.step(bad)
     with pytest.raises(ValueError, match="goal"):
         IiwaReachEnv(goal="orientation")
     with pytest.raises(ValueError, match="dt"):
@@ -245,13 +254,37 @@ def test_seeding_is_reproducible():
     assert not np.allclose(a, c)
 
 
-def test_mul32_is_exact_modulo_2_32():
-    from envs.core import _mul32_
+def _fmix32(h: int) -> int:
+    """MurmurHash3's 32-bit finaliser in Python's exact integers (the published constants)."""
+    h ^= h >> 16
+    h = (h * 0x85EBCA6B) & 0xFFFFFFFF
+    h ^= h >> 13
+    h = (h * 0xC2B2AE35) & 0xFFFFFFFF
+    return h ^ (h >> 16)
 
-    x = torch.tensor([0, 1, 2**31 - 1, 2**31, 123_456_789, 2**32 - 1])
-    for c in (0x85EBCA6B, 0xC2B2AE35, 0x9E3779B9, 12345):
-        expected = torch.tensor([(int(v) * c) % 2**32 for v in x])  # Python's exact integers
-        assert torch.equal(_mul32_(x.clone(), c), expected)
+
+def test_keys_are_murmur_hashes_of_the_seeds_64_bits():
+    seeds = [0, 1, 2**31 - 1, 2**31, 2**32 - 1, 2**32, 123_456_789_012, 2**64 - 1]
+    expected = [_fmix32((s & 0xFFFFFFFF) ^ _fmix32((s >> 32) ^ 0x9E3779B9)) for s in seeds]
+    assert keys_from_seeds(seeds).tolist() == expected
+
+
+def test_seeds_beyond_64_bits_are_rejected_not_aliased():
+    env = gym.make("IiwaReach-v0")
+    first = env.reset(seed=5)[0]["desired_goal"]
+    following = env.reset()[0]["desired_goal"]
+    env.reset(seed=5)
+    with pytest.raises(ValueError, match=r"\[0, 2\*\*64\)"):
+        env.reset(seed=5 + 2**64)  # gymnasium's own seeding accepts it: it used to replay seed 5
+    np.testing.assert_array_equal(env.reset()[0]["desired_goal"], following)  # the rejected reset changed nothing
+    np.testing.assert_array_equal(env.reset(seed=5)[0]["desired_goal"], first)
+    with pytest.raises(ValueError, match=r"\[0, 2\*\*64\)"):
+        env.reset(seed=-1)
+    vec = IiwaReachVectorEnv(2)
+    with pytest.raises(ValueError, match=r"\[0, 2\*\*64\)"):
+        vec.reset(seed=2**64 - 1)  # environment 1 would get 2**64
+    with pytest.raises(ValueError, match=r"\[0, 2\*\*64\)"):
+        keys_from_seeds([True])
 
 
 def test_counter_based_random_numbers():
@@ -273,7 +306,7 @@ def test_counter_based_random_numbers():
     sub = uniform(keys[[5, 17]], torch.tensor([3, 4]), 0, 10, torch.float64)
     full = uniform(keys, torch.full_like(keys, 3), 0, 10, torch.float64)
     torch.testing.assert_close(sub[0], full[5], rtol=0, atol=0)
-    with pytest.raises(ValueError, match="non-negative"):
+    with pytest.raises(ValueError, match=r"\[0, 2\*\*64\)"):
         keys_from_seeds([-1])
 
 
@@ -297,13 +330,38 @@ def test_goals_are_reachable_and_respect_min_distance():
 def test_pose_goals_are_reachable():
     obs, _ = IiwaReachVectorEnv(8, goal="pose").reset(seed=0)
     g = torch.as_tensor(obs["desired_goal"], dtype=torch.float64)
-    x, y = g[:, 3:6], g[:, 6:9]
-    target = torch.eye(4, dtype=torch.float64).repeat(8, 1, 1)
-    target[:, :3, 0], target[:, :3, 1], target[:, :3, 2], target[:, :3, 3] = x, y, torch.linalg.cross(x, y), g[:, :3]
+    target = decode_pose_goal(g)
     result = solve(_CHAIN, target, mode="pose")
     assert result.success.all() and _CHAIN.within_limits(result.q, tol=1e-9).all()
     reached = IiwaReachEnv(goal="pose").task.goal_of(result.q.T).T
     np.testing.assert_allclose(reached.numpy(), g.numpy(), atol=1e-3)
+
+
+def test_pose_goal_encoding_round_trip():
+    q = _CHAIN.random_q(5, generator=torch.Generator().manual_seed(0))
+    pose = _CHAIN.fk(q)
+    goal = encode_pose_goal(pose)
+    # the layout, from the matrix itself: position, then rotation columns x and y
+    np.testing.assert_array_equal(goal[:, :3], pose[:, :3, 3])
+    np.testing.assert_array_equal(goal[:, 3:], torch.cat([pose[:, :3, 0], pose[:, :3, 1]], -1))
+    torch.testing.assert_close(decode_pose_goal(goal.float().numpy()), pose, atol=1e-6, rtol=0)
+    back = decode_pose_goal(goal.float())
+    rot = back[:, :3, :3]
+    torch.testing.assert_close(rot.transpose(1, 2) @ rot, torch.eye(3, dtype=torch.float64).expand(5, 3, 3))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 9\)"):
+        decode_pose_goal(np.zeros((2, 6)))
+
+
+def test_make_task_is_the_envs_task():
+    for env_id in envs.ENV_IDS:
+        task = envs.make_task(env_id)
+        env_task = gym.make(env_id).unwrapped.task
+        assert (task.goal_kind, task.goals.reward_kind) == (env_task.goal_kind, env_task.goals.reward_kind)
+        assert task.max_episode_steps == gym.spec(env_id).max_episode_steps
+    task = envs.make_task("IiwaReachPose-v0", distance_threshold=0.02, max_episode_steps=None)
+    assert task.distance_threshold == 0.02 and task.max_episode_steps is None
+    with pytest.raises(ValueError, match="env_id"):
+        envs.make_task("PandaReach-v3")
 
 
 def test_episode_length_covers_the_worst_joint_move_from_home():
@@ -344,7 +402,7 @@ def test_pose_success_needs_the_orientation_too():
     c, s = math.cos(0.05), math.sin(0.05)
     slight = np.array([c, s, 0, -s, c, 0], dtype=np.float32)
     achieved = torch.as_tensor(np.stack([np.r_[p, ident]] * 2)).T  # goals components first
-    dist, angle, ok = env.task.errors(achieved, torch.as_tensor(np.stack([np.r_[p, turned], np.r_[p, slight]])).T)
+    dist, angle, ok = env.task.goals.errors(achieved, torch.as_tensor(np.stack([np.r_[p, turned], np.r_[p, slight]])).T)
     np.testing.assert_allclose(angle.numpy(), [0.15, 0.05], atol=1e-5)
     assert ok.tolist() == [False, True]
 

@@ -367,7 +367,7 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
 def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths: list[Path]) -> dict[str, Any]:
     import torch
 
-    from envs.sb3 import IiwaReachVecEnv
+    import envs
     from train.rollout import make_goal_set
     from iiwa_torch.runtime import machine_info
 
@@ -375,7 +375,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     model, vec_normalize, config = load_policy(model_dir)
     env_id = config["env_id"]
     env_kwargs = config["hyperparams"].get("env_kwargs") or {}
-    task = IiwaReachVecEnv(1, env_id, **env_kwargs).task
+    task = envs.make_task(env_id, **env_kwargs)
     chain, dt = task.robot, task.dt
     goals = make_goal_set(env_id, n_goals, seed, env_kwargs)
 

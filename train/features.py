@@ -19,6 +19,7 @@ import torch
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
+from envs.goals import decode_pose_goal
 from iiwa_torch import so3
 
 
@@ -153,17 +154,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         error = desired[:, :3] - achieved[:, :3]
         with torch.no_grad():  # no parameters upstream: features only
             if self.pose:
-                rot = _rotation(desired[:, 3:]) @ _rotation(achieved[:, 3:]).transpose(-1, -2)
+                rot = decode_pose_goal(desired)[:, :3, :3] @ decode_pose_goal(achieved)[:, :3, :3].transpose(-1, -2)
                 error = torch.cat([error.double(), self.orientation_weight * so3.log(rot)], -1)
             joint = self.joint_features(q, error)
         return torch.cat([base, joint.to(base.dtype)], dim=-1)
 
-
-def _rotation(columns: torch.Tensor) -> torch.Tensor:
-    """The first two columns of rotation matrices ``(B, 6)`` -> ``(B, 3, 3)`` float64, re-orthonormalised
-    (the goals are float32)."""
-    x, y = columns[:, :3].double(), columns[:, 3:6].double()
-    x = x / x.norm(dim=-1, keepdim=True)
-    y = y - (x * y).sum(-1, keepdim=True) * x
-    y = y / y.norm(dim=-1, keepdim=True)
-    return torch.stack([x, y, torch.linalg.cross(x, y)], dim=-1)

@@ -78,20 +78,10 @@ class Rollout:
     act_seconds: float
 
 
-def _pose_from_goal(goal: np.ndarray) -> torch.Tensor:
-    """Pose goals ``(n, 9)`` (position, first two rotation columns) -> ``(n, 4, 4)`` float64."""
-    g = torch.as_tensor(goal, dtype=torch.float64)
-    x, y = g[:, 3:6], g[:, 6:9]
-    x = x / x.norm(dim=-1, keepdim=True)  # float32 round-off: re-orthonormalise
-    y = y - (x * y).sum(-1, keepdim=True) * x
-    y = y / y.norm(dim=-1, keepdim=True)
-    pose = torch.eye(4, dtype=torch.float64).repeat(g.shape[0], 1, 1)
-    pose[:, :3, 0], pose[:, :3, 1], pose[:, :3, 2], pose[:, :3, 3] = x, y, torch.linalg.cross(x, y), g[:, :3]
-    return pose
-
-
 def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None = None) -> GoalSet:
     """``n`` held-out goals of ``env_id`` (one of ``envs.ENV_IDS``) for goal-set ``seed``."""
+    from envs.goals import decode_pose_goal
+
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive int, got {n!r}")
     env_kwargs = dict(env_kwargs or {})
@@ -99,7 +89,7 @@ def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | N
     pose_goal = desired if env_id == POSE_ENV else _env(POSE_ENV, n, seed, env_kwargs).reset()["desired_goal"]
     if not np.allclose(pose_goal[:, :3], desired[:, :3], atol=1e-6):
         raise RuntimeError(f"{POSE_ENV} and {env_id} draw different goals for the same seeds: no goal poses")
-    return GoalSet(env_id, seed, env_kwargs, desired, _pose_from_goal(pose_goal))
+    return GoalSet(env_id, seed, env_kwargs, desired, decode_pose_goal(pose_goal))
 
 
 Actor = Callable[[dict[str, np.ndarray]], np.ndarray]

@@ -84,11 +84,10 @@ def load_hyperparams(algo: str, env_id: str, overrides: dict[str, Any] | None = 
 def joint_feature_defaults(env_id: str, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
     """The env's robot (``PRESETS`` name) and ``max_step`` (rad per step) for ``JointGoalExtractor``."""
     import envs
-    from envs.sb3 import IiwaReachVecEnv
 
     if env_id not in envs.ENV_IDS:
         raise ValueError(f"features_extractor 'joint' needs one of our envs {list(envs.ENV_IDS)}, got {env_id!r}")
-    task = IiwaReachVecEnv(1, env_id, **(env_kwargs or {})).task
+    task = envs.make_task(env_id, **(env_kwargs or {}))
     return {"robot": task.robot.name, "max_step": [round(float(s), 7) for s in task.max_step]}
 
 
@@ -247,9 +246,7 @@ def _callbacks(run: Path, hp: dict[str, Any], env_id: str, env_kwargs: dict[str,
 
             self.goals, self.task = None, None
             if env_id in envs.ENV_IDS:
-                from envs.sb3 import IiwaReachVecEnv
-
-                self.task = IiwaReachVecEnv(1, env_id, **env_kwargs).task
+                self.task = envs.make_task(env_id, **env_kwargs)
                 self.goals = make_goal_set(env_id, hp["eval_goals"], EVAL_SEED, env_kwargs)
             self.next_eval = (self.num_timesteps // hp["eval_freq"] + 1) * hp["eval_freq"]
             self.next_ckpt = (self.num_timesteps // hp["checkpoint_freq"] + 1) * hp["checkpoint_freq"]
