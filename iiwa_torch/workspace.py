@@ -335,16 +335,23 @@ def volume(
     return Volume(est, low, high, occ.h, occ.n_samples, missing, converged)
 
 
-def envelopes(occ: Occupancy) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def envelopes(occ: Occupancy, *, axis_gap: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Side-view envelopes of an RZ occupancy: ``z`` (m,) cell centres of the occupied rows and,
     per row, the outer radius ``r_outer`` (outer edge of the last occupied cell) and the inner
-    radius ``r_inner`` (inner edge of the first occupied cell), in metres."""
+    radius ``r_inner`` (inner edge of the first occupied cell), in metres.
+
+    A ring cell next to the axis holds little volume (``2 pi r h^2``), so few samples land
+    there: an inner radius of fewer than ``axis_gap`` cells is reported as 0 (the axis).
+    """
     if occ.section is not Section.RZ:
         raise ValueError(f"envelopes need an RZ occupancy, got section {occ.section.value!r}")
+    if not isinstance(axis_gap, int) or axis_gap < 0:
+        raise ValueError(f"axis_gap must be a non-negative integer (cells), got {axis_gap!r}")
     occ_rz = occ.occupied
     rows = np.flatnonzero(occ_rz.any(0))
     nr = occ_rz.shape[0]
     first = occ_rz[:, rows].argmax(0)
+    first[first < axis_gap] = 0
     last = nr - 1 - occ_rz[::-1, rows].argmax(0)
     z = occ.lower[1] + (rows + 0.5) * occ.h
     return z, (last + 1) * occ.h, first * occ.h
@@ -443,7 +450,7 @@ def plot_workspace(
     occ = occupancy(chain, n_samples, h, section=Section.RZ, point=point, generator=gen)
     est, low, high = _measure(occ)
     z, r_out, r_in = envelopes(occ)
-    fig = Figure(figsize=(7.5, 7), dpi=120)
+    fig = Figure(figsize=(10, 6.5), dpi=120, layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     occ_rz = occ.occupied.T.astype(float)
@@ -453,7 +460,13 @@ def plot_workspace(
     ax.imshow(np.ma.masked_equal(image, 0), origin="lower", extent=box, cmap="Blues", vmin=0, vmax=2, alpha=0.8)
     for sign in (1, -1):
         ax.plot(sign * r_out, z, color="tab:blue", lw=1.5, label="outer envelope" if sign > 0 else None)
-        ax.plot(sign * r_in, z, color="tab:orange", lw=1.5, label="inner envelope" if sign > 0 else None)
+        ax.plot(
+            sign * np.where(r_in > 0, r_in, np.nan),
+            z,
+            color="tab:orange",
+            lw=1.5,
+            label="inner envelope" if sign > 0 else None,
+        )
     if datasheet is not None:
         ds = {k: v / 1000 for k, v in datasheet.items() if k != "volume"}
         marks = {
@@ -462,11 +475,14 @@ def plot_workspace(
             "C (shoulder)": (0, ds["C"]),
             "C+D (elbow)": (0, ds["C"] + ds["D"]),
             "G (reach at C)": (ds["G"], ds["C"]),
-            "-F (depth)": (0, -ds["F"]),
         }
         for i, (label, (r, zz)) in enumerate(marks.items()):
-            ax.plot([r], [zz], marker="x^sDoP"[i], ls="none", ms=8, label=f"datasheet {label}")
+            ax.plot([r], [zz], marker="x^sDo"[i], ls="none", ms=8, label=f"datasheet {label}")
+        ax.axhline(-ds["F"], color="tab:brown", ls="--", lw=1, label="datasheet -F (depth below the base)")
     ax.axhline(0, color="0.4", lw=0.8)
+    top = max(z.max(), datasheet["A"] / 1000 if datasheet else -math.inf) + 0.1
+    ax.set_xlim(-r_out.max() - 0.1, r_out.max() + 0.1)
+    ax.set_ylim(z.min() - 0.1, top)
     ax.set_xlabel("r: signed distance from the joint-1 axis (m)")
     ax.set_ylabel("z: height above the base (m)")
     ax.set_aspect("equal")
@@ -474,7 +490,7 @@ def plot_workspace(
         f"{chain.name}: {point_label} workspace, side view\n"
         f"volume {est:.3f} m$^3$ [{low:.3f}, {high:.3f}], h = {h * 1000:g} mm, {occ.n_samples:.2g} samples"
     )
-    ax.legend(loc="lower left", fontsize=7)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize=8)
     ax.grid(alpha=0.3)
     fig.savefig(path)
     if manipulability_path is None:
@@ -487,12 +503,15 @@ def plot_workspace(
     for k, (name, data) in enumerate((("mean", dm.mean), ("max", dm.max))):
         ax = fig.add_subplot(1, 2, k + 1)
         shown = ax.imshow(np.ma.masked_where(dm.count.T == 0, data.T), origin="lower", extent=box, cmap="viridis")
-        fig.colorbar(shown, ax=ax, label=f"{name} manipulability sqrt(det(J J$^T$))")
+        fig.colorbar(shown, ax=ax, label=f"{name} sqrt(det(J J$^T$)), 6 x n J (linear rows in m)")
         ax.set_xlabel("r: distance from the joint-1 axis (m)")
         ax.set_ylabel("z: height above the base (m)")
         ax.set_title(
             f"{chain.name}: {name} Yoshikawa manipulability\nbinned by {point_label} position, {dm.h * 1000:g} mm cells"
         )
         ax.set_aspect("equal")
+        rows = np.flatnonzero(dm.count.any(0))
+        ax.set_xlim(0, (np.flatnonzero(dm.count.any(1)).max() + 2) * dm.h)
+        ax.set_ylim(dm.z_lower + (rows.min() - 2) * dm.h, dm.z_lower + (rows.max() + 3) * dm.h)
     fig.tight_layout()
     fig.savefig(manipulability_path)
