@@ -85,6 +85,19 @@ def test_wrist_centre_is_fixed_in_the_flange_frame():
         frame_point(chain, 3)  # the elbow moves with q5..q7
 
 
+def test_iiwa_wrist_set_is_a_solid_of_revolution():
+    # (q1 + pi, -q2, q3, -q4) puts the wrist centre on the same point, so the set at q1 = 0 is
+    # invariant under a half turn and joint 1's +-170 deg sweeps it through the full circle:
+    # the RZ section's ring volumes are exact for it.
+    chain = robots.iiwa14()
+    q = chain.random_q(100, generator=gen(10))
+    flipped = q * torch.tensor([1, -1, 1, -1, 1, 1, 1], dtype=q.dtype) + torch.tensor(
+        [math.pi, 0, 0, 0, 0, 0, 0], dtype=q.dtype
+    )
+    wrist = chain.fk_all(q)[:, 5, :3, 3]
+    assert torch.allclose(chain.fk_all(flipped)[:, 5, :3, 3], wrist, atol=1e-12)
+
+
 @pytest.mark.parametrize("name", ["iiwa14", "iiwa7"])
 def test_datasheet_dimensions_of_the_wrist_centre(name):
     chain = robots.PRESETS[name]()
