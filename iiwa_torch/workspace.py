@@ -5,7 +5,8 @@ iiwa's wrist centre) is sampled with ``chain.fk`` on blocks of uniform random jo
 and accumulated on a grid of cells of side ``h`` (metres):
 
 - ``Section.XYZ``: cubic voxels, the 3-D volume (m^3);
-- ``Section.XY``: squares in the base's x-y plane, the area of a planar chain (m^2);
+- ``Section.XY``: squares in the world x-y plane, the area of the set's projection on it
+  (m^2): a planar chain's workspace;
 - ``Section.RZ``: the side view, radial distance ``r = sqrt(x^2 + y^2)`` vs height ``z``,
   each cell a ring of volume ``2 pi r_c h^2`` (m^3); exact for a solid of revolution about
   the base z axis (the iiwa's joint 1), and a finer grid for the same memory.
@@ -254,7 +255,7 @@ def _grid(chain: DHChain, section: Section, h: float, p: Tensor) -> tuple[tuple[
     else:
         dims = 3 if section is Section.XYZ else 2
         lower, shape = (-reach,) * dims, (cells,) * dims
-    if math.prod(shape) > 2**28:
+    if math.prod(shape) > 2**25:  # int64 counts: 256 MB
         raise ValueError(f"h = {h} m makes a grid of {math.prod(shape)} cells (reach {reach:.3f} m); use a larger h")
     return lower, shape
 
