@@ -9,7 +9,7 @@ and accumulated on a grid of cells of side ``h`` (metres):
   (m^2): a planar chain's workspace;
 - ``Section.RZ``: the side view, radial distance ``r = sqrt(x^2 + y^2)`` vs height ``z``,
   each cell a ring of volume ``2 pi r_c h^2`` (m^3); exact for a solid of revolution about
-  the base z axis (the iiwa's joint 1), and a finer grid for the same memory.
+  the world z axis (joint 1's axis for the iiwa presets), and a finer grid for the same memory.
 
 The estimate counts an occupied cell fully if all its face neighbours are occupied and half
 if it is on the boundary; the bracket [interior, all occupied] bounds the discretisation
