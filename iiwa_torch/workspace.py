@@ -1,0 +1,518 @@
+"""Reachable workspace and dexterity of a DH chain, by batched sampling of in-limit configurations.
+
+The reachable set of a point fixed in the end-effector frame (the flange, or e.g. the
+iiwa's wrist centre) is sampled with ``chain.fk`` on blocks of uniform random joint angles
+and accumulated on a grid of cells of side ``h`` (metres):
+
+- ``Section.XYZ``: cubic voxels, the 3-D volume (m^3);
+- ``Section.XY``: squares in the world x-y plane, the area of the set's projection on it
+  (m^2): a planar chain's workspace;
+- ``Section.RZ``: the side view, radial distance ``r = sqrt(x^2 + y^2)`` vs height ``z``,
+  each cell a ring of volume ``2 pi r_c h^2`` (m^3); exact for a solid of revolution about
+  the world z axis (joint 1's axis for the iiwa presets), and a finer grid for the same memory.
+
+The estimate counts an occupied cell fully if all its face neighbours are occupied and half
+if it is on the boundary; the bracket [interior, all occupied] bounds the discretisation
+error once every reachable cell has been hit (docs/workspace.md). Distances, heights and
+volumes are in metres; the points are in the chain's world frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .dh import DHChain
+
+__all__ = [
+    "Section",
+    "Occupancy",
+    "Volume",
+    "Extent",
+    "Dexterity",
+    "DexterityMap",
+    "DATASHEET",
+    "frame_point",
+    "sample_points",
+    "occupancy",
+    "volume",
+    "extent",
+    "envelopes",
+    "dexterity",
+    "dexterity_map",
+    "plot_workspace",
+]
+
+# KUKA's LBR iiwa datasheet (workspace table, as reproduced in the appendix of A. C. Pereira
+# et al., "Modelagem Robô KUKA LBR iiwa"): side-view dimensions A-G in mm, volume in m^3.
+DATASHEET = {
+    "iiwa7": {"A": 1266, "B": 1140, "C": 340, "D": 400, "E": 400, "F": 260, "G": 800, "volume": 1.7},
+    "iiwa14": {"A": 1306, "B": 1180, "C": 360, "D": 420, "E": 400, "F": 255, "G": 820, "volume": 1.8},
+}
+
+
+class Section(str, Enum):
+    XYZ = "xyz"
+    XY = "xy"
+    RZ = "rz"
+
+
+@dataclass(frozen=True)
+class Occupancy:
+    """Hit counts of the sampled points on a grid of side ``h`` (m).
+
+    ``counts`` is ``(nx, ny, nz)`` (XYZ), ``(nx, ny)`` (XY) or ``(nr, nz)`` (RZ) int64;
+    cell ``i`` along an axis spans ``[lower[k] + i h, lower[k] + (i + 1) h]``.
+    """
+
+    section: Section
+    h: float
+    lower: tuple[float, ...]
+    counts: np.ndarray
+    n_samples: int
+
+    @property
+    def occupied(self) -> np.ndarray:
+        return self.counts > 0
+
+    def cell_measure(self) -> np.ndarray:
+        """Volume (m^3) or area (m^2) of each cell, broadcastable to ``counts``."""
+        h = self.h
+        if self.section is Section.XYZ:
+            return np.full((1, 1, 1), h**3)
+        if self.section is Section.XY:
+            return np.full((1, 1), h**2)
+        r_mid = (np.arange(self.counts.shape[0]) + 0.5) * h
+        return (2 * math.pi * r_mid * h**2)[:, None]
+
+    def boundary(self) -> np.ndarray:
+        """Occupied cells with at least one unoccupied face neighbour (outside the grid counts
+        as unoccupied, except across the axis r = 0 of the RZ section, which mirrors onto itself)."""
+        occ = self.occupied
+        inner = occ.copy()
+        for axis in range(occ.ndim):
+            pad = [(0, 0)] * occ.ndim
+            pad[axis] = (1, 1)
+            p = np.pad(occ, pad, constant_values=False)
+            if self.section is Section.RZ and axis == 0:
+                p[0] = p[1]
+            n = occ.shape[axis]
+            inner &= np.take(p, range(0, n), axis=axis) & np.take(p, range(2, n + 2), axis=axis)
+        return occ & ~inner
+
+
+@dataclass(frozen=True)
+class Volume:
+    """Workspace volume (m^3; m^2 for ``Section.XY``) with its bracket.
+
+    ``estimate`` counts boundary cells half; ``low`` and ``high`` count them not at all and
+    fully. ``missing_mass`` is the Good-Turing estimate (cells hit once / samples) of the
+    probability that a new sample lands in a cell not yet hit; ``converged`` says whether the
+    estimate changed by less than ``tol`` between the last two doublings of the sample count.
+    """
+
+    estimate: float
+    low: float
+    high: float
+    h: float
+    n_samples: int
+    missing_mass: float
+    converged: bool
+
+
+@dataclass(frozen=True)
+class Extent:
+    """Extremes of the sampled points (m): the highest and lowest ``z`` and the largest
+    distance ``r_max`` from the base z axis. Sample extremes lie inside the true ones."""
+
+    z_max: float
+    z_min: float
+    r_max: float
+    n_samples: int
+
+
+@dataclass(frozen=True)
+class Dexterity:
+    """Per configuration, shapes ``(...)``: Yoshikawa's manipulability ``sqrt(det(J J^T))`` (with
+    fewer joints than rows, ``sqrt(det(J^T J))``: the product of the singular values),
+    the condition number ``sigma_max / sigma_min`` (``inf`` at a singularity) and the smallest
+    singular value ``sigma_min`` (the distance to singularity), of the rows of J chosen."""
+
+    manipulability: Tensor
+    condition: Tensor
+    sigma_min: Tensor
+
+
+@dataclass(frozen=True)
+class DexterityMap:
+    """Manipulability binned over the side view: ``mean`` and ``max`` are ``(nr, nz)``
+    (0 where ``count`` is 0), cells of side ``h`` (m) from ``r = 0``, ``z = z_lower``."""
+
+    h: float
+    z_lower: float
+    count: np.ndarray
+    mean: np.ndarray
+    max: np.ndarray
+
+
+def _section(section) -> Section:
+    try:
+        return Section(section)
+    except ValueError:
+        raise ValueError(f"section must be one of {[s.value for s in Section]}, got {section!r}") from None
+
+
+def _positive(value, name: str) -> None:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+
+def _count(value, name: str) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
+def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e-9) -> Tensor:
+    """Origin of frame ``frame`` (0 = base, n = last link, as in ``fk_all``) in end-effector
+    coordinates, ``(3,)`` metres, float64; raises ``ValueError`` unless that origin is fixed in
+    the end-effector frame (true for the centre of a spherical wrist: frames 5 and 6 of the iiwa).
+    """
+    n = chain.n_joints
+    if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= n:
+        raise ValueError(f"frame must be an integer in 0..{n}, got {frame!r}")
+    q = chain.random_q(trials, generator=torch.Generator().manual_seed(0))
+    origin = chain.fk_all(q)[:, frame, :, 3]  # (trials, 4)
+    local = torch.linalg.solve(chain.fk(q), origin.unsqueeze(-1)).squeeze(-1)[:, :3]
+    spread = (local - local[0]).abs().max().item()
+    if spread > tol:
+        raise ValueError(
+            f"frame {frame}'s origin moves in the end-effector frame by {spread:.3g} m over random "
+            f"configurations: it is not a point of the end effector"
+        )
+    return local.mean(0)
+
+
+def _reach_bound(chain: DHChain, point: Tensor) -> float:
+    """An upper bound on the distance from the base origin of any point fixed in the end
+    effector: the sum of the (configuration-independent) distances between consecutive frame
+    origins plus the point's distance from the last frame's origin."""
+    frames = chain.fk_all(torch.zeros(chain.n_joints, dtype=torch.float64))
+    links = (frames[1:, :3, 3] - frames[:-1, :3, 3]).norm(dim=-1).sum().item()
+    tip = (chain.fk(torch.zeros(chain.n_joints, dtype=torch.float64)) @ torch.cat([point, point.new_ones(1)]))[:3]
+    return frames[0, :3, 3].norm().item() + links + (tip - frames[-1, :3, 3]).norm().item()
+
+
+def _as_point(point) -> Tensor:
+    p = torch.zeros(3, dtype=torch.float64) if point is None else torch.as_tensor(point, dtype=torch.float64)
+    if p.shape != (3,) or not torch.isfinite(p).all():
+        raise ValueError(f"point must be None or 3 finite coordinates (m) in the end-effector frame, got {point!r}")
+    return p
+
+
+def sample_points(
+    chain: DHChain,
+    n: int,
+    *,
+    point=None,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """``(n, 3)`` world positions (m) of ``point`` (``(3,)`` m in the end-effector frame, default
+    its origin) at ``n`` configurations drawn uniformly within the joint limits."""
+    _count(n, "n")
+    p = _as_point(point)
+    q = chain.random_q(n, generator=generator, dtype=dtype)
+    if not p.any():
+        return chain.position(q)
+    pose = chain.fk(q)
+    return pose[:, :3, 3] + pose[:, :3, :3] @ p.to(dtype)
+
+
+def _cell_index(xyz: Tensor, section: Section, lower: tuple[float, ...], shape: tuple[int, ...], h: float) -> Tensor:
+    if section is Section.RZ:
+        coords = torch.stack([torch.hypot(xyz[:, 0], xyz[:, 1]), xyz[:, 2]], 1)
+    else:
+        coords = xyz[:, : len(shape)]
+    idx = ((coords - torch.tensor(lower, dtype=coords.dtype)) / h).floor().long()
+    for k, size in enumerate(shape):
+        idx[:, k].clamp_(0, size - 1)
+    flat = idx[:, 0]
+    for k in range(1, len(shape)):
+        flat = flat * shape[k] + idx[:, k]
+    return flat
+
+
+def _grid(chain: DHChain, section: Section, h: float, p: Tensor) -> tuple[tuple[float, ...], tuple[int, ...]]:
+    reach = _reach_bound(chain, p) + h
+    cells = int(math.ceil(2 * reach / h))
+    if section is Section.RZ:
+        lower, shape = (0.0, -reach), (int(math.ceil(reach / h)), cells)
+    else:
+        dims = 3 if section is Section.XYZ else 2
+        lower, shape = (-reach,) * dims, (cells,) * dims
+    if math.prod(shape) > 2**25:  # int64 counts: 256 MB
+        raise ValueError(f"h = {h} m makes a grid of {math.prod(shape)} cells (reach {reach:.3f} m); use a larger h")
+    return lower, shape
+
+
+def occupancy(
+    chain: DHChain,
+    n_samples: int,
+    h: float,
+    *,
+    section: Section | str = Section.XYZ,
+    point=None,
+    block: int = 1 << 20,
+    generator: torch.Generator | None = None,
+    counts: Occupancy | None = None,
+) -> Occupancy:
+    """Hit counts of ``n_samples`` sampled points (see :func:`sample_points`) on a grid of side
+    ``h`` (m), processed in blocks of ``block`` configurations; ``counts`` continues an earlier
+    result of the same grid (a new object is returned)."""
+    section = _section(section)
+    _positive(h, "h")
+    _count(n_samples, "n_samples")
+    _count(block, "block")
+    p = _as_point(point)
+    lower, shape = _grid(chain, section, h, p)
+    total = torch.zeros(math.prod(shape), dtype=torch.int64)
+    done = 0
+    if counts is not None:
+        if (counts.section, counts.h, counts.lower, counts.counts.shape) != (section, h, lower, shape):
+            raise ValueError("counts is from a different grid (section, h or chain)")
+        total += torch.from_numpy(counts.counts.reshape(-1))
+        done = counts.n_samples
+    left = n_samples
+    while left:
+        b = min(block, left)
+        xyz = sample_points(chain, b, point=p, generator=generator)
+        total += torch.bincount(_cell_index(xyz, section, lower, shape, h), minlength=total.numel())
+        left -= b
+    return Occupancy(section, float(h), lower, total.numpy().reshape(shape), done + n_samples)
+
+
+def _measure(occ: Occupancy) -> tuple[float, float, float]:
+    w = occ.cell_measure()
+    boundary = occ.boundary()
+    interior = occ.occupied & ~boundary
+    low = float((interior * w).sum())
+    edge = float((boundary * w).sum())
+    return low + edge / 2, low, low + edge
+
+
+def volume(
+    chain: DHChain,
+    h: float = 0.01,
+    *,
+    section: Section | str = Section.XYZ,
+    point=None,
+    n_start: int = 1 << 20,
+    max_samples: int = 1 << 26,
+    tol: float = 2e-3,
+    generator: torch.Generator | None = None,
+) -> Volume:
+    """Workspace volume (m^3, or area m^2 for ``Section.XY``) on a grid of side ``h`` (m).
+
+    Samples ``n_start`` configurations, then doubles the total until the estimate changes by
+    less than ``tol`` (relative) in one doubling or ``max_samples`` is reached.
+    """
+    _positive(tol, "tol")
+    _count(max_samples, "max_samples")
+    occ = occupancy(chain, n_start, h, section=section, point=point, generator=generator)
+    est, low, high = _measure(occ)
+    converged = False
+    while not converged and occ.n_samples < max_samples:
+        more = min(occ.n_samples, max_samples - occ.n_samples)
+        occ = occupancy(chain, more, h, section=section, point=point, generator=generator, counts=occ)
+        previous = est
+        est, low, high = _measure(occ)
+        converged = abs(est - previous) <= tol * est
+    missing = float((occ.counts == 1).sum()) / occ.n_samples
+    return Volume(est, low, high, occ.h, occ.n_samples, missing, converged)
+
+
+def envelopes(occ: Occupancy, *, axis_gap: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Side-view envelopes of an RZ occupancy: ``z`` (m,) cell centres of the occupied rows and,
+    per row, the outer radius ``r_outer`` (outer edge of the last occupied cell) and the inner
+    radius ``r_inner`` (inner edge of the first occupied cell), in metres.
+
+    A ring cell next to the axis holds little volume (``2 pi r h^2``), so few samples land
+    there: an inner radius of fewer than ``axis_gap`` cells is reported as 0 (the axis).
+    """
+    if occ.section is not Section.RZ:
+        raise ValueError(f"envelopes need an RZ occupancy, got section {occ.section.value!r}")
+    if not isinstance(axis_gap, int) or axis_gap < 0:
+        raise ValueError(f"axis_gap must be a non-negative integer (cells), got {axis_gap!r}")
+    occ_rz = occ.occupied
+    rows = np.flatnonzero(occ_rz.any(0))
+    nr = occ_rz.shape[0]
+    first = occ_rz[:, rows].argmax(0)
+    first[first < axis_gap] = 0
+    last = nr - 1 - occ_rz[::-1, rows].argmax(0)
+    z = occ.lower[1] + (rows + 0.5) * occ.h
+    return z, (last + 1) * occ.h, first * occ.h
+
+
+def extent(
+    chain: DHChain, n_samples: int, *, point=None, block: int = 1 << 20, generator: torch.Generator | None = None
+) -> Extent:
+    """Highest, lowest and farthest-from-the-axis sampled points (m), see :class:`Extent`."""
+    _count(n_samples, "n_samples")
+    _count(block, "block")
+    z_max, z_min, r_max = -math.inf, math.inf, 0.0
+    left = n_samples
+    while left:
+        b = min(block, left)
+        xyz = sample_points(chain, b, point=point, generator=generator, dtype=torch.float64)
+        z_max = max(z_max, xyz[:, 2].max().item())
+        z_min = min(z_min, xyz[:, 2].min().item())
+        r_max = max(r_max, torch.hypot(xyz[:, 0], xyz[:, 1]).max().item())
+        left -= b
+    return Extent(z_max, z_min, r_max, n_samples)
+
+
+def dexterity(chain: DHChain, q: Tensor, *, position_only: bool = False) -> Dexterity:
+    """Manipulability, condition number and smallest singular value of the Jacobian at
+    ``q (..., n)`` radians; each ``(...)``. The full 6 x n Jacobian mixes m/rad (linear rows)
+    and 1 (angular rows); ``position_only`` uses the 3 linear rows (units m/rad)."""
+    jac = chain.jacobian(q)
+    if position_only:
+        jac = jac[..., :3, :]
+    s = torch.linalg.svdvals(jac)  # (..., min(rows, n)), descending
+    sigma_min = s[..., -1]
+    manip = s.prod(-1)
+    cond = torch.where(sigma_min > 0, s[..., 0] / sigma_min, torch.full_like(sigma_min, math.inf))
+    return Dexterity(manip, cond, sigma_min)
+
+
+def dexterity_map(
+    chain: DHChain,
+    n_samples: int,
+    h: float,
+    *,
+    point=None,
+    position_only: bool = False,
+    block: int = 1 << 16,
+    generator: torch.Generator | None = None,
+) -> DexterityMap:
+    """Mean and max manipulability of ``n_samples`` random configurations, binned by where
+    ``point`` lands in the side view (``r``, ``z``) on cells of side ``h`` (m)."""
+    _positive(h, "h")
+    _count(n_samples, "n_samples")
+    _count(block, "block")
+    p = _as_point(point)
+    lower, shape = _grid(chain, Section.RZ, h, p)
+    size = math.prod(shape)
+    count = torch.zeros(size, dtype=torch.float64)
+    total = torch.zeros(size, dtype=torch.float64)
+    peak = torch.zeros(size, dtype=torch.float64)
+    left = n_samples
+    while left:
+        b = min(block, left)
+        q = chain.random_q(b, generator=generator)
+        pose = chain.fk(q)
+        xyz = pose[:, :3, 3] + pose[:, :3, :3] @ p
+        m = dexterity(chain, q, position_only=position_only).manipulability
+        idx = _cell_index(xyz, Section.RZ, lower, shape, h)
+        count += torch.bincount(idx, minlength=size).double()
+        total += torch.bincount(idx, weights=m, minlength=size)
+        peak.scatter_reduce_(0, idx, m, reduce="amax")
+        left -= b
+    mean = torch.where(count > 0, total / count.clamp(min=1), 0.0)
+    return DexterityMap(float(h), lower[1], *(t.numpy().reshape(shape) for t in (count, mean, peak)))
+
+
+def plot_workspace(
+    chain: DHChain,
+    path,
+    *,
+    manipulability_path=None,
+    point=None,
+    point_label: str = "flange",
+    h: float = 0.005,
+    n_samples: int = 1 << 23,
+    datasheet: dict | None = None,
+    seed: int = 0,
+) -> None:
+    """Write the side view (r-z plane, mirrored to both sides as in KUKA's drawing) of the
+    reachable set of ``point`` to the PNG ``path``: occupied cells, outer and inner envelopes
+    and, if given, the datasheet's dimensions (a :data:`DATASHEET` entry, mm) marked. With
+    ``manipulability_path``, also a map of the mean and max manipulability over the r-z plane.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    gen = torch.Generator().manual_seed(seed)
+    occ = occupancy(chain, n_samples, h, section=Section.RZ, point=point, generator=gen)
+    est, low, high = _measure(occ)
+    z, r_out, r_in = envelopes(occ)
+    fig = Figure(figsize=(10, 6.5), dpi=120, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    occ_rz = occ.occupied.T.astype(float)
+    image = np.concatenate([occ_rz[:, ::-1], occ_rz], 1)
+    nr, nz = occ.counts.shape
+    box = (-nr * h, nr * h, occ.lower[1], occ.lower[1] + nz * h)
+    ax.imshow(np.ma.masked_equal(image, 0), origin="lower", extent=box, cmap="Blues", vmin=0, vmax=2, alpha=0.8)
+    for sign in (1, -1):
+        ax.plot(sign * r_out, z, color="tab:blue", lw=1.5, label="outer envelope" if sign > 0 else None)
+        ax.plot(
+            sign * np.where(r_in > 0, r_in, np.nan),
+            z,
+            color="tab:orange",
+            lw=1.5,
+            label="inner envelope" if sign > 0 else None,
+        )
+    if datasheet is not None:
+        ds = {k: v / 1000 for k, v in datasheet.items() if k != "volume"}
+        marks = {
+            "A (height at home)": (0, ds["A"]),
+            "B (top)": (0, ds["B"]),
+            "C (shoulder)": (0, ds["C"]),
+            "C+D (elbow)": (0, ds["C"] + ds["D"]),
+            "G (reach at C)": (ds["G"], ds["C"]),
+        }
+        for i, (label, (r, zz)) in enumerate(marks.items()):
+            ax.plot([r], [zz], marker="x^sDo"[i], ls="none", ms=8, label=f"datasheet {label}")
+        ax.axhline(-ds["F"], color="tab:brown", ls="--", lw=1, label="datasheet -F (depth below the base)")
+    ax.axhline(0, color="0.4", lw=0.8)
+    top = max(z.max(), datasheet["A"] / 1000 if datasheet else -math.inf) + 0.1
+    ax.set_xlim(-r_out.max() - 0.1, r_out.max() + 0.1)
+    ax.set_ylim(z.min() - 0.1, top)
+    ax.set_xlabel("r: signed distance from the joint-1 axis (m)")
+    ax.set_ylabel("z: height above the base (m)")
+    ax.set_aspect("equal")
+    ax.set_title(
+        f"{chain.name}: {point_label} workspace, side view\n"
+        f"volume {est:.3f} m$^3$ [{low:.3f}, {high:.3f}], h = {h * 1000:g} mm, {occ.n_samples:.2g} samples"
+    )
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.savefig(path)
+    if manipulability_path is None:
+        return
+    dm = dexterity_map(chain, min(n_samples, 1 << 21), 4 * h, point=point, generator=gen)
+    fig = Figure(figsize=(11, 5.5), dpi=120)
+    FigureCanvasAgg(fig)
+    nr, nz = dm.count.shape
+    box = (0, nr * dm.h, dm.z_lower, dm.z_lower + nz * dm.h)
+    for k, (name, data) in enumerate((("mean", dm.mean), ("max", dm.max))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        shown = ax.imshow(np.ma.masked_where(dm.count.T == 0, data.T), origin="lower", extent=box, cmap="viridis")
+        fig.colorbar(shown, ax=ax, label=f"{name} sqrt(det(J J$^T$)), 6 x n J (linear rows in m)")
+        ax.set_xlabel("r: distance from the joint-1 axis (m)")
+        ax.set_ylabel("z: height above the base (m)")
+        ax.set_title(
+            f"{chain.name}: {name} Yoshikawa manipulability\nbinned by {point_label} position, {dm.h * 1000:g} mm cells"
+        )
+        ax.set_aspect("equal")
+        rows = np.flatnonzero(dm.count.any(0))
+        ax.set_xlim(0, (np.flatnonzero(dm.count.any(1)).max() + 2) * dm.h)
+        ax.set_ylim(dm.z_lower + (rows.min() - 2) * dm.h, dm.z_lower + (rows.max() + 3) * dm.h)
+    fig.tight_layout()
+    fig.savefig(manipulability_path)
