@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
 METHODS = ("policy", "analytic_ik", "gradient_ik")
@@ -46,22 +45,32 @@ ORIENTATION_TOL = 0.1  # rad: the pose env's default orientation threshold
 
 # ---------------------------------------------------------------------------- loading
 def load_policy(model_dir: Path):
-    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder."""
+    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder; ValueError if the
+    config is malformed or the model is not one of its algo for its env."""
+    import pickle
+
+    from train.run_dir import RunDir, check_model
+    from train.train import make_env
+
+    run = RunDir(model_dir)
+    if not (run.path / "model.zip").exists() or not run.config_path.exists():
+        raise FileNotFoundError(f"{run.path} must hold model.zip and config.yaml (a train.train run or a "
+                                f"train/policies/ folder)")
+    config = run.read_config()
+    env = make_env(config["env_id"], 1, 0, config["hyperparams"].get("env_kwargs"))
+    check_model(config["algo"], run.path / "model.zip", env.observation_space, env.action_space)
+    env.close()
     from stable_baselines3 import PPO, SAC
 
-    model_dir = Path(model_dir)
-    if not (model_dir / "model.zip").exists() or not (model_dir / "config.yaml").exists():
-        raise FileNotFoundError(f"{model_dir} must hold model.zip and config.yaml (a train.train run or a "
-                                f"train/policies/ folder)")
-    config = yaml.safe_load((model_dir / "config.yaml").read_text())
-    algo = {"ppo": PPO, "sac": SAC}[config["algo"]]
-    model = algo.load(model_dir / "model.zip", device="cpu")
+    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(run.path / "model.zip", device="cpu")
     vec_normalize = None
-    if (model_dir / "vecnormalize.pkl").exists():
-        import pickle
-
-        with open(model_dir / "vecnormalize.pkl", "rb") as f:
-            vec_normalize = pickle.load(f)  # SB3's own format (VecNormalize.save pickles the wrapper)
+    if (run.path / "vecnormalize.pkl").exists():
+        try:
+            with open(run.path / "vecnormalize.pkl", "rb") as f:
+                vec_normalize = pickle.load(f)  # SB3's own format (VecNormalize.save pickles the wrapper)
+        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as err:
+            raise ValueError(f"{run.path / 'vecnormalize.pkl'} is unreadable ({type(err).__name__}: {err}); "
+                             f"expected the VecNormalize file train.train writes") from None
         vec_normalize.training = False
     return model, vec_normalize, config
 
@@ -368,8 +377,8 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     import torch
 
     from envs.sb3 import IiwaReachVecEnv
+    from iiwa_torch.runtime import machine_info
     from train.rollout import make_goal_set
-    from train.train import machine_info
 
     torch.set_num_threads(1)
     model, vec_normalize, config = load_policy(model_dir)
@@ -438,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--goals must be >= 1, got {args.goals}")
     try:
         evaluate(args.model, args.goals, args.seed, args.out, args.compare)
-    except FileNotFoundError as err:
+    except (FileNotFoundError, ValueError) as err:
         p.error(str(err))
     return 0
 
