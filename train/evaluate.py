@@ -59,10 +59,10 @@ def load_policy(model_dir: Path):
     config = run.read_config()
     env = make_env(config["env_id"], 1, 0, config["hyperparams"].get("env_kwargs"))
     check_model(config["algo"], run.path / "model.zip", env.observation_space, env.action_space)
-    env.close()
     from stable_baselines3 import PPO, SAC
 
-    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(run.path / "model.zip", device="cpu")
+    # with its env: SB3 cannot rebuild a HER replay buffer without one
+    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(run.path / "model.zip", env=env, device="cpu")
     vec_normalize = None
     if (run.path / "vecnormalize.pkl").exists():
         try:
@@ -445,6 +445,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.goals < 1:
         p.error(f"--goals must be >= 1, got {args.goals}")
+    for path in args.compare:
+        if not path.is_file():
+            p.error(f"--compare: {path} not found; expected an evaluations JSON (a run's evaluations.json)")
     try:
         evaluate(args.model, args.goals, args.seed, args.out, args.compare)
     except (FileNotFoundError, ValueError) as err:

@@ -96,11 +96,13 @@ def check_model(algo: str, path: Path, observation_space=None, action_space=None
     try:
         data, _, _ = load_from_zip_file(path, device="cpu", print_system_info=False)
     except Exception as err:  # a truncated or foreign file fails in zipfile, json or torch: all mean "unreadable"
-        raise CheckpointError(f"{path}: not a readable SB3 model ({type(err).__name__}: {err})") from None
+        raise CheckpointError(f"{path} is unreadable (not an SB3 model: {type(err).__name__}: {err})") from None
     policy = data.get("policy_class") if data else None
-    if not (isinstance(policy, type) and issubclass(policy, tuple(cls.policy_aliases.values()))):
-        name = getattr(policy, "__name__", policy)
-        raise ValueError(f"{path} holds a {name} policy, which is not a {algo.upper()} policy: "
+    if not isinstance(policy, type):  # SB3 leaves a dict where it could not unpickle the class
+        raise CheckpointError(f"{path} is unreadable (not an SB3 model: no loadable policy class in its data)")
+    if not issubclass(policy, tuple(cls.policy_aliases.values())):
+        raise ValueError(f"{path} holds a {policy.__module__}.{policy.__qualname__} policy, which is not a "
+                         f"{algo.upper()} policy: "
                          f"the config says algo: {algo}")
     for key, space in (("observation_space", observation_space), ("action_space", action_space)):
         if space is not None and _space_shapes(data[key]) != _space_shapes(space):

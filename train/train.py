@@ -330,9 +330,9 @@ def _load_checkpoint(run: RunDir, ckpt: Path, config: dict[str, Any], args: argp
         raise CheckpointError(f"{ckpt / 'state.json'} lacks num_timesteps, elapsed or evaluations")
     # new episodes after a resume: do not replay the seeds of the first start
     venv = build_venv(env_id, hp, seed + state["num_timesteps"])
+    check_model(algo, ckpt / "model.zip", venv.observation_space, venv.action_space)
     if (ckpt / "vecnormalize.pkl").exists():
         venv = _load_file(ckpt / "vecnormalize.pkl", lambda p: VecNormalize.load(str(p), venv))
-    check_model(algo, ckpt / "model.zip", venv.observation_space, venv.action_space)
     model = _load_file(ckpt / "model.zip", lambda p: _algo_class(algo).load(
         p, env=venv, device="cpu", tensorboard_log=str(run.path / "tb"), verbose=args.verbose))
     if (ckpt / "replay_buffer.pkl").exists():
