@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -178,15 +179,14 @@ def test_shipped_policy_still_reaches_held_out_goals(name, minimum):
     """Recomputed, not read from its report: the shipped policy on 200 held-out goals (seed 0, as the
     report) with today's env and rollout code. Its 1,000-goal reports give 99.9% (position) and 88.8%
     (pose, 1 cm and 0.1 rad); the minimums are 4 binomial standard deviations of 200 goals below them."""
-    from train.callbacks import summarise_finals
-    from train.rollout import make_goal_set, policy_actor, rollout
+    from train.rollout import PolicyEvaluator, make_goal_set
 
     model, vec_normalize, config = ev.load_policy(POLICIES / name)
     env_kwargs = config["hyperparams"].get("env_kwargs") or {}
-    r = rollout(make_goal_set(config["env_id"], 200, 0, env_kwargs), policy_actor(model, vec_normalize))
     pose = config["env_id"] == ev.POSE_ENV
-    metrics = summarise_finals(r.distance[-1], ev.TOLERANCES["1cm"], r.angle[-1] if pose else None,
-                               env_kwargs.get("orientation_threshold", ev.ORIENTATION_TOL))
+    evaluator = PolicyEvaluator(make_goal_set(config["env_id"], 200, 0, env_kwargs), ev.TOLERANCES["1cm"],
+                                env_kwargs.get("orientation_threshold", ev.ORIENTATION_TOL) if pose else None)
+    metrics, _ = evaluator(model, vec_normalize)
     assert metrics["success"] >= minimum, metrics
     assert metrics["median_distance"] < 1e-3, metrics
 
@@ -266,3 +266,14 @@ def test_goal_delta_features_follow_relabelled_goals():
     assert torch.allclose(out[0, 8:], expected, atol=1e-6)
     with pytest.raises(ValueError, match="positive"):
         GoalDeltaExtractor(space, scales=[0.0])
+
+
+def test_evaluation_summary_by_hand():
+    """Four goals, 1 cm and 0.1 rad: counted and interpolated by hand (p95: 0.02 + 0.85 * 0.48)."""
+    from train.rollout import summarise_finals
+
+    final = np.array([0.001, 0.02, 0.005, 0.5])
+    out = summarise_finals(final, 0.01)
+    assert out == pytest.approx({"success": 0.5, "median_distance": 0.0125, "p95_distance": 0.428})
+    out = summarise_finals(final, 0.01, np.array([0.05, 0.01, 0.2, 0.0]), 0.1)
+    assert out["success"] == 0.25 and out["success_position"] == 0.5 and out["median_angle"] == pytest.approx(0.03)

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from train.rollout import make_goal_set, policy_actor, rollout
+from train.rollout import PolicyEvaluator, make_goal_set, summarise_finals
 from train.run_dir import RunDir
 
 EVAL_SEED = 10_000  # goal-set seed of the periodic evaluation; train.evaluate defaults to another
@@ -29,21 +29,6 @@ class TrainClock:
         return self.elapsed + time.perf_counter() - self.start
 
 
-def summarise_finals(final: np.ndarray, threshold: float, angle: np.ndarray | None = None,
-                     orientation_threshold: float | None = None) -> dict[str, float]:
-    """Success rate, median and 95th-percentile of final distances ``(n,)`` m (and angles ``(n,)`` rad)."""
-    out = {
-        "success": float(np.mean(final < threshold)),
-        "median_distance": float(np.median(final)),
-        "p95_distance": float(np.percentile(final, 95)),
-    }
-    if angle is not None:  # pose goals: success needs the orientation too
-        out["success_position"] = out["success"]
-        out["success"] = float(np.mean((final < threshold) & (angle < orientation_threshold)))
-        out["median_angle"] = float(np.median(angle))
-    return out
-
-
 class EvalAndCheckpoint(BaseCallback):
     """Every ``eval_freq`` env steps: success on a fixed goal set; every ``checkpoint_freq``: a checkpoint."""
 
@@ -51,7 +36,7 @@ class EvalAndCheckpoint(BaseCallback):
                  clock: TrainClock, verbose: int = 1):
         super().__init__(verbose=verbose)
         self.run, self.hp, self.env_id, self.env_kwargs, self.clock = run, hp, env_id, env_kwargs, clock
-        self.goals, self.task = None, None
+        self.evaluator, self.task = None, None
 
     def _on_training_start(self) -> None:
         import envs
@@ -61,18 +46,14 @@ class EvalAndCheckpoint(BaseCallback):
             from envs.sb3 import IiwaReachVecEnv
 
             self.task = IiwaReachVecEnv(1, env_id, **env_kwargs).task
-            self.goals = make_goal_set(env_id, hp["eval_goals"], EVAL_SEED, env_kwargs)
+            pose = self.task.goal_kind.value == "pose"
+            self.evaluator = PolicyEvaluator(make_goal_set(env_id, hp["eval_goals"], EVAL_SEED, env_kwargs),
+                                             self.task.distance_threshold,
+                                             self.task.orientation_threshold if pose else None)
         self.next_eval = (self.num_timesteps // hp["eval_freq"] + 1) * hp["eval_freq"]
         self.next_ckpt = (self.num_timesteps // hp["checkpoint_freq"] + 1) * hp["checkpoint_freq"]
         if not self.clock.evaluations:
             self.evaluate()
-
-    def _our_env_metrics(self) -> tuple[dict[str, float], float]:
-        r = rollout(self.goals, policy_actor(self.model, self.model.get_vec_normalize_env()))
-        pose = self.task.goal_kind.value == "pose"
-        metrics = summarise_finals(r.distance[-1], self.task.distance_threshold, r.angle[-1] if pose else None,
-                                   self.task.orientation_threshold if pose else None)
-        return metrics, r.seconds
 
     def _other_env_metrics(self) -> tuple[dict[str, float], float]:
         """Another goal env (e.g. panda-gym): ``eval_goals`` seeded episodes, as it defines them."""
@@ -97,7 +78,8 @@ class EvalAndCheckpoint(BaseCallback):
     def evaluate(self) -> dict[str, Any]:
         """Evaluate now; append to the clock's evaluations, ``evaluations.json`` and TensorBoard."""
         wall = self.clock.wall()
-        metrics, seconds = self._our_env_metrics() if self.task is not None else self._other_env_metrics()
+        metrics, seconds = self.evaluator(self.model, self.model.get_vec_normalize_env()) if self.evaluator \
+            else self._other_env_metrics()
         entry = {"steps": int(self.num_timesteps), "wall_time": round(wall, 2), **metrics,
                  "eval_seconds": round(seconds, 3), "loadavg": os.getloadavg()[0]}
         self.clock.evaluations.append(entry)

@@ -122,11 +122,14 @@ def _median_time(fn, reps: int) -> float:
 
 def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The deterministic policy on every goal (one batched rollout), then ``SINGLE_GOALS`` single-goal rollouts."""
-    from train.rollout import make_goal_set, policy_actor, rollout
+    from train.rollout import PolicyEvaluator, make_goal_set, policy_actor, rollout
 
-    act = policy_actor(model, vec_normalize)
-    runs = [rollout(goals, act) for _ in range(BATCHED_REPEATS)]  # deterministic: the same rollout each time
+    pose = goals.env_id == POSE_ENV
+    evaluator = PolicyEvaluator(goals, TOLERANCES["1cm"],
+                                goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL) if pose else None)
+    runs = [evaluator.rollout(model, vec_normalize) for _ in range(BATCHED_REPEATS)]  # deterministic: the same
     r = runs[0]
+    act = policy_actor(model, vec_normalize)
     one = make_goal_set(goals.env_id, 1, goals.seed, goals.env_kwargs)
     single = _median_time(lambda i: rollout(one, act), SINGLE_GOALS)
     final = r.distance[-1]
@@ -138,11 +141,9 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     metrics["network_time_per_goal_batched_s"] = float(np.median([x.act_seconds for x in runs])) / goals.n
     lo, hi = chain.limits.numpy()
     metrics["touched_a_limit"] = float(np.mean(((r.q - lo < 1e-4) | (hi - r.q < 1e-4)).any(axis=(0, 2))))
-    if goals.env_id == POSE_ENV:
-        metrics["median_angle_rad"] = float(np.median(r.angle[-1]))
-        tol = goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL)
-        ok = (final < TOLERANCES["1cm"]) & (r.angle[-1] < tol)
-        metrics["success_pose"] = float(np.mean(ok))
+    if pose:
+        summary = evaluator.summary(r)
+        metrics["median_angle_rad"], metrics["success_pose"] = summary["median_angle"], summary["success"]
     failed = final >= TOLERANCES["1cm"]
     if failed.any():
         radius = np.linalg.norm(goals.desired_goal[:, :2], axis=-1)
