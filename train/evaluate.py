@@ -359,19 +359,23 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
     save(fig, "path_length.png")
 
     if evaluations:
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        ours = f"{report['env_id']} (ours, {report['algo'].upper()}, {100 * TOLERANCES['1cm']:.0f} cm)"
-        curves = {ours: evaluations, **compare}
-        for label, ev in curves.items():
-            axes[0].plot([e["wall_time"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
-            axes[1].plot([e["steps"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
-        axes[0].set(xlabel="training wall time (s)", ylabel="success (%)", title="Learning curve against wall time")
-        axes[1].set(xscale="log", xlabel="env steps", ylabel="success (%)", title="Learning curve against env steps")
-        for a in axes:
-            a.legend(fontsize=8)
-            a.set_ylim(0, 101)
-        save(fig, "learning_curve.png")
+        save(_learning_curves(plt, report, evaluations, compare), "learning_curve.png")
     return written
+
+
+def _learning_curves(plt, report: dict[str, Any], evaluations: list[dict], compare: dict[str, list[dict]]):
+    """The figure of success against training wall time and env steps, this run and ``compare``'s."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    ours = f"{report['env_id']} (ours, {report['algo'].upper()}, {100 * TOLERANCES['1cm']:.0f} cm)"
+    for label, ev in {ours: evaluations, **compare}.items():
+        axes[0].plot([e["wall_time"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
+        axes[1].plot([e["steps"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
+    axes[0].set(xlabel="training wall time (s)", ylabel="success (%)", title="Learning curve against wall time")
+    axes[1].set(xscale="log", xlabel="env steps", ylabel="success (%)", title="Learning curve against env steps")
+    for a in axes:
+        a.legend(fontsize=8)
+        a.set_ylim(0, 101)
+    return fig
 
 
 def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths: list[Path]) -> dict[str, Any]:
