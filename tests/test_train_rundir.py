@@ -137,6 +137,8 @@ def test_a_locked_run_directory_is_refused_and_nothing_is_written(tmp_path, caps
 # ---------------------------------------------------------------------------- 16.11: validate before writing
 @pytest.mark.parametrize("extra, flags, message", [
     (["no_such_option=1"], [], "unknown hyper-parameter(s) ['no_such_option'] for sac"),
+    (["her={n_sampled_goal: 4, no_such_option: 1}"], [], "hyper-parameters rejected by SAC"),
+    (["policy_kwargs={net_arch: [8"], [], "the value is not valid YAML"),
     ([], ["--threads", "0"], "--threads must be >= 1, got 0"),
     ([], ["--conf-file", "BAD"], "bad.yaml: not valid YAML at line 3"),
     ([], ["--conf-file", "MISSING"], "hyper-parameter file"),

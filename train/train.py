@@ -102,7 +102,10 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"--hyperparams items must look like key=value, got {item!r}")
-        out[key] = yaml.safe_load(value)
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError as err:
+            raise ValueError(f"--hyperparams {item!r}: the value is not valid YAML ({err.problem or err})") from None
     return out
 
 
@@ -304,8 +307,11 @@ def _new_model(run: RunDir, config: dict[str, Any], args: argparse.Namespace):
     kwargs = algo_kwargs(algo, hp)
     venv = wrap_normalize(venv, hp, kwargs.get("gamma", 0.99))
     policy = kwargs.pop("policy", hp["policy"])
-    return _algo_class(algo)(policy, venv, seed=seed, device="cpu", verbose=args.verbose,
-                             tensorboard_log=str(run.path / "tb"), **kwargs)
+    try:
+        return _algo_class(algo)(policy, venv, seed=seed, device="cpu", verbose=args.verbose,
+                                 tensorboard_log=str(run.path / "tb"), **kwargs)
+    except TypeError as err:  # a nested option (policy_kwargs, her) the policy or buffer does not take
+        raise ValueError(f"hyper-parameters rejected by {algo.upper()}: {err}") from None
 
 
 def _load_file(path: Path, load):
