@@ -104,6 +104,10 @@ def test_a_save_cut_short_leaves_the_previous_checkpoint_newest(run_copy):
         run.save_checkpoint(model, {"num_timesteps": 600, "elapsed": 0.0, "evaluations": []})
     assert (run_copy / "checkpoints" / ".tmp_step_000000000600" / "model.zip").is_file()
     assert run.latest_checkpoint().name == "step_000000000400"
+    del model.save_replay_buffer  # the next save (of the same process) clears the leftover
+    model.num_timesteps = 800
+    run.save_checkpoint(model, {"num_timesteps": 800, "elapsed": 0.0, "evaluations": []})
+    assert sorted(p.name for p in run.checkpoint_root.iterdir()) == ["step_000000000400", "step_000000000800"]
 
 
 def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):

@@ -185,7 +185,8 @@ class RunDir:
         filled under a temporary name and renamed; keeps the ``keep`` newest."""
         final = self.checkpoint_root / f"step_{model.num_timesteps:012d}"
         tmp = self.checkpoint_root / f".tmp_{final.name}"
-        shutil.rmtree(tmp, ignore_errors=True)
+        for stale in self.checkpoint_root.glob(".tmp_step_*"):  # saves cut short; only the lock holder saves
+            shutil.rmtree(stale, ignore_errors=True)
         tmp.mkdir(parents=True)
         model.save(tmp / "model.zip")
         vec_normalize = model.get_vec_normalize_env()

@@ -11,12 +11,16 @@ override them. The run directory gets:
 - ``checkpoints/step_<N>/``: model, VecNormalize statistics, replay buffer (off-policy
   algos) and ``state.json`` (steps, wall time, evaluations so far), every
   ``checkpoint_freq`` env steps and on Ctrl-C / SIGTERM; ``--resume`` restarts from the
-  newest one, so a hard kill loses at most one checkpoint interval;
+  newest intact one, so a hard kill loses at most one checkpoint interval;
 - ``evaluations.json``: the periodic evaluation (success at 1 cm, median and 95th
   percentile final distance on a fixed seeded goal set) against env steps and wall time;
 - ``tb/``: TensorBoard logs;
 - at the end, ``model.zip`` with ``vecnormalize.pkl``, ``config.yaml`` and
-  ``train_info.json`` (wall time, load average, steps per second) side by side.
+  ``train_info.json`` (wall time, load average, steps per second) side by side;
+- ``.lock``: locked while a process trains here (a second one is refused).
+
+``train.run_dir.RunDir`` owns this layout: atomic writes, the lock, and the resume from the newest
+checkpoint whose files all load. Everything is validated before the first write.
 """
 
 from __future__ import annotations
