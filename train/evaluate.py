@@ -384,6 +384,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     from envs.sb3 import IiwaReachVecEnv
     from iiwa_torch.runtime import machine_info
     from train.rollout import make_goal_set
+    from train.run_dir import RunDir
 
     torch.set_num_threads(1)
     model, vec_normalize, config = load_policy(model_dir)
@@ -400,9 +401,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
             metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt)
         except ImportError as err:  # a solver not installed in this checkout: say so, keep the rest
             metrics[name] = {"error": f"unavailable: {err}"}
-    evaluations = []
-    if (model_dir / "evaluations.json").exists():
-        evaluations = json.loads((model_dir / "evaluations.json").read_text())
+    evaluations = RunDir(model_dir).read_evaluations()
     compare = {}
     for p in compare_paths:
         blob = json.loads(Path(p).read_text())  # {"label", "evaluations"} or a run's evaluations.json list

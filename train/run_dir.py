@@ -146,7 +146,12 @@ class RunDir:
 
     def read_evaluations(self) -> list[dict[str, Any]]:
         path = self.path / "evaluations.json"
-        return json.loads(path.read_text()) if path.exists() else []
+        if not path.exists():
+            return []
+        try:
+            return json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: not valid JSON ({err}); expected the list train.train writes") from None
 
     # -------------------------------------------------------------------- lock
     @contextlib.contextmanager
