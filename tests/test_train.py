@@ -1,8 +1,10 @@
 """Training and evaluation scripts: short runs of each algo, checkpoint + resume, the report, bad flags.
 
 Budget: about two minutes on a shared 2-core machine. Runs are tiny (a few thousand env
-steps) and only check the machinery; the shipped policy's quality is checked on its
-report (train/policies/*/report.json) by test_shipped_policy_report.
+steps) and only check the machinery; the shipped policies' quality is recomputed on a small
+held-out goal set. Tests that run a training are marked ``slow``: ``pytest -m "not slow"``
+skips them. Subprocess tests wait on events (a checkpoint folder, an evaluation at some step),
+never on sleeps; ``HANG_GUARD`` only stops a hung test.
 """
 
 from __future__ import annotations
@@ -15,30 +17,49 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
 
 from train import evaluate as ev
 from train import train as tr
+from train.run_dir import RunDir
 
 ROOT = Path(__file__).resolve().parents[1]
 POLICIES = ROOT / "train" / "policies"
 SMALL = ["eval_goals=32", "policy_kwargs={net_arch: [16, 16]}"]
+HANG_GUARD = 600  # s: not a timing assumption, only the end of a test whose subprocess hangs
 PPO_SMALL = ["--n-envs", "32", "--hyperparams", "n_steps=16", "batch_size=256", "n_epochs=1",
              "eval_freq=512", "checkpoint_freq=1024", *SMALL]
 
 
-def sac_small(every: int) -> list[str]:
-    """Flags of a tiny SAC+HER run evaluating and checkpointing every ``every`` env steps."""
+def sac_small(every: int, eval_every: int | None = None) -> list[str]:
+    """Flags of a tiny SAC+HER run checkpointing (and evaluating, unless ``eval_every``) every ``every`` env steps."""
     return ["--n-envs", "4", "--hyperparams", "learning_starts=200", "batch_size=64", "gradient_steps=1",
-            "buffer_size=5000", f"eval_freq={every}", f"checkpoint_freq={every}", *SMALL]
+            "buffer_size=5000", f"eval_freq={eval_every or every}", f"checkpoint_freq={every}", *SMALL]
+
+
+def wait_until(predicate, proc: subprocess.Popen, what: str) -> None:
+    """Poll ``predicate()`` (a file or a step count appearing) until true; fail if ``proc`` exits first."""
+    guard = time.monotonic() + HANG_GUARD
+    while not predicate():
+        assert proc.poll() is None, f"exited before {what}: " + proc.stderr.read().decode()[-2000:]
+        assert time.monotonic() < guard, f"hung: no {what}"
+        time.sleep(0.05)
+
+
+def evaluated_at(run: Path, steps: int) -> bool:
+    """True once ``evaluations.json`` (written atomically) holds an evaluation at ``steps`` or later."""
+    path = run / "evaluations.json"
+    return path.exists() and any(e["steps"] >= steps for e in json.loads(path.read_text()))
 
 
 def _params(model) -> torch.Tensor:
     return torch.cat([p.detach().flatten() for p in model.policy.parameters()])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo, flags, steps", [("ppo", PPO_SMALL, 2048), ("sac", sac_small(400), 800)])
 def test_short_run_writes_checkpoint_and_final_model(tmp_path, algo, flags, steps):
     run = tmp_path / algo
@@ -48,7 +69,7 @@ def test_short_run_writes_checkpoint_and_final_model(tmp_path, algo, flags, step
         assert (run / name).is_file(), name
     normalize = yaml.safe_load((run / "config.yaml").read_text())["hyperparams"]["normalize"]
     assert (run / "vecnormalize.pkl").is_file() == normalize
-    ckpt = tr.latest_checkpoint(run)
+    ckpt = RunDir(run).latest_checkpoint()
     assert ckpt is not None and (ckpt / "model.zip").is_file() and (ckpt / "vecnormalize.pkl").is_file() == normalize
     assert (ckpt / "replay_buffer.pkl").is_file() == (algo == "sac")
     state = json.loads((ckpt / "state.json").read_text())
@@ -61,23 +82,31 @@ def test_short_run_writes_checkpoint_and_final_model(tmp_path, algo, flags, step
     assert list(tb for tb in (run / "tb").rglob("events.out.tfevents*")), "no TensorBoard log"
 
 
-def test_resume_after_kill_restores_steps_and_model(tmp_path):
-    """A run killed with SIGKILL resumes from its last checkpoint: same weights, same step counter."""
+@pytest.mark.slow
+def test_resume_after_kill_restores_steps_and_model(tmp_path, capsys):
+    """A run killed with SIGKILL resumes from its last checkpoint: same weights, same step counter. While it
+    runs, a second process on its directory is refused; once it is dead, its lock file does not block."""
     run = tmp_path / "killed"
     cmd = [sys.executable, "-m", "train.train", "--algo", "ppo", "--env", "IiwaReach-v0", "--timesteps", "1000000",
            "--out", str(run), "--no-progress-bar", *PPO_SMALL]
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
-        deadline = time.time() + 90
-        while tr.latest_checkpoint(run) is None or tr.latest_checkpoint(run).name < "step_000000002048":
-            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
-            assert time.time() < deadline, "no checkpoint within 90 s"
-            time.sleep(0.2)
+        checkpoint = lambda: RunDir(run).latest_checkpoint()
+        wait_until(lambda: checkpoint() is not None and checkpoint().name >= "step_000000002048", proc,
+                   "checkpoint at step 2048")
+        for argv in (["--resume"], ["--algo", "ppo", "--env", "IiwaReach-v0"]):
+            with pytest.raises(SystemExit) as exc:
+                tr.main([*argv, "--out", str(run), "--no-progress-bar"])
+            assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert f"{run} is in use by pid {proc.pid}" in err and "exists and is not empty" in err
+        assert proc.poll() is None
     finally:
         proc.kill()
         proc.wait()
-    ckpt = tr.latest_checkpoint(run)
+    assert (run / ".lock").exists()  # left by the killed run: stale, it must not block the resume
+    ckpt = RunDir(run).latest_checkpoint()
     saved = json.loads((ckpt / "state.json").read_text())["num_timesteps"]
     assert saved >= 2048
     from stable_baselines3 import PPO
@@ -97,23 +126,24 @@ def test_resume_after_kill_restores_steps_and_model(tmp_path):
     assert steps == sorted(steps) and steps[-1] == saved + 1024
 
 
+@pytest.mark.slow
 def test_sigterm_saves_a_checkpoint_at_the_current_step(tmp_path):
     run = tmp_path / "term"
+    flags = sac_small(100_000, eval_every=200)  # the event to wait for: an evaluation past step 0
     cmd = [sys.executable, "-m", "train.train", "--algo", "sac", "--env", "IiwaReach-v0", "--timesteps", "1000000",
-           "--out", str(run), "--no-progress-bar", *sac_small(100_000)]
+           "--out", str(run), "--no-progress-bar", *flags]
     env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    deadline = time.time() + 60
-    while not (run / "tb").exists():  # training has started
-        assert proc.poll() is None and time.time() < deadline, proc.stderr.read().decode()[-2000:]
-        time.sleep(0.2)
-    time.sleep(3)
-    proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=60)
+    try:
+        wait_until(lambda: evaluated_at(run, 400), proc, "evaluation at step 400")
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=HANG_GUARD)
+    finally:
+        proc.kill()
     assert proc.returncode == 130, err.decode()[-2000:]
-    ckpt = tr.latest_checkpoint(run)
+    ckpt = RunDir(run).latest_checkpoint()
     assert ckpt is not None and (ckpt / "replay_buffer.pkl").is_file()
-    assert json.loads((ckpt / "state.json").read_text())["num_timesteps"] > 0
+    assert json.loads((ckpt / "state.json").read_text())["num_timesteps"] >= 400
     assert b"--resume" in out
 
 
@@ -144,21 +174,21 @@ def test_evaluate_shipped_policy_writes_documented_report(tmp_path):
     assert (out / "report.md").read_text().startswith("# Policy versus IK")
 
 
-def test_shipped_policy_records_how_it_was_made_and_its_report():
-    """Each shipped policy folder has its command, seed, commit, wall time and load, and a 1,000-goal report."""
-    policies = _shipped()
-    assert policies
-    for policy in policies:
-        config = yaml.safe_load((policy / "config.yaml").read_text())
-        info = json.loads((policy / "train_info.json").read_text())
-        assert config["command"].startswith("python -m train.train") and "seed" in config and config["commit"]
-        assert info["wall_time"] > 0 and len(info["machine"]["loadavg"]) == 3
-        assert "train.train" in (policy / "RECORD.md").read_text()
-        report = json.loads((policy / "report" / "report.json").read_text())
-        assert report["goals"] == 1000 and report["seed"] == 0 and report["env_id"] == config["env_id"]
-        if config["env_id"] == "IiwaReach-v0":  # the figures docs/training.md states (a regression guard)
-            m = report["methods"]["policy"]
-            assert m["success@1cm"] >= 0.99 and m["median_error_m"] <= 0.003
+@pytest.mark.parametrize("name, minimum", [("ppo_iiwa_reach", 0.97), ("ppo_iiwa_reach_pose", 0.8)])
+def test_shipped_policy_still_reaches_held_out_goals(name, minimum):
+    """Recomputed, not read from its report: the shipped policy on 200 held-out goals (seed 0, as the
+    report) with today's env and rollout code. Its 1,000-goal reports give 99.9% (position) and 88.8%
+    (pose, 1 cm and 0.1 rad); the minimums are 4 binomial standard deviations of 200 goals below them."""
+    from train.rollout import PolicyEvaluator, make_goal_set
+
+    model, vec_normalize, config = ev.load_policy(POLICIES / name)
+    env_kwargs = config["hyperparams"].get("env_kwargs") or {}
+    pose = config["env_id"] == ev.POSE_ENV
+    evaluator = PolicyEvaluator(make_goal_set(config["env_id"], 200, 0, env_kwargs), ev.TOLERANCES["1cm"],
+                                env_kwargs.get("orientation_threshold", ev.ORIENTATION_TOL) if pose else None)
+    metrics, _ = evaluator(model, vec_normalize)
+    assert metrics["success"] >= minimum, metrics
+    assert metrics["median_distance"] < 1e-3, metrics
 
 
 def test_policy_actor_matches_sb3_predict():
@@ -236,3 +266,14 @@ def test_goal_delta_features_follow_relabelled_goals():
     assert torch.allclose(out[0, 8:], expected, atol=1e-6)
     with pytest.raises(ValueError, match="positive"):
         GoalDeltaExtractor(space, scales=[0.0])
+
+
+def test_evaluation_summary_by_hand():
+    """Four goals, 1 cm and 0.1 rad: counted and interpolated by hand (p95: 0.02 + 0.85 * 0.48)."""
+    from train.rollout import summarise_finals
+
+    final = np.array([0.001, 0.02, 0.005, 0.5])
+    out = summarise_finals(final, 0.01)
+    assert out == pytest.approx({"success": 0.5, "median_distance": 0.0125, "p95_distance": 0.428})
+    out = summarise_finals(final, 0.01, np.array([0.05, 0.01, 0.2, 0.0]), 0.1)
+    assert out["success"] == 0.25 and out["success_position"] == 0.5 and out["median_angle"] == pytest.approx(0.03)

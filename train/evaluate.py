@@ -34,7 +34,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
 METHODS = ("policy", "analytic_ik", "gradient_ik")
@@ -46,22 +45,32 @@ ORIENTATION_TOL = 0.1  # rad: the pose env's default orientation threshold
 
 # ---------------------------------------------------------------------------- loading
 def load_policy(model_dir: Path):
-    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder."""
+    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder; ValueError if the
+    config is malformed or the model is not one of its algo for its env."""
+    import pickle
+
+    from train.run_dir import RunDir, check_model
+    from train.train import make_env
+
+    run = RunDir(model_dir)
+    if not (run.path / "model.zip").exists() or not run.config_path.exists():
+        raise FileNotFoundError(f"{run.path} must hold model.zip and config.yaml (a train.train run or a "
+                                f"train/policies/ folder)")
+    config = run.read_config()
+    env = make_env(config["env_id"], 1, 0, config["hyperparams"].get("env_kwargs"))
+    check_model(config["algo"], run.path / "model.zip", env.observation_space, env.action_space)
     from stable_baselines3 import PPO, SAC
 
-    model_dir = Path(model_dir)
-    if not (model_dir / "model.zip").exists() or not (model_dir / "config.yaml").exists():
-        raise FileNotFoundError(f"{model_dir} must hold model.zip and config.yaml (a train.train run or a "
-                                f"train/policies/ folder)")
-    config = yaml.safe_load((model_dir / "config.yaml").read_text())
-    algo = {"ppo": PPO, "sac": SAC}[config["algo"]]
-    model = algo.load(model_dir / "model.zip", device="cpu")
+    # with its env: SB3 cannot rebuild a HER replay buffer without one
+    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(run.path / "model.zip", env=env, device="cpu")
     vec_normalize = None
-    if (model_dir / "vecnormalize.pkl").exists():
-        import pickle
-
-        with open(model_dir / "vecnormalize.pkl", "rb") as f:
-            vec_normalize = pickle.load(f)  # SB3's own format (VecNormalize.save pickles the wrapper)
+    if (run.path / "vecnormalize.pkl").exists():
+        try:
+            with open(run.path / "vecnormalize.pkl", "rb") as f:
+                vec_normalize = pickle.load(f)  # SB3's own format (VecNormalize.save pickles the wrapper)
+        except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as err:
+            raise ValueError(f"{run.path / 'vecnormalize.pkl'} is unreadable ({type(err).__name__}: {err}); "
+                             f"expected the VecNormalize file train.train writes") from None
         vec_normalize.training = False
     return model, vec_normalize, config
 
@@ -113,11 +122,14 @@ def _median_time(fn, reps: int) -> float:
 
 def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The deterministic policy on every goal (one batched rollout), then ``SINGLE_GOALS`` single-goal rollouts."""
-    from train.rollout import make_goal_set, policy_actor, rollout
+    from train.rollout import PolicyEvaluator, make_goal_set, policy_actor, rollout
 
-    act = policy_actor(model, vec_normalize)
-    runs = [rollout(goals, act) for _ in range(BATCHED_REPEATS)]  # deterministic: the same rollout each time
+    pose = goals.env_id == POSE_ENV
+    evaluator = PolicyEvaluator(goals, TOLERANCES["1cm"],
+                                goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL) if pose else None)
+    runs = [evaluator.rollout(model, vec_normalize) for _ in range(BATCHED_REPEATS)]  # deterministic: the same
     r = runs[0]
+    act = policy_actor(model, vec_normalize)
     one = make_goal_set(goals.env_id, 1, goals.seed, goals.env_kwargs)
     single = _median_time(lambda i: rollout(one, act), SINGLE_GOALS)
     final = r.distance[-1]
@@ -129,11 +141,9 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     metrics["network_time_per_goal_batched_s"] = float(np.median([x.act_seconds for x in runs])) / goals.n
     lo, hi = chain.limits.numpy()
     metrics["touched_a_limit"] = float(np.mean(((r.q - lo < 1e-4) | (hi - r.q < 1e-4)).any(axis=(0, 2))))
-    if goals.env_id == POSE_ENV:
-        metrics["median_angle_rad"] = float(np.median(r.angle[-1]))
-        tol = goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL)
-        ok = (final < TOLERANCES["1cm"]) & (r.angle[-1] < tol)
-        metrics["success_pose"] = float(np.mean(ok))
+    if pose:
+        summary = evaluator.summary(r)
+        metrics["median_angle_rad"], metrics["success_pose"] = summary["median_angle"], summary["success"]
     failed = final >= TOLERANCES["1cm"]
     if failed.any():
         radius = np.linalg.norm(goals.desired_goal[:, :2], axis=-1)
@@ -349,27 +359,32 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
     save(fig, "path_length.png")
 
     if evaluations:
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        ours = f"{report['env_id']} (ours, {report['algo'].upper()}, {100 * TOLERANCES['1cm']:.0f} cm)"
-        curves = {ours: evaluations, **compare}
-        for label, ev in curves.items():
-            axes[0].plot([e["wall_time"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
-            axes[1].plot([e["steps"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
-        axes[0].set(xlabel="training wall time (s)", ylabel="success (%)", title="Learning curve against wall time")
-        axes[1].set(xscale="log", xlabel="env steps", ylabel="success (%)", title="Learning curve against env steps")
-        for a in axes:
-            a.legend(fontsize=8)
-            a.set_ylim(0, 101)
-        save(fig, "learning_curve.png")
+        save(_learning_curves(plt, report, evaluations, compare), "learning_curve.png")
     return written
+
+
+def _learning_curves(plt, report: dict[str, Any], evaluations: list[dict], compare: dict[str, list[dict]]):
+    """The figure of success against training wall time and env steps, this run and ``compare``'s."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    ours = f"{report['env_id']} (ours, {report['algo'].upper()}, {100 * TOLERANCES['1cm']:.0f} cm)"
+    for label, ev in {ours: evaluations, **compare}.items():
+        axes[0].plot([e["wall_time"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
+        axes[1].plot([e["steps"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
+    axes[0].set(xlabel="training wall time (s)", ylabel="success (%)", title="Learning curve against wall time")
+    axes[1].set(xscale="log", xlabel="env steps", ylabel="success (%)", title="Learning curve against env steps")
+    for a in axes:
+        a.legend(fontsize=8)
+        a.set_ylim(0, 101)
+    return fig
 
 
 def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths: list[Path]) -> dict[str, Any]:
     import torch
 
     import envs
-    from train.rollout import make_goal_set
     from iiwa_torch.runtime import machine_info
+    from train.rollout import make_goal_set
+    from train.run_dir import RunDir
 
     torch.set_num_threads(1)
     model, vec_normalize, config = load_policy(model_dir)
@@ -386,9 +401,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
             metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt)
         except ImportError as err:  # a solver not installed in this checkout: say so, keep the rest
             metrics[name] = {"error": f"unavailable: {err}"}
-    evaluations = []
-    if (model_dir / "evaluations.json").exists():
-        evaluations = json.loads((model_dir / "evaluations.json").read_text())
+    evaluations = RunDir(model_dir).read_evaluations()
     compare = {}
     for p in compare_paths:
         blob = json.loads(Path(p).read_text())  # {"label", "evaluations"} or a run's evaluations.json list
@@ -436,9 +449,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.goals < 1:
         p.error(f"--goals must be >= 1, got {args.goals}")
+    for path in args.compare:
+        if not path.is_file():
+            p.error(f"--compare: {path} not found; expected an evaluations JSON (a run's evaluations.json)")
     try:
         evaluate(args.model, args.goals, args.seed, args.out, args.compare)
-    except FileNotFoundError as err:
+    except (FileNotFoundError, ValueError) as err:
         p.error(str(err))
     return 0
 

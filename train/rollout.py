@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["GoalSet", "Rollout", "make_goal_set", "rollout", "policy_actor", "held_out_seed"]
+__all__ = ["GoalSet", "Rollout", "PolicyEvaluator", "make_goal_set", "rollout", "policy_actor", "held_out_seed",
+           "summarise_finals"]
 
 POSE_ENV = "IiwaReachPose-v0"
 
@@ -155,3 +156,44 @@ def policy_actor(model, vec_normalize=None) -> Actor:
             return policy._predict(x, deterministic=True).numpy()
 
     return act
+
+
+def summarise_finals(final: np.ndarray, threshold: float, angle: np.ndarray | None = None,
+                     orientation_threshold: float | None = None) -> dict[str, float]:
+    """Success rate, median and 95th percentile of final distances ``(n,)`` (m); with final angles
+    ``(n,)`` (rad) ``success`` needs both thresholds and ``success_position``, ``median_angle`` are added."""
+    out = {
+        "success": float(np.mean(final < threshold)),
+        "median_distance": float(np.median(final)),
+        "p95_distance": float(np.percentile(final, 95)),
+    }
+    if angle is not None:
+        out["success_position"] = out["success"]
+        out["success"] = float(np.mean((final < threshold) & (angle < orientation_threshold)))
+        out["median_angle"] = float(np.median(angle))
+    return out
+
+
+@dataclass(frozen=True)
+class PolicyEvaluator:
+    """A deterministic policy on a fixed goal set: one batched closed-loop rollout and its summary.
+
+    The one evaluation of ``train.train`` (periodic) and ``train.evaluate`` (the policy's row).
+    ``distance_threshold`` in m; ``orientation_threshold`` in rad, for pose goals only (else None).
+    """
+
+    goals: GoalSet
+    distance_threshold: float
+    orientation_threshold: float | None = None
+
+    def rollout(self, model, vec_normalize=None) -> Rollout:
+        return rollout(self.goals, policy_actor(model, vec_normalize))
+
+    def summary(self, r: Rollout) -> dict[str, float]:
+        angle = r.angle[-1] if self.orientation_threshold is not None else None
+        return summarise_finals(r.distance[-1], self.distance_threshold, angle, self.orientation_threshold)
+
+    def __call__(self, model, vec_normalize=None) -> tuple[dict[str, float], float]:
+        """``(summary, seconds of the rollout)``."""
+        r = self.rollout(model, vec_normalize)
+        return self.summary(r), r.seconds

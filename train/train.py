@@ -11,22 +11,26 @@ override them. The run directory gets:
 - ``checkpoints/step_<N>/``: model, VecNormalize statistics, replay buffer (off-policy
   algos) and ``state.json`` (steps, wall time, evaluations so far), every
   ``checkpoint_freq`` env steps and on Ctrl-C / SIGTERM; ``--resume`` restarts from the
-  newest one, so a hard kill loses at most one checkpoint interval;
+  newest intact one, so a hard kill loses at most one checkpoint interval;
 - ``evaluations.json``: the periodic evaluation (success at 1 cm, median and 95th
   percentile final distance on a fixed seeded goal set) against env steps and wall time;
 - ``tb/``: TensorBoard logs;
 - at the end, ``model.zip`` with ``vecnormalize.pkl``, ``config.yaml`` and
-  ``train_info.json`` (wall time, load average, steps per second) side by side.
+  ``train_info.json`` (wall time, load average, steps per second) side by side;
+- ``.lock``: locked while a process trains here (a second one is refused).
+
+``train.run_dir.RunDir`` owns this layout: atomic writes, the lock, and the resume from the newest
+checkpoint whose files all load. Everything is validated before the first write.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import json
 import os
 import shlex
-import shutil
 import signal
 import subprocess
 import sys
@@ -34,10 +38,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 
-ALGOS = ("ppo", "sac")
+from train.run_dir import ALGOS, CheckpointError, RunDir, RunLocked, check_model, read_yaml
+
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 _TRAINER_KEYS = {
     "n_envs", "n_timesteps", "policy", "normalize", "env_kwargs", "features_extractor_kwargs",
@@ -45,7 +49,6 @@ _TRAINER_KEYS = {
 }
 _EXTRACTORS = ("goal_delta", "joint")
 _ACTIVATIONS = ("tanh", "relu", "elu")
-EVAL_SEED = 10_000  # goal-set seed of the periodic evaluation; train.evaluate defaults to another
 
 
 # ---------------------------------------------------------------------------- configuration
@@ -55,7 +58,11 @@ def load_hyperparams(algo: str, env_id: str, overrides: dict[str, Any] | None = 
     if algo not in ALGOS:
         raise ValueError(f"algo must be one of {list(ALGOS)}, got {algo!r}")
     path = CONFIG_DIR / f"{algo}.yaml" if path is None else Path(path)
-    table = yaml.safe_load(path.read_text())
+    if not path.is_file():
+        raise FileNotFoundError(f"hyper-parameter file {path} not found")
+    table = read_yaml(path)
+    if not isinstance(table, dict):
+        raise ValueError(f"{path}: expected a mapping of env ids to hyper-parameters, got {type(table).__name__}")
     if env_id not in table:
         raise ValueError(f"no hyper-parameters for env {env_id!r} in {path}; it has {sorted(table)}")
     hp = {**table[env_id], **(overrides or {})}
@@ -98,7 +105,10 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"--hyperparams items must look like key=value, got {item!r}")
-        out[key] = yaml.safe_load(value)
+        try:
+            out[key] = yaml.safe_load(value)
+        except yaml.YAMLError as err:
+            raise ValueError(f"--hyperparams {item!r}: the value is not valid YAML ({err.problem or err})") from None
     return out
 
 
@@ -118,6 +128,7 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
     from train.features import GoalDeltaExtractor, JointGoalExtractor
 
     kwargs = {k: v for k, v in hp.items() if k not in _TRAINER_KEYS}
+    _check_algo_keys(algo, kwargs)
     for key in ("learning_rate", "clip_range"):
         if key in kwargs:
             kwargs[key] = _schedule(kwargs[key])
@@ -144,6 +155,39 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
         kwargs["replay_buffer_class"] = HerReplayBuffer
         kwargs["replay_buffer_kwargs"] = dict(hp["her"])
     return kwargs
+
+
+def _check_algo_keys(algo: str, kwargs: dict[str, Any]) -> None:
+    """Raise if a hyper-parameter is neither a trainer key nor an argument of the SB3 constructor."""
+    from stable_baselines3 import PPO, SAC
+
+    cls = {"ppo": PPO, "sac": SAC}[algo]
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "env", "_init_setup_model"}
+    unknown = sorted(set(kwargs) - accepted)
+    if unknown:
+        raise ValueError(f"unknown hyper-parameter(s) {unknown} for {algo}: expected trainer keys "
+                         f"{sorted(_TRAINER_KEYS)} or {cls.__name__} arguments {sorted(accepted)}")
+
+
+def her_learning_starts(hp: dict[str, Any], episode_steps: int | None) -> int | None:
+    """``learning_starts`` for HER: at least ``n_envs * episode_steps`` env steps, so every env has ended
+    its first episode (truncation at ``episode_steps``) before the first sample; None if no HER."""
+    if hp.get("her") is None:
+        return None
+    configured = int(hp.get("learning_starts", 100))  # SAC's default
+    if episode_steps is None:
+        return configured
+    return max(configured, hp["n_envs"] * int(episode_steps))
+
+
+def episode_steps(venv) -> int | None:
+    """The truncation length of the (wrapped) VecEnv's episodes, or None if it has none."""
+    inner = venv.unwrapped
+    task = getattr(inner, "task", None)
+    if task is not None and hasattr(task, "max_episode_steps"):
+        return int(task.max_episode_steps)
+    spec = inner.get_attr("spec")[0]
+    return getattr(spec, "max_episode_steps", None)
 
 
 def git_commit() -> str:
@@ -203,126 +247,6 @@ def wrap_normalize(venv, hp: dict[str, Any], gamma: float):
     return VecNormalize(venv, norm_obs_keys=["observation"], norm_reward=False, gamma=gamma)
 
 
-# ---------------------------------------------------------------------------- checkpoints
-def save_checkpoint(model, run: Path, state: dict[str, Any], keep: int = 2) -> Path:
-    """Write model, normaliser, replay buffer and ``state.json`` to ``checkpoints/step_<N>`` atomically
-    (written to a temporary folder, then renamed); keep the ``keep`` newest."""
-    root = run / "checkpoints"
-    final = root / f"step_{model.num_timesteps:012d}"
-    tmp = root / f".tmp_{final.name}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    model.save(tmp / "model.zip")
-    vec_normalize = model.get_vec_normalize_env()
-    if vec_normalize is not None:
-        vec_normalize.save(str(tmp / "vecnormalize.pkl"))
-    if getattr(model, "replay_buffer", None) is not None:
-        model.save_replay_buffer(tmp / "replay_buffer.pkl")
-    (tmp / "state.json").write_text(json.dumps(state, indent=1))
-    shutil.rmtree(final, ignore_errors=True)
-    os.replace(tmp, final)
-    for old in sorted(p for p in root.glob("step_*") if p.is_dir())[:-keep]:
-        shutil.rmtree(old, ignore_errors=True)
-    return final
-
-
-def latest_checkpoint(run: Path) -> Path | None:
-    """The newest complete checkpoint folder of a run, or None."""
-    done = sorted(p for p in (run / "checkpoints").glob("step_*") if (p / "state.json").exists())
-    return done[-1] if done else None
-
-
-def _callbacks(run: Path, hp: dict[str, Any], env_id: str, env_kwargs: dict[str, Any], clock: dict[str, Any]):
-    """The periodic evaluation and checkpoint callbacks (one class: both need the shared clock)."""
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    from train.rollout import make_goal_set, policy_actor, rollout
-
-    class EvalAndCheckpoint(BaseCallback):
-        """Every ``eval_freq`` env steps: success on a fixed goal set; every ``checkpoint_freq``: a checkpoint."""
-
-        def _on_training_start(self) -> None:
-            import envs
-
-            self.goals, self.task = None, None
-            if env_id in envs.ENV_IDS:
-                self.task = envs.make_task(env_id, **env_kwargs)
-                self.goals = make_goal_set(env_id, hp["eval_goals"], EVAL_SEED, env_kwargs)
-            self.next_eval = (self.num_timesteps // hp["eval_freq"] + 1) * hp["eval_freq"]
-            self.next_ckpt = (self.num_timesteps // hp["checkpoint_freq"] + 1) * hp["checkpoint_freq"]
-            if not clock["evaluations"]:
-                self._evaluate()
-
-        def _final_distances(self) -> tuple[np.ndarray, float, float, np.ndarray | None]:
-            """Final distances (m), success threshold (m), seconds and final angles (rad; None for position
-            goals): our task on the fixed goal set;
-            another goal env (e.g. panda-gym) by ``eval_goals`` seeded episodes, as it defines them."""
-            vec_normalize = self.model.get_vec_normalize_env()
-            if self.task is not None:
-                r = rollout(self.goals, policy_actor(self.model, vec_normalize))
-                angle = r.angle[-1] if self.task.goal_kind.value == "pose" else None
-                return r.distance[-1], self.task.distance_threshold, r.seconds, angle
-            start = time.perf_counter()
-            env = make_env(env_id, 1, EVAL_SEED, env_kwargs)
-            obs, final = env.reset(), []
-            while len(final) < hp["eval_goals"]:
-                if vec_normalize is not None:
-                    obs = vec_normalize.normalize_obs(obs)
-                action, _ = self.model.predict(obs, deterministic=True)
-                obs, _, done, infos = env.step(action)
-                if done[0]:
-                    last = infos[0]["terminal_observation"]
-                    final.append(float(np.linalg.norm(last["achieved_goal"] - last["desired_goal"])))
-            threshold = float(env.get_attr("unwrapped")[0].task.distance_threshold)  # panda-gym's task attribute
-            env.close()
-            return np.array(final), threshold, time.perf_counter() - start, None
-
-        def _evaluate(self) -> None:
-            wall = clock["elapsed"] + time.perf_counter() - clock["start"]
-            final, threshold, seconds, angle = self._final_distances()
-            entry = {
-                "steps": int(self.num_timesteps),
-                "wall_time": round(wall, 2),
-                "success": float(np.mean(final < threshold)),
-                "median_distance": float(np.median(final)),
-                "p95_distance": float(np.percentile(final, 95)),
-                "eval_seconds": round(seconds, 3),
-                "loadavg": os.getloadavg()[0],
-            }
-            if angle is not None:  # pose goals: success needs the orientation too
-                entry["success_position"] = entry["success"]
-                entry["success"] = float(np.mean((final < threshold) & (angle < self.task.orientation_threshold)))
-                entry["median_angle"] = float(np.median(angle))
-            clock["evaluations"].append(entry)
-            (run / "evaluations.json").write_text(json.dumps(clock["evaluations"], indent=1))
-            for key in ("success", "median_distance", "p95_distance"):
-                self.logger.record(f"eval/{key}", entry[key])
-            if self.verbose:
-                print(f"[eval] steps={entry['steps']} wall={entry['wall_time']:.0f}s "
-                      f"success={entry['success']:.3f} "
-                      f"median={1000 * entry['median_distance']:.1f}mm p95={1000 * entry['p95_distance']:.1f}mm",
-                      flush=True)
-
-        def checkpoint(self) -> Path:
-            state = {
-                "num_timesteps": int(self.model.num_timesteps),
-                "elapsed": clock["elapsed"] + time.perf_counter() - clock["start"],
-                "evaluations": clock["evaluations"],
-            }
-            return save_checkpoint(self.model, run, state)
-
-        def _on_step(self) -> bool:
-            if self.num_timesteps >= self.next_eval:
-                self.next_eval += hp["eval_freq"]
-                self._evaluate()
-            if self.num_timesteps >= self.next_ckpt:
-                self.next_ckpt += hp["checkpoint_freq"]
-                self.checkpoint()
-            return True
-
-    return EvalAndCheckpoint(verbose=1)
-
-
 # ---------------------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m train.train", description=__doc__.split("\n\n")[0],
@@ -367,97 +291,162 @@ def _sigterm_as_interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-def train(args: argparse.Namespace) -> Path:
-    """Run (or resume) a training; returns the run directory."""
-    import torch
-
-    torch.set_num_threads(args.threads)
+def _algo_class(algo: str):
     from stable_baselines3 import PPO, SAC
 
-    algo_class = {"ppo": PPO, "sac": SAC}
-    run: Path = args.out
-    checkpoint = None
-    if args.resume:
-        if not (run / "config.yaml").exists():
-            raise FileNotFoundError(f"--resume: {run}/config.yaml not found; is {run} a run directory?")
-        config = yaml.safe_load((run / "config.yaml").read_text())
-        if args.timesteps is not None:
-            config["hyperparams"]["n_timesteps"] = int(args.timesteps)
-        checkpoint = latest_checkpoint(run)
-    else:
-        config = _config_from_args(args)
-        if run.exists() and any(run.iterdir()):
-            raise FileExistsError(f"{run} exists and is not empty: pick a new --out, or pass --resume")
-        run.mkdir(parents=True, exist_ok=True)
-        (run / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+    return {"ppo": PPO, "sac": SAC}[algo]
+
+
+def _new_model(run: RunDir, config: dict[str, Any], args: argparse.Namespace):
+    """A fresh model on fresh envs; raises on an unknown hyper-parameter before anything is written.
+    For HER it raises ``learning_starts`` to the first episodes of every env (recorded in ``config``)."""
+    hp, algo, seed = config["hyperparams"], config["algo"], config["seed"]
+    venv = build_venv(config["env_id"], hp, seed)
+    starts = her_learning_starts(hp, episode_steps(venv))
+    if starts is not None and starts != hp.get("learning_starts"):
+        print(f"learning_starts {hp.get('learning_starts', 100)} -> {starts}: HER samples only finished episodes, "
+              f"and {hp['n_envs']} envs end their first ones after {starts} env steps", flush=True)
+        hp["learning_starts"] = starts
+    kwargs = algo_kwargs(algo, hp)
+    venv = wrap_normalize(venv, hp, kwargs.get("gamma", 0.99))
+    policy = kwargs.pop("policy", hp["policy"])
+    try:
+        return _algo_class(algo)(policy, venv, seed=seed, device="cpu", verbose=args.verbose,
+                                 tensorboard_log=str(run.path / "tb"), **kwargs)
+    except TypeError as err:  # a nested option (policy_kwargs, her) the policy or buffer does not take
+        raise ValueError(f"hyper-parameters rejected by {algo.upper()}: {err}") from None
+
+
+def _load_file(path: Path, load):
+    """``load(path)``; any failure to read it becomes a ``CheckpointError`` naming the file."""
+    try:
+        return load(path)
+    except CheckpointError:
+        raise
+    except Exception as err:  # truncated pickles, zips and JSON fail in many ways: all mean "unreadable"
+        raise CheckpointError(f"{path} is unreadable ({type(err).__name__}: {err})") from None
+
+
+def _load_checkpoint(run: RunDir, ckpt: Path, config: dict[str, Any], args: argparse.Namespace):
+    """``(model, TrainClock)`` from one checkpoint folder; ``CheckpointError`` names a damaged file."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from train.callbacks import TrainClock
+
     hp, algo, env_id, seed = config["hyperparams"], config["algo"], config["env_id"], config["seed"]
-    total = hp["n_timesteps"]
-    env_kwargs = dict(hp.get("env_kwargs") or {})
+    state = _load_file(ckpt / "state.json", lambda p: json.loads(p.read_text()))
+    if not isinstance(state, dict) or not {"num_timesteps", "elapsed", "evaluations"} <= set(state):
+        raise CheckpointError(f"{ckpt / 'state.json'} lacks num_timesteps, elapsed or evaluations")
+    # new episodes after a resume: do not replay the seeds of the first start
+    venv = build_venv(env_id, hp, seed + state["num_timesteps"])
+    check_model(algo, ckpt / "model.zip", venv.observation_space, venv.action_space)
+    if (ckpt / "vecnormalize.pkl").exists():
+        venv = _load_file(ckpt / "vecnormalize.pkl", lambda p: VecNormalize.load(str(p), venv))
+    model = _load_file(ckpt / "model.zip", lambda p: _algo_class(algo).load(
+        p, env=venv, device="cpu", tensorboard_log=str(run.path / "tb"), verbose=args.verbose))
+    if (ckpt / "replay_buffer.pkl").exists():
+        _load_file(ckpt / "replay_buffer.pkl", model.load_replay_buffer)
+    return model, TrainClock(elapsed=state["elapsed"], evaluations=state["evaluations"])
 
-    clock = {"start": time.perf_counter(), "elapsed": 0.0, "evaluations": []}
-    if checkpoint is not None:
-        state = json.loads((checkpoint / "state.json").read_text())
-        clock["elapsed"], clock["evaluations"] = state["elapsed"], state["evaluations"]
-        steps_done = state["num_timesteps"]
-        # new episodes after a resume: do not replay the seeds of the first start
-        venv = build_venv(env_id, hp, seed + steps_done)
-        if (checkpoint / "vecnormalize.pkl").exists():
-            from stable_baselines3.common.vec_env import VecNormalize
 
-            venv = VecNormalize.load(str(checkpoint / "vecnormalize.pkl"), venv)
-        model = algo_class[algo].load(checkpoint / "model.zip", env=venv, device="cpu",
-                                      tensorboard_log=str(run / "tb"))
-        if (checkpoint / "replay_buffer.pkl").exists():
-            model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
-        print(f"resuming {run} from {checkpoint.name}: {model.num_timesteps} of {total} steps", flush=True)
-    else:
-        kwargs = algo_kwargs(algo, hp)
-        venv = wrap_normalize(build_venv(env_id, hp, seed), hp, kwargs.get("gamma", 0.99))
-        policy = kwargs.pop("policy", hp["policy"])
-        model = algo_class[algo](policy, venv, seed=seed, device="cpu", verbose=args.verbose,
-                                 tensorboard_log=str(run / "tb"), **kwargs)
-        if args.resume:
-            print(f"resuming {run}: no checkpoint yet, starting from step 0", flush=True)
-    (run / "evaluations.json").write_text(json.dumps(clock["evaluations"], indent=1))
+def _restore(run: RunDir, config: dict[str, Any], args: argparse.Namespace):
+    """``(model, TrainClock)`` from the newest intact checkpoint, saying which damaged ones it skipped."""
+    from train.callbacks import TrainClock
 
-    callback = _callbacks(run, hp, env_id, env_kwargs, clock)
+    checkpoints = run.checkpoints()
+    if not checkpoints:
+        print(f"resuming {run.path}: no checkpoint yet, starting from step 0", flush=True)
+        return _new_model(run, config, args), TrainClock()
+    for ckpt in checkpoints:
+        try:
+            model, clock = _load_checkpoint(run, ckpt, config, args)
+        except CheckpointError as err:
+            print(f"checkpoint {ckpt.name} is damaged: {err}; trying an older one", file=sys.stderr, flush=True)
+            continue
+        skipped = "" if ckpt == checkpoints[0] else f" (the newest intact one, not {checkpoints[0].name})"
+        print(f"resuming {run.path} from {ckpt.name}{skipped}: {model.num_timesteps} of "
+              f"{config['hyperparams']['n_timesteps']} steps", flush=True)
+        return model, clock
+    raise CheckpointError(f"no intact checkpoint in {run.checkpoint_root} (see above); move that folder "
+                          f"away to restart the run from step 0")
+
+
+def _learn(model, callback, total: int, progress_bar: bool) -> bool:
+    """Train to ``total`` env steps; False if interrupted (Ctrl-C or SIGTERM)."""
     previous = signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    interrupted = False
     try:
         # learn(0) still starts the callback (goal set, clock) when the run is already complete
         model.learn(max(total - model.num_timesteps, 0), callback=callback, reset_num_timesteps=False,
-                    progress_bar=args.progress_bar, tb_log_name="run")
+                    progress_bar=progress_bar, tb_log_name="run")
     except KeyboardInterrupt:
-        interrupted = True
+        return False
     finally:
         signal.signal(signal.SIGTERM, previous)
-    if interrupted:
-        path = callback.checkpoint()
-        print(f"interrupted at step {model.num_timesteps}: checkpoint {path}; continue with "
-              f"python -m train.train --resume --out {run}", flush=True)
-        raise SystemExit(130)
+    return True
 
-    if not clock["evaluations"] or clock["evaluations"][-1]["steps"] != model.num_timesteps:
-        callback._evaluate()
-    callback.checkpoint()
-    wall = clock["elapsed"] + time.perf_counter() - clock["start"]
-    model.save(run / "model.zip")
-    if model.get_vec_normalize_env() is not None:
-        model.get_vec_normalize_env().save(str(run / "vecnormalize.pkl"))
+
+def _finish(run: RunDir, model, callback) -> None:
+    """The final evaluation, checkpoint, model and ``train_info.json``."""
     from iiwa_torch.runtime import machine_info
 
-    info = {
+    evaluations = callback.clock.evaluations
+    if not evaluations or evaluations[-1]["steps"] != model.num_timesteps:
+        callback.evaluate()
+    callback.checkpoint()
+    wall = callback.clock.wall()
+    run.save_final(model)
+    run.write_json("train_info.json", {
         "num_timesteps": int(model.num_timesteps),
         "wall_time": round(wall, 1),
         "steps_per_second": round(model.num_timesteps / wall, 1),
-        "final_evaluation": clock["evaluations"][-1] if clock["evaluations"] else None,
+        "final_evaluation": evaluations[-1] if evaluations else None,
         "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "machine": machine_info(),
         "python": sys.version.split()[0],
-    }
-    (run / "train_info.json").write_text(json.dumps(info, indent=1))
-    print(f"done: {model.num_timesteps} steps in {wall:.0f}s; model in {run / 'model.zip'}", flush=True)
-    return run
+    })
+    print(f"done: {model.num_timesteps} steps in {wall:.0f}s; model in {run.path / 'model.zip'}", flush=True)
+
+
+def _check_new(run: RunDir) -> None:
+    if not run.is_empty():
+        raise FileExistsError(f"{run.path} exists and is not empty: pick a new --out, or pass --resume")
+
+
+def train(args: argparse.Namespace) -> Path:
+    """Run (or resume) a training; returns the run directory. Everything is validated (and a new run's
+    model built) before the first write; the run directory is locked while this process trains in it."""
+    import torch
+
+    from train.callbacks import EvalAndCheckpoint, TrainClock
+
+    torch.set_num_threads(args.threads)
+    run = RunDir(args.out)
+    model = None
+    if args.resume:
+        config = run.read_config()
+        if args.timesteps is not None:
+            config["hyperparams"]["n_timesteps"] = int(args.timesteps)
+    else:
+        config = _config_from_args(args)
+        _check_new(run)
+        model = _new_model(run, config, args)
+    with run.lock():
+        if args.resume:
+            model, clock = _restore(run, config, args)
+        else:
+            _check_new(run)  # again under the lock: another process may have started here meanwhile
+            run.write_config(config)
+            clock = TrainClock()
+        run.write_json("evaluations.json", clock.evaluations)
+        hp = config["hyperparams"]
+        callback = EvalAndCheckpoint(run, hp, config["env_id"], dict(hp.get("env_kwargs") or {}), clock)
+        if not _learn(model, callback, hp["n_timesteps"], args.progress_bar):
+            path = callback.checkpoint()
+            print(f"interrupted at step {model.num_timesteps}: checkpoint {path}; continue with "
+                  f"python -m train.train --resume --out {run.path}", flush=True)
+            raise SystemExit(130)
+        _finish(run, model, callback)
+    return run.path
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -468,9 +457,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--timesteps must be a positive integer, got {args.timesteps:g}")
     if args.n_envs is not None and args.n_envs < 1:
         parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
+    if args.threads < 1:
+        parser.error(f"--threads must be >= 1, got {args.threads}")
     try:
         train(args)
-    except (ValueError, FileNotFoundError, FileExistsError) as err:
+    except (ValueError, FileNotFoundError, FileExistsError, RunLocked) as err:
         parser.error(str(err))
     return 0
 

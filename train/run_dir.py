@@ -1,0 +1,217 @@
+"""One training run's directory: its config, checkpoints, evaluations and lock.
+
+Guarantees (see docs/training.md, "Run-directory guarantees"):
+
+- every file is written to a temporary name and renamed with ``os.replace``, and a checkpoint
+  folder is filled under a temporary name and renamed, so a kill during a save leaves the
+  previous file (or checkpoint) intact, never a half-written one under the final name;
+- ``RunDir.lock`` holds an exclusive ``fcntl.flock`` on ``.lock`` while a process trains: a
+  second process is refused (``RunLocked``); the kernel drops the lock when its holder dies, so
+  a lock file left by a killed run does not block;
+- ``RunDir.checkpoints`` lists complete checkpoints newest first; the caller loads the newest
+  one whose files all load (``CheckpointError`` names a bad file).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ALGOS = ("ppo", "sac")
+CONFIG_KEYS = ("algo", "env_id", "seed", "hyperparams")
+LOCK_NAME = ".lock"
+
+
+class RunLocked(RuntimeError):
+    """Another live process trains in this run directory."""
+
+
+class CheckpointError(ValueError):
+    """A checkpoint or model file that cannot be loaded (the message names the file)."""
+
+
+def atomic_save(path: Path, save: Callable[[Path], Any]) -> None:
+    """``save(tmp)`` writes the file at a temporary name next to ``path``, then it replaces ``path``."""
+    path = Path(path)
+    tmp = path.with_name(f".tmp_{os.getpid()}_{path.name}")
+    try:
+        save(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_save(path, lambda tmp: tmp.write_text(text))
+
+
+def validate_config(config: Any, source: str) -> dict[str, Any]:
+    """A run's config dict checked for the keys and values ``train.train`` and ``train.evaluate`` read."""
+    if not isinstance(config, dict):
+        raise ValueError(f"{source}: expected a mapping with keys {list(CONFIG_KEYS)}, got {type(config).__name__}")
+    missing = [k for k in CONFIG_KEYS if k not in config]
+    if missing:
+        raise ValueError(f"{source}: missing key(s) {missing}; a train.train config has {list(CONFIG_KEYS)}")
+    if config["algo"] not in ALGOS:
+        raise ValueError(f"{source}: algo must be one of {list(ALGOS)}, got {config['algo']!r}")
+    hp = config["hyperparams"]
+    if not isinstance(hp, dict) or not isinstance(hp.get("n_timesteps"), int) or not isinstance(hp.get("n_envs"), int):
+        raise ValueError(f"{source}: hyperparams must be a mapping with integer n_timesteps and n_envs, got {hp!r}")
+    return config
+
+
+def read_yaml(path: Path) -> Any:
+    """The parsed YAML file; a parse error becomes a one-line ValueError naming the file and the place."""
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except yaml.YAMLError as err:
+        where = getattr(err, "problem_mark", None)
+        at = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
+        raise ValueError(f"{path}: not valid YAML{at} ({getattr(err, 'problem', None) or err})") from None
+
+
+def _space_shapes(space) -> Any:
+    spaces = getattr(space, "spaces", None)
+    if isinstance(spaces, dict):
+        return {k: _space_shapes(v) for k, v in spaces.items()}
+    return tuple(space.shape or ())
+
+
+def check_model(algo: str, path: Path, observation_space=None, action_space=None) -> None:
+    """Raise if ``path`` is not a readable SB3 ``algo`` model for these spaces (when given)."""
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    cls = {"ppo": PPO, "sac": SAC}[algo]
+    try:
+        data, _, _ = load_from_zip_file(path, device="cpu", print_system_info=False)
+    except Exception as err:  # a truncated or foreign file fails in zipfile, json or torch: all mean "unreadable"
+        raise CheckpointError(f"{path} is unreadable (not an SB3 model: {type(err).__name__}: {err})") from None
+    policy = data.get("policy_class") if data else None
+    if not isinstance(policy, type):  # SB3 leaves a dict where it could not unpickle the class
+        raise CheckpointError(f"{path} is unreadable (not an SB3 model: no loadable policy class in its data)")
+    if not issubclass(policy, tuple(cls.policy_aliases.values())):
+        raise ValueError(f"{path} holds a {policy.__module__}.{policy.__qualname__} policy, which is not a "
+                         f"{algo.upper()} policy: "
+                         f"the config says algo: {algo}")
+    for key, space in (("observation_space", observation_space), ("action_space", action_space)):
+        if space is not None and _space_shapes(data[key]) != _space_shapes(space):
+            raise ValueError(f"{path} was trained for another env: its {key} has shapes {_space_shapes(data[key])}, "
+                             f"the env of the config has {_space_shapes(space)}")
+
+
+class RunDir:
+    """The directory ``path`` of one training run (see ``train.train`` for its layout)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self._lock_file = None
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.path)!r})"
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / "config.yaml"
+
+    @property
+    def checkpoint_root(self) -> Path:
+        return self.path / "checkpoints"
+
+    def is_empty(self) -> bool:
+        """True if the directory is missing or holds nothing but a lock file."""
+        return not self.path.exists() or all(p.name == LOCK_NAME for p in self.path.iterdir())
+
+    # -------------------------------------------------------------------- config and evaluations
+    def read_config(self) -> dict[str, Any]:
+        if not self.config_path.exists():
+            raise FileNotFoundError(f"{self.config_path} not found; is {self.path} a train.train run directory?")
+        return validate_config(read_yaml(self.config_path), str(self.config_path))
+
+    def write_config(self, config: dict[str, Any]) -> None:
+        atomic_write_text(self.config_path, yaml.safe_dump(config, sort_keys=False))
+
+    def write_json(self, name: str, value: Any) -> None:
+        atomic_write_text(self.path / name, json.dumps(value, indent=1))
+
+    def read_evaluations(self) -> list[dict[str, Any]]:
+        path = self.path / "evaluations.json"
+        if not path.exists():
+            return []
+        try:
+            return json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: not valid JSON ({err}); expected the list train.train writes") from None
+
+    # -------------------------------------------------------------------- lock
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the run's exclusive lock for the ``with`` block; ``RunLocked`` if a live process holds it."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        f = open(self.path / LOCK_NAME, "a+")
+        try:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                f.seek(0)
+                holder = f.read().strip() or "another process"
+                raise RunLocked(f"{self.path} is in use by {holder}: wait for it to finish (or stop it), "
+                                f"or pick another --out") from None
+            f.seek(0)
+            f.truncate()
+            f.write(f"pid {os.getpid()}")
+            f.flush()
+            yield
+        finally:
+            f.close()  # closing the descriptor releases the flock
+
+    # -------------------------------------------------------------------- checkpoints
+    def checkpoints(self) -> list[Path]:
+        """Complete checkpoint folders (``state.json`` present), newest first."""
+        found = [p for p in self.checkpoint_root.glob("step_*") if (p / "state.json").exists()]
+        return sorted(found, reverse=True)
+
+    def latest_checkpoint(self) -> Path | None:
+        found = self.checkpoints()
+        return found[0] if found else None
+
+    def save_checkpoint(self, model, state: dict[str, Any], keep: int = 2) -> Path:
+        """Model, normaliser, replay buffer (off-policy) and ``state.json`` into ``checkpoints/step_<N>``,
+        filled under a temporary name and renamed; keeps the ``keep`` newest."""
+        final = self.checkpoint_root / f"step_{model.num_timesteps:012d}"
+        tmp = self.checkpoint_root / f".tmp_{final.name}"
+        for stale in self.checkpoint_root.glob(".tmp_step_*"):  # saves cut short; only the lock holder saves
+            shutil.rmtree(stale, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        model.save(tmp / "model.zip")
+        vec_normalize = model.get_vec_normalize_env()
+        if vec_normalize is not None:
+            vec_normalize.save(str(tmp / "vecnormalize.pkl"))
+        if getattr(model, "replay_buffer", None) is not None:
+            model.save_replay_buffer(tmp / "replay_buffer.pkl")
+        (tmp / "state.json").write_text(json.dumps(state, indent=1))  # last: marks the folder complete
+        for f in tmp.iterdir():
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        for old in self.checkpoints()[keep:]:
+            shutil.rmtree(old, ignore_errors=True)
+        return final
+
+    def save_final(self, model) -> None:
+        """The finished run's ``model.zip`` (and ``vecnormalize.pkl``) next to ``config.yaml``."""
+        atomic_save(self.path / "model.zip", model.save)
+        vec_normalize = model.get_vec_normalize_env()
+        if vec_normalize is not None:
+            atomic_save(self.path / "vecnormalize.pkl", lambda tmp: vec_normalize.save(str(tmp)))
