@@ -541,3 +541,10 @@ def test_dtype_moves_rebuild_the_geometry():
     _same_kinematics(chain, fresh, tol=1e-6)
     chain.double()
     _same_kinematics(chain, fresh, tol=1e-6)
+
+
+def test_replaced_buffer_data_rebuilds_the_geometry():
+    chain = robots.iiwa14()
+    _same_kinematics(chain, robots.iiwa14())
+    chain.dh.data = robots.iiwa7().dh.clone()  # no version bump: a new storage
+    _same_kinematics(chain, robots.iiwa7())
