@@ -157,7 +157,9 @@ class DHChain(nn.Module):
     def _check_buffers(self) -> None:
         """The constructor's checks, on the buffers as they are now."""
         _check_table(self.dh)
-        _check_limits(self.limits, self.dh.shape[0])
+        if self.dh.shape[0] != self.n_joints:
+            raise ValueError(f"table must have {self.n_joints} rows (one per joint), got {tuple(self.dh.shape)}")
+        _check_limits(self.limits, self.n_joints)
         kin.check_rigid(self.base, "base")
         kin.check_rigid(self.tool, "tool")
 
@@ -168,7 +170,7 @@ class DHChain(nn.Module):
     # ------------------------------------------------------------------ properties
     @property
     def n_joints(self) -> int:
-        return self.dh.shape[0]
+        return len(self.joint_names)
 
     def extra_repr(self) -> str:
         head = f"name={self.name!r}, convention={self.convention.value!r}, n_joints={self.n_joints}"
