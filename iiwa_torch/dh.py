@@ -130,7 +130,8 @@ class DHChain(nn.Module):
     def _buffer_stamp(self) -> tuple:
         """What identifies the geometry buffers' current contents: each one's version counter
         (bumped by every in-place write, ``load_state_dict``'s copies too) and storage address
-        (``.data =`` and a new buffer change it). Unrolled: it runs on every call (about 0.3 us)."""
+        (``.data =`` and a new buffer change it). Unrolled: it runs on every call (about 0.5 us;
+        ``fk`` of one configuration takes about 20 us)."""
         b = self._buffers
         dh, base, tool, lim = b["dh"], b["base"], b["tool"], b["limits"]
         return (dh._version, base._version, tool._version, lim._version,
