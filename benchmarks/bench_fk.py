@@ -21,7 +21,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 import torch  # noqa: E402
 from common import markdown_table, save, timeit  # noqa: E402
 
-from iiwa_torch import robots  # noqa: E402
+from iiwa_torch import kinematics, robots  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.urdf import to_urdf  # noqa: E402
 
@@ -46,11 +46,13 @@ def matmul_chain(op: str, q: torch.Tensor):
     """The 4x4-product kernel on any batch size (what a plain torch chain does)."""
     if op != "fk":
         return None
-    return lambda: CHAIN._end_pose_matmul(q)
+    g = CHAIN.geometry(q.dtype)
+    return lambda: kinematics.end_pose_matmul(g, q)
 
 
+GEOMETRY = {dtype: CHAIN.geometry(dtype) for dtype in (torch.float32, torch.float64)}
 # Compiled lazily, on first call (once per dtype).
-FUSED = torch.compile(CHAIN._end_pose, dynamic=True)
+FUSED = torch.compile(lambda q: kinematics.end_pose(GEOMETRY[q.dtype], q), dynamic=True)
 
 
 def compiled(op: str, q: torch.Tensor):

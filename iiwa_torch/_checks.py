@@ -25,7 +25,7 @@ def check_float_tensor(x, name: str, shape: str) -> None:
     ``"(..., 4, 4)"``) goes into the message."""
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor of shape {shape}, got {type(x).__name__}")
-    if not x.is_floating_point():
+    if x.dtype not in (torch.float32, torch.float64):
         raise TypeError(f"{name} must be a float32 or float64 tensor, got {x.dtype}")
 
 

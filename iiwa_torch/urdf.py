@@ -17,7 +17,8 @@ from xml.sax.saxutils import quoteattr
 
 import torch
 
-from .dh import Convention, DHChain, _transform
+from .dh import Convention, DHChain
+from .kinematics import elementary_transform
 from .so3 import matrix_to_rpy
 
 __all__ = ["to_urdf"]
@@ -46,11 +47,11 @@ def to_urdf(chain: DHChain, name: str | None = None) -> str:
     carry = chain.base.detach().cpu().to(torch.float64)  # constant transform waiting to be placed
     for i, ((a, alpha, d, offset), joint) in enumerate(zip(dh.tolist(), chain.joint_names)):
         if chain.convention is Convention.STANDARD:
-            origin = carry @ _transform("z", offset)
-            carry = _transform("z", 0.0, (0.0, 0.0, d)) @ _transform("x", alpha, (a, 0.0, 0.0))
+            origin = carry @ elementary_transform("z", offset)
+            carry = elementary_transform("z", 0.0, (0.0, 0.0, d)) @ elementary_transform("x", alpha, (a, 0.0, 0.0))
         else:
-            origin = carry @ _transform("x", alpha, (a, 0.0, 0.0)) @ _transform("z", offset)
-            carry = _transform("z", 0.0, (0.0, 0.0, d))
+            origin = carry @ elementary_transform("x", alpha, (a, 0.0, 0.0)) @ elementary_transform("z", offset)
+            carry = elementary_transform("z", 0.0, (0.0, 0.0, d))
         lines.append(
             f'  <joint name={quoteattr(joint)} type="revolute">'
             f'<parent link="{links[i]}"/><child link="{links[i + 1]}"/>{_origin(origin)}'

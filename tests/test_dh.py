@@ -8,8 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from iiwa_torch import DHChain, robots
-from iiwa_torch.dh import _BLOCK, _POSITION_BLOCK, _SMALL_BATCH, _EndPose
+from iiwa_torch import DHChain, kinematics, robots
+from iiwa_torch.so3 import pose_error
 
 ALL = [robots.iiwa14, robots.iiwa7, robots.puma560, robots.lrmate200ic, robots.planar3r]
 
@@ -83,9 +83,9 @@ def test_position_with_base_and_tool_matches_roboticstoolbox(modified):
     chain = DHChain(robots.lrmate200ic().dh, convention="modified" if modified else "standard", base=base, tool=tool)
     robot = _rtb_robot(chain, modified)
     robot.base, robot.tool = sm.SE3(base.numpy(), check=False), sm.SE3(tool.numpy(), check=False)
-    q = sample(chain, _POSITION_BLOCK + 100, seed=21)  # two blocks of the position kernel
+    q = sample(chain, 70_000, seed=21)  # two blocks of the position kernel (65,536 configurations each)
     got = chain.position(q)
-    for i in [0, 1, 500, _POSITION_BLOCK, _POSITION_BLOCK + 99]:
+    for i in [0, 1, 500, 65_535, 65_536, 69_999]:
         np.testing.assert_allclose(got[i].numpy(), robot.fkine(q[i].numpy()).t, atol=1e-12)
     for part in (q[:1], q[0], q[:50]):  # one configuration in Python floats; the 4x4-product kernel
         np.testing.assert_allclose(chain.position(part).numpy(), chain.fk(part)[..., :3, 3].numpy(), atol=1e-14)
@@ -94,14 +94,14 @@ def test_position_with_base_and_tool_matches_roboticstoolbox(modified):
 @pytest.mark.parametrize("make", [robots.iiwa14, robots.lrmate200ic])  # no offsets; an offset of -pi/2
 def test_position_reuses_the_callers_cos_sin(make):
     chain = make()
-    q = sample(chain, _SMALL_BATCH + 7, seed=24).T  # (n, b): the large-batch kernel
+    q = sample(chain, 135, seed=24).T  # (n, b): above 128, the large-batch kernel
     got = chain.position_batch_last(q, (q.cos(), q.sin()))
     torch.testing.assert_close(got, chain.fk(q.T)[:, :3, 3].T, atol=1e-12, rtol=0)
 
 
 def test_position_gradient_is_the_jacobian():
     chain = robots.iiwa14()
-    for q in (sample(chain, 1, seed=22), sample(chain, _SMALL_BATCH + 1, seed=23)):
+    for q in (sample(chain, 1, seed=22), sample(chain, 129, seed=23)):
         jac = torch.autograd.functional.jacobian(lambda x: chain.position(x).sum(0), q)  # (3, b, 7)
         torch.testing.assert_close(jac.permute(1, 0, 2), chain.jacobian(q)[:, :3], atol=1e-12, rtol=0)
 
@@ -179,7 +179,7 @@ def test_jacobian_equals_autograd_and_finite_differences(preset):
         torch.testing.assert_close(chain.jacobian(q), fd, atol=1e-8, rtol=0)
 
 
-@pytest.mark.parametrize("batch", [1, 3, _SMALL_BATCH + 5])
+@pytest.mark.parametrize("batch", [1, 3, 133])
 def test_gradcheck_fk(batch):
     chain = robots.iiwa14()
     q = sample(chain, batch, seed=7).requires_grad_()
@@ -192,16 +192,18 @@ def test_second_derivatives_through_fk():
     q = sample(chain, 2, seed=15).requires_grad_()
     assert torch.autograd.gradgradcheck(lambda x: chain.fk(x)[..., :3, :], (q,))  # autograd through the kernel
     # the closed-form backward that fk takes above 128 configurations, on a batch small enough to check
-    assert torch.autograd.gradcheck(lambda x: _EndPose.apply(x, chain)[..., :3, :], (q,))
-    assert torch.autograd.gradgradcheck(lambda x: _EndPose.apply(x, chain)[..., :3, :], (q,))
+    g = chain.geometry()
+    assert torch.autograd.gradcheck(lambda x: kinematics.EndPoseFunction.apply(x, g)[..., :3, :], (q,))
+    assert torch.autograd.gradgradcheck(lambda x: kinematics.EndPoseFunction.apply(x, g)[..., :3, :], (q,))
 
 
 def test_closed_form_backward_equals_autograd_through_the_kernels():
     chain = robots.iiwa14(tool=robots.puma560().fk(torch.full((6,), 0.3, dtype=torch.float64)))
-    q = sample(chain, _SMALL_BATCH + 40, seed=16)
+    q = sample(chain, 168, seed=16)
+    g = chain.geometry()
     weights = torch.randn(q.shape[0], 4, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     grads = []
-    for fk in (chain.fk, lambda x: chain._blockwise(x, (4, 4), chain._end_pose)):  # closed form, replayed ops
+    for fk in (chain.fk, lambda x: kinematics.end_pose(g, x)):  # closed form, replayed ops
         x = q.clone().requires_grad_()
         (fk(x) * weights).sum().backward()
         grads.append(x.grad)
@@ -210,9 +212,9 @@ def test_closed_form_backward_equals_autograd_through_the_kernels():
 
 def test_batched_equals_looped_across_kernels_and_blocks():
     chain = robots.iiwa14()
-    q = sample(chain, _BLOCK + 300, seed=8)  # two blocks of the elementwise kernel
+    q = sample(chain, 8492, seed=8)  # two blocks of the elementwise kernel (8,192 configurations each)
     poses, frames, jac = chain.fk(q), chain.fk_all(q), chain.jacobian(q)
-    for i in [0, 1, 4000, _BLOCK - 1, _BLOCK, _BLOCK + 299]:  # one at a time: the 4x4-product kernel
+    for i in [0, 1, 4000, 8191, 8192, 8491]:  # one at a time: the 4x4-product kernel
         torch.testing.assert_close(poses[i], chain.fk(q[i]), atol=1e-14, rtol=0)
         torch.testing.assert_close(frames[i], chain.fk_all(q[i]), atol=1e-14, rtol=0)
         torch.testing.assert_close(jac[i], chain.jacobian(q[i]), atol=1e-14, rtol=0)
@@ -274,7 +276,7 @@ def test_modified_equals_shifted_standard_table():
 @given(st.lists(st.floats(-3.0, 3.0), min_size=7, max_size=7))
 def test_float32_rotations_orthonormal(angles):
     chain = robots.iiwa14()
-    q = torch.tensor(angles, dtype=torch.float32).expand(_SMALL_BATCH + 1, 7)  # elementwise kernel
+    q = torch.tensor(angles, dtype=torch.float32).expand(129, 7)  # above 128: the elementwise kernel
     for pose in (chain.fk(q), chain.fk(q[0])):
         rot = pose[..., :3, :3]
         eye = torch.eye(3).expand_as(rot)
@@ -358,4 +360,191 @@ def test_bad_tables():
     with pytest.raises(ValueError, match="limits must have shape"):
         DHChain([[0, 0, 0, 0]], limits=[[1.0], [-1.0]])
     with pytest.raises(ValueError, match="orthonormal"):
-        DHChain([[0, 0, 0, 0]], tool=torch.full((4, 4), 2.0))
+        DHChain([[0, 0, 0, 0]], tool=torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0])))
+    with pytest.raises(ValueError, match="limits must be finite"):
+        DHChain([[0, 0, 0, 0]], limits=[[-math.inf], [1.0]])
+    with pytest.raises(ValueError, match="limits must be finite"):
+        DHChain([[0, 0, 0, 0]], limits=[[math.nan], [1.0]])
+
+
+@pytest.mark.parametrize("where", ["base", "tool"])
+def test_base_and_tool_must_be_rigid(where):
+    bottom = torch.eye(4, dtype=torch.float64)
+    bottom[3] = torch.tensor([1.0, 2.0, 3.0, 5.0])
+    with pytest.raises(ValueError, match=rf"{where}'s bottom row must be exactly \[0, 0, 0, 1\], got \[1.0, 2.0"):
+        DHChain([[0, 0, 0, 0]], **{where: bottom})
+    with pytest.raises(ValueError, match="determinant"):  # a mirror: orthonormal, det -1
+        DHChain([[0, 0, 0, 0]], **{where: torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0]))})
+    sheared = torch.eye(4, dtype=torch.float64)
+    sheared[0, 1] = 1e-5  # beyond the documented 1e-6
+    with pytest.raises(ValueError, match="orthonormal"):
+        DHChain([[0, 0, 0, 0]], **{where: sheared})
+    sheared[0, 1] = 1e-8  # rounding noise is accepted
+    DHChain([[0, 0, 0, 0]], **{where: sheared})
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_rejected(dtype):
+    chain = robots.iiwa14()
+    for call in (chain.fk, chain.position, chain.jacobian, chain.fk_all):
+        with pytest.raises(TypeError, match=f"float32 or float64 tensor, got {dtype}"):
+            call(torch.zeros(7, dtype=dtype))
+    with pytest.raises(TypeError, match="float32 or float64"):
+        chain.random_q(3, dtype=dtype)
+
+
+def test_random_q_bad_arguments():
+    chain = robots.iiwa14()
+    for shape in [(2.5,), (-1,), (3, -2), (True,)]:
+        with pytest.raises(ValueError, match="non-negative integers, got"):
+            chain.random_q(*shape)
+    with pytest.raises(TypeError, match="float32 or float64, got torch.int64"):
+        chain.random_q(3, dtype=torch.int64)
+    assert chain.random_q(0).shape == (0, 7) and chain.random_q().shape == (7,)
+
+
+def test_meta_and_vmap_give_clear_errors():
+    chain = robots.iiwa14().to("meta")
+    with pytest.raises(ValueError, match="meta tensor, without values"):
+        chain.fk(torch.zeros(3, 7, device="meta"))
+    chain, q = robots.iiwa14(), sample(robots.iiwa14(), 4, seed=30)
+    for method in (chain.fk, chain.position, chain.jacobian):
+        with pytest.raises(TypeError, match=r"torch.func.vmap.*leading dimensions"):
+            torch.func.vmap(method)(q)
+
+
+# ---------------------------------------------------------------- every kernel against the reference
+# Batch sizes across every kernel switch the docs name: 1 (Python floats / numpy), up to 128
+# (4x4 products), above (elementwise), above 8,192 (blocks), above 65,536 (position blocks).
+BATCHES = [1, 2, 100, 128, 129, 1000, 8193, 20000]
+
+
+def _reference(chain, q):
+    return kinematics.reference_fk(chain.dh, q, chain.convention.value == "modified", chain.base, chain.tool)
+
+
+def _with_base_and_tool(modified=False):
+    base = robots.iiwa14().fk(torch.full((7,), 0.2, dtype=torch.float64))
+    tool = robots.puma560().fk(torch.full((6,), -0.4, dtype=torch.float64))
+    return DHChain(robots.lrmate200ic().dh, convention="modified" if modified else "standard", base=base, tool=tool)
+
+
+def test_reference_matches_roboticstoolbox():
+    modified_chain = DHChain(robots.lrmate200ic().dh, convention="modified")
+    for chain, modified in [(robots.lrmate200ic(), False), (modified_chain, True)]:
+        q = sample(chain, 20, seed=31)
+        robot = _rtb_robot(chain, modified)
+        expected = np.stack([robot.fkine(qi).A for qi in q.numpy()])
+        np.testing.assert_allclose(_reference(chain, q)[:, -1].numpy(), expected, atol=1e-12)
+
+
+@pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_every_fast_path_matches_the_reference(make, dtype):
+    chain = make()
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    q_all = sample(chain, max(BATCHES), seed=32)
+    for b in BATCHES:
+        q = q_all[:b]
+        ref = _reference(chain, q).to(dtype)  # computed in float64
+        qd = q.to(dtype)
+        torch.testing.assert_close(chain.fk(qd), ref[:, -1], atol=tol, rtol=0)
+        torch.testing.assert_close(chain.fk_all(qd), ref[:, :-1], atol=tol, rtol=0)
+        torch.testing.assert_close(chain.position(qd), ref[:, -1, :3, 3], atol=tol, rtol=0)
+        torch.testing.assert_close(kinematics.end_pose_matmul(chain.geometry(dtype), qd), ref[:, -1], atol=tol, rtol=0)
+        torch.testing.assert_close(kinematics.position_horner(chain.geometry(dtype), qd.T), ref[:, -1, :3, 3].T,
+                                   atol=tol, rtol=0)
+        # batch last: frames, tool frame and position (with the caller's cos/sin)
+        frames, axes = chain.frames_batch_last(qd.T)
+        got = torch.stack([torch.stack(f, 1) for f in frames])  # (n + 1, 3, 4, b)
+        torch.testing.assert_close(got, ref[:, :-1, :3].permute(1, 2, 3, 0), atol=tol, rtol=0)
+        tool = torch.stack(chain.tool_frame_batch_last(frames[-1]), 1)
+        torch.testing.assert_close(tool, ref[:, -1, :3].permute(1, 2, 0), atol=tol, rtol=0)
+        trig = (qd.T.cos(), qd.T.sin())
+        torch.testing.assert_close(chain.position_batch_last(qd.T, trig), ref[:, -1, :3, 3].T, atol=tol, rtol=0)
+    one = q_all[0].to(dtype)  # one configuration, unbatched: numpy and Python-float paths
+    ref = _reference(chain, q_all[0]).to(dtype)
+    torch.testing.assert_close(chain.fk(one), ref[-1], atol=tol, rtol=0)
+    torch.testing.assert_close(chain.position(one), ref[-1, :3, 3], atol=tol, rtol=0)
+
+
+@pytest.mark.parametrize("b", [1, 2, 129, 1000, 8193])
+def test_gradients_match_autograd_through_the_reference(b):
+    chain = _with_base_and_tool(False)
+    q = sample(chain, b, seed=33)
+    weights = torch.randn(b, 4, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    grads = []
+    for fn in (chain.fk, lambda x: _reference(chain, x)[:, -1]):
+        x = q.clone().requires_grad_()
+        (fn(x) * weights).sum().backward()
+        grads.append(x.grad)
+    torch.testing.assert_close(grads[0], grads[1], atol=1e-11, rtol=0)
+    x = q.clone().requires_grad_()
+    (chain.position(x) * weights[:, :3, 0]).sum().backward()
+    torch.testing.assert_close(x.grad, (chain.jacobian(q)[:, :3] * weights[:, :3, 0, None]).sum(1), atol=1e-11, rtol=0)
+
+
+# ---------------------------------------------------------------- the geometry follows the buffers
+def _same_kinematics(chain, fresh, dtype=torch.float64, tol=1e-12):
+    for b in (1, 100, 1000):
+        q = sample(fresh, b, seed=34).to(dtype)
+        torch.testing.assert_close(chain.fk(q), fresh.fk(q), atol=tol, rtol=0)
+        torch.testing.assert_close(chain.position(q), fresh.position(q), atol=tol, rtol=0)
+        torch.testing.assert_close(chain.jacobian(q), fresh.jacobian(q), atol=tol, rtol=0)
+        torch.testing.assert_close(chain.fk_all(q), fresh.fk_all(q), atol=tol, rtol=0)
+
+
+def test_load_state_dict_from_another_flange_rebuilds_the_geometry():
+    from iiwa_torch.ik import analytic
+
+    tool = robots.puma560().fk(torch.full((6,), 0.3, dtype=torch.float64))
+    chain, other = robots.iiwa14(), robots.iiwa14(flange=0.3, tool=tool)
+    _same_kinematics(robots.iiwa14(), chain)  # the old geometry is cached now
+    chain.load_state_dict(other.state_dict())
+    _same_kinematics(chain, other)
+    q = chain.random_q(200, generator=torch.Generator().manual_seed(35))
+    target = chain.fk(q)
+    sol = analytic.iiwa(chain, target, analytic.iiwa_arm_angle(chain, q))
+    assert sol.reachable.all()
+    pos, rot = pose_error(chain.fk(sol.q), target[:, None])
+    assert pos.norm(dim=-1).max() < 1e-9 and rot.norm(dim=-1).max() < 1e-9
+
+
+def test_in_place_edits_rebuild_the_geometry():
+    chain = robots.lrmate200ic()
+    _same_kinematics(chain, robots.lrmate200ic())
+    chain.dh[2, 2] += 0.05
+    chain.dh[1, 3] = 0.3  # an offset: the small-batch constants and the Horner path
+    chain.tool[2, 3] = 0.2
+    chain.base[:3, 3] = torch.tensor([0.1, -0.2, 0.3])
+    fresh = DHChain(chain.dh.clone(), base=chain.base.clone(), tool=chain.tool.clone(), limits=chain.limits.clone())
+    _same_kinematics(chain, fresh)
+    chain.limits[1, 0] = -1.0
+    assert (chain.random_q(500)[:, 0] <= -1.0).all() and chain.clamp(torch.zeros(6, dtype=torch.float64))[0] == -1.0
+    chain.base[3, 0] = 1.0  # no longer rigid: the next call says so
+    with pytest.raises(ValueError, match="base's bottom row"):
+        chain.fk(torch.zeros(6, dtype=torch.float64))
+
+
+def test_load_state_dict_checks_what_it_loads():
+    chain, state = robots.iiwa14(), robots.iiwa14().state_dict()
+    state["tool"] = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="determinant"):
+        chain.load_state_dict(state)
+
+
+def test_dtype_moves_rebuild_the_geometry():
+    chain, fresh = robots.puma560(), robots.puma560()
+    _same_kinematics(chain, fresh)
+    chain.float()
+    assert chain.geometry().base.dtype == torch.float64  # a float64 view of the float32 buffers
+    _same_kinematics(chain, fresh, tol=1e-6)
+    chain.double()
+    _same_kinematics(chain, fresh, tol=1e-6)
+
+
+def test_replaced_buffer_data_rebuilds_the_geometry():
+    chain = robots.iiwa14()
+    _same_kinematics(chain, robots.iiwa14())
+    chain.dh.data = robots.iiwa7().dh.clone()  # no version bump: a new storage
+    _same_kinematics(chain, robots.iiwa7())

@@ -61,7 +61,7 @@ def _kinematics(chain: DHChain, q: Tensor, Z: Tensor) -> tuple[Tensor, Tensor, T
     frames, axes = chain.frames_batch_last(q)
     torch.stack([z for z, _ in axes], 1, out=Z)
     P = torch.stack([p for _, p in axes], 1)
-    x, y, z, p = chain._tool_frame(frames[-1])
+    x, y, z, p = chain.tool_frame_batch_last(frames[-1])
     return torch.stack([x, y, z]), p, P  # (3, 3, b), (3, b), (3, n, b)
 
 

@@ -1,0 +1,567 @@
+"""Forward-kinematics kernels of a Denavit-Hartenberg chain: pure functions over a :class:`Geometry`.
+
+A :class:`Geometry` is one frozen snapshot of a chain's table, base, tool and limits in one
+dtype and device: Python-float constants for the kernels' code paths and the derived tensors
+they multiply by. :class:`~iiwa_torch.dh.DHChain` derives it from its buffers and rebuilds it
+whenever they change, so a kernel never sees stale geometry; every function here takes it as
+its first argument and has no other state.
+
+Which kernel runs (``b`` configurations):
+
+- :func:`end_pose`, :func:`all_poses`, :func:`jacobian`: up to ``SMALL_BATCH`` (128)
+  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`; one CPU
+  configuration without autograd in numpy); above, the elementwise batch-last kernel
+  :func:`frames_batch_last`, in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`).
+- :func:`position_batch_last`: one CPU configuration in Python floats, up to 128 the ``4x4``
+  products, above Horner's scheme (:func:`position_horner`) in blocks of ``POSITION_BLOCK``.
+- :class:`EndPoseFunction`: ``fk`` above 128 configurations under autograd, whose backward is
+  ``J^T`` times the pose gradient's twist (:func:`pose_vjp`) instead of a replay of the ops.
+
+:func:`reference_fk` is the plain definition, a product of ``4x4`` DH link matrices, that
+every fast path is tested against.
+
+The batch-last API (for hot loops that keep configurations in the last dimension: IK, envs):
+:func:`frames_batch_last`, :func:`tool_frame_batch_last`, :func:`position_batch_last`, each
+``q (n, b)`` in, unchecked.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import reduce
+from itertools import accumulate
+
+import numpy as np
+import torch
+
+__all__ = [
+    "BLOCK",
+    "POSITION_BLOCK",
+    "RIGID_TOL",
+    "SMALL_BATCH",
+    "EndPoseFunction",
+    "Frame",
+    "Geometry",
+    "all_poses",
+    "blockwise",
+    "check_rigid",
+    "elementary_transform",
+    "end_pose",
+    "end_pose_matmul",
+    "frames_batch_last",
+    "jacobian",
+    "pose_vjp",
+    "position_batch_last",
+    "position_horner",
+    "reference_fk",
+    "tool_frame_batch_last",
+]
+
+Tensor = torch.Tensor
+Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
+BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
+POSITION_BLOCK = 65536  # the same for the position kernel, whose working set is a third (measured)
+SMALL_BATCH = 128  # up to this many configurations the 4x4-product kernel is faster (measured)
+RIGID_TOL = 1e-6  # base and tool: |R R^T - I| and |det R - 1| at most this
+_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+
+
+def _exact(v: float) -> float:
+    """Snap cos/sin of a multiple of pi/2 to exactly 0 or +-1 (6e-17 is rounding noise)."""
+    return float(round(v)) if abs(v - round(v)) < 1e-12 else v
+
+
+def _snap_angle(angle: float, tol: float) -> float:
+    """``angle`` (rad), or the multiple of pi/2 within ``tol`` of it."""
+    k = round(angle / (math.pi / 2))
+    return k * (math.pi / 2) if abs(angle - k * (math.pi / 2)) < tol else angle
+
+
+def elementary_transform(rot_axis: str, angle: float = 0.0, shift: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+    """``(4, 4)`` float64: a rotation by ``angle`` (rad) about ``rot_axis`` (``"x"`` or ``"z"``),
+    then the translation ``shift`` (m); cos/sin of multiples of pi/2 are exact."""
+    if rot_axis not in ("x", "z"):
+        raise ValueError(f"rot_axis must be 'x' or 'z', got {rot_axis!r}")
+    c, s = _exact(math.cos(angle)), _exact(math.sin(angle))
+    m = torch.eye(4, dtype=torch.float64)
+    i, j = (1, 2) if rot_axis == "x" else (0, 1)
+    m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+    m[:3, 3] = torch.tensor(shift, dtype=torch.float64)
+    return m
+
+
+def check_rigid(matrix: Tensor, name: str) -> None:
+    """Raise ``ValueError`` unless ``matrix`` is a finite ``(4, 4)`` rigid transform: rotation
+    orthonormal with determinant +1 (within ``RIGID_TOL``), bottom row exactly ``[0, 0, 0, 1]``."""
+    if matrix.shape != (4, 4) or not torch.isfinite(matrix).all():
+        raise ValueError(f"{name} must be a finite 4x4 homogeneous transform, got shape {tuple(matrix.shape)}")
+    m = matrix.detach().cpu().to(torch.float64)
+    if m[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+        raise ValueError(f"{name}'s bottom row must be exactly [0, 0, 0, 1], got {m[3].tolist()}")
+    rot = m[:3, :3]
+    error = (rot @ rot.T - torch.eye(3, dtype=torch.float64)).abs().max().item()
+    if error > RIGID_TOL:
+        raise ValueError(f"{name}'s rotation part is not orthonormal (|R R^T - I| = {error:.3g} > {RIGID_TOL})")
+    det = torch.linalg.det(rot).item()
+    if abs(det - 1.0) > RIGID_TOL:
+        raise ValueError(f"{name}'s rotation part must have determinant +1 (a rotation, not a reflection), got {det}")
+
+
+def _link_coefficients(dh: Tensor, modified: bool) -> Tensor:
+    """``(n, 3, 16)``: ``A_i = cos(theta_i) C0 + sin(theta_i) C1 + C2`` with constant ``C_k``."""
+    rz_cos = torch.diag(torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64))
+    rz_sin = torch.zeros(4, 4, dtype=torch.float64)
+    rz_sin[0, 1], rz_sin[1, 0] = -1.0, 1.0
+    rz_one = torch.diag(torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=torch.float64))
+    coeffs = []
+    for a, alpha, d, _ in dh.tolist():
+        if modified:  # [Rx(alpha) Tx(a)] . Rz(theta) . [Tz(d)]
+            before, after = elementary_transform("x", alpha, (a, 0.0, 0.0)), elementary_transform("z", 0.0, (0, 0, d))
+            terms = [before @ m @ after for m in (rz_cos, rz_sin, rz_one)]
+        else:  # Rz(theta) . [Tz(d) Tx(a) Rx(alpha)]
+            after = elementary_transform("z", 0.0, (0.0, 0.0, d)) @ elementary_transform("x", alpha, (a, 0.0, 0.0))
+            terms = [m @ after for m in (rz_cos, rz_sin, rz_one)]
+        coeffs.append(torch.stack([t.reshape(16) for t in terms]))
+    return torch.stack(coeffs)
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """A chain's geometry in one dtype and device, as the kernels use it (build with :meth:`build`).
+
+    Floats: ``steps`` holds ``(a, cos alpha, sin alpha, d)`` per joint; ``tool_columns`` the
+    tool's rotation columns then its translation; ``base_rows`` the base's top three rows.
+    Tensors (``dtype``, the buffers' device): ``base (4, 4)``, ``limits (2, n)``, the small-batch
+    kernel's ``A_i = cos C0 + sin C1 + C2`` coefficients ``link_trig (n, 2, 16)``,
+    ``link_const (n, 1, 16)`` (``end_*``: the base folded into the first link, the tool into the
+    last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``, ``offsets (n, 1)``,
+    ``offset_trig (2, n, 1)`` their cos and sin; ``end_numpy`` the numpy copies of
+    ``trig_phase, end_trig, end_const`` on the CPU (else ``None``).
+    """
+
+    modified: bool
+    steps: tuple[tuple[float, float, float, float], ...]
+    offset_list: tuple[float, ...]
+    has_base: bool
+    has_tool: bool
+    has_offsets: bool
+    tool_columns: tuple[tuple[float, float, float], ...]
+    base_rows: tuple[tuple[float, float, float, float], ...]
+    base: Tensor
+    limits: Tensor
+    link_trig: Tensor
+    link_const: Tensor
+    end_trig: Tensor
+    end_const: Tensor
+    trig_phase: Tensor
+    offsets: Tensor
+    offset_trig: Tensor
+    end_numpy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.steps)
+
+    @classmethod
+    def build(
+        cls, dh: Tensor, base: Tensor, tool: Tensor, limits: Tensor, modified: bool, dtype: torch.dtype
+    ) -> Geometry:
+        """From a chain's buffers: ``dh (n, 4)``, ``base``, ``tool (4, 4)``, ``limits (2, n)``,
+        in any float dtype, on one device; the tensors of the result are in ``dtype`` there.
+        Twists and offsets within a few ulps (of the buffers' dtype) of a multiple of pi/2 are
+        taken as that multiple: a float32 table's pi/2 is pi/2, as in the float64 table it came from."""
+        device = dh.device
+        snap = 32 * torch.finfo(dh.dtype).eps
+        dh, base, tool = (t.detach().cpu().to(torch.float64) for t in (dh, base, tool))
+        dh = torch.tensor([[a, _snap_angle(al, snap), d, _snap_angle(o, snap)] for a, al, d, o in dh.tolist()],
+                          dtype=torch.float64).reshape(-1, 4)
+        eye = torch.eye(4, dtype=torch.float64)
+        n = dh.shape[0]
+        links = _link_coefficients(dh, modified).view(n, 3, 4, 4)
+        end = links.clone()
+        end[0] = base @ end[0]
+        end[-1] = end[-1] @ tool
+        links, end = links.reshape(n, 3, 16), end.reshape(n, 3, 16)
+        offsets = dh[:, 3]
+        phase = offsets[:, None] + torch.tensor([math.pi / 2, 0.0], dtype=torch.float64)
+
+        def put(t: Tensor) -> Tensor:
+            return t.contiguous().to(device=device, dtype=dtype)
+
+        tensors = {
+            "base": put(base),
+            "limits": limits.detach().to(dtype),
+            "link_trig": put(links[:, :2]),
+            "link_const": put(links[:, 2:]),
+            "end_trig": put(end[:, :2]),
+            "end_const": put(end[:, 2:]),
+            "trig_phase": put(phase[:, None]),
+            "offsets": put(offsets[:, None]),
+            "offset_trig": put(torch.stack([offsets.cos(), offsets.sin()])[..., None]),
+        }
+        end_numpy = None
+        if device.type == "cpu":
+            end_numpy = tuple(tensors[k].numpy() for k in ("trig_phase", "end_trig", "end_const"))
+        offset_list = tuple(offsets.tolist())
+        return cls(
+            modified=modified,
+            steps=tuple((a, _exact(math.cos(al)), _exact(math.sin(al)), d) for a, al, d, _ in dh.tolist()),
+            offset_list=offset_list,
+            has_base=not torch.equal(base, eye),
+            has_tool=not torch.equal(tool, eye),
+            has_offsets=any(offset_list),
+            tool_columns=tuple(map(tuple, tool[:3].T.tolist())),
+            base_rows=tuple(map(tuple, base[:3].tolist())),
+            end_numpy=end_numpy,
+            **tensors,
+        )
+
+
+# ---------------------------------------------------------------------- the reference
+def reference_fk(
+    dh: Tensor, q: Tensor, modified: bool = False, base: Tensor | None = None, tool: Tensor | None = None
+) -> Tensor:
+    """The definition, for tests: ``q (..., n)`` -> ``(..., n + 2, 4, 4)``: the base, link frames
+    ``base A_1 ... A_i`` for i = 1..n, then the end pose (the last frame times the tool), each
+    ``A_i`` a ``4x4`` matrix from the DH row ``(a, alpha, d, offset)``:
+    ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` (standard) or ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` (modified).
+    Computed in ``q``'s dtype, one plain matrix product per joint."""
+    dh = dh.to(q)
+    eye = torch.eye(4, dtype=q.dtype, device=q.device)
+    frame = (eye if base is None else base.to(q)).expand(*q.shape[:-1], 4, 4)
+    frames = [frame]
+    for i, (a, alpha, d, offset) in enumerate(dh.unbind(0)):
+        theta = q[..., i] + offset
+        c, s, zero, one = theta.cos(), theta.sin(), torch.zeros_like(theta), torch.ones_like(theta)
+        rz = torch.stack([c, -s, zero, zero, s, c, zero, zero, zero, zero, one, zero, zero, zero, zero, one], -1)
+        rz = rz.reshape(*theta.shape, 4, 4)
+        tz, tx, rx = eye.clone(), eye.clone(), eye.clone()
+        tz[2, 3], tx[0, 3] = d, a
+        rx[1, 1], rx[1, 2], rx[2, 1], rx[2, 2] = alpha.cos(), -alpha.sin(), alpha.sin(), alpha.cos()
+        link = rx @ tx @ rz @ tz if modified else rz @ tz @ tx @ rx
+        frame = frame @ link
+        frames.append(frame)
+    frames.append(frame @ (eye if tool is None else tool.to(q)))
+    return torch.stack(frames, -3)
+
+
+# ---------------------------------------------------------------------- elementwise helpers
+def _rotate_z(x: Tensor, y: Tensor, c: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    """Rotate the frame axes x, y about its own z by the angle with cosine c and sine s."""
+    return torch.addcmul(c * x, s, y), torch.addcmul(c * y, s, x, value=-1)
+
+
+def _rotate_x(y, z, ca: float, sa: float):
+    """Rotate the frame axes y, z about its own x by a constant angle (cosine ca, sine sa).
+    With ``-sa``, it rotates the y, z coordinates of points instead. Tensors or floats."""
+    if ca == 0.0:  # alpha = +-pi/2: a swap and a sign flip
+        return (z, -y) if sa > 0 else (-z, y)
+    if sa == 0.0:  # alpha = 0 or pi
+        return (y, z) if ca > 0 else (-y, -z)
+    return ca * y + sa * z, ca * z - sa * y
+
+
+def _rotate_point_z(x, y, c, s) -> tuple:
+    """The x, y coordinates of points rotated about z by the angle with cosine c and sine s:
+    ``(c x - s y, s x + c y)``. ``x`` and ``y`` are tensors or floats (a point on the z axis
+    stays there); ``c`` and ``s`` are tensors, or floats when everything is."""
+    if not isinstance(x, Tensor) and not isinstance(y, Tensor) and x == y == 0.0:
+        return x, y
+    if not isinstance(c, Tensor):  # one configuration, in Python floats
+        return c * x - s * y, s * x + c * y
+    return _multiply_add(c * x, s, y, -1.0), _multiply_add(s * x, c, y, 1.0)
+
+
+def _multiply_add(u: Tensor, v: Tensor, w, sign: float) -> Tensor:
+    """``u + sign * v * w`` in one op, ``w`` a tensor or a float."""
+    return torch.addcmul(u, v, w, value=sign) if isinstance(w, Tensor) else torch.add(u, v, alpha=sign * w)
+
+
+def _combine(vectors: Sequence[Tensor], coefficients: Sequence[float], start: Tensor | None = None) -> Tensor:
+    """``start + sum_k c_k v_k`` for ``(3, b)`` vectors and Python-float coefficients, with no op
+    for a zero coefficient (nor for a lone unit one): a flange offset along z is one multiply-add."""
+    out = start
+    for v, c in zip(vectors, coefficients):
+        if c != 0.0:
+            out = (v if c == 1.0 else v * c) if out is None else torch.add(out, v, alpha=c)
+    return out
+
+
+def _cross(u, v) -> tuple[Tensor, Tensor, Tensor]:
+    """Cross product of vectors given by their components ``u[0..2]``, ``v[0..2]`` (tensors that
+    broadcast): six elementwise ops on contiguous rows, several times faster here than
+    ``torch.linalg.cross`` along a middle dimension."""
+    return (
+        torch.addcmul(u[1] * v[2], u[2], v[1], value=-1),
+        torch.addcmul(u[2] * v[0], u[0], v[2], value=-1),
+        torch.addcmul(u[0] * v[1], u[1], v[0], value=-1),
+    )
+
+
+def _off_torch_ok(q: Tensor) -> bool:
+    """On the CPU with nothing to differentiate: one configuration may be computed outside torch
+    (numpy, Python floats), whose per-call overhead is a fraction of torch's."""
+    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
+
+
+# ---------------------------------------------------------------------- batch last
+# Frames are "batch last": a (F, 3, 4, b) tensor of frame, row, column (x, y, z axes, origin)
+# and configuration, with F = n + 1 (base and links) if ``keep``, else 1 (the last link).
+# Batch last keeps every elementwise op contiguous.
+
+
+def _cos_sin(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """``q (n, b)`` -> cosine and sine of the joint angles plus offsets, each ``(n, b)`` contiguous.
+
+    ``trig``: the caller's cosine and sine of ``q`` itself, reused (rotated by the offsets
+    if the chain has any) instead of computed again."""
+    if trig is None:
+        theta = (q + g.offsets).contiguous()
+        return torch.cos(theta), torch.sin(theta)
+    c, s = trig
+    if not g.has_offsets:
+        return c, s
+    co, so = g.offset_trig  # cos(q + o) = c co - s so, sin(q + o) = s co + c so
+    return torch.addcmul(c * co, s, so, value=-1), torch.addcmul(s * co, c, so)
+
+
+def frames_batch_last(g: Geometry, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
+    """The elementwise kernel, batch last: ``q (n, b)`` joint angles (not checked) ->
+    ``(frames, axes)``. ``frames`` holds ``(x, y, z, p)``, the axis columns and the origin of a
+    frame, each ``(3, b)``, for the base and every link if ``keep`` (else only the last link);
+    ``axes`` holds ``(z_i, p_i)``, joint i's axis and a point on it (if ``keep``). The tool is
+    not applied (:func:`tool_frame_batch_last`). The moving frame's axes are rotated with
+    elementwise multiply-adds over the whole batch; the constant twists (``alpha`` of 0 or
+    +-pi/2) are swaps and sign flips; no 4x4 products."""
+    c, s = _cos_sin(g, q)
+    x, y, z, p = g.base[:3, :, None].expand(3, 4, q.shape[1]).unbind(1)  # each (3, b)
+    frames, axes = [(x, y, z, p)], []
+    modified = g.modified
+    for i, (a, ca, sa, d) in enumerate(g.steps):
+        if modified:
+            y, z = _rotate_x(y, z, ca, sa)
+            p = torch.add(p, x, alpha=a) if a else p
+        if keep:
+            axes.append((z, p))
+        x, y = _rotate_z(x, y, c[i], s[i])
+        p = torch.add(p, z, alpha=d) if d else p
+        if not modified:
+            p = torch.add(p, x, alpha=a) if a else p
+            y, z = _rotate_x(y, z, ca, sa)
+        if keep:
+            frames.append((x, y, z, p))
+    return (frames if keep else [(x, y, z, p)]), axes
+
+
+def tool_frame_batch_last(g: Geometry, frame: Frame) -> Frame:
+    """The last link frame ``(x, y, z, p)``, each ``(3, b)``, -> the end-effector (tool) frame."""
+    if not g.has_tool:
+        return frame
+    axes, columns = frame[:3], g.tool_columns
+    return (*(_combine(axes, column) for column in columns[:3]), _combine(axes, columns[3], start=frame[3]))
+
+
+def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """The end-effector position alone: ``q (n, b)`` -> ``(3, b)``, batch last, not checked.
+    One CPU configuration without autograd is computed in Python floats, up to ``SMALL_BATCH``
+    configurations take the 4x4 product kernel, more :func:`position_horner`.
+
+    ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if the caller has them (the envs'
+    observations do): large batches then skip their own trigonometry."""
+    b = q.shape[1]
+    if b == 1 and _off_torch_ok(q):
+        return _position_floats(g, q)
+    if b <= SMALL_BATCH:
+        return end_pose_matmul(g, q.T)[:, :3, 3].T
+    return position_horner(g, q, trig)
+
+
+def _carry_tool_point(g: Geometry, c, s) -> tuple:
+    """Horner's scheme: the tool point carried through ``A_n, ..., A_1`` from the end of the
+    chain. ``c``, ``s``: per joint, the cosine and sine of its angle (rows of ``b``, or Python
+    floats for one configuration) -> the point's three coordinates before the base transform.
+
+    Per joint, a rotation of the point's coordinates instead of a rotation of three frame
+    axes: about a third of the elementwise work of :func:`frames_batch_last`. Coordinates
+    stay Python floats while they are constant (the tool point on the last axes), so those
+    joints cost nothing."""
+    v0, v1, v2 = g.tool_columns[3]
+    standard = not g.modified
+    for i, (a, ca, sa, d) in reversed(list(enumerate(g.steps))):
+        if standard:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
+            v1, v2 = _rotate_x(v1, v2, ca, -sa)
+            v0 = v0 + a if a else v0
+        v2 = v2 + d if d else v2
+        v0, v1 = _rotate_point_z(v0, v1, c[i], s[i])
+        if not standard:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
+            v0 = v0 + a if a else v0
+            v1, v2 = _rotate_x(v1, v2, ca, -sa)
+    return v0, v1, v2
+
+
+def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """``q (n, b)`` -> ``(3, b)`` end-effector positions, elementwise (Horner's scheme from the
+    tool point back), in blocks of ``POSITION_BLOCK`` configurations that keep the working set
+    in cache. Any batch size; :func:`position_batch_last` uses it above ``SMALL_BATCH``."""
+    c, s = _cos_sin(g, q, trig)
+    blocks = []
+    for i in range(0, q.shape[1], POSITION_BLOCK):
+        cb, sb = c[:, i : i + POSITION_BLOCK], s[:, i : i + POSITION_BLOCK]
+        blocks.append(torch.stack([v if isinstance(v, Tensor) else cb[0].new_full(cb[0].shape, v)
+                                   for v in _carry_tool_point(g, cb, sb)]))
+    point = blocks[0] if len(blocks) == 1 else torch.cat(blocks, 1)
+    if not g.has_base:
+        return point
+    return torch.addmm(g.base[:3, 3, None], g.base[:3, :3], point)
+
+
+def _position_floats(g: Geometry, q: Tensor) -> Tensor:
+    """One configuration ``(n, 1)`` -> its ``(3, 1)`` position, computed in Python floats
+    (double precision): fewer instructions than even one chain of small numpy products."""
+    theta = [t + offset for (t,), offset in zip(q.tolist(), g.offset_list)]
+    point = _carry_tool_point(g, [math.cos(t) for t in theta], [math.sin(t) for t in theta])
+    if g.has_base:
+        point = [row[3] + row[0] * point[0] + row[1] * point[1] + row[2] * point[2] for row in g.base_rows]
+    return torch.from_numpy(np.array(point, dtype=_NUMPY_DTYPES[q.dtype]).reshape(3, 1))
+
+
+# ---------------------------------------------------------------------- batch first, small batches
+def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
+    """``(b, n)`` -> the n link transforms ``A_i``, each ``(b, 4, 4)``, or ``(4, 4)`` if b is 1
+    (``mm`` on matrices costs half of ``bmm`` on a batch of one). With ``end``, the base is
+    folded into the first and the tool into the last. Each ``A_i`` is linear in the cosine
+    and sine of its angle, so one batched product with constant coefficients builds them all."""
+    n, b = g.n_joints, q.shape[0]
+    trig = torch.sin(q.T.unsqueeze(-1) + g.trig_phase)  # (n, b, 2): cos, sin
+    coeffs, const = (g.end_trig, g.end_const) if end else (g.link_trig, g.link_const)
+    links = torch.baddbmm(const, trig, coeffs)  # (n, b, 16)
+    return links.view(n, 4, 4).unbind(0) if b == 1 else links.view(n, b, 4, 4).unbind(0)
+
+
+def end_pose_matmul(g: Geometry, q: Tensor) -> Tensor:
+    """The small-batch kernel: ``q (b, n) -> (b, 4, 4)`` end poses (tool included), a chain of
+    4x4 products (any batch size; one CPU configuration without autograd in numpy)."""
+    if q.shape[0] == 1 and _off_torch_ok(q):
+        return torch.from_numpy(_end_pose_numpy(g, q)[None])
+    product = torch.mm if q.shape[0] == 1 else torch.bmm
+    return reduce(product, _link_matrices(g, q, end=True)).view(q.shape[0], 4, 4)
+
+
+def _end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
+    """One configuration, ``(1, n)`` or ``(n, 1)`` -> its ``(4, 4)`` end pose: the same products
+    as :func:`_link_matrices` and :func:`end_pose_matmul`, in numpy. Its latency is all per-call
+    overhead, and numpy's is about a third of torch's (measured: one call about half as long)."""
+    phase, coeffs, const = g.end_numpy
+    trig = np.sin(q.numpy().reshape(-1, 1, 1) + phase)  # (n, 1, 2): cos, sin
+    return reduce(np.matmul, (const + trig @ coeffs).reshape(-1, 4, 4))
+
+
+def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:
+    """Small batches: ``(b, n) -> (n + 1, b, 4, 4)``: the base and every link frame."""
+    b = q.shape[0]
+    product, base = (torch.mm, g.base) if b == 1 else (torch.bmm, g.base.expand(b, 4, 4))
+    links = _link_matrices(g, q, end=False)
+    if g.has_base:
+        frames = list(accumulate(links, product, initial=base))
+    else:
+        frames = [base, *accumulate(links, product)]
+    return torch.stack(frames).view(g.n_joints + 1, b, 4, 4)
+
+
+# ---------------------------------------------------------------------- batch first, any size
+def _axes(g: Geometry, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(b, n)`` -> joint axes ``z (n, 3, b)``, a point on each ``(n, 3, b)`` and the end
+    position ``(3, b)``: what the Jacobian needs, without stacking whole frames."""
+    if q.shape[0] <= SMALL_BATCH:
+        frames = _frames_matmul(g, q)[:, :, :3].permute(0, 2, 3, 1)  # (n + 1, 3, 4, b), a view
+        axes = frames[1:] if g.modified else frames[:-1]
+        return axes[:, :, 2], axes[:, :, 3], tool_frame_batch_last(g, frames[-1].unbind(1))[3]
+    frames, axes = frames_batch_last(g, q.T)
+    z, origin = (torch.stack(column) for column in zip(*axes))
+    return z, origin, tool_frame_batch_last(g, frames[-1])[3]
+
+
+def _poses(frames: Tensor) -> Tensor:
+    """``(F, 3, 4, b)`` -> ``(b, F, 4, 4)`` homogeneous matrices."""
+    top = frames.permute(3, 0, 1, 2)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=top.dtype, device=top.device)
+    return torch.cat([top, bottom.expand(*top.shape[:2], 1, 4)], -2)
+
+
+def blockwise(q: Tensor, n: int, shape: tuple[int, ...], fn, *others: Tensor) -> Tensor:
+    """Apply ``fn: (b, n), *others' blocks -> (b, *shape)`` to blocks of at most ``BLOCK``
+    configurations of ``q (..., n)`` (so each block's intermediates stay in the CPU cache)
+    and return ``(..., *shape)``. ``others`` share ``q``'s leading batch shape."""
+    flat = q.reshape(-1, n)
+    rest = [o.reshape(flat.shape[0], *o.shape[q.ndim - 1 :]) for o in others]
+    if flat.shape[0] <= BLOCK:
+        out = fn(flat, *rest)
+    else:
+        out = q.new_empty(flat.shape[0], *shape)
+        for start in range(0, flat.shape[0], BLOCK):
+            block = slice(start, start + BLOCK)
+            out[block] = fn(flat[block], *(o[block] for o in rest))
+    return out.reshape(*q.shape[:-1], *shape)
+
+
+def end_pose(g: Geometry, q: Tensor) -> Tensor:
+    """``q (b, n) -> (b, 4, 4)`` end poses: :func:`end_pose_matmul` up to ``SMALL_BATCH``
+    configurations, else the elementwise kernel (one block: see :func:`blockwise`)."""
+    if q.shape[0] <= SMALL_BATCH:
+        return end_pose_matmul(g, q)
+    frames, _ = frames_batch_last(g, q.T, keep=False)
+    return _poses(torch.stack(tool_frame_batch_last(g, frames[0]), 1)[None])[:, 0]
+
+
+def all_poses(g: Geometry, q: Tensor) -> Tensor:
+    """``q (b, n) -> (b, n + 1, 4, 4)``: the base and every link frame (no tool)."""
+    if q.shape[0] <= SMALL_BATCH:
+        return _frames_matmul(g, q).transpose(0, 1)
+    frames, _ = frames_batch_last(g, q.T)
+    return _poses(torch.stack([torch.stack(f, 1) for f in frames], 0))
+
+
+def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
+    """The backward pass of :func:`end_pose`: angles ``(b, n)``, their end poses ``(b, 4, 4)`` and
+    the gradient of a loss with respect to those poses -> its gradient ``(b, n)`` with
+    respect to the angles, computed batch last:
+    ``dL/dq_i = z_i . ((p_e - p_i) x g + w)``, with ``g = dL/dp`` and ``w = sum_k R[:, k] x G[:, k]``
+    (``G = dL/dR``) the axial vector of ``R G^T``."""
+    z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
+    gt = grad[:, :3].permute(1, 2, 0).contiguous()  # (3, 4, b): rows of dL/dT, batch last
+    w = [c.sum(0) for c in _cross(pose[:, :3, :3].permute(1, 2, 0), gt[:, :3])]  # sum over columns k
+    moment = [m + wc for m, wc in zip(_cross(end, gt[:, 3]), w)]  # (p_e x g + w), each (b,)
+    z, lever_x_g = z.unbind(1), _cross(origin.unbind(1), gt[:, 3])  # each (n, b)
+    return sum(zc * (mc - pc) for zc, mc, pc in zip(z, moment, lever_x_g)).T
+
+
+def jacobian(g: Geometry, q: Tensor) -> Tensor:
+    """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first)."""
+    z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
+    z = z.unbind(1)
+    rows = (*_cross(z, (end - origin).unbind(1)), *z)  # 6 x (n, b)
+    return torch.stack([row.T for row in rows], 1)  # (b, 6, n): the transpose happens in this one copy
+
+
+class EndPoseFunction(torch.autograd.Function):
+    """``EndPoseFunction.apply(q, g)``: ``q (..., n) -> (..., 4, 4)`` end poses with a closed-form
+    backward: the pose moves as ``dT/dq_i = [z_i]x T`` about joint i's axis, so
+    ``dL/dq = J^T [g_p; w]``, with ``g_p = dL/dp`` and ``w`` the axial vector of ``R (dL/dR)^T``
+    (:func:`pose_vjp`): the joint axes instead of a replay of every op of the forward."""
+
+    @staticmethod
+    def forward(q: Tensor, g: Geometry) -> Tensor:
+        return blockwise(q, g.n_joints, (4, 4), lambda qb: end_pose(g, qb))
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.geometry = inputs[1]
+        ctx.save_for_backward(inputs[0], output)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        q, pose = ctx.saved_tensors
+        g = ctx.geometry
+        return blockwise(q, g.n_joints, (g.n_joints,), lambda *a: pose_vjp(g, *a), pose, grad), None
