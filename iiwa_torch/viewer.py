@@ -169,9 +169,8 @@ class Viewer:
             for i in self._segments
         ]
         # Joint i turns about the z axis of frame i - 1 (standard DH) or of frame i (modified DH).
-        self._axis_frames = list(range(chain.n_joints)) if chain.convention == Convention.STANDARD else list(
-            range(1, chain.n_joints + 1)
-        )
+        first = 0 if chain.convention == Convention.STANDARD else 1
+        self._axis_frames = list(range(first, first + chain.n_joints))
         self._joints = [
             scene.add_cylinder(f"/arm/joint{i + 1}", radius=1.5 * radius, height=5 * radius, color=_JOINT_COLOUR)
             for i in range(chain.n_joints)
@@ -189,12 +188,12 @@ class Viewer:
     def _build_gui(self) -> None:
         gui = self.server.gui
         gui.add_markdown(f"**{self.chain.name}**: drag the target or move the sliders")
-        self._sliders = []
+        self.sliders = []  # one viser slider per joint, degrees; assigning a value moves that joint
         for i, name in enumerate(self.chain.joint_names):
             lo, hi = (math.degrees(v) for v in self._limits[:, i].tolist())
             slider = gui.add_slider(f"{name} (deg)", min=lo, max=hi, step=0.1, initial_value=(lo + hi) / 2)
             slider.on_update(self._slider_callback(i))
-            self._sliders.append(slider)
+            self.sliders.append(slider)
         self._readout_md = gui.add_markdown("")
         self._status_md = gui.add_markdown("")
         self._show_frames = gui.add_checkbox("show frames", False)
@@ -206,22 +205,33 @@ class Viewer:
                 if self._syncing:
                     return
                 q = self._q.clone()
-                q[i] = math.radians(self._sliders[i].value)
+                q[i] = math.radians(self.sliders[i].value)
                 self._q = self.chain.clamp(q)
                 self._draw(move_target=True)
 
         return on_slider
 
     def _on_target(self, event) -> None:
-        # Drag updates arrive faster than solves end: each callback records its pose and
-        # only the newest one still waiting when the lock frees is solved.
-        wxyz, position = np.asarray(event.target.wxyz), np.asarray(event.target.position)
+        self.drag_target(event.target.wxyz, event.target.position)
+
+    def drag_target(self, wxyz, position) -> None:
+        """What a drag of the target gizmo does: :meth:`solve_target` for the pose with quaternion
+        ``wxyz (4,)`` (w, x, y, z) and ``position (3,)`` metres, unless a newer drag came meanwhile.
+
+        Drag updates arrive faster than solves end: each call records its turn and only the
+        newest one still waiting when the lock frees is solved.
+        """
+        wxyz, position = np.asarray(wxyz, dtype=np.float64), np.asarray(position, dtype=np.float64)
+        if wxyz.shape != (4,) or position.shape != (3,) or not np.isfinite(np.r_[wxyz, position]).all():
+            raise ValueError(f"wxyz must be 4 and position 3 finite numbers, got {wxyz.tolist()}, {position.tolist()}")
+        if not np.linalg.norm(wxyz) > 1e-9:
+            raise ValueError(f"wxyz must be a nonzero quaternion, got {wxyz.tolist()}")
         with self._lock:
             self._target_seq += 1
             seq = self._target_seq
         pose = torch.eye(4, dtype=torch.float64)
-        pose[:3, :3] = so3.quaternion_to_matrix(torch.as_tensor(wxyz, dtype=torch.float64))
-        pose[:3, 3] = torch.as_tensor(position, dtype=torch.float64)
+        pose[:3, :3] = so3.quaternion_to_matrix(torch.as_tensor(wxyz))
+        pose[:3, 3] = torch.as_tensor(position)
         with self._lock:
             if seq == self._target_seq:
                 self.solve_target(pose)
@@ -251,7 +261,7 @@ class Viewer:
                 self._target.position, self._target.wxyz = points[-1], frame_quats[-1]
             self._syncing = True
             try:
-                for slider, angle in zip(self._sliders, torch.rad2deg(self._q).tolist()):
+                for slider, angle in zip(self.sliders, torch.rad2deg(self._q).tolist()):
                     slider.value = min(max(round(angle, 1), slider.min), slider.max)
             finally:
                 self._syncing = False

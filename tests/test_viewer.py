@@ -63,7 +63,16 @@ def test_set_q_moves_the_readout_to_fk(chain, viewer):
         np.testing.assert_allclose(_rpy_matrix(*out.rpy_deg), pose[:3, :3], atol=1e-9)
         torch.testing.assert_close(viewer.q, q)
         # the sliders show the angles in degrees, to their 0.1 deg step
-        np.testing.assert_allclose([s.value for s in viewer._sliders], np.degrees(q.numpy()), atol=0.051)
+        np.testing.assert_allclose([s.value for s in viewer.sliders], np.degrees(q.numpy()), atol=0.051)
+
+
+def test_a_slider_moves_its_joint(chain, viewer):
+    viewer.set_q(torch.zeros(7, dtype=torch.float64))
+    viewer.sliders[1].value = 30.0  # what a browser's slider does: assign the value, callbacks run
+    expected = torch.zeros(7, dtype=torch.float64)
+    expected[1] = math.radians(30.0)
+    torch.testing.assert_close(viewer.q, expected)
+    np.testing.assert_allclose(viewer.readout().xyz, chain.fk(expected)[:3, 3].numpy(), atol=1e-12)
 
 
 def test_set_q_rejects_bad_input(chain, viewer):
@@ -87,6 +96,21 @@ def test_solve_target_reaches_an_fk_pose(chain, viewer):
     assert float((reached[:3, :3] - target[:3, :3]).abs().max()) < 1e-3
     assert viewer.status.startswith("reached")
     np.testing.assert_allclose(viewer.readout().xyz, target[:3, 3].numpy(), atol=1e-4)
+
+
+def test_dragging_the_target_solves_its_pose(chain, viewer):
+    viewer.set_q(torch.zeros(7, dtype=torch.float64))
+    q = torch.tensor([0.4, 0.7, -0.3, -1.1, 0.5, 0.9, 0.2], dtype=torch.float64)
+    target = chain.fk(q).numpy()
+    w = math.sqrt(1 + np.trace(target[:3, :3])) / 2  # quaternion of the target, written out (w > 0 here)
+    m = target[:3, :3]
+    wxyz = [w, (m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w)]
+    viewer.drag_target(wxyz, target[:3, 3])
+    reached = chain.fk(viewer.q).numpy()
+    assert np.linalg.norm(reached[:3, 3] - target[:3, 3]) < 1e-4
+    np.testing.assert_allclose(reached[:3, :3], target[:3, :3], atol=1e-3)
+    with pytest.raises(ValueError, match="wxyz"):
+        viewer.drag_target([1.0, 0.0, 0.0], target[:3, 3])
 
 
 def test_unreachable_target_keeps_a_finite_arm(chain, viewer):
