@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import math
+import os
 import shutil
+import signal
 import socket
 import subprocess
+import sys
 import tempfile
+import time
+import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -178,3 +183,29 @@ def test_headless_chromium_draws_the_arm(chain, tmp_path):
         assert m.sum() > 300, f"{p.name}: only {m.sum()} orange pixels, the arm is not drawn"
     overlap = (masks[0] & masks[1]).sum() / (masks[0] | masks[1]).sum()
     assert overlap < 0.5, f"the two configurations look alike (orange overlap {overlap:.2f})"
+
+
+def test_ctrl_c_stops_the_server_cleanly():
+    port = _free_port()
+    code = f"from iiwa_torch import robots, viewer\nviewer.show(robots.planar3r(), port={port})\nprint('stopped')"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # a background shell may ignore it
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                assert urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2).status == 200
+                break
+            except OSError:
+                assert proc.poll() is None and time.monotonic() < deadline, "the viewer did not start"
+                time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out
+    assert out.rstrip().endswith("stopped"), out
