@@ -280,8 +280,8 @@ def show(chain: DHChain, q: torch.Tensor | None = None, host: str = "127.0.0.1",
     viewer = Viewer(chain, q, host=host, port=port)
     if not block:
         return viewer
-    print(f"iiwa-torch viewer of {chain.name} at http://{host}:{port} (Ctrl-C to stop)")
     try:
+        print(f"iiwa-torch viewer of {chain.name} at http://{host}:{port} (Ctrl-C to stop)", flush=True)
         threading.Event().wait()
     except KeyboardInterrupt:
         pass
