@@ -219,3 +219,10 @@ def test_ctrl_c_stops_the_server_cleanly():
     out = "".join(lines)
     assert proc.returncode == 0, out
     assert out.rstrip().endswith("stopped"), out
+
+
+def test_importing_the_module_does_not_import_viser():
+    code = "import sys, iiwa_torch, iiwa_torch.viewer; print('viser' in sys.modules)"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.strip() == "False", out.stdout + out.stderr
