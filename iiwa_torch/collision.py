@@ -37,27 +37,38 @@ __all__ = [
 ]
 
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+_BLOCK = 4096  # configurations per block of the robot's own distances
 _BOX_ITERATIONS = 48  # golden-section steps: the bracket shrinks to 0.618**48 ~ 1e-10 of the segment
 
 
 # ---------------------------------------------------------------------------- distance kernels
-def _safe_norm(v: Tensor) -> Tensor:
-    """``|v|`` over the last axis, with a zero (not NaN) gradient at ``v = 0``."""
-    sq = (v * v).sum(-1)
+Vec = tuple[Tensor, Tensor, Tensor]  # x, y, z components, each (...): a vector field, component first
+
+
+def _dot(u: Vec, v: Vec) -> Tensor:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _root(sq: Tensor) -> Tensor:
+    """``sqrt(sq)`` with a zero (not NaN) gradient at ``sq = 0``."""
     positive = sq > 0
     return torch.where(positive, torch.where(positive, sq, 1.0).sqrt(), 0.0)
 
 
-def _segment_parameters(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> tuple[Tensor, Tensor]:
-    """Closest-point parameters ``s, t`` in [0, 1] of segments ``p1 q1`` and ``p2 q2`` (each
-    ``(..., 3)``), without gradients. Parallel segments take ``s0 = 0``; a segment shorter than
-    ~``eps`` metres is a point. The last step (``s`` from the clamped ``t``) makes the
-    result exact in every case of the clamped quadratic (Ericson, Real-Time Collision
-    Detection, 5.1.9)."""
+def _safe_norm(v: Tensor) -> Tensor:
+    """``|v|`` over the last axis, with a zero gradient at ``v = 0``."""
+    return _root((v * v).sum(-1))
+
+
+def _segment_gap(p1: Vec, d1: Vec, p2: Vec, d2: Vec) -> Tensor:
+    """Distance between segments ``p1 + s d1`` and ``p2 + t d2``, ``s, t`` in [0, 1] (components
+    broadcast). The closest-point parameters are found without gradients; parallel segments
+    take ``s0 = 0`` and a segment shorter than ~``eps`` metres is a point. The last step
+    (``s`` from the clamped ``t``) makes the result exact in every case of the clamped
+    quadratic (Ericson, Real-Time Collision Detection, 5.1.9)."""
     with torch.no_grad():
-        d1, d2, r = q1 - p1, q2 - p2, p1 - p2
-        a, e, b = (d1 * d1).sum(-1), (d2 * d2).sum(-1), (d1 * d2).sum(-1)
-        c, f = (d1 * r).sum(-1), (d2 * r).sum(-1)
+        r = tuple(a - b for a, b in zip(p1, p2))
+        a, e, b, c, f = _dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r)
         eps = torch.finfo(a.dtype).eps
         point_a, point_e = a <= eps * eps, e <= eps * eps
         denom = a * e - b * b
@@ -65,14 +76,15 @@ def _segment_parameters(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> tuple
         s = torch.where(skew, ((b * f - c * e) / torch.where(skew, denom, 1.0)).clamp(0, 1), 0.0)
         t = torch.where(point_e, 0.0, ((b * s + f) / torch.where(point_e, 1.0, e)).clamp(0, 1))
         s = torch.where(point_a, 0.0, ((b * t - c) / torch.where(point_a, 1.0, a)).clamp(0, 1))
-    return s, t
+    w = [x1 + s * u1 - x2 - t * u2 for x1, u1, x2, u2 in zip(p1, d1, p2, d2)]
+    return _root(_dot(w, w))
 
 
 def segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
     """Distance between segments ``p1 q1`` and ``p2 q2``: ``(..., 3)`` each (broadcast) -> ``(...)``
     metres. A zero-length segment is a point. Differentiable in all four end points."""
-    s, t = _segment_parameters(p1, q1, p2, q2)
-    return _safe_norm(p1 + s[..., None] * (q1 - p1) - p2 - t[..., None] * (q2 - p2))
+    p1, d1, p2, d2 = (v.unbind(-1) for v in (p1, q1 - p1, p2, q2 - p2))
+    return _segment_gap(p1, d1, p2, d2)
 
 
 def _box_sdf(local: Tensor, half: Tensor) -> Tensor:
@@ -220,26 +232,34 @@ def self_collision_pairs(
     links on either side of a joint) and pairs that overlap in every one of ``samples``
     uniform in-limit configurations (drawn with ``seed``): those touch by construction."""
     q = chain.random_q(samples, generator=torch.Generator().manual_seed(seed))
-    ends = _world_points(chain, capsules, q)  # (samples, K, 2, 3)
+    start, direction = _capsule_segments(chain, capsules, q)  # components (K, samples)
     k = len(capsules.names)
     candidates = [(i, j) for i in range(k) for j in range(i + 2, k)]
     if not candidates:
         return ()
-    i, j = torch.tensor(candidates).T
-    gap = (
-        segment_distance(ends[:, i, 0], ends[:, i, 1], ends[:, j, 0], ends[:, j, 1])
-        - capsules.radii[i]
-        - capsules.radii[j]
-    )
-    keep = (gap > 0).any(0).tolist()
+    gap = _pair_gaps(start, direction, capsules.radii, candidates)
+    keep = (gap > 0).any(1).tolist()
     return tuple(pair for pair, ok in zip(candidates, keep) if ok)
 
 
-def _world_points(chain: DHChain, capsules: Capsules, q: Tensor) -> Tensor:
-    """``q (..., n)`` -> the capsules' end points in the world frame ``(..., K, 2, 3)``."""
-    frames = chain.fk_all(q)[..., list(capsules.frames), :3, :]  # (..., K, 3, 4)
-    pts = capsules.points.to(q.dtype)
-    return (frames[..., None, :, :3] @ pts[..., None]).squeeze(-1) + frames[..., None, :, 3]
+def _capsule_segments(chain: DHChain, capsules: Capsules, q: Tensor) -> tuple[Vec, Vec]:
+    """``q (..., n)`` -> each capsule's start point and start-to-end vector in the world frame,
+    component first: each component ``(K, B)`` over the ``B`` flattened configurations (this
+    layout keeps every elementwise op of the distance kernels contiguous)."""
+    frames = chain.fk_all(q.reshape(-1, chain.n_joints))  # (B, n + 1, 4, 4)
+    index = torch.tensor(capsules.frames, device=q.device)
+    frames = frames.index_select(1, index).permute(2, 3, 1, 0)[:3].contiguous()  # (3 rows, 4 cols, K, B)
+    pts = capsules.points.to(dtype=q.dtype, device=q.device)[..., None]  # (K, 2, 3, 1)
+    used = capsules.points.ne(0).any(0).tolist()  # (2, 3): skip coordinates that are 0 for every capsule
+    ends = [[sum((row[c] * pts[:, e, c] for c in range(3) if used[e][c]), row[3]) for row in frames] for e in (0, 1)]
+    return tuple(ends[0]), tuple(b - a for a, b in zip(*ends))
+
+
+def _pair_gaps(start: Vec, direction: Vec, radii: Tensor, pairs) -> Tensor:
+    """Signed distances ``(P, B)`` of the capsule ``pairs`` from :func:`_capsule_segments`'s output."""
+    i, j = (list(c) for c in zip(*pairs))
+    rows = [[v[i] for v in vec] for vec in (start, direction)] + [[v[j] for v in vec] for vec in (start, direction)]
+    return _segment_gap(*rows) - (radii[i] + radii[j]).to(start[0])[:, None]
 
 
 def _z_capsule(frame: int, z0: float, z1: float):
@@ -405,9 +425,64 @@ def _check_query(chain: DHChain, q: Tensor, world: World, capsules: Capsules) ->
             )
 
 
-def _gather(ends: Tensor, radii: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, list[int]]:
-    idx = mask.nonzero().flatten().tolist()
-    return ends[..., idx, :, :], radii[idx], idx
+def _distances(
+    chain: DHChain, q: Tensor, world: World | None, capsules: Capsules | None
+) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
+    """The robot's own distances (self pairs, then floor) ``(P, B)`` over the flattened batch,
+    the other obstacles' ``(..., M)`` blocks, and every pair's names in that order."""
+    capsules = robot_capsules(chain) if capsules is None else capsules
+    world = World(floor=capsules.floor_height) if world is None else world
+    _check_query(chain, q, world, capsules)
+    radii = capsules.radii.to(dtype=q.dtype, device=q.device)
+    names = capsules.names
+    floor_idx = capsules.floor.nonzero().flatten().tolist() if world.floor is not None else []
+    idx = capsules.world.nonzero().flatten().tolist() if world.tensors() else []
+    labels = [(names[x], names[y]) for x, y in capsules.pairs] + [(names[x], "floor") for x in floor_idx]
+    flat = q.reshape(-1, chain.n_joints)
+    own, segments = [], []
+    for block in flat.split(_BLOCK):  # blocks small enough for the kernels' arrays to stay in the CPU cache
+        start, direction = _capsule_segments(chain, capsules, block)
+        parts = [_pair_gaps(start, direction, capsules.radii, capsules.pairs)] if capsules.pairs else []
+        if floor_idx:
+            low = torch.minimum(start[2], start[2] + direction[2])[floor_idx]
+            parts.append(low - (radii[floor_idx, None] + world.floor))
+        if parts:
+            own.append(torch.cat(parts))
+        if idx:
+            segments.append((start, direction))
+    others = []
+    if idx:
+        lead = q.shape[:-1]
+        start, direction = (tuple(torch.cat(c, -1) for c in zip(*part)) for part in zip(*segments))
+        a = torch.stack(start, -1)[idx]  # (K, B, 3)
+        b = a + torch.stack(direction, -1)[idx]
+        a, b = (x.transpose(0, 1).reshape(*lead, len(idx), 1, 3) for x in (a, b))  # against obstacles (..., M, ...)
+        r = radii[idx, None]
+        if world.walls is not None:
+            normal, offset = world.walls
+            n = normal[..., None, :, :]
+            height = torch.minimum((a * n).sum(-1), (b * n).sum(-1))  # (..., K, W)
+            others.append((height - offset[..., None, :] - r).flatten(-2))
+            labels += [(names[x], f"wall{m}") for x in idx for m in range(normal.shape[-2])]
+        if world.spheres is not None:
+            centre, rad = world.spheres
+            c = centre[..., None, :, :]
+            others.append((segment_distance(a, b, c, c) - r - rad[..., None, :]).flatten(-2))
+            labels += [(names[x], f"sphere{m}") for x in idx for m in range(centre.shape[-2])]
+        if world.boxes is not None:
+            pose, half = world.boxes
+            dist = segment_box_distance(a, b, pose[..., None, :, :, :], half[..., None, :, :])
+            others.append((dist - r).flatten(-2))
+            labels += [(names[x], f"box{m}") for x in idx for m in range(pose.shape[-3])]
+        if world.capsules is not None:
+            pts, rad = world.capsules
+            p = pts[..., None, :, :, :]
+            dist = segment_distance(a, b, p[..., 0, :], p[..., 1, :])
+            others.append((dist - r - rad[..., None, :]).flatten(-2))
+            labels += [(names[x], f"capsule{m}") for x in idx for m in range(pts.shape[-3])]
+    if not own and not others:
+        raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
+    return (torch.cat(own, 1) if own else None), others, labels
 
 
 def pairwise_clearance(
@@ -416,49 +491,8 @@ def pairwise_clearance(
     """Every checked distance for ``q (..., n)``: the self pairs, then capsule-floor,
     -wall, -sphere, -box, -capsule (see :class:`Clearances`). ``world=None`` is the
     model's default floor; ``capsules=None`` is :func:`robot_capsules` of the chain."""
-    capsules = robot_capsules(chain) if capsules is None else capsules
-    world = World(floor=capsules.floor_height) if world is None else world
-    _check_query(chain, q, world, capsules)
-    ends = _world_points(chain, capsules, q)  # (..., K, 2, 3)
-    radii = capsules.radii.to(dtype=q.dtype, device=q.device)
-    names = capsules.names
-    parts, labels = [], []
-    if capsules.pairs:
-        i, j = (list(c) for c in zip(*capsules.pairs))
-        a, b = ends[..., i, :, :], ends[..., j, :, :]
-        parts.append(segment_distance(a[..., 0, :], a[..., 1, :], b[..., 0, :], b[..., 1, :]) - radii[i] - radii[j])
-        labels += [(names[x], names[y]) for x, y in capsules.pairs]
-    if world.floor is not None and capsules.floor.any():
-        e, r, idx = _gather(ends, radii, capsules.floor)
-        parts.append(e[..., 2].amin(-1) - world.floor - r)
-        labels += [(names[x], "floor") for x in idx]
-    if capsules.world.any():
-        e, r, idx = _gather(ends, radii, capsules.world)
-        e = e[..., None, :, :]  # (..., K, 1, 2, 3) against obstacles (..., M, ...)
-        r = r[:, None]
-        if world.walls is not None:
-            normal, offset = world.walls
-            height = (e * normal[..., None, :, None, :]).sum(-1).amin(-1)  # (..., K, W)
-            parts.append((height - offset[..., None, :] - r).flatten(-2))
-            labels += [(names[x], f"wall{m}") for x in idx for m in range(normal.shape[-2])]
-        if world.spheres is not None:
-            centre, rad = world.spheres
-            c = centre[..., None, :, :]
-            parts.append((segment_distance(e[..., 0, :], e[..., 1, :], c, c) - r - rad[..., None, :]).flatten(-2))
-            labels += [(names[x], f"sphere{m}") for x in idx for m in range(centre.shape[-2])]
-        if world.boxes is not None:
-            pose, half = world.boxes
-            dist = segment_box_distance(e[..., 0, :], e[..., 1, :], pose[..., None, :, :, :], half[..., None, :, :])
-            parts.append((dist - r).flatten(-2))
-            labels += [(names[x], f"box{m}") for x in idx for m in range(pose.shape[-3])]
-        if world.capsules is not None:
-            pts, rad = world.capsules
-            p = pts[..., None, :, :, :]
-            dist = segment_distance(e[..., 0, :], e[..., 1, :], p[..., 0, :], p[..., 1, :])
-            parts.append((dist - r - rad[..., None, :]).flatten(-2))
-            labels += [(names[x], f"capsule{m}") for x in idx for m in range(pts.shape[-3])]
-    if not parts:
-        raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
+    own, others, labels = _distances(chain, q, world, capsules)
+    parts = ([] if own is None else [own.T.reshape(*q.shape[:-1], own.shape[0])]) + others
     shape = torch.broadcast_shapes(*(p.shape[:-1] for p in parts))
     distance = torch.cat([p.expand(*shape, p.shape[-1]) for p in parts], -1)
     return Clearances(distance=distance, pairs=tuple(labels))
@@ -468,4 +502,7 @@ def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: C
     """Smallest signed distance, metres: ``q (..., n) -> (...)``, over the checked self pairs and
     capsule-obstacle pairs (arguments as :func:`pairwise_clearance`). Differentiable in ``q``
     and the obstacles' tensors."""
-    return pairwise_clearance(chain, q, world, capsules).distance.amin(-1)
+    own, others, _ = _distances(chain, q, world, capsules)
+    mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others]
+    shape = torch.broadcast_shapes(*(m.shape for m in mins))
+    return torch.stack([m.expand(shape) for m in mins]).amin(0)
