@@ -250,7 +250,7 @@ def _capsule_segments(chain: DHChain, capsules: Capsules, q: Tensor) -> tuple[Ve
     index = torch.tensor(capsules.frames, device=q.device)
     frames = frames.index_select(1, index).permute(2, 3, 1, 0)[:3].contiguous()  # (3 rows, 4 cols, K, B)
     pts = capsules.points.to(dtype=q.dtype, device=q.device)[..., None]  # (K, 2, 3, 1)
-    used = capsules.points.ne(0).any(0).tolist()  # (2, 3): skip coordinates that are 0 for every capsule
+    used = [[any(c) for c in zip(*end)] for end in zip(*capsules.points.tolist())]  # (2, 3): skip all-zero coordinates
     ends = [[sum((row[c] * pts[:, e, c] for c in range(3) if used[e][c]), row[3]) for row in frames] for e in (0, 1)]
     return tuple(ends[0]), tuple(b - a for a, b in zip(*ends))
 
