@@ -335,3 +335,13 @@ def test_custom_chain_capsules():
     # link 3 folds back onto link 1: their segments cross near the origin
     assert clearance(chain, folded, capsules=caps).item() < 0
     assert clearance(chain, torch.zeros(3, dtype=torch.float64), capsules=caps).item() == pytest.approx(1.0 - 0.2)
+
+
+def test_pairs_that_always_overlap_are_left_out():
+    chain = robots.planar3r().__class__([(1.0, 0, 0, 0), (1.0, 0, 0, 0), (1.0, 0, 0, 0)], name="custom")
+    link = [[-1.0, 0, 0], [0, 0, 0]]
+    caps = Capsules.build(
+        chain, ["hub", "l1", "l2", "l3"], [0, 1, 2, 3], [[[0, 0, 0], [0, 0, 0]], link, link, link], [1.2, 0.1, 0.1, 0.1]
+    )
+    # l2 starts 1 m from the origin, inside the hub's 1.2 m: (hub, l2) touches in every posture
+    assert caps.pairs == ((0, 3), (1, 3))
