@@ -345,3 +345,26 @@ def test_pairs_that_always_overlap_are_left_out():
     )
     # l2 starts 1 m from the origin, inside the hub's 1.2 m: (hub, l2) touches in every posture
     assert caps.pairs == ((0, 3), (1, 3))
+
+
+def test_nearly_parallel_segments_in_both_dtypes():
+    gen = torch.Generator().manual_seed(7)
+    n = 400
+    p1, d, kick, p2 = torch.randn(4, n, 3, generator=gen, dtype=torch.float64)
+    perp = torch.linalg.cross(d, kick)
+    perp *= d.norm(dim=-1, keepdim=True) / perp.norm(dim=-1, keepdim=True)
+    angle = torch.logspace(-9, -1, n, dtype=torch.float64)[:, None]
+    p2 = p1 + 0.3 * p2
+    q1, q2 = p1 + d, p2 + d + angle * perp
+    ours = segment_distance(p1, q1, p2, q2)
+    # reference: 20,001 points on the first segment, each projected exactly onto the second
+    s = torch.linspace(0, 1, 20001, dtype=torch.float64)[:, None]
+    u = q2 - p2
+    x = p1[:, None] + s * d[:, None] - p2[:, None]  # (n, 20001, 3)
+    t = ((x * u[:, None]).sum(-1) / (u * u).sum(-1, keepdim=True)).clamp(0, 1)
+    ref = (x - t[..., None] * u[:, None]).norm(dim=-1).amin(1)
+    assert (ours <= ref + 5e-8).all() and (ref - ours <= 1e-4).all()
+    rounded = [v.float() for v in (p1, q1, p2, q2)]
+    torch.testing.assert_close(
+        segment_distance(*rounded).double(), segment_distance(*(v.double() for v in rounded)), atol=1e-6, rtol=0
+    )
