@@ -182,6 +182,10 @@ class Capsules:
                 raise ValueError(f"pairs must be (i, j) with 0 <= i < j < {k}, got {pair}")
         if len(set(self.pairs)) != len(self.pairs):
             raise ValueError(f"pairs contains duplicates: {self.pairs}")
+        if self.floor_height is not None and not (
+            isinstance(self.floor_height, (int, float)) and math.isfinite(self.floor_height)
+        ):
+            raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
 
     @classmethod
     def build(
@@ -208,8 +212,6 @@ class Capsules:
         frames = tuple(int(f) for f in frames)
         if any(f > chain.n_joints for f in frames):
             raise ValueError(f"frames must index the {chain.n_joints + 1} frames of fk_all, got {frames}")
-        if floor_height is not None and not math.isfinite(floor_height):
-            raise ValueError(f"floor_height must be finite or None, got {floor_height}")
         model = cls(
             names=names,
             frames=frames,
