@@ -277,7 +277,8 @@ def robot_capsules(chain: DHChain) -> Capsules:
     """The conservative capsule model of a preset (``chain.name`` in iiwa14, iiwa7, puma560,
     lrmate200ic, planar3r), sized from the chain's own DH lengths; radii and their sources
     are in docs/collision.md. The base capsule is not checked against the floor it stands on;
-    the planar arm lies in the z = 0 plane, so its default world has no floor."""
+    the planar arm lies in the z = 0 plane, so its default world has no floor. Self pairs:
+    every pair but neighbours in the list (no other pair overlaps in every posture)."""
     dh = chain.dh.tolist()
     floor_height: float | None = 0.0
     if chain.name in ("iiwa14", "iiwa7"):
@@ -313,7 +314,9 @@ def robot_capsules(chain: DHChain) -> Capsules:
         )
     names, frames, points, radii = zip(*spec)
     floor = [name != "base" for name in names]
-    return Capsules.build(chain, names, frames, points, radii, floor=floor, floor_height=floor_height)
+    # what self_collision_pairs finds for each preset (tested), fixed so a query samples nothing
+    pairs = ((0, 2),) if chain.name == "planar3r" else ((0, 2), (0, 3), (1, 3))
+    return Capsules.build(chain, names, frames, points, radii, pairs=pairs, floor=floor, floor_height=floor_height)
 
 
 # ---------------------------------------------------------------------------- obstacles

@@ -17,6 +17,7 @@ from iiwa_torch.collision import (
     robot_capsules,
     segment_box_distance,
     segment_distance,
+    self_collision_pairs,
 )
 
 coal = pytest.importorskip("coal")
@@ -368,3 +369,10 @@ def test_nearly_parallel_segments_in_both_dtypes():
     torch.testing.assert_close(
         segment_distance(*rounded).double(), segment_distance(*(v.double() for v in rounded)), atol=1e-6, rtol=0
     )
+
+
+def test_preset_pairs_are_what_sampling_finds():
+    for make in robots.PRESETS.values():
+        chain = make()
+        caps = robot_capsules(chain)
+        assert self_collision_pairs(chain, caps, samples=2048, seed=1) == caps.pairs, chain.name
