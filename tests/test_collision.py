@@ -376,3 +376,39 @@ def test_preset_pairs_are_what_sampling_finds():
         chain = make()
         caps = robot_capsules(chain)
         assert self_collision_pairs(chain, caps, samples=2048, seed=1) == caps.pairs, chain.name
+
+
+def test_capsule_distance_matches_pybullet():
+    pb = pytest.importorskip("pybullet")
+    rng = np.random.default_rng(8)
+    seg = _random_segments(rng, 300)
+    seg = seg[np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1) > 1e-3]
+    seg = seg[np.linalg.norm(seg[:, 3] - seg[:, 2], axis=1) > 1e-3]
+    radii = rng.uniform(0.01, 0.2, size=(len(seg), 2))
+    ours = segment_distance(*torch.from_numpy(seg).unbind(1)).numpy() - radii.sum(1)
+    client = pb.connect(pb.DIRECT)
+    try:
+        ref = []
+        for s, r in zip(seg, radii):
+            bodies = []
+            for (p, q), radius in zip((s[:2], s[2:]), r):
+                length = float(np.linalg.norm(q - p))
+                u = (q - p) / length
+                u = -u if u[2] < 0 else u  # a capsule is symmetric: keep the axis in z >= 0
+                quat = np.array([-u[1], u[0], 0.0, 1.0 + u[2]])  # the shortest turn taking z to u
+                quat /= np.linalg.norm(quat)
+                col = pb.createCollisionShape(pb.GEOM_CAPSULE, radius=radius, height=length, physicsClientId=client)
+                bodies.append(
+                    pb.createMultiBody(
+                        0, col, basePosition=(p + q) / 2, baseOrientation=quat.tolist(), physicsClientId=client
+                    )
+                )
+            ref.append(min(h[8] for h in pb.getClosestPoints(*bodies, 100.0, physicsClientId=client)))
+            for body in bodies:
+                pb.removeBody(body, physicsClientId=client)
+    finally:
+        pb.disconnect(client)
+    ref = np.array(ref)
+    apart = ref > 1e-4
+    assert apart.sum() > 100
+    np.testing.assert_allclose(ours[apart], ref[apart], atol=1e-6)
