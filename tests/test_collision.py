@@ -412,3 +412,18 @@ def test_capsule_distance_matches_pybullet():
     apart = ref > 1e-4
     assert apart.sum() > 100
     np.testing.assert_allclose(ours[apart], ref[apart], atol=1e-6)
+
+
+def test_gradient_is_finite_when_an_obstacle_sits_on_a_capsule_axis():
+    chain = robots.iiwa14()
+    q = torch.zeros(7, dtype=torch.float64, requires_grad=True)
+    centre = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64, requires_grad=True)  # on the forearm's axis
+    points = torch.tensor([[[0.0, 0.0, 0.9], [0.0, 0.0, 1.1]]], dtype=torch.float64, requires_grad=True)  # along it
+    world = World(
+        spheres=(centre, torch.tensor([0.05], dtype=torch.float64)),
+        capsules=(points, torch.tensor([0.05], dtype=torch.float64)),
+    )
+    d = clearance(chain, q, world)
+    assert d.item() == pytest.approx(-0.13)  # forearm radius 0.08 + 0.05, centre distance 0
+    grads = torch.autograd.grad(d, (q, centre, points))
+    assert all(torch.isfinite(g).all() for g in grads)
