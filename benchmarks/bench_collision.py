@@ -1,0 +1,154 @@
+"""Self + floor clearance of the iiwa 14's capsule model: iiwa-torch batched against coal and pybullet.
+
+    python benchmarks/bench_collision.py [--quick]
+
+Ours: ``clearance(chain, q)`` on a batch of configurations (FK included), one thread, float64
+and float32. Peers, on the same capsules and pairs (3 self pairs, 3 capsule-floor pairs):
+coal (FCL's successor, C++) and pybullet (``getClosestPoints``), called from a Python loop
+over a subset of the configurations. The peers get their capsule poses precomputed (our FK,
+outside the timing), so their times are their distance queries alone: the ratios favour
+them. Writes results/collision.json and results/collision.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from common import markdown_table, save, timeit  # noqa: E402
+
+from iiwa_torch import robots  # noqa: E402
+from iiwa_torch.collision import clearance, pairwise_clearance, robot_capsules  # noqa: E402
+from iiwa_torch.runtime import machine_info  # noqa: E402
+
+
+def capsule_poses(chain, caps, q: torch.Tensor):
+    """Per configuration and capsule: centre (3,), rotation taking z to the axis (3, 3), length."""
+    frames = chain.fk_all(q)[:, list(caps.frames)].numpy()  # (N, K, 4, 4)
+    pts = caps.points.numpy()
+    a = np.einsum("nkij,kj->nki", frames[..., :3, :3], pts[:, 0]) + frames[..., :3, 3]
+    b = np.einsum("nkij,kj->nki", frames[..., :3, :3], pts[:, 1]) + frames[..., :3, 3]
+    axis = b - a
+    length = np.linalg.norm(axis, axis=-1)
+    z = axis / length[..., None]
+    helper = np.where(np.abs(z[..., :1]) < 0.9, [1.0, 0, 0], [0, 1.0, 0])
+    x = np.cross(z, helper)
+    x /= np.linalg.norm(x, axis=-1, keepdims=True)
+    rot = np.stack([x, np.cross(z, x), z], -1)
+    return (a + b) / 2, rot, length
+
+
+def quaternion(rot: np.ndarray) -> list[float]:
+    """(x, y, z, w) of a rotation matrix whose trace is not near -1 (true here: z maps to the axis)."""
+    w = np.sqrt(max(1.0 + np.trace(rot), 1e-12)) / 2
+    return [(rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w), (rot[1, 0] - rot[0, 1]) / (4 * w), w]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="20,000 configurations, 200 for the peers")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    batch, subset = (20_000, 200) if args.quick else (100_000, 2_000)
+    chain = robots.iiwa14()
+    caps = robot_capsules(chain)
+    q = chain.random_q(batch, generator=torch.Generator().manual_seed(0))
+    pairs = pairwise_clearance(chain, q[:1], capsules=caps).pairs
+    rows, payload = [], {"batch": batch, "peer_subset": subset, "pairs": pairs, "machine": machine_info()}
+
+    ours = {}
+    for dtype in (torch.float64, torch.float32):
+        qd = q.to(dtype)
+        seconds = timeit(lambda qd=qd: clearance(chain, qd, capsules=caps), repeats=5)
+        fk = timeit(lambda qd=qd: chain.fk_all(qd), repeats=5)
+        ours[str(dtype)] = seconds / batch
+        name = f"iiwa-torch {dtype}".replace("torch.", "")
+        rows.append([name, batch, f"{seconds / batch * 1e9:,.0f}", f"fk_all alone {fk / batch * 1e9:,.0f}"])
+        print(" | ".join(map(str, rows[-1])), flush=True)
+
+    qs = q[:subset]
+    ref = pairwise_clearance(chain, qs, capsules=caps).distance.numpy()  # (subset, P)
+    centre, rot, length = capsule_poses(chain, caps, qs)
+    radii = caps.radii.tolist()
+    index = {name: k for k, name in enumerate(caps.names)}
+    pair_idx = [(index[a], None if b == "floor" else index[b]) for a, b in pairs]
+    peers = {}
+
+    import coal
+
+    shapes = [coal.Capsule(r, float(length[0, k])) for k, r in enumerate(radii)]
+    floor = coal.Halfspace(np.array([0.0, 0.0, 1.0]), 0.0)
+    ident = coal.Transform3s()
+    poses = [[coal.Transform3s(rot[n, k], centre[n, k]) for k in range(len(radii))] for n in range(subset)]
+    request, result = coal.DistanceRequest(), coal.DistanceResult()
+
+    def run_coal() -> np.ndarray:
+        out = np.empty((subset, len(pairs)))
+        for n in range(subset):
+            pose = poses[n]
+            for p, (i, j) in enumerate(pair_idx):
+                other, other_pose = (floor, ident) if j is None else (shapes[j], pose[j])
+                out[n, p] = coal.distance(shapes[i], pose[i], other, other_pose, request, result)
+        return out
+
+    peers["coal"] = run_coal
+
+    import pybullet as pb
+
+    client = pb.connect(pb.DIRECT)
+    bodies = [
+        pb.createMultiBody(
+            0,
+            pb.createCollisionShape(pb.GEOM_CAPSULE, radius=r, height=float(length[0, k]), physicsClientId=client),
+            physicsClientId=client,
+        )
+        for k, r in enumerate(radii)
+    ]
+    plane = pb.createMultiBody(
+        0, pb.createCollisionShape(pb.GEOM_PLANE, physicsClientId=client), physicsClientId=client
+    )
+    quats = [[quaternion(rot[n, k]) for k in range(len(radii))] for n in range(subset)]
+    positions = centre.tolist()
+
+    def run_pybullet() -> np.ndarray:
+        out = np.empty((subset, len(pairs)))
+        for n in range(subset):
+            for k, body in enumerate(bodies):
+                pb.resetBasePositionAndOrientation(body, positions[n][k], quats[n][k], physicsClientId=client)
+            for p, (i, j) in enumerate(pair_idx):
+                other = plane if j is None else bodies[j]
+                hits = pb.getClosestPoints(bodies[i], other, 100.0, physicsClientId=client)
+                out[n, p] = min(h[8] for h in hits)
+        return out
+
+    peers["pybullet"] = run_pybullet
+
+    for name, run in peers.items():
+        values = run()
+        apart = ref > 1e-3  # penetration depths are defined differently; compare separated pairs
+        agree = float(np.abs(values - ref)[apart].max())
+        per = timeit(run, min_time=0.0, repeats=5) / subset  # median of 5 passes over the subset
+        payload[f"{name}_max_abs_diff_m"] = agree
+        ours_ratio = per / ours["torch.float64"]
+        note = f"ours f64 {ours_ratio:,.1f}x, f32 {per / ours['torch.float32']:,.1f}x faster; max diff {agree:.1e} m"
+        rows.append([name, subset, f"{per * 1e9:,.0f}", note])
+        print(" | ".join(map(str, rows[-1])), flush=True)
+        payload[f"{name}_s_per_config"] = per
+        payload[f"speedup_f64_vs_{name}"] = ours_ratio
+        payload[f"speedup_f32_vs_{name}"] = per / ours["torch.float32"]
+    pb.disconnect(client)
+    payload["ours_s_per_config"] = ours
+    md = (
+        "# Self + floor clearance, iiwa 14 capsule model (3 self pairs + 3 floor pairs), 1 thread\n\n"
+        + markdown_table(["method", "configs", "ns/config", "note"], rows)
+        + f"\nMachine: {payload['machine']}\n"
+    )
+    print(save("collision", payload, md))
+
+
+if __name__ == "__main__":
+    main()
