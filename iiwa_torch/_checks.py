@@ -34,3 +34,9 @@ def check_finite(x: torch.Tensor, name: str) -> None:
     if not all_finite(x):
         bad = tuple((~torch.isfinite(x)).nonzero()[0].tolist())
         raise ValueError(f"{name} contains NaN or inf (first at index {bad})")
+
+
+def check_choice(value, choices: tuple, name: str) -> None:
+    """Raise ``ValueError`` unless ``value`` is one of ``choices`` (e.g. ``get_args`` of a ``Literal``)."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")

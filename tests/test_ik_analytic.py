@@ -480,19 +480,27 @@ def test_gradients_are_finite_and_match_finite_differences():
     (sol.q * sol.valid[..., None]).sum().backward()
     assert torch.isfinite(target.grad).all()
 
-    def first_branch_angles(pose):
-        return analytic.pieper(chain, pose).q[..., 0, :]
+    def first_branch_angles(xi):
+        return analytic.pieper(chain, _moved(target[:3].detach(), xi)).q[..., 0, :]
 
-    torch.autograd.gradcheck(first_branch_angles, (target[:3].detach().clone().requires_grad_(True),))
+    torch.autograd.gradcheck(first_branch_angles, (torch.zeros(3, 6, dtype=torch.float64, requires_grad=True),))
+
+
+def _moved(pose, xi):
+    """``pose (..., 4, 4)`` moved by ``xi (..., 6)`` (translation m, body rotation vector rad): a
+    rigid pose for every ``xi``, so finite differences in ``xi`` stay on rigid poses."""
+    top = torch.cat([pose[..., :3, :3] @ exp(xi[..., 3:]), (pose[..., :3, 3] + xi[..., :3])[..., None]], -1)
+    return torch.cat([top, pose[..., 3:, :]], -2)
 
 
 def test_iiwa_gradients_w_r_t_target_and_arm_angle():
     chain = robots.iiwa14()
     q = chain.random_q(3, generator=_gen(22))
-    target = chain.fk(q).requires_grad_(True)
+    target = chain.fk(q)
+    xi = torch.zeros(3, 6, dtype=torch.float64, requires_grad=True)
     psi = analytic.iiwa_arm_angle(chain, q).requires_grad_(True)
-    torch.autograd.gradcheck(lambda t, p: analytic.iiwa(chain, t, p).q[..., 2, :], (target, psi))
-    torch.autograd.gradcheck(lambda t: analytic.iiwa_q3_locked(chain, t, 0.2).q[..., 5, :], (target,))
+    torch.autograd.gradcheck(lambda x, p: analytic.iiwa(chain, _moved(target, x), p).q[..., 2, :], (xi, psi))
+    torch.autograd.gradcheck(lambda x: analytic.iiwa_q3_locked(chain, _moved(target, x), 0.2).q[..., 5, :], (xi,))
     far = _random_poses(64, _gen(23), (0.0, 0.0, 0.36), 1.4).requires_grad_(True)  # many out of reach
     for solve in (lambda t: analytic.iiwa(chain, t, 0.4), lambda t: analytic.iiwa_q3_locked(chain, t)):
         sol = solve(far)

@@ -13,7 +13,8 @@ import torch
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import IKResult, minimize, solve
-from iiwa_torch.ik.gradient import _cholesky_solve, _evaluate, _Target
+from iiwa_torch.ik.dls import cholesky_solve_batch_last, dls_step
+from iiwa_torch.ik.gradient import _evaluate, _Target
 
 DTYPES = [torch.float64, torch.float32]
 
@@ -241,12 +242,41 @@ def test_cholesky_paths_match_linalg_solve():
         M = torch.randn(6, 9, batch, generator=gen, dtype=torch.float64)
         A = (M[:, None] * M[None]).sum(2) + 1e-3 * torch.eye(6, dtype=torch.float64)[..., None]
         rhs = torch.randn(6, 2, batch, generator=gen, dtype=torch.float64)
-        x = _cholesky_solve(A, rhs, 1e-12)
+        x = cholesky_solve_batch_last(A, rhs, 1e-12)
         expected = torch.linalg.solve(A.permute(2, 0, 1), rhs.permute(2, 0, 1)).permute(1, 2, 0)
         torch.testing.assert_close(x, expected, atol=1e-9, rtol=1e-9)
         # a singular matrix (zero Jacobian) gives a finite answer, not NaN
-        zero = _cholesky_solve(torch.zeros_like(A), rhs, 1e-12)
+        zero = cholesky_solve_batch_last(torch.zeros_like(A), rhs, 1e-12)
         assert torch.isfinite(zero).all()
+
+
+@pytest.mark.parametrize("rows", [6, 3])
+def test_dls_step_is_damped_least_squares(rows):
+    """dq minimises |J dq - e|^2 + lam |dq|^2: least squares on [J; sqrt(lam) I] dq = [e; 0]."""
+    gen = torch.Generator().manual_seed(27)
+    J = torch.randn(2, 5, rows, 7, generator=gen, dtype=torch.float64)
+    J[0, 0, 0] = 0.0  # a rank-deficient Jacobian: only the damping keeps the step finite
+    e = torch.randn(2, 5, rows, generator=gen, dtype=torch.float64)
+    lam = torch.tensor([1e-2, 1e-4], dtype=torch.float64)[:, None]  # (2, 1): broadcasts over the batch
+    stacked = torch.cat([J, lam[..., None, None].sqrt() * torch.eye(7, dtype=torch.float64).expand(2, 5, 7, 7)], -2)
+    rhs = torch.cat([e, torch.zeros(2, 5, 7, dtype=torch.float64)], -1)
+    expected = torch.linalg.lstsq(stacked, rhs[..., None]).solution[..., 0]
+    torch.testing.assert_close(dls_step(J, e, lam), expected, atol=1e-10, rtol=1e-10)
+    # a float damping, broadcast Jacobian; and differentiable
+    broadcast = dls_step(J[0, 0].expand(5, rows, 7), e[0], torch.full((5,), 1e-2, dtype=torch.float64))
+    torch.testing.assert_close(dls_step(J[0, 0], e[0], 1e-2), broadcast)
+    args = (J[1, :2].clone().requires_grad_(), e[1, :2].clone().requires_grad_())
+    assert torch.autograd.gradcheck(lambda j, v: dls_step(j, v, 1e-2), args)
+
+
+def test_dls_step_rejects_bad_input():
+    J, e = torch.zeros(4, 6, 7), torch.zeros(4, 6)
+    with pytest.raises(ValueError, match="error must have shape"):
+        dls_step(J, e[:, :3], 0.1)
+    with pytest.raises(ValueError, match="damping must be positive"):
+        dls_step(J, e, 0.0)
+    with pytest.raises(TypeError, match="tensors"):
+        dls_step(J.numpy(), e, 0.1)
 
 
 def test_batch_shape_and_q0_broadcast():

@@ -23,8 +23,10 @@ from typing import Literal, get_args
 import torch
 
 from .. import so3
-from .._checks import check_finite
+from .._checks import check_choice, check_finite
 from ..dh import DHChain
+from .dls import dls_step_batch_last
+from .limits import shift_into_limits
 from .result import IKResult
 
 __all__ = ["Mode", "Optimizer", "Precision", "solve", "minimize"]
@@ -35,16 +37,10 @@ Optimizer = Literal["adam", "lbfgs"]
 Precision = Literal["auto", "input"]
 
 _POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
-_LAPACK_BATCH = 512  # up to this many slots, LAPACK's per-matrix Cholesky beats the unrolled one
 _MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
 _FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
 _LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
 _DAMP_DOWN, _DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
-
-
-def _check_choice(value, choices: tuple, name: str) -> None:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
 
 
 def _check_positive(value, name: str, integer: bool = False) -> None:
@@ -123,56 +119,6 @@ def _evaluate(
     return J, e, pos_err.square() + (weight * rot_err).square(), pos_err, rot_err
 
 
-def _cholesky_solve(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
-    """Solve ``A x = rhs`` for symmetric positive definite ``A (m, m, b)`` (lower triangle read),
-    ``rhs (m, k, b)``, by Cholesky ``A = L L^T``: LAPACK per matrix for small batches, else
-    written out entry by entry over the batch (fewer, larger kernels). Always finite: pivots
-    are floored at ``floor``, and a matrix LAPACK finds not positive definite gives ``x = 0``."""
-    if A.shape[2] <= _LAPACK_BATCH:
-        L, info = torch.linalg.cholesky_ex(A.permute(2, 0, 1))
-        x = torch.cholesky_solve(rhs.permute(2, 0, 1), L).permute(1, 2, 0)
-        return torch.where(info == 0, x, 0.0)
-    m = A.shape[0]
-    L = [[None] * m for _ in range(m)]  # L[i][j], (b,) each
-    inv = [None] * m  # 1 / L[j][j]
-    for j in range(m):
-        pivot = A[j, j]
-        for k in range(j):
-            pivot = torch.addcmul(pivot, L[j][k], L[j][k], value=-1)
-        inv[j] = pivot.clamp_min(floor).rsqrt()
-        for i in range(j + 1, m):
-            entry = A[i, j]
-            for k in range(j):
-                entry = torch.addcmul(entry, L[i][k], L[j][k], value=-1)
-            L[i][j] = entry * inv[j]
-    y = [None] * m  # L y = rhs
-    for i in range(m):
-        entry = rhs[i]
-        for k in range(i):
-            entry = torch.addcmul(entry, L[i][k], y[k], value=-1)
-        y[i] = entry * inv[i]
-    x = [None] * m  # L^T x = y
-    for i in reversed(range(m)):
-        entry = y[i]
-        for k in range(i + 1, m):
-            entry = torch.addcmul(entry, L[k][i], x[k], value=-1)
-        x[i] = entry * inv[i]
-    return torch.stack(x)
-
-
-def _damped_solve(J: Tensor, rhs: Tensor, lam: Tensor, floor: float, free: Tensor | None = None) -> Tensor:
-    """``J^T (J J^T + lam I)^-1 rhs`` for ``J (m, n, b)``, ``rhs (m, k, b)``, ``lam (b,)`` -> ``(n, k, b)``.
-    With ``free (n, b)``, the other columns of ``J`` count as zero (those joints stay put)."""
-    m = J.shape[0]
-    A = J.new_empty(m, m, J.shape[2])
-    for r in range(m):
-        A[r:, r] = ((J[r] if free is None else J[r] * free) * J[r:]).sum(1)
-    A.diagonal(0, 0, 1).add_(lam[:, None])
-    y = _cholesky_solve(A, rhs, floor)
-    dq = (J[:, :, None] * y[:, None]).sum(0)
-    return dq if free is None else dq * free[:, None]
-
-
 # ---------------------------------------------------------------------- solve
 def _lm_step(chain, state, target, weight, limits, rest, rest_gain, lam_min, lam_max):
     """One Levenberg-Marquardt step for every slot. ``state`` is ``(q, J, e, E, pos_err,
@@ -188,12 +134,12 @@ def _lm_step(chain, state, target, weight, limits, rest, rest_gain, lam_min, lam
         moved = torch.minimum(torch.maximum(q + torch.sign(descent), lo), hi) - q
         free = moved.abs_().sign_()
     if rest is None:
-        dq = _damped_solve(J, e[:, None], lam, lam_min, free)[:, 0]
+        dq = dls_step_batch_last(J, e[:, None], lam, lam_min, free)[:, 0]
     else:  # pull toward the rest posture inside the (damped) null space of J, while the damping
         # is low: a large damping would turn the projected pull into the full pull.
         pull = rest_gain * (rest - q) * (lam <= _LAMBDA0)
         pull = pull if free is None else pull * free
-        sol = _damped_solve(J, torch.stack([e, (J * pull).sum(1)], 1), lam, lam_min, free)
+        sol = dls_step_batch_last(J, torch.stack([e, (J * pull).sum(1)], 1), lam, lam_min, free)
         dq = sol[:, 0] + pull - sol[:, 1]
     q_new = q + dq if limits is None else torch.minimum(torch.maximum(q + dq, lo), hi)
     J_new, e_new, E_new, pos_new, rot_new = _evaluate(chain, q_new, target, weight)
@@ -223,11 +169,12 @@ def _inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
 
 def _into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Joint angles into ``[lo, hi]``: an angle outside is first shifted by a multiple of 2 pi
-    (the same pose for a revolute joint), then clamped to the nearer limit if still outside."""
-    shifted = lo + torch.remainder(q - lo, 2 * math.pi)  # in [lo, lo + 2 pi)
-    nearer = torch.where(shifted - hi <= lo + 2 * math.pi - shifted, hi, lo)
-    shifted = torch.where(shifted <= hi, shifted, nearer)
-    return torch.where((q >= lo) & (q <= hi), q, shifted)
+    (the same pose for a revolute joint), then clamped to the nearer limit (around the circle)
+    if still outside."""
+    shifted, fits = shift_into_limits(q, lo, hi)
+    turned = lo + torch.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
+    nearer = torch.where(turned - hi <= lo + 2 * math.pi - turned, hi, lo)
+    return torch.where(fits, shifted, nearer)
 
 
 def _broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
@@ -273,7 +220,7 @@ def _seed_q(
 def _check_target(target: Tensor, mode: str, dtype: torch.dtype | None, batch: torch.Size | None) -> torch.Size:
     """Validate a pose ``(..., 4, 4)`` or position ``(..., 3)`` target; return its batch shape."""
     if mode == "pose":
-        so3.check_pose(target, "target")
+        so3.check_rigid(target, "target")
         found = target.shape[:-2]
     else:
         if not isinstance(target, torch.Tensor) or not target.is_floating_point():
@@ -359,7 +306,7 @@ def solve(
     The solve is not differentiable (it runs under ``torch.no_grad``); use :func:`minimize`
     to optimise through IK.
     """
-    _check_choice(mode, get_args(Mode), "mode")
+    check_choice(mode, get_args(Mode), "mode")
     for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
         _check_positive(value, name)
     seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
@@ -370,7 +317,7 @@ def solve(
     batch = _check_target(target, mode, None, None)
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
-    _check_choice(precision, get_args(Precision), "precision")
+    check_choice(precision, get_args(Precision), "precision")
     dtype, device, n = target.dtype, target.device, chain.n_joints
     loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
     work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
@@ -507,8 +454,8 @@ def minimize(
     and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
     seen; ``iterations`` is ``steps`` for every problem.
     """
-    _check_choice(mode, get_args(Mode), "mode")
-    _check_choice(optimizer, get_args(Optimizer), "optimizer")
+    check_choice(mode, get_args(Mode), "mode")
+    check_choice(optimizer, get_args(Optimizer), "optimizer")
     _check_positive(steps, "steps", integer=True)
     for value, name in ((pos_tol, "pos_tol"), (rot_tol, "rot_tol")) + (() if lr is None else ((lr, "lr"),)):
         _check_positive(value, name)
