@@ -24,7 +24,7 @@ from typing import Literal, get_args
 import torch
 
 from . import so3
-from ._checks import check_choice
+from ._checks import check_choice, check_finite
 from .dh import DHChain
 
 __all__ = [
@@ -109,11 +109,14 @@ def jtraj(q0: Tensor, q1: Tensor, t, qd0: Tensor | None = None, qd1: Tensor | No
 
     Returns:
         :class:`JointTrajectory` with ``q, qd, qdd`` each ``(..., T, n)``; boundary
-        accelerations are zero. Differentiable in every input.
+        accelerations are zero. Differentiable in every input. NaN or inf in an input is a
+        ``ValueError`` (as in :func:`ctraj` and :func:`track`).
     """
     for name, value in (("q0", q0), ("q1", q1), ("qd0", qd0), ("qd1", qd1)):
         if value is not None and not (isinstance(value, Tensor) and value.is_floating_point() and value.ndim >= 1):
             raise TypeError(f"{name} must be a float tensor of shape (..., n), got {value!r:.60}")
+        if value is not None:
+            check_finite(value, name)
     given = [x for x in (q0, q1, qd0, qd1) if x is not None]
     try:
         torch.broadcast_shapes(*(x.shape for x in given))
