@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Literal, get_args
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, get_args
 
 import torch
 
@@ -120,10 +121,27 @@ def _evaluate(
 
 
 # ---------------------------------------------------------------------- solve
-def _lm_step(chain, state, target, weight, limits, rest, rest_gain, lam_min, lam_max):
-    """One Levenberg-Marquardt step for every slot. ``state`` is ``(q, J, e, E, pos_err,
-    rot_err, lam)``; a step is kept where it lowers ``E``, and the damping follows.
-    ``limits`` is ``(lo, hi)``, each ``(n, 1)``, or None for an unconstrained step."""
+class _LMState(NamedTuple):
+    """Every slot's iterate, batch last: joint angles ``q (n, s)``, weighted Jacobian ``J (m, n, s)``,
+    weighted error ``e (m, s)``, squared weighted error ``E (s,)``, position and rotation errors
+    ``(s,)`` (m, rad) and the damping ``lam (s,)`` (m^2)."""
+
+    q: Tensor
+    J: Tensor
+    e: Tensor
+    E: Tensor
+    pos_err: Tensor
+    rot_err: Tensor
+    lam: Tensor
+
+    def take(self, index: Tensor) -> _LMState:
+        return _LMState(*(_take(value, index) for value in self))
+
+
+def _lm_step(chain, state: _LMState, target, weight, limits, rest, rest_gain, lam_min, lam_max) -> _LMState:
+    """One Levenberg-Marquardt step for every slot: a step is kept where it lowers ``E``, and
+    the damping follows. ``limits`` is ``(lo, hi)``, each ``(n, 1)``, or None for an
+    unconstrained step."""
     q, J, e, E, pos_err, rot_err, lam = state
     free = None
     if limits is not None:  # box constraint: joints at a limit that E pushes outward are frozen
@@ -144,7 +162,7 @@ def _lm_step(chain, state, target, weight, limits, rest, rest_gain, lam_min, lam
     q_new = q + dq if limits is None else torch.minimum(torch.maximum(q + dq, lo), hi)
     J_new, e_new, E_new, pos_new, rot_new = _evaluate(chain, q_new, target, weight)
     kept = (E_new < E).to(q.dtype)  # lerp with weight 0 or 1 is exact, and ~10x faster than where
-    return (
+    return _LMState(
         torch.lerp(q, q_new, kept),
         torch.lerp(J, J_new, kept),
         torch.lerp(e, e_new, kept),
@@ -306,23 +324,16 @@ def solve(
     The solve is not differentiable (it runs under ``torch.no_grad``); use :func:`minimize`
     to optimise through IK.
     """
-    check_choice(mode, get_args(Mode), "mode")
-    for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
-        _check_positive(value, name)
+    _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
     seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
-    for value, name in ((seeds, "seeds"), (iterations, "iterations"), (check_every, "check_every")):
-        _check_positive(value, name, integer=True)
-    if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
-        raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
+    _check_positive(seeds, "seeds", integer=True)
     batch = _check_target(target, mode, None, None)
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
-    check_choice(precision, get_args(Precision), "precision")
     dtype, device, n = target.dtype, target.device, chain.n_joints
     loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
     work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
     flat = target.reshape(-1, *target.shape[len(batch) :])
-    b = flat.shape[0]
     rest_flat = None if rest is None or rest_gain == 0 else _broadcast_q(rest, chain, batch, "rest", work)
     if generator is None:
         generator = torch.Generator(device).manual_seed(0)
@@ -331,8 +342,6 @@ def solve(
         flat = flat.to(work)
         lo, hi = (x[:, None] for x in _inner_limits(chain, work))  # (n, 1) each
         first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
-        lam_min = 1e-12 if work == torch.float64 else 1e-6
-        weight = float(rot_weight)
         # Seeds: q0, then pool configurations ranked by pose distance to each target.
         pool = distance = None  # not needed when q0 is the only seed (tracking)
         if seeds > (first is not None):
@@ -342,61 +351,125 @@ def solve(
             None if mode == "position" else flat[:, :3, :3].permute(2, 1, 0).contiguous(),
             (flat if mode == "position" else flat[:, :3, 3]).T.contiguous(),
         )
-        best_q = torch.empty(n, b, dtype=work, device=device)
-        best_E = torch.full((b,), math.inf, dtype=work, device=device)
-        used = torch.zeros(b, dtype=torch.long, device=device)
-        free_steps = min(_FREE_STEPS, iterations // 2)
-        remaining, next_seed = torch.arange(b, device=device), 0
-        # Rounds: every remaining problem tries its next `width` seeds side by side; the width
-        # grows when few problems remain, so the small tail of hard targets fills the batch.
-        while remaining.numel() and next_seed < seeds:
-            width = min(seeds - next_seed, max(1, -(-_MIN_BATCH // remaining.numel())))
-            problem = remaining.repeat(width)  # slot -> problem
-            number = torch.arange(next_seed, next_seed + width, device=device).repeat_interleave(remaining.numel())
-            q = _seed_q(pool, distance, first, remaining, width, next_seed)
-            if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
-                best_q.copy_(q[:, :b])
-            slot_tgt = tgt.take(problem)
-            slot_rest = None if rest_flat is None else rest_flat[problem].T.contiguous()
-            J, e, E, pos_err, rot_err = _evaluate(chain, q, slot_tgt, weight)
-            # Initial damping: 1% of the squared error, at most _LAMBDA0: a seed near its answer
-            # (tracking) starts with nearly Gauss-Newton steps (measured: 2.7 instead of 4.1
-            # iterations from 0.05 rad away; no change from random seeds).
-            state = (q, J, e, E, pos_err, rot_err, (0.01 * E).clamp(lam_min, _LAMBDA0))
-            checked = 0
-            for step in range(iterations):
-                if step == free_steps and step:  # the unconstrained start ends: into the limits
-                    q = _into_limits(state[0], lo, hi)
-                    state = (q, *_evaluate(chain, q, slot_tgt, weight), state[-1])
-                limits = None if step < free_steps else (lo, hi)
-                state = _lm_step(chain, state, slot_tgt, weight, limits, slot_rest, rest_gain, lam_min, 1e4)
-                if (step + 1) % check_every and step + 1 < iterations:
-                    continue
-                used.index_add_(0, problem, torch.full_like(problem, step + 1 - checked))
-                checked = step + 1
-                q, _, _, E, pos_err, rot_err, _ = state
-                done = (pos_err <= 0.5 * pos_tol) & (rot_err <= 0.5 * rot_tol)
-                if step < free_steps:  # only the unconstrained start can leave the limits
-                    inside = ((q >= lo) & (q <= hi)).all(0)
-                    done, E = done & inside, torch.where(inside, E, math.inf)
-                # Converged slots rank below every error, the lowest seed number first, so the
-                # answer does not depend on how many seeds ran side by side.
-                key = torch.where(done, (number - seeds).to(work), E)
-                best_E = _keep_best(best_q, best_E, q, key, problem)
-                # A slot runs on while no lower-numbered seed of its problem has converged.
-                winner = torch.where(best_E < 0, best_E + seeds, seeds)  # lowest converged seed number
-                keep = (~done & (number < winner[problem])).nonzero().squeeze(1)
-                if keep.numel() < problem.numel():
-                    problem, number, slot_tgt = problem[keep], number[keep], slot_tgt.take(keep)
-                    state = tuple(_take(s, keep) for s in state)
-                    slot_rest = None if slot_rest is None else _take(slot_rest, keep)
-                if not problem.numel():
-                    break
-            next_seed += width
-            remaining = remaining[best_E[remaining] >= 0]
+        settings = _Settings(
+            chain, float(rot_weight), lo, hi, 1e-12 if work == torch.float64 else 1e-6, rest_gain,
+            iterations, min(_FREE_STEPS, iterations // 2), check_every, seeds, pos_tol, rot_tol,
+        )  # fmt: skip
+        answers = _Answers.empty(n, flat.shape[0], work, device)
+        _run_rounds(settings, tgt, rest_flat, pool, distance, first, answers)
+        q_out = answers.q.T.to(dtype).reshape(*batch, n)
+        return _result(chain, q_out, target, mode, pos_tol, rot_tol, answers.used.reshape(batch))
 
-        q_out = best_q.T.to(dtype).reshape(*batch, n)
-        return _result(chain, q_out, target, mode, pos_tol, rot_tol, used.reshape(batch))
+
+def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
+    check_choice(mode, get_args(Mode), "mode")
+    for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
+        _check_positive(value, name)
+    for value, name in ((iterations, "iterations"), (check_every, "check_every")):
+        _check_positive(value, name, integer=True)
+    if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
+        raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
+    check_choice(precision, get_args(Precision), "precision")
+
+
+class _Settings(NamedTuple):
+    """What every round of :func:`solve` shares; ``lo, hi (n, 1)`` the inner joint limits (rad),
+    ``lam_min`` the damping floor (m^2), ``free_steps`` the unconstrained steps of each seed."""
+
+    chain: DHChain
+    weight: float
+    lo: Tensor
+    hi: Tensor
+    lam_min: float
+    rest_gain: float
+    iterations: int
+    free_steps: int
+    check_every: int
+    seeds: int
+    pos_tol: float
+    rot_tol: float
+
+
+@dataclass
+class _Answers:
+    """Per problem: the best ``q (n, b)`` so far, its key ``E (b,)`` (below 0: converged, see
+    :func:`_check_slots`) and the iterations ``used (b,)`` over all seeds."""
+
+    q: Tensor
+    E: Tensor
+    used: Tensor
+
+    @staticmethod
+    def empty(n: int, b: int, dtype: torch.dtype, device: torch.device) -> _Answers:
+        return _Answers(
+            torch.empty(n, b, dtype=dtype, device=device),
+            torch.full((b,), math.inf, dtype=dtype, device=device),
+            torch.zeros(b, dtype=torch.long, device=device),
+        )
+
+
+def _run_rounds(settings: _Settings, tgt: _Target, rest, pool, distance, first, answers: _Answers) -> None:
+    """Rounds: every remaining problem tries its next ``width`` seeds side by side; the width
+    grows when few problems remain, so the small tail of hard targets fills the batch."""
+    b, seeds = answers.E.shape[0], settings.seeds
+    device = answers.E.device
+    remaining, next_seed = torch.arange(b, device=device), 0
+    while remaining.numel() and next_seed < seeds:
+        width = min(seeds - next_seed, max(1, -(-_MIN_BATCH // remaining.numel())))
+        problem = remaining.repeat(width)  # slot -> problem
+        number = torch.arange(next_seed, next_seed + width, device=device).repeat_interleave(remaining.numel())
+        q = _seed_q(pool, distance, first, remaining, width, next_seed)
+        if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
+            answers.q.copy_(q[:, :b])
+        slot_rest = None if rest is None else rest[problem].T.contiguous()
+        _run_round(settings, q, tgt.take(problem), slot_rest, problem, number, answers)
+        next_seed += width
+        remaining = remaining[answers.E[remaining] >= 0]
+
+
+def _run_round(settings: _Settings, q, slot_tgt: _Target, slot_rest, problem, number, answers: _Answers) -> None:
+    """The LM iterations of one round of seeds ``q (n, s)``; slots leave as they converge or as a
+    lower-numbered seed of their problem converges."""
+    chain, weight, lo, hi = settings.chain, settings.weight, settings.lo, settings.hi
+    J, e, E, pos_err, rot_err = _evaluate(chain, q, slot_tgt, weight)
+    # Initial damping: 1% of the squared error, at most _LAMBDA0: a seed near its answer
+    # (tracking) starts with nearly Gauss-Newton steps (measured: 2.7 instead of 4.1
+    # iterations from 0.05 rad away; no change from random seeds).
+    state = _LMState(q, J, e, E, pos_err, rot_err, (0.01 * E).clamp(settings.lam_min, _LAMBDA0))
+    checked = 0
+    for step in range(settings.iterations):
+        if step == settings.free_steps and step:  # the unconstrained start ends: into the limits
+            q = _into_limits(state.q, lo, hi)
+            state = _LMState(q, *_evaluate(chain, q, slot_tgt, weight), state.lam)
+        limits = None if step < settings.free_steps else (lo, hi)
+        state = _lm_step(chain, state, slot_tgt, weight, limits, slot_rest, settings.rest_gain, settings.lam_min, 1e4)
+        if (step + 1) % settings.check_every and step + 1 < settings.iterations:
+            continue
+        answers.used.index_add_(0, problem, torch.full_like(problem, step + 1 - checked))
+        checked = step + 1
+        keep = _check_slots(settings, state, step, problem, number, answers)
+        if keep.numel() < problem.numel():
+            problem, number, slot_tgt, state = problem[keep], number[keep], slot_tgt.take(keep), state.take(keep)
+            slot_rest = None if slot_rest is None else _take(slot_rest, keep)
+        if not problem.numel():
+            break
+
+
+def _check_slots(settings: _Settings, state: _LMState, step: int, problem, number, answers: _Answers) -> Tensor:
+    """Record each problem's best slot in ``answers``; return the indices of the slots that run on."""
+    done = (state.pos_err <= 0.5 * settings.pos_tol) & (state.rot_err <= 0.5 * settings.rot_tol)
+    E = state.E
+    if step < settings.free_steps:  # only the unconstrained start can leave the limits
+        inside = ((state.q >= settings.lo) & (state.q <= settings.hi)).all(0)
+        done, E = done & inside, torch.where(inside, E, math.inf)
+    # Converged slots rank below every error, the lowest seed number first, so the
+    # answer does not depend on how many seeds ran side by side.
+    seeds = settings.seeds
+    key = torch.where(done, (number - seeds).to(E.dtype), E)
+    answers.E = _keep_best(answers.q, answers.E, state.q, key, problem)
+    # A slot runs on while no lower-numbered seed of its problem has converged.
+    winner = torch.where(answers.E < 0, answers.E + seeds, seeds)  # lowest converged seed number
+    return (~done & (number < winner[problem])).nonzero().squeeze(1)
 
 
 def _result(
