@@ -544,22 +544,7 @@ def minimize(
         return torch.minimum(torch.maximum(q, lo), hi)
 
     u = clamp(q0.detach()).requires_grad_(True)
-    if optimizer == "adam":
-        opt = torch.optim.Adam([u], lr=0.1 if lr is None else lr)
-        decay = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.01 ** (1 / steps))
-    else:
-        # One call runs every iteration: torch's L-BFGS keeps its history within a call.
-        opt = torch.optim.LBFGS(
-            [u],
-            lr=1.0 if lr is None else lr,
-            max_iter=steps,
-            max_eval=2 * steps,
-            line_search_fn="strong_wolfe",
-            tolerance_grad=0.0,
-            tolerance_change=0.0,
-            history_size=20,
-        )
-        decay = None
+    opt, decay = _optimizer(u, optimizer, steps, lr)
     best_q = u.detach().clone()
     best_loss = torch.full(batch, math.inf, dtype=q0.dtype, device=q0.device)
 
@@ -587,13 +572,37 @@ def minimize(
             decay.step()
     with torch.no_grad():
         q = clamp(u)
-        value = loss(q, chain.fk(q))
-        best_q = torch.where((value < best_loss)[..., None], q, best_q)
-        iterations = torch.full(batch, steps, dtype=torch.long, device=q0.device)
-        result = _result(chain, best_q, target, mode, pos_tol, rot_tol, iterations)
-        if success_fn is None:
-            return result
-        extra = success_fn(best_q, chain.fk(best_q))
-        if not isinstance(extra, torch.Tensor) or extra.shape != batch:
-            raise ValueError(f"success_fn must return one bool per problem, shape {tuple(batch)}")
-        return IKResult(best_q, result.success & extra.bool(), result.pos_err, result.rot_err, iterations)
+        best_q = torch.where((loss(q, chain.fk(q)) < best_loss)[..., None], q, best_q)
+        return _minimize_result(chain, best_q, target, mode, pos_tol, rot_tol, steps, success_fn)
+
+
+def _optimizer(u: Tensor, optimizer: str, steps: int, lr: float | None):
+    """``(torch optimizer, learning-rate schedule or None)`` for :func:`minimize`."""
+    if optimizer == "adam":
+        opt = torch.optim.Adam([u], lr=0.1 if lr is None else lr)
+        return opt, torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.01 ** (1 / steps))
+    # One call runs every iteration: torch's L-BFGS keeps its history within a call.
+    opt = torch.optim.LBFGS(
+        [u],
+        lr=1.0 if lr is None else lr,
+        max_iter=steps,
+        max_eval=2 * steps,
+        line_search_fn="strong_wolfe",
+        tolerance_grad=0.0,
+        tolerance_change=0.0,
+        history_size=20,
+    )
+    return opt, None
+
+
+def _minimize_result(chain, q, target, mode, pos_tol, rot_tol, steps, success_fn) -> IKResult:
+    """:func:`minimize`'s answer ``q (..., n)`` -> :class:`IKResult`, with the caller's extra criterion."""
+    batch = q.shape[:-1]
+    iterations = torch.full(batch, steps, dtype=torch.long, device=q.device)
+    result = _result(chain, q, target, mode, pos_tol, rot_tol, iterations)
+    if success_fn is None:
+        return result
+    extra = success_fn(q, chain.fk(q))
+    if not isinstance(extra, torch.Tensor) or extra.shape != batch:
+        raise ValueError(f"success_fn must return one bool per problem, shape {tuple(batch)}")
+    return IKResult(q, result.success & extra.bool(), result.pos_err, result.rot_err, iterations)
