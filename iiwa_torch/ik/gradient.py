@@ -24,7 +24,7 @@ from typing import Literal, NamedTuple, get_args
 import torch
 
 from .. import so3
-from .._checks import check_choice, check_finite
+from .._checks import check_choice, check_finite, check_positive
 from ..dh import DHChain
 from .dls import dls_step_batch_last
 from .limits import shift_into_limits
@@ -42,12 +42,6 @@ _MIN_BATCH = 1024  # below this many problems, run several seeds of each side by
 _FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
 _LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
 _DAMP_DOWN, _DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
-
-
-def _check_positive(value, name: str, integer: bool = False) -> None:
-    kind = int if integer else (int, float)
-    if isinstance(value, bool) or not isinstance(value, kind) or not value > 0 or not math.isfinite(value):
-        raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
 
 
 # ---------------------------------------------------------------------- batch-last kinematics
@@ -326,7 +320,7 @@ def solve(
     """
     _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
     seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
-    _check_positive(seeds, "seeds", integer=True)
+    check_positive(seeds, "seeds", integer=True)
     batch = _check_target(target, mode, None, None)
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
@@ -364,9 +358,9 @@ def solve(
 def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
     check_choice(mode, get_args(Mode), "mode")
     for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
-        _check_positive(value, name)
+        check_positive(value, name)
     for value, name in ((iterations, "iterations"), (check_every, "check_every")):
-        _check_positive(value, name, integer=True)
+        check_positive(value, name, integer=True)
     if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
         raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
     check_choice(precision, get_args(Precision), "precision")
@@ -529,9 +523,9 @@ def minimize(
     """
     check_choice(mode, get_args(Mode), "mode")
     check_choice(optimizer, get_args(Optimizer), "optimizer")
-    _check_positive(steps, "steps", integer=True)
+    check_positive(steps, "steps", integer=True)
     for value, name in ((pos_tol, "pos_tol"), (rot_tol, "rot_tol")) + (() if lr is None else ((lr, "lr"),)):
-        _check_positive(value, name)
+        check_positive(value, name)
     if not callable(loss) or (success_fn is not None and not callable(success_fn)):
         raise TypeError("loss and success_fn must be callables (q, pose) -> tensor of shape q.shape[:-1]")
     chain.check_q(q0, "q0")

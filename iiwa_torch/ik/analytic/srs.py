@@ -41,7 +41,7 @@ import math
 
 import torch
 
-from ..._checks import check_finite
+from ..._checks import check_finite, check_positive
 from ...dh import DHChain
 from ...so3 import pose_error
 from ..result import IKResult
@@ -301,11 +301,9 @@ def iiwa_solve(
         limits, ``q`` is the candidate nearest ``q0`` (or violating the limits least),
         reachable ones first, clamped into them.
     """
-    if isinstance(num_psi, bool) or not isinstance(num_psi, int) or num_psi < 1:
-        raise ValueError(f"num_psi must be a positive int, got {num_psi!r}")
+    check_positive(num_psi, "num_psi", integer=True)
     for value, name in ((pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
+        check_positive(value, name)
     check_target(chain, target)
     batch = target.shape[:-2]
     flat = target.reshape(-1, 4, 4)
