@@ -281,6 +281,16 @@ def test_dls_step_is_damped_least_squares(rows):
     assert torch.autograd.gradcheck(lambda j, v: dls_step(j, v, 1e-2), args)
 
 
+def test_dls_step_gradient_same_on_both_cholesky_paths():
+    gen = torch.Generator().manual_seed(28)
+    J = torch.randn(600, 6, 7, generator=gen, dtype=torch.float64, requires_grad=True)  # > 512: unrolled
+    e = torch.randn(600, 6, generator=gen, dtype=torch.float64)
+    weights = torch.randn(600, 7, generator=gen, dtype=torch.float64)
+    (grad_all,) = torch.autograd.grad((dls_step(J, e, 1e-2) * weights).sum(), J)
+    (grad_few,) = torch.autograd.grad((dls_step(J[:10], e[:10], 1e-2) * weights[:10]).sum(), J)  # LAPACK
+    torch.testing.assert_close(grad_all[:10], grad_few[:10], atol=1e-10, rtol=1e-10)
+
+
 def test_dls_step_rejects_bad_input():
     J, e = torch.zeros(4, 6, 7), torch.zeros(4, 6)
     with pytest.raises(ValueError, match="error must have shape"):
