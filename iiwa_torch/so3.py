@@ -170,7 +170,7 @@ def check_rigid(pose: torch.Tensor, name: str = "pose") -> None:
         return
     R = pose[..., :3, :3]
     eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
-    gram = (R[..., :, :, None] * R[..., :, None, :]).sum(-3) - eye  # R^T R - I
+    gram = R.mT @ R - eye
     c0, c1, c2 = R.unbind(-1)
     det = (torch.linalg.cross(c0, c1) * c2).sum(-1)
     last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=pose.dtype, device=pose.device)
