@@ -34,3 +34,16 @@ def check_finite(x: torch.Tensor, name: str) -> None:
     if not all_finite(x):
         bad = tuple((~torch.isfinite(x)).nonzero()[0].tolist())
         raise ValueError(f"{name} contains NaN or inf (first at index {bad})")
+
+
+def check_choice(value, choices: tuple, name: str) -> None:
+    """Raise ``ValueError`` unless ``value`` is one of ``choices`` (e.g. ``get_args`` of a ``Literal``)."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
+
+
+def check_positive(value, name: str, integer: bool = False) -> None:
+    """Raise ``ValueError`` unless ``value`` is a finite number ``> 0`` (an int if ``integer``; never a bool)."""
+    kind = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind) or not value > 0 or not math.isfinite(value):
+        raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")

@@ -24,6 +24,7 @@ from typing import Literal, get_args
 import torch
 
 from . import so3
+from ._checks import check_choice, check_finite
 from .dh import DHChain
 
 __all__ = [
@@ -80,11 +81,6 @@ class TrackResult:
     max_step: Tensor
 
 
-def _check_choice(value, choices: tuple, name: str) -> None:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
-
-
 def _times(t, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """``t`` (step count or time vector) -> normalised times ``s (..., T)`` in [0, 1] and the
     duration ``(..., 1)``."""
@@ -113,11 +109,14 @@ def jtraj(q0: Tensor, q1: Tensor, t, qd0: Tensor | None = None, qd1: Tensor | No
 
     Returns:
         :class:`JointTrajectory` with ``q, qd, qdd`` each ``(..., T, n)``; boundary
-        accelerations are zero. Differentiable in every input.
+        accelerations are zero. Differentiable in every input. NaN or inf in an input is a
+        ``ValueError`` (as in :func:`ctraj` and :func:`track`).
     """
     for name, value in (("q0", q0), ("q1", q1), ("qd0", qd0), ("qd1", qd1)):
         if value is not None and not (isinstance(value, Tensor) and value.is_floating_point() and value.ndim >= 1):
             raise TypeError(f"{name} must be a float tensor of shape (..., n), got {value!r:.60}")
+        if value is not None:
+            check_finite(value, name)
     given = [x for x in (q0, q1, qd0, qd1) if x is not None]
     try:
         torch.broadcast_shapes(*(x.shape for x in given))
@@ -166,9 +165,9 @@ def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
     The position moves on the segment ``p0 -> p1``; the rotation is ``R0 exp(s log(R0^T R1))``
     (slerp: the shortest rotation, at a constant rate about a fixed axis). Differentiable.
     """
-    _check_choice(profile, get_args(Profile), "profile")
-    so3.check_pose(T0, "T0")
-    so3.check_pose(T1, "T1")
+    check_choice(profile, get_args(Profile), "profile")
+    so3.check_rigid(T0, "T0")
+    so3.check_rigid(T1, "T1")
     s, _ = _times(t, T0.dtype, T0.device)
     if profile == "quintic":
         zero = torch.zeros(1, dtype=T0.dtype, device=T0.device)
@@ -251,8 +250,8 @@ def track(
         :class:`TrackResult`: joint path, per-step errors and success, and the largest joint step.
         Check ``max_step``: a large value means a branch switch or a failure along the way.
     """
-    _check_choice(method, get_args(Method), "method")
-    so3.check_pose(poses, "poses")
+    check_choice(method, get_args(Method), "method")
+    so3.check_rigid(poses, "poses")
     chain.check_q(q0, "q0")
     if poses.ndim < 3:
         raise ValueError(f"poses must have shape (..., T, 4, 4), got {tuple(poses.shape)}")

@@ -480,19 +480,27 @@ def test_gradients_are_finite_and_match_finite_differences():
     (sol.q * sol.valid[..., None]).sum().backward()
     assert torch.isfinite(target.grad).all()
 
-    def first_branch_angles(pose):
-        return analytic.pieper(chain, pose).q[..., 0, :]
+    def first_branch_angles(xi):
+        return analytic.pieper(chain, _moved(target[:3].detach(), xi)).q[..., 0, :]
 
-    torch.autograd.gradcheck(first_branch_angles, (target[:3].detach().clone().requires_grad_(True),))
+    torch.autograd.gradcheck(first_branch_angles, (torch.zeros(3, 6, dtype=torch.float64, requires_grad=True),))
+
+
+def _moved(pose, xi):
+    """``pose (..., 4, 4)`` moved by ``xi (..., 6)`` (translation m, body rotation vector rad): a
+    rigid pose for every ``xi``, so finite differences in ``xi`` stay on rigid poses."""
+    top = torch.cat([pose[..., :3, :3] @ exp(xi[..., 3:]), (pose[..., :3, 3] + xi[..., :3])[..., None]], -1)
+    return torch.cat([top, pose[..., 3:, :]], -2)
 
 
 def test_iiwa_gradients_w_r_t_target_and_arm_angle():
     chain = robots.iiwa14()
     q = chain.random_q(3, generator=_gen(22))
-    target = chain.fk(q).requires_grad_(True)
+    target = chain.fk(q)
+    xi = torch.zeros(3, 6, dtype=torch.float64, requires_grad=True)
     psi = analytic.iiwa_arm_angle(chain, q).requires_grad_(True)
-    torch.autograd.gradcheck(lambda t, p: analytic.iiwa(chain, t, p).q[..., 2, :], (target, psi))
-    torch.autograd.gradcheck(lambda t: analytic.iiwa_q3_locked(chain, t, 0.2).q[..., 5, :], (target,))
+    torch.autograd.gradcheck(lambda x, p: analytic.iiwa(chain, _moved(target, x), p).q[..., 2, :], (xi, psi))
+    torch.autograd.gradcheck(lambda x: analytic.iiwa_q3_locked(chain, _moved(target, x), 0.2).q[..., 5, :], (xi,))
     far = _random_poses(64, _gen(23), (0.0, 0.0, 0.36), 1.4).requires_grad_(True)  # many out of reach
     for solve in (lambda t: analytic.iiwa(chain, t, 0.4), lambda t: analytic.iiwa_q3_locked(chain, t)):
         sol = solve(far)
@@ -506,3 +514,31 @@ def test_planar_gradients():
     chain = robots.planar3r()
     xyphi = torch.tensor([[1.2, 0.4, 0.3], [0.2, -1.1, 2.0]], dtype=torch.float64, requires_grad=True)
     torch.autograd.gradcheck(lambda v: analytic.planar3r(chain, v[:, 0], v[:, 1], v[:, 2]).q, (xyphi,))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_iiwa_solve_succeeds_on_every_pose_of_float32_angles(dtype):
+    """FK of angles within the limits is reachable: success must follow the FK error, also where
+    rounding puts the elbow cosine a hair past 1 or a joint a hair past its limit."""
+    chain = robots.iiwa14().to(dtype)
+    q = chain.random_q(20_000, generator=_gen(41), dtype=torch.float32).to(dtype)
+    result = analytic.iiwa_solve(chain, chain.fk(q))
+    assert result.success.all(), (result.pos_err[~result.success], result.rot_err[~result.success])
+    assert chain.within_limits(result.q).all()
+
+
+def test_iiwa_solve_succeeds_a_rounding_error_beyond_reach():
+    chain = robots.iiwa14()
+    q = chain.random_q(200, generator=_gen(42))
+    q[:, 3] = 0.0  # stretched elbow: the wrist centre at full reach d3 + d5 from the shoulder
+    T = chain.fk(q)
+    shoulder = torch.tensor([0.0, 0.0, float(chain.dh[0, 2])], dtype=torch.float64)
+    T[:, :3, 3] = shoulder + (T[:, :3, 3] - shoulder) * (1 + 1e-12)  # ~1e-12 m beyond reach
+    result = analytic.iiwa_solve(chain, T)
+    assert result.success.all()
+    assert result.pos_err.max() < 1e-11 and result.rot_err.max() < 1e-11
+    far = T.clone()
+    far[:, :3, 3] = shoulder + (T[:, :3, 3] - shoulder) * 1.01  # 1 cm out: a failure, by the FK error
+    result = analytic.iiwa_solve(chain, far)
+    assert not result.success.any() and (result.pos_err > 1e-4).all()
+    assert chain.within_limits(result.q).all()

@@ -13,7 +13,7 @@ import torch
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import IKResult, minimize, solve
-from iiwa_torch.ik.gradient import _cholesky_solve, _evaluate, _Target
+from iiwa_torch.ik.dls import cholesky_solve_batch_last, dls_step
 
 DTYPES = [torch.float64, torch.float32]
 
@@ -29,28 +29,43 @@ def within_limits(chain, q):
     return chain.within_limits(q.double()).all()
 
 
-def target_layout(pose):
-    return _Target(pose[:, :3, :3].permute(2, 1, 0).contiguous(), pose[:, :3, 3].T.contiguous())
+def first_step(chain, q0, target, weight):
+    """The first LM step from ``q0`` by hand, from the public Jacobian, pose error and DLS step:
+    rotation rows weighted by ``weight``, damping 1% of the squared weighted error (at most 1e-2)."""
+    e_pos, e_rot = so3.pose_error(chain.fk(q0), target)
+    scale = torch.tensor([1, 1, 1, weight, weight, weight], dtype=q0.dtype)
+    e = torch.cat([e_pos, e_rot], -1) * scale
+    lam = (0.01 * e.square().sum(-1)).clamp(1e-12, 1e-2)
+    return q0 + dls_step(chain.jacobian(q0) * scale[:, None], e, lam)
 
 
-# ---------------------------------------------------------------- the solver's kernel
+def one_step(chain, target, q0, weight):
+    return solve(chain, target, q0, seeds=1, iterations=1, rot_weight=weight, precision="input").q
+
+
+def near(chain, q0, seed, size=0.02):
+    """Targets a little away from ``chain.fk(q0)`` (so one step is a clear improvement)."""
+    gen = torch.Generator().manual_seed(seed)
+    return chain.fk(q0 + size * torch.randn(q0.shape, generator=gen, dtype=q0.dtype))
+
+
+def mid_q(chain, count, seed):
+    """Configurations in the middle half of the limits (one small step stays inside them)."""
+    lo, hi = chain.limits
+    u = torch.rand(count, chain.n_joints, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return (lo + hi) / 2 + (u - 0.5) * (hi - lo) / 2
+
+
+# ---------------------------------------------------------------- the solver's kernel, through one step
 @pytest.mark.parametrize("name", list(robots.PRESETS))
-def test_kernel_matches_chain_jacobian_and_pose_error(name):
+def test_first_step_is_the_dls_step_of_chain_jacobian_and_pose_error(name):
     chain = robots.PRESETS[name]()
-    q = chain.random_q(64, generator=torch.Generator().manual_seed(0))
-    target, _ = reachable(chain, 64, 1)
-    J, e, E, pos, rot = _evaluate(chain, q.T.contiguous(), target_layout(target), 0.5)
-    ref_J = chain.jacobian(q)
-    ref_pos, ref_rot = so3.pose_error(chain.fk(q), target)
-    scale = torch.tensor([1, 1, 1, 0.5, 0.5, 0.5], dtype=q.dtype)
-    torch.testing.assert_close(J.permute(2, 0, 1), ref_J * scale[:, None], atol=1e-12, rtol=0)
-    torch.testing.assert_close(e.T, torch.cat([ref_pos, ref_rot], -1) * scale, atol=1e-9, rtol=0)
-    torch.testing.assert_close(pos, ref_pos.norm(dim=-1), atol=1e-12, rtol=0)
-    torch.testing.assert_close(rot, ref_rot.norm(dim=-1), atol=1e-9, rtol=0)
-    torch.testing.assert_close(E, pos.square() + 0.25 * rot.square())
+    q0 = mid_q(chain, 64, 0)
+    target = near(chain, q0, 1)
+    torch.testing.assert_close(one_step(chain, target, q0, 0.5), first_step(chain, q0, target, 0.5), atol=1e-9, rtol=0)
 
 
-def test_kernel_handles_modified_dh_base_and_tool():
+def test_first_step_with_modified_dh_base_and_tool():
     tool = torch.eye(4, dtype=torch.float64)
     tool[:3, :3] = so3.exp(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64))
     tool[:3, 3] = torch.tensor([0.01, 0.02, 0.1])
@@ -59,29 +74,27 @@ def test_kernel_handles_modified_dh_base_and_tool():
     base[:3, 3] = torch.tensor([0.5, -0.2, 0.1])
     table = [(0, 0, 0.3, 0), (0.1, -math.pi / 2, 0, 0.2), (0.4, 0.3, 0.05, 0), (0.02, math.pi / 2, 0.35, 0)]
     chain = DHChain(table, convention="modified", base=base, tool=tool)
-    q = chain.random_q(32, generator=torch.Generator().manual_seed(2))
-    target, _ = reachable(chain, 32, 3)
-    J, e, _, _, _ = _evaluate(chain, q.T.contiguous(), target_layout(target), 1.0)
-    torch.testing.assert_close(J.permute(2, 0, 1), chain.jacobian(q), atol=1e-12, rtol=0)
-    torch.testing.assert_close(e.T, torch.cat(so3.pose_error(chain.fk(q), target), -1), atol=1e-9, rtol=0)
+    q0 = mid_q(chain, 32, 2)
+    target = near(chain, q0, 3, size=0.005)  # 4 joints cannot follow a pose: a short way only
+    torch.testing.assert_close(one_step(chain, target, q0, 1.0), first_step(chain, q0, target, 1.0), atol=1e-9, rtol=0)
 
 
-@pytest.mark.parametrize("dtype", DTYPES)
-def test_kernel_rotation_error_near_half_turn(dtype):
-    # Targets turned by pi - d about an axis from the current pose: the error angle is pi - d
-    # (closed form) and the error vector stays finite with length at most the angle.
+def test_first_step_near_a_half_turn_is_finite():
+    # Targets turned by pi - d about an axis from the current pose: the step is finite, and away
+    # from exactly pi it is the DLS step of so3.pose_error's rotation vector.
     chain = robots.iiwa14()
-    q = chain.random_q(6, generator=torch.Generator().manual_seed(4), dtype=dtype)
-    pose = chain.fk(q)
-    angles = torch.tensor([math.pi, math.pi - 1e-7, math.pi - 1e-4, 3.0, 1e-8, 0.0], dtype=dtype)
-    axis = torch.nn.functional.normalize(torch.tensor([[0.3, -0.5, 0.8]], dtype=dtype), dim=-1)
+    q0 = mid_q(chain, 5, 4)
+    pose = chain.fk(q0)
+    angles = torch.tensor([math.pi, math.pi - 1e-4, 3.0, 1e-8, 0.0], dtype=torch.float64)
+    axis = torch.nn.functional.normalize(torch.tensor([[0.3, -0.5, 0.8]], dtype=torch.float64), dim=-1)
     target = pose.clone()
     target[:, :3, :3] = so3.exp(axis * angles[:, None]) @ pose[:, :3, :3]
-    _, e, E, pos, rot = _evaluate(chain, q.T.contiguous(), target_layout(target), 1.0)
-    assert torch.isfinite(e).all() and torch.isfinite(E).all()
-    tol = 1e-6 if dtype == torch.float64 else 1e-3
-    torch.testing.assert_close(rot, angles, atol=tol, rtol=0)
-    assert (e[3:].norm(dim=0) <= rot + tol).all()
+    q1 = one_step(chain, target, q0, 1.0)
+    assert torch.isfinite(q1).all()
+    expected = first_step(chain, q0, target, 1.0)
+    inside = chain.within_limits(expected)  # (the solver projects a step that leaves the limits)
+    assert inside[1:].sum() >= 2
+    torch.testing.assert_close(q1[1:][inside[1:]], expected[1:][inside[1:]], atol=1e-9, rtol=0)
 
 
 # ---------------------------------------------------------------- success on reachable targets
@@ -241,12 +254,51 @@ def test_cholesky_paths_match_linalg_solve():
         M = torch.randn(6, 9, batch, generator=gen, dtype=torch.float64)
         A = (M[:, None] * M[None]).sum(2) + 1e-3 * torch.eye(6, dtype=torch.float64)[..., None]
         rhs = torch.randn(6, 2, batch, generator=gen, dtype=torch.float64)
-        x = _cholesky_solve(A, rhs, 1e-12)
+        x = cholesky_solve_batch_last(A, rhs, 1e-12)
         expected = torch.linalg.solve(A.permute(2, 0, 1), rhs.permute(2, 0, 1)).permute(1, 2, 0)
         torch.testing.assert_close(x, expected, atol=1e-9, rtol=1e-9)
         # a singular matrix (zero Jacobian) gives a finite answer, not NaN
-        zero = _cholesky_solve(torch.zeros_like(A), rhs, 1e-12)
+        zero = cholesky_solve_batch_last(torch.zeros_like(A), rhs, 1e-12)
         assert torch.isfinite(zero).all()
+
+
+@pytest.mark.parametrize("rows", [6, 3])
+def test_dls_step_is_damped_least_squares(rows):
+    """dq minimises |J dq - e|^2 + lam |dq|^2: least squares on [J; sqrt(lam) I] dq = [e; 0]."""
+    gen = torch.Generator().manual_seed(27)
+    J = torch.randn(2, 5, rows, 7, generator=gen, dtype=torch.float64)
+    J[0, 0, 0] = 0.0  # a rank-deficient Jacobian: only the damping keeps the step finite
+    e = torch.randn(2, 5, rows, generator=gen, dtype=torch.float64)
+    lam = torch.tensor([1e-2, 1e-4], dtype=torch.float64)[:, None]  # (2, 1): broadcasts over the batch
+    stacked = torch.cat([J, lam[..., None, None].sqrt() * torch.eye(7, dtype=torch.float64).expand(2, 5, 7, 7)], -2)
+    rhs = torch.cat([e, torch.zeros(2, 5, 7, dtype=torch.float64)], -1)
+    expected = torch.linalg.lstsq(stacked, rhs[..., None]).solution[..., 0]
+    torch.testing.assert_close(dls_step(J, e, lam), expected, atol=1e-10, rtol=1e-10)
+    # a float damping, broadcast Jacobian; and differentiable
+    broadcast = dls_step(J[0, 0].expand(5, rows, 7), e[0], torch.full((5,), 1e-2, dtype=torch.float64))
+    torch.testing.assert_close(dls_step(J[0, 0], e[0], 1e-2), broadcast)
+    args = (J[1, :2].clone().requires_grad_(), e[1, :2].clone().requires_grad_())
+    assert torch.autograd.gradcheck(lambda j, v: dls_step(j, v, 1e-2), args)
+
+
+def test_dls_step_gradient_same_on_both_cholesky_paths():
+    gen = torch.Generator().manual_seed(28)
+    J = torch.randn(600, 6, 7, generator=gen, dtype=torch.float64, requires_grad=True)  # > 512: unrolled
+    e = torch.randn(600, 6, generator=gen, dtype=torch.float64)
+    weights = torch.randn(600, 7, generator=gen, dtype=torch.float64)
+    (grad_all,) = torch.autograd.grad((dls_step(J, e, 1e-2) * weights).sum(), J)
+    (grad_few,) = torch.autograd.grad((dls_step(J[:10], e[:10], 1e-2) * weights[:10]).sum(), J)  # LAPACK
+    torch.testing.assert_close(grad_all[:10], grad_few[:10], atol=1e-10, rtol=1e-10)
+
+
+def test_dls_step_rejects_bad_input():
+    J, e = torch.zeros(4, 6, 7), torch.zeros(4, 6)
+    with pytest.raises(ValueError, match="error must have shape"):
+        dls_step(J, e[:, :3], 0.1)
+    with pytest.raises(ValueError, match="damping must be positive"):
+        dls_step(J, e, 0.0)
+    with pytest.raises(TypeError, match="tensors"):
+        dls_step(J.numpy(), e, 0.1)
 
 
 def test_batch_shape_and_q0_broadcast():

@@ -287,3 +287,16 @@ def test_sampled_duration_respects_speed_limits(arm):
 def test_time_scaling_needs_speed_limits():
     with pytest.raises(ValueError, match="no velocity_limits"):
         shortest_duration(robots.puma560(), torch.zeros(6, dtype=F64), torch.ones(6, dtype=F64))
+
+
+@pytest.mark.parametrize("name", ["q0", "q1", "qd0", "qd1"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_jtraj_rejects_non_finite_inputs_like_ctraj(name, bad):
+    args = {key: torch.zeros(3, 7, dtype=torch.float64) for key in ("q0", "q1", "qd0", "qd1")}
+    args[name][1, 4] = bad
+    with pytest.raises(ValueError, match=rf"{name} contains NaN or inf \(first at index \(1, 4\)\)"):
+        jtraj(args["q0"], args["q1"], 10, args["qd0"], args["qd1"])
+    T = torch.eye(4, dtype=torch.float64).expand(3, 4, 4).clone()
+    T[1, 0, 3] = bad
+    with pytest.raises(ValueError, match="T1 contains NaN or inf"):
+        ctraj(torch.eye(4, dtype=torch.float64), T, 10)

@@ -21,6 +21,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from envs.goals import decode_pose_goal
 from iiwa_torch import so3
+from iiwa_torch.ik.dls import dls_step
 
 
 class GoalDeltaExtractor(BaseFeaturesExtractor):
@@ -133,11 +134,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         k = e.shape[-1]
         jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
         jp = jac[..., :3, :] if k == 3 else torch.cat([jac[..., :3, :], self.orientation_weight * jac[..., 3:, :]], -2)
-        jjt = jp @ jp.transpose(-1, -2)  # (B, k, k)
-        eye = torch.eye(k, dtype=q.dtype, device=q.device)
-        a = jjt.unsqueeze(1) + self.damping_sq[:, None, None] * eye  # (B, L, k, k)
-        x = torch.linalg.solve(a, e[:, None, :, None].expand(-1, a.shape[1], k, 1))  # (B, L, k, 1)
-        dq = (jp.transpose(-1, -2).unsqueeze(1) @ x).squeeze(-1)  # (B, L, nj) rad
+        dq = dls_step(jp.unsqueeze(1), e.unsqueeze(1), self.damping_sq)  # (B, L, nj) rad
         u = dq / self.max_step
         u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
         distance = e.norm(dim=-1, keepdim=True)  # (B, 1)

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import torch
 
 from ...dh import Convention, DHChain
-from ...so3 import check_pose
+from ...so3 import check_rigid
+from ..limits import shift_into_limits
 
 Tensor = torch.Tensor
 
@@ -195,7 +196,7 @@ def sigma(alpha: float) -> float:
 
 
 def check_target(chain: DHChain, target: Tensor) -> None:
-    check_pose(target, "target")
+    check_rigid(target, "target")
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
 
@@ -232,12 +233,12 @@ def joint_angles(chain: DHChain, thetas: list[Tensor]) -> tuple[list[Tensor], Te
     for theta, off, lo, hi in zip(thetas, offsets, lows, highs):
         q = theta - off
         q = q - _TWO_PI * torch.round(q * (1 / _TWO_PI))  # [-pi, pi]; 3x faster than remainder
-        if hi > math.pi:  # below the range, a turn up may get it inside
-            q = torch.where((q < lo) & (q + _TWO_PI <= hi), q + _TWO_PI, q)
-        if lo < -math.pi:  # above the range, a turn down may
-            q = torch.where((q > hi) & (q - _TWO_PI >= lo), q - _TWO_PI, q)
+        if hi > math.pi or lo < -math.pi:  # only then may a turn get q in [-pi, pi] inside
+            q, fits = shift_into_limits(q, lo, hi)
+        else:
+            fits = (q >= lo) & (q <= hi)
         qs.append(q)
-        inside.append((q >= lo) & (q <= hi))
+        inside.append(fits)
     return qs, reduce_grouped(torch.logical_and, inside)
 
 

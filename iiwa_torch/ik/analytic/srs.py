@@ -41,7 +41,7 @@ import math
 
 import torch
 
-from ..._checks import check_finite
+from ..._checks import check_finite, check_positive
 from ...dh import DHChain
 from ...so3 import pose_error
 from ..result import IKResult
@@ -295,16 +295,15 @@ def iiwa_solve(
 
     Returns:
         :class:`~iiwa_torch.ik.IKResult` with ``q (..., 7)`` within the joint limits,
-        ``success`` where some candidate was reachable within the limits (and its FK
-        reproduces the target to the tolerances), ``iterations`` 0. Where no candidate is
-        within the limits, ``q`` is the reachable candidate nearest ``q0`` (or violating the
-        limits least), clamped into them (``success`` False).
+        ``success`` where the FK of ``q`` reproduces the target within ``pos_tol`` and
+        ``rot_tol`` (whatever the branch geometry says: a target a rounding error beyond
+        reach succeeds with that error), ``iterations`` 0. Where no candidate is within the
+        limits, ``q`` is the candidate nearest ``q0`` (or violating the limits least),
+        reachable ones first, clamped into them.
     """
-    if isinstance(num_psi, bool) or not isinstance(num_psi, int) or num_psi < 1:
-        raise ValueError(f"num_psi must be a positive int, got {num_psi!r}")
+    check_positive(num_psi, "num_psi", integer=True)
     for value, name in ((pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise ValueError(f"{name} must be a positive number, got {value!r}")
+        check_positive(value, name)
     check_target(chain, target)
     batch = target.shape[:-2]
     flat = target.reshape(-1, 4, 4)
@@ -325,7 +324,7 @@ def iiwa_solve(
     q_best, found = q_best.reshape(*batch, 7), found.reshape(batch)
     pos_vec, rot_vec = pose_error(chain.fk(q_best), target)
     pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
-    success = found & (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)  # q is within the limits: the FK error decides
     iterations = torch.zeros(batch, dtype=torch.int64, device=target.device)
     return IKResult(q=q_best, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
 
@@ -372,8 +371,10 @@ def _pick(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tup
         cost = reduce_grouped(torch.add, [d * d for d in diffs])
     shape = cost.shape  # (B, K, 2, 2, 2)
     valid = (reachable & within).expand(shape)
-    big = 1e6  # valid candidates first, then the reachable ones, then the rest
-    key = torch.where(valid, cost, torch.where(reachable, big + cost, torch.full_like(cost, 2 * big)))
+    # Valid candidates first, then those outside the limits, then the geometrically unreachable
+    # ones (their cosines clamped: a target a rounding error out of reach is met to that error).
+    big = 1e6
+    key = cost + big * (~within).to(cost.dtype) + 2 * big * (~reachable).to(cost.dtype)
     best = key.reshape(batch, -1).argmin(-1)  # (B,)
     index = torch.unravel_index(best, shape[1:])  # arm angle, shoulder, elbow, wrist
     rows = torch.arange(batch, device=best.device)

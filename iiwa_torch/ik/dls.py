@@ -1,0 +1,107 @@
+"""The damped-least-squares (DLS) joint step, written once for the whole library.
+
+For a Jacobian ``J (m, n)`` (m = 6 for a pose, 3 for a position; rows in m/rad, or the
+angular rows in rad/rad) and an error ``e (m,)`` (m, or rad for the rotation rows):
+
+    dq = J^T (J J^T + damping I)^-1 e        (rad)
+
+``damping`` (the squared damping factor, in the units of ``J J^T``: m^2 for an arm) keeps
+``dq`` finite where ``J`` loses rank (Nakamura and Hanafusa; Wampler). :func:`dls_step` takes
+any leading batch shape; :func:`dls_step_batch_last` is the same step in the batch-last layout
+the gradient solver iterates in, and :func:`cholesky_solve_batch_last` its linear solve.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["dls_step", "dls_step_batch_last", "cholesky_solve_batch_last"]
+
+Tensor = torch.Tensor
+
+_LAPACK_BATCH = 512  # up to this many problems, LAPACK's per-matrix Cholesky beats the unrolled one
+
+
+def cholesky_solve_batch_last(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
+    """Solve ``A x = rhs`` for symmetric positive definite ``A (m, m, b)`` (lower triangle read),
+    ``rhs (m, k, b)`` -> ``x (m, k, b)``, by Cholesky ``A = L L^T``: LAPACK per matrix for small
+    batches, else written out entry by entry over the batch (fewer, larger kernels). Always
+    finite: pivots are floored at ``floor``, and a matrix LAPACK finds not positive definite
+    gives ``x = 0``. Differentiable."""
+    if A.shape[2] <= _LAPACK_BATCH:
+        lower = A.permute(2, 0, 1).tril()
+        # symmetric from the lower triangle, so the gradient reaches every entry that was read
+        L, info = torch.linalg.cholesky_ex(lower + lower.tril(-1).mT)
+        x = torch.cholesky_solve(rhs.permute(2, 0, 1), L).permute(1, 2, 0)
+        return torch.where(info == 0, x, 0.0)
+    m = A.shape[0]
+    L = [[None] * m for _ in range(m)]  # L[i][j], (b,) each
+    inv = [None] * m  # 1 / L[j][j]
+    for j in range(m):
+        pivot = A[j, j]
+        for k in range(j):
+            pivot = torch.addcmul(pivot, L[j][k], L[j][k], value=-1)
+        inv[j] = pivot.clamp_min(floor).rsqrt()
+        for i in range(j + 1, m):
+            entry = A[i, j]
+            for k in range(j):
+                entry = torch.addcmul(entry, L[i][k], L[j][k], value=-1)
+            L[i][j] = entry * inv[j]
+    y = [None] * m  # L y = rhs
+    for i in range(m):
+        entry = rhs[i]
+        for k in range(i):
+            entry = torch.addcmul(entry, L[i][k], y[k], value=-1)
+        y[i] = entry * inv[i]
+    x = [None] * m  # L^T x = y
+    for i in reversed(range(m)):
+        entry = y[i]
+        for k in range(i + 1, m):
+            entry = torch.addcmul(entry, L[k][i], x[k], value=-1)
+        x[i] = entry * inv[i]
+    return torch.stack(x)
+
+
+def dls_step_batch_last(J: Tensor, rhs: Tensor, damping: Tensor, floor: float, free: Tensor | None = None) -> Tensor:
+    """``J^T (J J^T + damping I)^-1 rhs`` for ``J (m, n, b)``, ``rhs (m, k, b)`` (k right-hand
+    sides), ``damping (b,)`` -> ``(n, k, b)``; Cholesky pivots floored at ``floor``. With
+    ``free (n, b)`` (0 or 1), the other columns of ``J`` count as zero (those joints stay put)."""
+    m = J.shape[0]
+    A = J.new_empty(m, m, J.shape[2])
+    for r in range(m):
+        A[r:, r] = ((J[r] if free is None else J[r] * free) * J[r:]).sum(1)
+    A.diagonal(0, 0, 1).add_(damping[:, None])
+    y = cholesky_solve_batch_last(A, rhs, floor)
+    dq = (J[:, :, None] * y[:, None]).sum(0)
+    return dq if free is None else dq * free[:, None]
+
+
+def dls_step(jacobian: Tensor, error: Tensor, damping: Tensor | float) -> Tensor:
+    """The DLS joint step ``J^T (J J^T + damping I)^-1 e`` (rad), batched and differentiable.
+
+    Args:
+        jacobian: ``(..., m, n)``, m = 6 (pose: linear rows m/rad, then angular rows) or 3
+            (position only); the rows may be weighted by the caller.
+        error: ``(..., m)``, the error to remove, in the rows' units (m; rad for angular rows).
+        damping: ``> 0``, a number or a tensor broadcasting to the batch ``(...)``, added to
+            the diagonal of ``J J^T`` (the squared damping factor, m^2 for position rows).
+
+    Returns:
+        ``(..., n)`` joint step, rad. The batch shape is the broadcast of the three inputs'.
+    """
+    if not isinstance(jacobian, Tensor) or not isinstance(error, Tensor) or jacobian.ndim < 2:
+        raise TypeError("jacobian (..., m, n) and error (..., m) must be tensors")
+    m, n = jacobian.shape[-2:]
+    if error.ndim == 0 or error.shape[-1] != m:
+        raise ValueError(
+            f"error must have shape (..., {m}) to match jacobian (..., {m}, {n}), got {tuple(error.shape)}"
+        )
+    damping = torch.as_tensor(damping, dtype=jacobian.dtype, device=jacobian.device)
+    if not bool((damping > 0).all()):
+        raise ValueError("damping must be positive")
+    batch = torch.broadcast_shapes(jacobian.shape[:-2], error.shape[:-1], damping.shape)
+    J = jacobian.expand(*batch, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, n, b)
+    e = error.expand(*batch, m).reshape(-1, m).T[:, None]  # (m, 1, b)
+    lam = damping.expand(batch).reshape(-1)
+    floor = torch.finfo(jacobian.dtype).tiny
+    return dls_step_batch_last(J, e, lam, floor)[:, 0].T.reshape(*batch, n)
