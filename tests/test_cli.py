@@ -261,3 +261,12 @@ def test_launcher_sets_the_wait_policy_before_torch_loads():
     env = {k: v for k, v in __import__("os").environ.items() if k != "OMP_WAIT_POLICY"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
     assert out.strip().endswith("PASSIVE")
+
+
+def test_drawing_without_the_viz_extra_names_the_extra(capsys, monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ModuleNotFoundError
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fk", *"0000000", "--plot", str(tmp_path / "arm.png")])
+    assert exit_info.value.code == 2
+    assert "iiwa-torch[viz]" in capsys.readouterr().err
+    assert not (tmp_path / "arm.png").exists()
