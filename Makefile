@@ -3,13 +3,19 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 export OMP_WAIT_POLICY := PASSIVE
+# torch first, from PyTorch's CPU wheel index: a bare `torch` requirement pulls a multi-GB CUDA
+# build. Where that index can't be reached (5 s, no retries) the default index is used instead.
+TORCH := 2.13.0
+TORCH_INDEX := https://download.pytorch.org/whl/cpu
 
 .PHONY: demo test bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q torch==2.13.0  # the CPU build, before anything can pull a CUDA one
+	$(PY) -m pip install -q --timeout 5 --retries 0 --index-url $(TORCH_INDEX) torch==$(TORCH) \
+	  || $(PY) -m pip install -q torch==$(TORCH)
+	$(PY) -c "import torch; print('installed torch', torch.__version__, '(CUDA build)' if torch.version.cuda else '(CPU build)')"
 	$(PY) -m pip install -q -e '.[all]'
 	touch $@
 

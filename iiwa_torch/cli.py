@@ -1,13 +1,6 @@
 """The ``iiwa-torch`` command: forward and inverse kinematics, trajectories, robot tables, a demo.
 
-Angles are degrees on the command line unless ``--rad`` is given; lengths are metres.
-``--json`` prints one JSON object for scripts (always SI: metres and radians). Examples::
-
-    iiwa-torch fk 0 0 0 -90 60 0 0 --flange 0.090
-    iiwa-torch ik --pose 0.49 0 0.78 90 30 90 --flange 0.090 --method analytic
-    iiwa-torch traj --from-q 0 30 0 -60 0 60 0 --to-pose 0.5 0.2 0.6 180 0 180 --gif line.gif
-    iiwa-torch robots iiwa14
-    iiwa-torch demo
+The entry point is ``iiwa_torch_launch.main``, which sets OpenMP's wait policy before torch loads.
 """
 
 from __future__ import annotations
@@ -16,8 +9,8 @@ import argparse
 import csv
 import json
 import math
+import shutil
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -27,6 +20,20 @@ from . import robots, so3
 from .dh import DHChain
 
 _F64 = torch.float64
+
+_DESCRIPTION = """\
+Forward and inverse kinematics, trajectories, robot tables and a demo.
+Angles are degrees unless --rad is given; lengths are metres. --json prints one JSON
+object for scripts (always metres and radians).
+
+examples:
+  iiwa-torch fk 0 0 0 -90 60 0 0 --flange 0.090
+  iiwa-torch ik --pose 0.49 0 0.78 90 30 90 --flange 0.090
+  iiwa-torch ik --pose 0.5 0.1 0.4                 (position only: 3 numbers)
+  iiwa-torch traj --from-q 0 30 0 -60 0 60 0 --to-pose 0.5 0.2 0.6 180 0 180 --gif line.gif
+  iiwa-torch robots iiwa14
+  iiwa-torch demo
+"""
 
 
 # ---------------------------------------------------------------- output helpers
@@ -67,7 +74,8 @@ def _json(obj) -> None:
 
 
 def _fmt(values, digits: int = 4) -> list[str]:
-    return [f"{v:.{digits}f}" for v in values]
+    # round first and add 0.0 so that values like -1e-17 print as 0.0000, never -0.0000
+    return [f"{round(v, digits) + 0.0:.{digits}f}" for v in values]
 
 
 # ---------------------------------------------------------------- argument helpers
@@ -83,6 +91,26 @@ class _UsageError(Exception):
     """A bad combination of arguments: reported through argparse (exit status 2)."""
 
 
+def _writable(path: str, option: str) -> Path:
+    """``path`` as a Path whose folder exists (else a usage error naming ``option``)."""
+    folder = Path(path).resolve().parent
+    if not folder.is_dir():
+        raise _UsageError(f"{option} {path}: the folder {folder} does not exist")
+    return Path(path)
+
+
+def _viz():
+    """The drawing module, or a usage error naming the extra that provides matplotlib and Pillow."""
+    try:
+        import matplotlib  # noqa: F401
+        import PIL  # noqa: F401
+    except ModuleNotFoundError as err:
+        raise _UsageError(f"drawing needs {err.name}: pip install 'iiwa-torch[viz]'") from None
+    from . import viz
+
+    return viz
+
+
 def _angles(values: list[float], rad: bool) -> list[float]:
     return list(values) if rad else [math.radians(v) for v in values]
 
@@ -95,6 +123,8 @@ def _q(chain: DHChain, values: list[float] | None, rad: bool, name: str) -> torc
 
 def _pose(values: list[float], rad: bool, name: str) -> torch.Tensor:
     """``x y z roll pitch yaw`` (6 numbers) or a row-major 4x4 matrix (16 numbers) -> (4, 4)."""
+    if any(not math.isfinite(v) for v in values):
+        raise _UsageError(f"{name} must be finite numbers, got {values}")
     if len(values) == 16:
         pose = torch.tensor(values, dtype=_F64).reshape(4, 4)
         rot = pose[:3, :3]
@@ -136,8 +166,8 @@ def _fk(args: argparse.Namespace) -> int:
     pose = chain.fk(q)
     inside = bool(chain.within_limits(q))
     if args.plot:
-        from . import viz
-
+        viz = _viz()
+        _writable(args.plot, "--plot")
         xyz = ", ".join(f"{v:.3f}" for v in pose[:3, 3].tolist())
         title = f"{chain.name}, q = ({_q_text(q)}) deg\nend effector at ({xyz}) m"
         viz.save_png(chain, q, args.plot, frames=True, title=title)
@@ -159,30 +189,49 @@ def _q_text(q: torch.Tensor) -> str:
 # ---------------------------------------------------------------- ik
 def _ik(args: argparse.Namespace) -> int:
     chain = _chain(args)
-    target = _pose(args.pose, args.rad, "--pose")
-    if args.method == "analytic":
-        q, valid, label = _ik_analytic(chain, target, args)
+    position_only = len(args.pose) == 3
+    method = args.method or ("gradient" if position_only else "analytic")
+    if position_only:
+        if method == "analytic":
+            raise _UsageError("a position-only target (3 numbers) needs --method gradient")
+        if any(not math.isfinite(v) for v in args.pose):
+            raise _UsageError(f"--pose must be finite numbers, got {args.pose}")
+        target = torch.tensor(args.pose, dtype=_F64)
+        q, valid, label = _ik_gradient(chain, target, args, mode="position")
+        pos_err = (chain.position(q) - target).norm(dim=-1)
+        rot_err = torch.full_like(pos_err, float("nan"))
     else:
-        q, valid, label = _ik_gradient(chain, target, args)
-    pos_vec, rot_vec = so3.pose_error(chain.fk(q), target.expand(q.shape[0], 4, 4))
-    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
+        target = _pose(args.pose, args.rad, "--pose")
+        if method == "analytic":
+            q, valid, label = _ik_analytic(chain, target, args)
+        else:
+            q, valid, label = _ik_gradient(chain, target, args)
+        pos_vec, rot_vec = so3.pose_error(chain.fk(q), target.expand(q.shape[0], 4, 4))
+        pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
+    args.method = method
+    status = 0 if bool(valid.any()) else 1
     if args.json:
         sols = [
             {"branch": b, "q_rad": qi, "valid": v, "pos_err_m": pe, "rot_err_rad": re}
             for b, qi, v, pe, re in zip(label, q.tolist(), valid.tolist(), pos_err.tolist(), rot_err.tolist())
         ]
+        if position_only:
+            for sol in sols:
+                sol["rot_err_rad"] = None
         _json({"robot": chain.name, "method": args.method, "target": target.tolist(), "solutions": sols})
-        return 0
+        if status:
+            print("no valid solution (unreachable or outside the joint limits)", file=sys.stderr)
+        return status
     unit = "rad" if args.rad else "deg"
     rows = []
     for b, qi, v, pe, re in zip(label, q.tolist(), valid.tolist(), pos_err.tolist(), rot_err.tolist()):
         shown = qi if args.rad else [math.degrees(x) for x in qi]
-        rows.append([b, *_fmt(shown, 2), "yes" if v else "no", f"{pe:.1e}", f"{re:.1e}"])
+        rows.append([b, *_fmt(shown, 2), "yes" if v else "no", f"{pe:.1e}", "-" if math.isnan(re) else f"{re:.1e}"])
     cols = ["branch", *chain.joint_names, "valid", "pos err (m)", "rot err (rad)"]
     _table(f"{chain.name}: IK solutions ({args.method}), joint angles in {unit}", cols, rows)
-    if not valid.any():
-        _say("[yellow]no valid solution (unreachable or outside the joint limits)[/yellow]")
-    return 0
+    if status:
+        print("no valid solution (unreachable or outside the joint limits)", file=sys.stderr)
+    return status
 
 
 def _ik_analytic(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
@@ -193,18 +242,22 @@ def _ik_analytic(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tens
         sol = analytic.iiwa(chain, target, psi)
     elif chain.n_joints == 6:
         sol = analytic.pieper(chain, target)
+    elif chain.n_joints == 3:  # planar: the target's x, y and its rotation about z
+        phi = math.atan2(float(target[1, 0]), float(target[0, 0]))
+        sol = analytic.planar3r(chain, float(target[0, 3]), float(target[1, 3]), phi)
     else:
-        raise _UsageError(
-            f"--method analytic needs a 7-joint iiwa or a 6R spherical-wrist arm; use gradient for {chain.name}"
-        )
+        raise _UsageError(f"--method analytic has no closed form for {chain.name}; use --method gradient")
     labels = [f"{'+-'[k >> 2 & 1]}{'+-'[k >> 1 & 1]}{'+-'[k & 1]}" for k in range(sol.q.shape[-2])]
     return sol.q.contiguous(), sol.valid, labels
 
 
-def _ik_gradient(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+def _ik_gradient(
+    chain: DHChain, target: torch.Tensor, args, mode: str = "pose"
+) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
     from .ik import solve
 
-    result = solve(chain, target, generator=torch.Generator().manual_seed(args.seed), pos_tol=1e-9, rot_tol=1e-8)
+    generator = torch.Generator().manual_seed(args.seed)
+    result = solve(chain, target, mode=mode, generator=generator, pos_tol=1e-9, rot_tol=1e-8)
     return result.q[None], result.success[None], ["lm"]
 
 
@@ -217,6 +270,13 @@ def _traj(args: argparse.Namespace) -> int:
         raise _UsageError("give exactly one of --from-q/--from-pose and one of --to-q/--to-pose")
     if args.steps < 2:
         raise _UsageError(f"--steps must be at least 2, got {args.steps}")
+    if args.csv:
+        _writable(args.csv, "--csv")
+    if args.gif:
+        _writable(args.gif, "--gif")
+        if Path(args.gif).suffix.lower() == ".mp4" and shutil.which("ffmpeg") is None:
+            raise _UsageError(f"--gif {args.gif}: writing .mp4 needs ffmpeg on the PATH; write a .gif instead")
+        viz = _viz()
     q_start = None if args.from_q is None else _q(chain, args.from_q, args.rad, "--from-q")
     q_end = None if args.to_q is None else _q(chain, args.to_q, args.rad, "--to-q")
     if q_start is not None and q_end is not None:  # joint space: quintic
@@ -244,8 +304,6 @@ def _traj(args: argparse.Namespace) -> int:
                 writer.writerow([f"{t:.6f}", *(f"{v:.9f}" for v in qi), *(f"{v:.9f}" for v in p)])
         written.append(args.csv)
     if args.gif:
-        from . import viz
-
         fps = max(1, round((args.steps - 1) / duration)) if args.fps is None else args.fps
         viz.animate(chain, qs, args.gif, fps=fps, path=ee if worst is None else path, size=(args.size, args.size))
         written.append(args.gif)
@@ -341,13 +399,14 @@ def _demo(args: argparse.Namespace) -> int:
     from . import trajectory
     from .ik import analytic, solve
 
-    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="iiwa_torch_demo_"))
-    out.mkdir(parents=True, exist_ok=True)
+    if args.batch < 1:
+        raise _UsageError(f"--batch must be a positive integer, got {args.batch}")
+    viz = None if args.no_gif else _viz()
     torch.set_num_threads(min(2, torch.get_num_threads()))
 
-    # 1. The seed paper's validation pose (flange 0.090 m): position (0.490, 0, 0.780).
-    _say("1. iiwa14 with the seed paper's flange (0.090 m) at q4 = -90 deg, q5 = 60 deg")
-    _say("   the paper (and RoboDK): xyz = (0.490, 0, 0.780), R = [[0, 0, 1], [0.866, 0.5, 0], [-0.5, 0.866, 0]]")
+    # 1. The validation pose of Pereira et al. (flange 0.090 m): position (0.490, 0, 0.780).
+    _say("1. iiwa14 with the flange of Pereira et al. (0.090 m) at q4 = -90 deg, q5 = 60 deg")
+    _say("   Pereira et al. (and RoboDK): xyz = (0.490, 0, 0.780), R = [[0, 0, 1], [0.866, 0.5, 0], [-0.5, 0.866, 0]]")
     paper = robots.iiwa14(flange=0.090)
     q_val = torch.tensor([0, 0, 0, -math.pi / 2, math.pi / 3, 0, 0], dtype=_F64)
     _print_pose(paper.fk(q_val), False, "iiwa-torch: fk")
@@ -389,10 +448,10 @@ def _demo(args: argparse.Namespace) -> int:
             ]
         ],
     )
-    gif = out / "tracked_line.gif"
-    if not args.no_gif:
-        from . import viz
-
+    if viz is not None:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        gif = out / "tracked_line.gif"
         viz.animate(chain, track.q, gif, fps=12, path=path, size=(320, 320))
         _say(f"animation written to {gif}")
     return 0
@@ -411,13 +470,15 @@ def _parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--robot", default="iiwa14", choices=list(robots.PRESETS), help="robot preset (default iiwa14)")
     common.add_argument(
-        "--flange", type=float, help="iiwa wrist-to-flange length in m (default 0.126; the seed paper: 0.090)"
+        "--flange",
+        type=float,
+        help="iiwa wrist-to-flange length in m (default 0.126, the datasheet; Pereira et al.: 0.090)",
     )
     common.add_argument("--rad", action="store_true", help="angles in radians (default: degrees)")
     common.add_argument("--json", action="store_true", help="print JSON (metres, radians) instead of tables")
 
     parser = argparse.ArgumentParser(
-        prog="iiwa-torch", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="iiwa-torch", description=_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -433,19 +494,23 @@ def _parser() -> argparse.ArgumentParser:
         type=float,
         required=True,
         metavar="V",
-        help="x y z roll pitch yaw, or 16 numbers of a row-major 4x4",
+        help="x y z roll pitch yaw, 16 numbers of a row-major 4x4, or x y z alone (position only)",
     )
-    p.add_argument("--method", choices=["analytic", "gradient"], default="analytic")
+    p.add_argument(
+        "--method",
+        choices=["analytic", "gradient"],
+        help="closed form (all branches) or gradient IK (default: analytic; gradient for x y z)",
+    )
     p.add_argument("--psi", type=float, default=0.0, help="iiwa arm angle for the analytic solver (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the gradient solver")
     p.set_defaults(func=_ik, parser=p)
 
     p = sub.add_parser("traj", parents=[common], help="trajectory between configurations or poses -> CSV, animation")
-    p.add_argument("--from-q", nargs="+", type=float, metavar="Q")
-    p.add_argument("--from-pose", nargs="+", type=float, metavar="V", help="x y z roll pitch yaw, or a 4x4")
-    p.add_argument("--to-q", nargs="+", type=float, metavar="Q")
-    p.add_argument("--to-pose", nargs="+", type=float, metavar="V")
-    p.add_argument("--steps", type=int, default=50)
+    p.add_argument("--from-q", nargs="+", type=float, metavar="Q", help="start joint angles")
+    p.add_argument("--from-pose", nargs="+", type=float, metavar="V", help="start pose: x y z roll pitch yaw, or a 4x4")
+    p.add_argument("--to-q", nargs="+", type=float, metavar="Q", help="goal joint angles (a joint-space quintic)")
+    p.add_argument("--to-pose", nargs="+", type=float, metavar="V", help="goal pose (a straight line tracked by IK)")
+    p.add_argument("--steps", type=int, default=50, help="samples along the trajectory (default 50)")
     p.add_argument("--duration", type=float, help="seconds (default: the shortest within the speed limits)")
     p.add_argument("--method", choices=["analytic", "gradient"], default="analytic", help="IK for Cartesian lines")
     p.add_argument("--csv", metavar="FILE", help="write t, joint angles (rad) and end-effector xyz")
@@ -459,7 +524,7 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_robots, parser=p)
 
     p = sub.add_parser("demo", help="FK at the validation pose, batched FK/IK timing, a tracked line")
-    p.add_argument("--out", help="directory for the animation (default: a new temporary directory)")
+    p.add_argument("--out", default="reports/demo", help="directory for the animation (default reports/demo)")
     p.add_argument("--batch", type=int, default=10_000, help="configurations in the timing (default 10000)")
     p.add_argument("--no-gif", action="store_true", help="skip writing the animation")
     p.set_defaults(func=_demo, parser=p)

@@ -49,7 +49,7 @@ def iiwa14(flange: float = 0.126, tool=None) -> DHChain:
     """KUKA LBR iiwa 14 R820, 7 joints (A1..A7).
 
     ``flange`` is the wrist-centre-to-flange distance: 0.126 m per KUKA's datasheet (height
-    1306 mm at home); the seed paper's model uses 0.090. ``tool`` is an optional ``(4, 4)``
+    1306 mm at home); the DH model of Pereira et al. uses 0.090. ``tool`` is an optional ``(4, 4)``
     flange-to-tool transform.
     """
     return _iiwa("iiwa14", 0.360, 0.420, 0.400, flange, (85, 85, 100, 75, 130, 135, 135), tool)

@@ -141,14 +141,14 @@ def test_demo_runs(capsys, tmp_path):
         (["fk", "0", "0", "0", "0", "0", "x", "0"], "invalid float value"),
         (["fk", "0", "0", "0", "0", "0", "0", "0", "--robot", "ur5"], "invalid choice"),
         (["fk", "0", "0", "0", "0", "0", "0", "--robot", "puma560", "--flange", "0.1"], "iiwa presets only"),
-        (["ik", "--pose", "1", "2", "3"], "6 numbers"),
+        (["ik", "--pose", "1", "2", "3", "4"], "6 numbers"),
         (["ik", "--pose", *["1"] * 16], "not a homogeneous transform"),
         (
             ["ik", "--pose", "1", "0", "0", "0", "0", "-1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1"],
             "homogeneous",
         ),
         (["fk", "0", "0", "0", "nan", "0", "0", "0"], "NaN or inf"),
-        (["ik", "--pose", "1", "0", "0", "0", "0", "0", "--robot", "planar3r"], "use gradient"),
+        (["ik", "--pose", "0.5", "0", "0.5", "--method", "analytic"], "needs --method gradient"),
         (["traj", "--from-q", *["0"] * 7], "exactly one of"),
         (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--steps", "1"], "at least 2"),
         (["robots", "abb"], "unknown robot"),
@@ -164,3 +164,109 @@ def test_console_script_exits_non_zero():
     assert exe.exists(), "the iiwa-torch console script is not installed"
     proc = subprocess.run([str(exe), "fk", "1", "2"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "needs 7 joint angles" in proc.stderr
+
+
+def test_position_only_ik_reaches_the_point(capsys):
+    out = _run_json(capsys, "ik", "--pose", "0.5", "0.1", "0.4")
+    (sol,) = out["solutions"]
+    q = torch.tensor(sol["q_rad"], dtype=F64)
+    assert sol["valid"] is True
+    torch.testing.assert_close(robots.iiwa14().position(q), torch.tensor([0.5, 0.1, 0.4], dtype=F64), atol=1e-8, rtol=0)
+
+
+def test_planar_analytic_ik_hits_the_pose(capsys):
+    out = _run_json(capsys, "ik", "--robot", "planar3r", "--pose", "1", "0.5", "0", "0", "0", "30")
+    arm = robots.planar3r()
+    assert len(out["solutions"]) == 2 and all(s["valid"] for s in out["solutions"])
+    for sol in out["solutions"]:
+        pose = arm.fk(torch.tensor(sol["q_rad"], dtype=F64))
+        assert pose[:2, 3].tolist() == pytest.approx([1.0, 0.5], abs=1e-9)
+        assert math.atan2(pose[1, 0], pose[0, 0]) == pytest.approx(math.radians(30), abs=1e-9)
+
+
+def test_unreachable_ik_exits_1_with_a_message(capsys):
+    assert main(["ik", "--pose", "3", "0", "0", "0", "0", "0"]) == 1
+    assert "no valid solution" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        [
+            "traj",
+            "--from-q",
+            "0",
+            "0",
+            "0",
+            "0",
+            "0",
+            "0",
+            "0",
+            "--to-q",
+            "0",
+            "10",
+            "0",
+            "0",
+            "0",
+            "0",
+            "0",
+            "--csv",
+            "no_such_folder/x.csv",
+        ],
+        ["fk", "0", "0", "0", "0", "0", "0", "0", "--plot", "no_such_folder/x.png"],
+        ["demo", "--batch", "0"],
+        ["demo", "--batch", "-1"],
+    ],
+)
+def test_bad_paths_and_batches_exit_2(capsys, tmp_path, monkeypatch, argv):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "error:" in err and ("no_such_folder" in err or "--batch" in err)
+
+
+def test_mp4_without_ffmpeg_is_a_usage_error(capsys, tmp_path, monkeypatch):
+    monkeypatch.setattr("shutil.which", lambda name: None)
+    argv = ["traj", "--from-q", *"0000000", "--to-q", "0", "10", *"00000", "--gif", str(tmp_path / "x.mp4")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "ffmpeg" in capsys.readouterr().err
+
+
+def test_rpy_never_prints_negative_zero(capsys):
+    assert main(["fk", "0", "0", "0", "0", "0", "0", "0"]) == 0
+    assert "-0.000" not in capsys.readouterr().out
+
+
+def test_help_has_no_rest_markup_and_every_option_has_help(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    top = capsys.readouterr().out
+    assert "``" not in top and "::" not in top
+    from iiwa_torch.cli import _parser
+
+    for sub in _parser()._subparsers._group_actions[0].choices.values():
+        for action in sub._actions:
+            assert action.help, f"{sub.prog} {action.option_strings or action.dest} has no help text"
+
+
+def test_launcher_sets_the_wait_policy_before_torch_loads():
+    code = (
+        "import iiwa_torch_launch, os, sys; assert 'torch' not in sys.modules; "
+        "sys.argv = ['iiwa-torch', 'robots']; iiwa_torch_launch.main(); print(os.environ['OMP_WAIT_POLICY'])"
+    )
+    env = {k: v for k, v in __import__("os").environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    assert out.strip().endswith("PASSIVE")
+
+
+def test_drawing_without_the_viz_extra_names_the_extra(capsys, monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ModuleNotFoundError
+    with pytest.raises(SystemExit) as exit_info:
+        main(["fk", *"0000000", "--plot", str(tmp_path / "arm.png")])
+    assert exit_info.value.code == 2
+    assert "iiwa-torch[viz]" in capsys.readouterr().err
+    assert not (tmp_path / "arm.png").exists()
