@@ -1,6 +1,6 @@
 """The ``iiwa-torch`` command: forward and inverse kinematics, trajectories, robot tables, a demo.
 
-The entry point is ``iiwa_torch_launch.main``, which sets OpenMP's wait policy before torch loads.
+The entry point is ``iiwa_torch.launch.main``, which sets OpenMP's wait policy before torch loads.
 """
 
 from __future__ import annotations

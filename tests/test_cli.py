@@ -255,8 +255,8 @@ def test_help_has_no_rest_markup_and_every_option_has_help(capsys):
 
 def test_launcher_sets_the_wait_policy_before_torch_loads():
     code = (
-        "import iiwa_torch_launch, os, sys; assert 'torch' not in sys.modules; "
-        "sys.argv = ['iiwa-torch', 'robots']; iiwa_torch_launch.main(); print(os.environ['OMP_WAIT_POLICY'])"
+        "import iiwa_torch.launch as launch, os, sys; assert 'torch' not in sys.modules; "
+        "sys.argv = ['iiwa-torch', 'robots']; launch.main(); print(os.environ['OMP_WAIT_POLICY'])"
     )
     env = {k: v for k, v in __import__("os").environ.items() if k != "OMP_WAIT_POLICY"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout

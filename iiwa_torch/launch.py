@@ -1,4 +1,4 @@
-"""Entry point of the ``iiwa-torch`` command.
+"""Entry point of the ``iiwa-torch`` command (imports no torch itself; see the package docstring).
 
 OpenMP reads its wait policy once, when torch loads: with another busy process on the cores, the
 default spin-wait made batched calls 10-30x slower, so the command asks for ``PASSIVE`` (unless the
