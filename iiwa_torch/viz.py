@@ -363,15 +363,46 @@ def draw_obstacles(ax, world: World, *, colliding=(), alpha: float = 0.6) -> lis
                 _surface(ax, _capsule_mesh(p[0], p[1], float(r)), colour(f"capsule{i}"), alpha, f"capsule{i}")
             )
     if world.boxes is not None:
-        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
-        for i, (pose, half) in enumerate(zip(*(t.detach().cpu().double().numpy() for t in world.boxes))):
-            corners = (signs * half) @ pose[:3, :3].T + pose[:3, 3]
+        for i, corners in enumerate(_box_corners(world)):
             faces = [corners[list(f)] for f in _BOX_FACES]
             shaded = _shade(faces, colour(f"box{i}"), alpha)
             box = Poly3DCollection(faces, facecolor=shaded, edgecolor="0.3", lw=0.5, gid=f"box{i}")
             ax.add_collection3d(box)
             artists.append(box)
     return artists
+
+
+def _box_corners(world: World) -> np.ndarray:
+    """Corners ``(B, 8, 3)`` of an unbatched world's boxes, metres (bit 2, 1, 0 of the index: x, y, z side)."""
+    pose, half = (t.detach().cpu().double().numpy() for t in world.boxes)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+    return (signs * half[:, None]) @ pose[:, :3, :3].transpose(0, 2, 1) + pose[:, None, :3, 3]
+
+
+def _bounds(chain: DHChain, q: torch.Tensor, world: World, capsules: Capsules) -> np.ndarray:
+    """Lower and upper corners ``(2, 3)`` of a box holding the capsules, base and obstacles (not the floor)."""
+    ends = _segments(chain, capsules, q)
+    r = capsules.radii.numpy()[:, None, None]
+    points = [ends - r, ends + r, chain.base[None, :3, 3].cpu().numpy()]
+    for kind in ("spheres", "capsules"):  # centres (S, 3) or end points (C, 2, 3), radii (S,) or (C,)
+        if getattr(world, kind) is not None:
+            centres, radii = (t.detach().cpu().double().numpy() for t in getattr(world, kind))
+            pad = radii.reshape(radii.shape + (1,) * (centres.ndim - 1))
+            points += [centres - pad, centres + pad]
+    if world.boxes is not None:
+        points.append(_box_corners(world))
+    points = np.concatenate([p.reshape(-1, 3) for p in points])
+    if world.floor is not None:
+        points = np.concatenate([points, [[points[0, 0], points[0, 1], world.floor]]])
+    return np.stack([points.min(0), points.max(0)])
+
+
+def _fit_cube(ax, bounds: np.ndarray, margin: float = 0.08) -> None:
+    """Equal-aspect limits: a cube ``margin`` (fraction) wider than the box ``bounds (2, 3)``."""
+    centre, half = bounds.mean(0), (1 + margin) * (bounds[1] - bounds[0]).max() / 2
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_zlim(centre[2] - half, centre[2] + half)
 
 
 def _shade(faces, colour, alpha: float) -> np.ndarray:
@@ -422,7 +453,8 @@ def plot_world(
             robot_hits.add(a)
             (robot_hits if k < len(capsules.pairs) else obstacle_hits).add(b)
     if ax is None:
-        fig, _, ax = _scene(chain, size, dpi, elev, azim)
+        _, _, ax = _scene(chain, size, dpi, elev, azim)
+        _fit_cube(ax, _bounds(chain, q, world, capsules))
     draw_obstacles(ax, world, colliding=obstacle_hits)
     draw_chain(ax, chain, q, color="tab:orange")
     draw_capsules(ax, chain, q, capsules, colliding=robot_hits)

@@ -150,6 +150,11 @@ def test_plot_world_draws_capsules_obstacles_and_the_clearance(arm, tmp_path):
     assert d > 0 and not any(_is_red(s) for s in _surfaces(fig))
     title = fig.axes[0].texts[-1].get_text()
     assert f"min clearance {1000 * d:.1f} mm" in title
+    ax = fig.axes[0]
+    lims = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+    np.testing.assert_allclose(np.diff(lims, axis=1), np.diff(lims[:1], axis=1).repeat(3, 0))  # equal aspect
+    inside = [(0.7, 0.4, 0.3), (0.5, -0.4, 0.3), (-0.55, 0.5, 0.15), (0.49, 0.0, 0.78), (0.0, 0.0, 0.0)]
+    assert ((lims[:, 0] < np.array(inside)) & (np.array(inside) < lims[:, 1])).all()  # box, sphere, capsule, flange
     with Image.open(tmp_path / "world.png") as png:
         assert png.size == (300, 200)
 
