@@ -313,7 +313,7 @@ def draw_capsules(
     """
     q = _as_q(chain, q)
     if q.shape[0] != 1:
-        raise ValueError(f"draw_capsules draws one configuration ({chain.n_joints},), got {q.shape[0]}")
+        raise ValueError(f"draw_capsules draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
     capsules = robot_capsules(chain) if capsules is None else capsules
     ends = _segments(chain, capsules, q)
     colliding = set(colliding)
@@ -338,10 +338,7 @@ def draw_obstacles(ax, world: World, *, colliding=(), alpha: float = 0.6) -> lis
     """
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    for kind in ("spheres", "boxes", "capsules"):
-        pair = getattr(world, kind)
-        if pair is not None and pair[1].ndim != (2 if kind == "boxes" else 1):
-            raise ValueError(f"draw_obstacles draws one world, got {kind} with batch shape {tuple(pair[1].shape[:-1])}")
+    _check_one_world(world)
     colliding = set(colliding)
 
     def colour(label):
@@ -372,6 +369,14 @@ def draw_obstacles(ax, world: World, *, colliding=(), alpha: float = 0.6) -> lis
     return artists
 
 
+def _check_one_world(world: World) -> None:
+    for kind in ("walls", "spheres", "boxes", "capsules"):
+        pair = getattr(world, kind)
+        if pair is not None and pair[1].ndim != (2 if kind == "boxes" else 1):
+            batch = tuple(pair[1].shape[: -2 if kind == "boxes" else -1])
+            raise ValueError(f"only one world can be drawn, got {kind} with batch shape {batch}")
+
+
 def _box_corners(world: World) -> np.ndarray:
     """Corners ``(B, 8, 3)`` of an unbatched world's boxes, metres (bit 2, 1, 0 of the index: x, y, z side)."""
     pose, half = (t.detach().cpu().double().numpy() for t in world.boxes)
@@ -380,7 +385,8 @@ def _box_corners(world: World) -> np.ndarray:
 
 
 def _bounds(chain: DHChain, q: torch.Tensor, world: World, capsules: Capsules) -> np.ndarray:
-    """Lower and upper corners ``(2, 3)`` of a box holding the capsules, base and obstacles (not the floor)."""
+    """Lower and upper corners ``(2, 3)`` of a box holding the capsules, the base, the obstacles and
+    the floor's height."""
     ends = _segments(chain, capsules, q)
     r = capsules.radii.numpy()[:, None, None]
     points = [ends - r, ends + r, chain.base[None, :3, 3].cpu().numpy()]
@@ -435,7 +441,8 @@ def plot_world(
 ):
     """Draw the arm at ``q (n,)`` (radians) with its capsules and the obstacles; return the figure.
 
-    ``world=None`` is the capsule model's default floor, ``capsules=None``
+    ``world=None`` is the capsule model's default floor (a float32 world is queried in float32),
+    ``capsules=None``
     :func:`~iiwa_torch.collision.robot_capsules`. Every shape with a negative distance in
     :func:`~iiwa_torch.collision.pairwise_clearance` is red; the title gives the minimum
     clearance in mm and its pair. ``ax``: a 3-D axes to draw on (default: a new off-screen
@@ -443,10 +450,12 @@ def plot_world(
     """
     q = _as_q(chain, q)
     if q.shape[0] != 1:
-        raise ValueError(f"plot_world draws one configuration ({chain.n_joints},), got {q.shape[0]}")
+        raise ValueError(f"plot_world draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
     capsules = robot_capsules(chain) if capsules is None else capsules
     world = World(floor=capsules.floor_height) if world is None else world
-    res = pairwise_clearance(chain, q[0], world, capsules)
+    _check_one_world(world)
+    obstacles = world.tensors()
+    res = pairwise_clearance(chain, q[0].to(obstacles[0]) if obstacles else q[0], world, capsules)
     robot_hits, obstacle_hits = set(), set()
     for k, ((a, b), d) in enumerate(zip(res.pairs, res.distance.tolist())):
         if d < 0:  # the self pairs come first, then (capsule, obstacle) pairs

@@ -190,3 +190,16 @@ def test_plot_world_self_collision_and_bad_input(arm):
     assert {s.get_gid() for s in _surfaces(fig) if _is_red(s)} == {f"capsule:{n}" for n in hit}
     with pytest.raises(ValueError, match="one configuration"):
         viz.plot_world(arm, torch.zeros(2, 7, dtype=F64))
+
+
+def test_plot_world_float32_world_and_batched_world_rejected(arm):
+    from iiwa_torch.collision import World, clearance
+
+    centre = torch.tensor([[0.5, 0.0, 0.6]], dtype=torch.float32)
+    world = World(floor=0.0, spheres=(centre, torch.tensor([0.1], dtype=torch.float32)))
+    fig = viz.plot_world(arm, Q_VALIDATION, world, size=(120, 120))
+    d = clearance(arm, Q_VALIDATION.float(), world).item()
+    assert f"min clearance {1000 * d:.1f} mm" in fig.axes[0].texts[-1].get_text()
+    batched = World(spheres=(centre.double().expand(2, 1, 3), torch.full((2, 1), 0.1, dtype=F64)))
+    with pytest.raises(ValueError, match=r"one world can be drawn, got spheres with batch shape \(2,\)"):
+        viz.plot_world(arm, Q_VALIDATION, batched)
