@@ -8,7 +8,10 @@ gymnasium environments, worker processes and tests.
 - :func:`draw_chain` draws one configuration ``(n,)`` or several ``(k, n)`` on a 3-D axes;
 - :func:`render_rgb` returns an ``(H, W, 3)`` uint8 image (for ``render_mode="rgb_array"``);
 - :func:`save_png` writes that image to a file;
-- :func:`animate` writes a trajectory ``(T, n)`` as a GIF (Pillow) or an MP4 (ffmpeg).
+- :func:`animate` writes a trajectory ``(T, n)`` as a GIF (Pillow) or an MP4 (ffmpeg);
+- :func:`draw_capsules` and :func:`draw_obstacles` draw a capsule model and a
+  :class:`~iiwa_torch.collision.World` on a 3-D axes; :func:`plot_world` draws both with the
+  arm, capsules in collision in red and the minimum clearance in the title.
 """
 
 from __future__ import annotations
@@ -20,9 +23,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .collision import Capsules, World, pairwise_clearance, robot_capsules
 from .dh import DHChain
 
-__all__ = ["draw_chain", "render_rgb", "save_png", "animate"]
+__all__ = ["draw_chain", "render_rgb", "save_png", "animate", "draw_capsules", "draw_obstacles", "plot_world"]
 
 _FRAME_COLOURS = ("tab:red", "tab:green", "tab:blue")  # x, y, z axes of a frame
 
@@ -256,3 +260,216 @@ def _write_mp4(images: list[np.ndarray], file: Path, fps: int) -> None:
     cmd = "ffmpeg -loglevel error -y -f rawvideo -pix_fmt rgb24".split() + ["-s", f"{w}x{h}", "-r", str(fps)]
     cmd += ["-i", "-", "-pix_fmt", "yuv420p", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2", str(file)]
     subprocess.run(cmd, input=b"".join(im.tobytes() for im in images), check=True)
+
+
+# ---------------------------------------------------------------------------- collision geometry
+_CAPSULE_COLOUR = "tab:blue"
+_COLLISION_COLOUR = "tab:red"
+_OBSTACLE_COLOUR = "0.55"
+_BOX_FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
+
+
+def _capsule_mesh(a: np.ndarray, b: np.ndarray, radius: float, n: int = 20) -> np.ndarray:
+    """Surface grid ``(2m, n, 3)`` of the capsule with axis ``a -> b`` (metres): the lower
+    hemisphere, then the upper one; the band between their equators is the cylinder.
+    ``a == b`` gives a sphere."""
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    u = axis / length if length > 0 else np.array([0.0, 0.0, 1.0])
+    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    lat = np.linspace(-np.pi / 2, np.pi / 2, 2 * (n // 4) + 1)
+    lat = np.concatenate([lat[lat <= 0], lat[lat >= 0]])  # the equator twice: once per cap
+    along = radius * np.sin(lat) + np.where(np.arange(lat.size) >= lat.size // 2, length, 0.0)
+    rho = radius * np.cos(lat)
+    lon = np.linspace(0.0, 2 * np.pi, n)
+    ring = np.cos(lon)[:, None] * e1 + np.sin(lon)[:, None] * e2  # (n, 3)
+    return a + along[:, None, None] * u + rho[:, None, None] * ring
+
+
+def _surface(ax, mesh: np.ndarray, colour, alpha: float, gid: str):
+    surface = ax.plot_surface(*mesh.transpose(2, 0, 1), color=colour, alpha=alpha, shade=True, linewidth=0)
+    surface.set_gid(gid)
+    return surface
+
+
+def _segments(chain: DHChain, capsules: Capsules, q: torch.Tensor) -> np.ndarray:
+    """Capsule end points ``(K, 2, 3)`` in the world frame at one configuration, metres."""
+    with torch.no_grad():
+        frames = chain.fk_all(q)[0, list(capsules.frames)]  # (K, 4, 4)
+        pts = capsules.points.to(frames) @ frames[:, :3, :3].transpose(-1, -2) + frames[:, None, :3, 3]
+    return pts.cpu().numpy()
+
+
+def draw_capsules(
+    ax, chain: DHChain, q, capsules: Capsules | None = None, *, colliding=(), alpha: float = 0.35
+) -> list:
+    """Draw the capsules at one configuration ``q (n,)`` (radians) as shaded surfaces; return them
+    (one per capsule, ``gid = "capsule:<name>"``, in the model's order).
+
+    ``capsules=None`` is :func:`~iiwa_torch.collision.robot_capsules` of the chain; capsules
+    whose names are in ``colliding`` are red, the others blue.
+    """
+    q = _as_q(chain, q)
+    if q.shape[0] != 1:
+        raise ValueError(f"draw_capsules draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
+    capsules = robot_capsules(chain) if capsules is None else capsules
+    ends = _segments(chain, capsules, q)
+    colliding = set(colliding)
+    return [
+        _surface(
+            ax,
+            _capsule_mesh(a, b, r),
+            _COLLISION_COLOUR if name in colliding else _CAPSULE_COLOUR,
+            min(1.0, 1.6 * alpha) if name in colliding else alpha,
+            f"capsule:{name}",
+        )
+        for name, (a, b), r in zip(capsules.names, ends, capsules.radii.tolist())
+    ]
+
+
+def draw_obstacles(ax, world: World, *, colliding=(), alpha: float = 0.6) -> list:
+    """Draw an unbatched :class:`~iiwa_torch.collision.World` on a 3-D axes; return the artists.
+
+    The floor is a translucent square over the axes' current x/y limits; spheres, boxes and
+    capsules are grey surfaces (``gid`` ``sphere<i>``, ``box<i>``, ``capsule<i>``, ``floor``),
+    red when their label is in ``colliding``. Walls are not drawn.
+    """
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    _check_one_world(world)
+    colliding = set(colliding)
+
+    def colour(label):
+        return _COLLISION_COLOUR if label in colliding else _OBSTACLE_COLOUR
+
+    artists = []
+    if world.floor is not None:
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        square = [[(x0, y0, world.floor), (x1, y0, world.floor), (x1, y1, world.floor), (x0, y1, world.floor)]]
+        floor = Poly3DCollection(square, facecolor="tab:olive", edgecolor="0.4", alpha=0.15, gid="floor")
+        ax.add_collection3d(floor)
+        artists.append(floor)
+    if world.spheres is not None:
+        for i, (c, r) in enumerate(zip(*(t.detach().cpu().double().numpy() for t in world.spheres))):
+            artists.append(_surface(ax, _capsule_mesh(c, c, float(r)), colour(f"sphere{i}"), alpha, f"sphere{i}"))
+    if world.capsules is not None:
+        for i, (p, r) in enumerate(zip(*(t.detach().cpu().double().numpy() for t in world.capsules))):
+            artists.append(
+                _surface(ax, _capsule_mesh(p[0], p[1], float(r)), colour(f"capsule{i}"), alpha, f"capsule{i}")
+            )
+    if world.boxes is not None:
+        for i, corners in enumerate(_box_corners(world)):
+            faces = [corners[list(f)] for f in _BOX_FACES]
+            shaded = _shade(faces, colour(f"box{i}"), alpha)
+            box = Poly3DCollection(faces, facecolor=shaded, edgecolor="0.3", lw=0.5, gid=f"box{i}")
+            ax.add_collection3d(box)
+            artists.append(box)
+    return artists
+
+
+def _check_one_world(world: World) -> None:
+    for kind in ("walls", "spheres", "boxes", "capsules"):
+        pair = getattr(world, kind)
+        if pair is not None and pair[1].ndim != (2 if kind == "boxes" else 1):
+            batch = tuple(pair[1].shape[: -2 if kind == "boxes" else -1])
+            raise ValueError(f"only one world can be drawn, got {kind} with batch shape {batch}")
+
+
+def _box_corners(world: World) -> np.ndarray:
+    """Corners ``(B, 8, 3)`` of an unbatched world's boxes, metres (bit 2, 1, 0 of the index: x, y, z side)."""
+    pose, half = (t.detach().cpu().double().numpy() for t in world.boxes)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+    return (signs * half[:, None]) @ pose[:, :3, :3].transpose(0, 2, 1) + pose[:, None, :3, 3]
+
+
+def _bounds(chain: DHChain, q: torch.Tensor, world: World, capsules: Capsules) -> np.ndarray:
+    """Lower and upper corners ``(2, 3)`` of a box holding the capsules, the base, the obstacles and
+    the floor's height."""
+    ends = _segments(chain, capsules, q)
+    r = capsules.radii.numpy()[:, None, None]
+    points = [ends - r, ends + r, chain.base[None, :3, 3].cpu().numpy()]
+    for kind in ("spheres", "capsules"):  # centres (S, 3) or end points (C, 2, 3), radii (S,) or (C,)
+        if getattr(world, kind) is not None:
+            centres, radii = (t.detach().cpu().double().numpy() for t in getattr(world, kind))
+            pad = radii.reshape(radii.shape + (1,) * (centres.ndim - 1))
+            points += [centres - pad, centres + pad]
+    if world.boxes is not None:
+        points.append(_box_corners(world))
+    points = np.concatenate([p.reshape(-1, 3) for p in points])
+    if world.floor is not None:
+        points = np.concatenate([points, [[points[0, 0], points[0, 1], world.floor]]])
+    return np.stack([points.min(0), points.max(0)])
+
+
+def _fit_cube(ax, bounds: np.ndarray, margin: float = 0.08) -> None:
+    """Equal-aspect limits: a cube ``margin`` (fraction) wider than the box ``bounds (2, 3)``."""
+    centre, half = bounds.mean(0), (1 + margin) * (bounds[1] - bounds[0]).max() / 2
+    ax.set_xlim(centre[0] - half, centre[0] + half)
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_zlim(centre[2] - half, centre[2] + half)
+
+
+def _shade(faces, colour, alpha: float) -> np.ndarray:
+    """Face colours lit like matplotlib's shaded surfaces (lighter facing the default light)."""
+    from matplotlib.colors import LightSource, to_rgba
+
+    normals = np.array([np.cross(f[1] - f[0], f[2] - f[0]) for f in faces])
+    centre = np.mean([f.mean(0) for f in faces], 0)
+    outward = np.sign(np.einsum("ij,ij->i", normals, [f.mean(0) - centre for f in faces]))[:, None]
+    normals = normals * outward / np.linalg.norm(normals, axis=1, keepdims=True)
+    light = LightSource(azdeg=225, altdeg=19.4712).direction
+    level = 0.35 + 0.65 * (normals @ light).clip(0, 1)
+    rgba = np.array(to_rgba(colour, alpha))
+    return np.concatenate([rgba[:3] * level[:, None], np.full((len(faces), 1), alpha)], 1)
+
+
+def plot_world(
+    chain: DHChain,
+    q,
+    world: World | None = None,
+    capsules: Capsules | None = None,
+    *,
+    ax=None,
+    path=None,
+    title: str | None = None,
+    size: tuple[int, int] = (640, 640),
+    elev: float = 20.0,
+    azim: float = -60.0,
+    dpi: int = 100,
+):
+    """Draw the arm at ``q (n,)`` (radians) with its capsules and the obstacles; return the figure.
+
+    ``world=None`` is the capsule model's default floor (a float32 world is queried in float32),
+    ``capsules=None``
+    :func:`~iiwa_torch.collision.robot_capsules`. Every shape with a negative distance in
+    :func:`~iiwa_torch.collision.pairwise_clearance` is red; the title gives the minimum
+    clearance in mm and its pair. ``ax``: a 3-D axes to draw on (default: a new off-screen
+    figure of ``size`` pixels, axes in metres). ``path``: also write the figure as a PNG there.
+    """
+    q = _as_q(chain, q)
+    if q.shape[0] != 1:
+        raise ValueError(f"plot_world draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
+    capsules = robot_capsules(chain) if capsules is None else capsules
+    world = World(floor=capsules.floor_height) if world is None else world
+    _check_one_world(world)
+    obstacles = world.tensors()
+    res = pairwise_clearance(chain, q[0].to(obstacles[0]) if obstacles else q[0], world, capsules)
+    robot_hits, obstacle_hits = set(), set()
+    for k, ((a, b), d) in enumerate(zip(res.pairs, res.distance.tolist())):
+        if d < 0:  # the self pairs come first, then (capsule, obstacle) pairs
+            robot_hits.add(a)
+            (robot_hits if k < len(capsules.pairs) else obstacle_hits).add(b)
+    if ax is None:
+        _, _, ax = _scene(chain, size, dpi, elev, azim)
+        _fit_cube(ax, _bounds(chain, q, world, capsules))
+    draw_obstacles(ax, world, colliding=obstacle_hits)
+    draw_chain(ax, chain, q, color="tab:orange")
+    draw_capsules(ax, chain, q, capsules, colliding=robot_hits)
+    worst = int(res.distance.argmin())
+    text = f"min clearance {1000 * res.distance[worst].item():.1f} mm ({' - '.join(res.pairs[worst])})"
+    _draw_extras(ax, None, None, f"{title}: {text}" if title else text)
+    if path is not None:
+        ax.figure.savefig(path, dpi=dpi)
+    return ax.figure

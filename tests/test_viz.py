@@ -118,3 +118,88 @@ def test_save_png(arm, tmp_path):
     out = viz.save_png(arm, Q_VALIDATION, tmp_path / "arm.png", size=(200, 150), frames=True, title="validation")
     with Image.open(out) as png:
         assert png.size == (200, 150)
+
+
+def _surfaces(fig, prefix="capsule:"):
+    return [c for ax in fig.axes for c in ax.collections if (c.get_gid() or "").startswith(prefix)]
+
+
+def _is_red(surface):
+    rgb = np.asarray(surface.get_facecolor())[:, :3]
+    return bool((rgb[:, 0] > 1.8 * rgb[:, 1:].max(1)).all())
+
+
+def test_plot_world_draws_capsules_obstacles_and_the_clearance(arm, tmp_path):
+    from PIL import Image
+
+    from iiwa_torch.collision import World, clearance, robot_capsules
+
+    box = torch.eye(4, dtype=F64)
+    box[:3, 3] = torch.tensor([0.6, 0.3, 0.15], dtype=F64)
+    world = World(
+        floor=0.0,
+        spheres=(torch.tensor([[0.5, -0.3, 0.4]], dtype=F64), torch.tensor([0.1], dtype=F64)),
+        boxes=(box[None], torch.tensor([[0.1, 0.1, 0.15]], dtype=F64)),
+        capsules=(torch.tensor([[[-0.5, 0.5, 0.2], [-0.5, -0.5, 0.2]]], dtype=F64), torch.tensor([0.05], dtype=F64)),
+    )
+    fig = viz.plot_world(arm, Q_VALIDATION, world, path=tmp_path / "world.png", size=(300, 200))
+    names = robot_capsules(arm).names
+    assert [s.get_gid() for s in _surfaces(fig)] == [f"capsule:{n}" for n in names]  # K = 4 surfaces
+    assert {c.get_gid() for c in fig.axes[0].collections} >= {"floor", "sphere0", "box0", "capsule0"}
+    d = clearance(arm, Q_VALIDATION, world).item()
+    assert d > 0 and not any(_is_red(s) for s in _surfaces(fig))
+    title = fig.axes[0].texts[-1].get_text()
+    assert f"min clearance {1000 * d:.1f} mm" in title
+    ax = fig.axes[0]
+    lims = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+    np.testing.assert_allclose(np.diff(lims, axis=1), np.diff(lims[:1], axis=1).repeat(3, 0))  # equal aspect
+    inside = [(0.7, 0.4, 0.3), (0.5, -0.4, 0.3), (-0.55, 0.5, 0.15), (0.49, 0.0, 0.78), (0.0, 0.0, 0.0)]
+    assert ((lims[:, 0] < np.array(inside)) & (np.array(inside) < lims[:, 1])).all()  # box, sphere, capsule, flange
+    with Image.open(tmp_path / "world.png") as png:
+        assert png.size == (300, 200)
+
+
+def test_plot_world_colours_the_colliding_capsules_red(arm):
+    from iiwa_torch.collision import World, clearance
+
+    # a 3 cm sphere on the forearm's axis, half way along it: frame 4, z = l_ew / 2 = 0.2 m
+    frame4 = arm.fk_all(Q_VALIDATION)[4]
+    centre = frame4[:3, 3] + 0.2 * frame4[:3, 2]
+    world = World(floor=0.0, spheres=(centre[None], torch.tensor([0.03], dtype=F64)))
+    fig = viz.plot_world(arm, Q_VALIDATION, world, size=(200, 200))
+    red = {s.get_gid() for s in _surfaces(fig) if _is_red(s)}
+    assert red == {"capsule:forearm"}
+    assert _is_red(_surfaces(fig, "sphere0")[0])
+    d = clearance(arm, Q_VALIDATION, world).item()
+    assert -0.111 < d < -0.109  # the forearm's radius 0.08 plus the sphere's 0.03, overlapping
+    assert f"min clearance {1000 * d:.1f} mm" in fig.axes[0].texts[-1].get_text()
+
+
+def test_plot_world_self_collision_and_bad_input(arm):
+    from matplotlib.figure import Figure
+
+    from iiwa_torch.collision import pairwise_clearance
+
+    q = torch.tensor([0.0, 2.0, 0.0, -2.0, 0.0, 0.0, 0.0], dtype=F64)  # bent down: forearm into the base and floor
+    res = pairwise_clearance(arm, q)
+    hit = {name for pair, dist in zip(res.pairs, res.distance.tolist()) if dist < 0 for name in pair} - {"floor"}
+    assert hit  # the configuration does collide
+    ax = Figure().add_subplot(projection="3d")
+    fig = viz.plot_world(arm, q, ax=ax)
+    assert fig is ax.figure
+    assert {s.get_gid() for s in _surfaces(fig) if _is_red(s)} == {f"capsule:{n}" for n in hit}
+    with pytest.raises(ValueError, match="one configuration"):
+        viz.plot_world(arm, torch.zeros(2, 7, dtype=F64))
+
+
+def test_plot_world_float32_world_and_batched_world_rejected(arm):
+    from iiwa_torch.collision import World, clearance
+
+    centre = torch.tensor([[0.5, 0.0, 0.6]], dtype=torch.float32)
+    world = World(floor=0.0, spheres=(centre, torch.tensor([0.1], dtype=torch.float32)))
+    fig = viz.plot_world(arm, Q_VALIDATION, world, size=(120, 120))
+    d = clearance(arm, Q_VALIDATION.float(), world).item()
+    assert f"min clearance {1000 * d:.1f} mm" in fig.axes[0].texts[-1].get_text()
+    batched = World(spheres=(centre.double().expand(2, 1, 3), torch.full((2, 1), 0.1, dtype=F64)))
+    with pytest.raises(ValueError, match=r"one world can be drawn, got spheres with batch shape \(2,\)"):
+        viz.plot_world(arm, Q_VALIDATION, batched)
