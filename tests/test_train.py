@@ -157,13 +157,16 @@ def test_evaluate_shipped_policy_writes_documented_report(tmp_path):
     out = tmp_path / "report"
     assert ev.main(["--model", str(policies[0]), "--goals", "64", "--seed", "3", "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
-    for key in ("env_id", "algo", "model", "goals", "seed", "methods", "verdict", "plots", "machine"):
+    for key in ("env_id", "algo", "model", "goals", "seed", "goals_below_floor", "methods", "verdict", "plots",
+                "machine"):
         assert key in report, key
     assert set(report["methods"]) == set(ev.METHODS)
     for name, m in report["methods"].items():
         for key in ("success@1cm", "success@5mm", "success@1mm", "median_error_m", "p95_error_m",
                     "median_steps_to_reach", "joint_limit_violations", "median_path_length_rad",
-                    "time_per_goal_batched_s", "time_per_goal_single_s"):
+                    "time_per_goal_batched_s", "time_per_goal_single_s", "collisions", "collision_share",
+                    "floor_collisions", "self_collisions", "final_collisions", "min_clearance_median_m",
+                    "min_clearance_worst_m"):
             assert key in m, (name, key)
         assert m["joint_limit_violations"] == 0, name
     # the IK solvers are exact on reachable goals: an independent sanity check of the harness

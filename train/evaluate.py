@@ -18,8 +18,11 @@ Methods, each on every goal:
 
 The IK answers are end configurations, not motions: their "steps to reach" is the number
 of env steps a straight full-speed joint move from home needs, and their path length the
-straight-line joint distance. Outputs in ``--out``: ``report.json`` (keys in
-docs/training.md), ``report.md`` and PNG plots.
+straight-line joint distance. Collisions: the capsule model and the floor at z = 0 of
+``iiwa_torch.collision`` (the preset's default world); the policy is checked at every step of
+its rollout (and at its final configuration alone), the IK at its solution. Outputs in
+``--out``: ``report.json`` (keys in docs/training.md), ``report.md``, ``final_q.npz`` (each
+method's final joint angles, rad) and PNG plots.
 """
 
 from __future__ import annotations
@@ -111,6 +114,35 @@ def _limit_violations(chain, q) -> int:
     return int((~chain.within_limits(torch.as_tensor(q, dtype=torch.float64), tol=1e-9)).sum())
 
 
+def collision_metrics(chain, q_path: np.ndarray) -> tuple[dict[str, Any], np.ndarray]:
+    """Collisions along ``q_path (T + 1, n, nj)`` (rad; ``T = 0`` for an end configuration alone) with the
+    preset's capsules and default world (floor at z = 0): a goal collides if any of its configurations has
+    a signed distance below 0. ``(metrics, floor_hit (n,) bool)``: counts over goals, clearances (m) of the
+    per-goal minimum over the path, and which goals touch the floor."""
+    import torch
+
+    from iiwa_torch.collision import pairwise_clearance, robot_capsules
+
+    capsules = robot_capsules(chain)
+    q = torch.as_tensor(q_path, dtype=torch.float64)
+    pairs = pairwise_clearance(chain, q, capsules=capsules)  # one batched call over (T + 1, n)
+    floor = torch.tensor([b == "floor" for _, b in pairs.pairs])
+    per_goal = pairs.distance.amin(0)  # (n, P): the worst moment of each pair
+    lowest = per_goal.amin(-1).numpy()
+    floor_min = per_goal[:, floor].amin(-1).numpy() if floor.any() else np.full(len(lowest), np.inf)
+    self_min = per_goal[:, ~floor].amin(-1).numpy() if (~floor).any() else np.full(len(lowest), np.inf)
+    final = pairs.distance[-1].amin(-1).numpy()
+    return {
+        "collisions": int((lowest < 0).sum()),
+        "collision_share": float(np.mean(lowest < 0)),
+        "floor_collisions": int((floor_min < 0).sum()),
+        "self_collisions": int((self_min < 0).sum()),
+        "final_collisions": int((final < 0).sum()),
+        "min_clearance_median_m": float(np.median(lowest)),
+        "min_clearance_worst_m": float(lowest.min()),
+    }, floor_min < 0
+
+
 def _median_time(fn, reps: int) -> float:
     times = []
     for i in range(reps):
@@ -140,6 +172,8 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     # the policy network alone, all steps
     metrics["network_time_per_goal_batched_s"] = float(np.median([x.act_seconds for x in runs])) / goals.n
     lo, hi = chain.limits.numpy()
+    collisions, floor_hit = collision_metrics(chain, r.q)
+    metrics.update(collisions)
     metrics["touched_a_limit"] = float(np.mean(((r.q - lo < 1e-4) | (hi - r.q < 1e-4)).any(axis=(0, 2))))
     if pose:
         summary = evaluator.summary(r)
@@ -153,7 +187,7 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
             "median_goal_radius_m": float(np.median(radius[failed])),
             "median_goal_radius_all_m": float(np.median(radius)),
         }
-    return metrics, {"final_error": final, "path": path, "home": r.q[0, 0]}
+    return metrics, {"final_error": final, "path": path, "home": r.q[0, 0], "q": r.q[-1], "floor_hit": floor_hit}
 
 
 def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -187,6 +221,8 @@ def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[s
     steps = np.ceil(np.max(np.abs(delta) / max_step, axis=-1))  # a straight full-speed joint move
     steps[final >= TOLERANCES["1cm"]] = np.nan
     metrics = summarise(final, steps, path, _limit_violations(chain, q), batched, single, goals.n)
+    collisions, floor_hit = collision_metrics(chain, q.numpy()[None])
+    metrics.update(collisions)
     metrics["solver_success"] = float(result.success.double().mean())
     if not position_only:
         from iiwa_torch.so3 import pose_error
@@ -196,7 +232,7 @@ def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[s
         metrics["median_angle_rad"] = float(np.median(angle))
         ok = (final < TOLERANCES["1cm"]) & (angle < goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL))
         metrics["success_pose"] = float(np.mean(ok))
-    return metrics, {"final_error": final, "path": path}
+    return metrics, {"final_error": final, "path": path, "q": q.numpy(), "floor_hit": floor_hit}
 
 
 # ---------------------------------------------------------------------------- verdict and report
@@ -213,8 +249,9 @@ def _cmp(policy: float, other: float, lower_wins: bool = True) -> str:
     return "wins" if (policy < other) == lower_wins else "loses"
 
 
-def verdict(m: dict[str, dict[str, Any]]) -> list[str]:
-    """Plain sentences: where the policy loses to the IK solvers and where it wins."""
+def verdict(m: dict[str, dict[str, Any]], below_floor: int = 0) -> list[str]:
+    """Plain sentences: where the policy loses to the IK solvers and where it wins; ``below_floor``: how many
+    goals lie below the floor (z < 0), where every exact answer collides."""
     p = m["policy"]
     ik = {k: v for k, v in m.items() if k != "policy" and "error" not in v}
     lines = []
@@ -244,6 +281,7 @@ def verdict(m: dict[str, dict[str, Any]]) -> list[str]:
                      f"{_cmp(p['median_path_length_rad'], v['median_path_length_rad'])} (median "
                      f"{p['median_path_length_rad']:.2f} rad against {v['median_path_length_rad']:.2f} rad "
                      f"for the straight move).")
+    lines += _collision_verdict(p, ik, below_floor)
     if "failures" in p:
         f = p["failures"]
         goals = "goal ends" if f["count"] == 1 else "goals end"
@@ -258,6 +296,29 @@ def verdict(m: dict[str, dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _collision_verdict(p: dict[str, Any], ik: dict[str, dict[str, Any]], below_floor: int) -> list[str]:
+    """Sentences on collisions with the floor and with itself: the policy's rollouts against the IK's solutions."""
+    def clear(m):
+        return (f"minimum clearance {1e3 * m['min_clearance_median_m']:.0f} mm at the median goal, "
+                f"{1e3 * m['min_clearance_worst_m']:.0f} mm at the worst")
+
+    lines = [f"Collisions (capsule model, floor at z = 0): the policy's rollout collides on {p['collisions']} goals "
+             f"({100 * p['collision_share']:.1f}%; floor {p['floor_collisions']}, self {p['self_collisions']}), its "
+             f"final configuration on {p['final_collisions']}; {clear(p)}. {below_floor} of the goals lie below "
+             f"the floor (z < 0): every exact answer to them collides."]
+    for name, v in ik.items():
+        lines.append(f"Collisions of {name}: its solution collides on {v['collisions']} goals "
+                     f"({100 * v['collision_share']:.1f}%; floor {v['floor_collisions']}, self "
+                     f"{v['self_collisions']}); {clear(v)}.")
+        lines.append(f"Goal by goal against {name}: the policy's rollout touches the floor where {name}'s "
+                     f"solution does not on {v['floor_policy_only']} goals; {name}'s solution touches it where the "
+                     f"policy does not on {v['floor_ik_only']}.")
+    if p["collisions"]:
+        lines.append("The policy was trained without a floor or a self-collision term: nothing in its reward "
+                     "keeps it clear.")
+    return lines
+
+
 def _fmt(value, scale=1.0, digits=2, unit="") -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
@@ -267,12 +328,13 @@ def _fmt(value, scale=1.0, digits=2, unit="") -> str:
 def write_markdown(report: dict[str, Any], path: Path) -> str:
     rows = [
         "| method | success @1 cm | @5 mm | @1 mm | median error | p95 error | steps to 1 cm (median) "
-        "| limit violations | path (rad, median) | time/goal batched | time/goal single |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| limit violations | path (rad, median) | time/goal batched | time/goal single "
+        "| collisions: all (floor / self; final) | min clearance median / worst |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in report["methods"].items():
         if "error" in m:
-            rows.append(f"| {name} | {m['error']} |" + " |" * 10)
+            rows.append(f"| {name} | {m['error']} |" + " |" * 12)
             continue
         rows.append(
             f"| {name} | {_fmt(m['success@1cm'], 100, 1, '%')} | {_fmt(m['success@5mm'], 100, 1, '%')} "
@@ -280,7 +342,9 @@ def write_markdown(report: dict[str, Any], path: Path) -> str:
             f"| {m['p95_error_m'] * 1e3:.3g} mm "
             f"| {_fmt(m['median_steps_to_reach'], 1, 0)} | {m['joint_limit_violations']} "
             f"| {_fmt(m['median_path_length_rad'])} | {m['time_per_goal_batched_s'] * 1e6:.1f} us "
-            f"| {m['time_per_goal_single_s'] * 1e3:.2f} ms |")
+            f"| {m['time_per_goal_single_s'] * 1e3:.2f} ms "
+            f"| {m['collisions']} ({m['floor_collisions']} / {m['self_collisions']}; {m['final_collisions']}) "
+            f"| {m['min_clearance_median_m'] * 1e3:.0f} / {m['min_clearance_worst_m'] * 1e3:.0f} mm |")
     table = "\n".join(rows)
     text = [
         f"# Policy versus IK on {report['goals']} held-out goals ({report['env_id']})",
@@ -393,6 +457,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     task = envs.make_task(env_id, **env_kwargs)
     chain, dt = task.robot, task.dt
     goals = make_goal_set(env_id, n_goals, seed, env_kwargs)
+    below_floor = int((goals.pose[:, 2, 3] < 0).sum())  # the preset's default floor is z = 0
 
     metrics, data = {}, {}
     metrics["policy"], data["policy"] = run_policy(goals, model, vec_normalize, chain)
@@ -401,6 +466,10 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
             metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt)
         except ImportError as err:  # a solver not installed in this checkout: say so, keep the rest
             metrics[name] = {"error": f"unavailable: {err}"}
+            continue
+        policy_hit, ik_hit = data["policy"]["floor_hit"], data[name]["floor_hit"]
+        metrics[name]["floor_policy_only"] = int((policy_hit & ~ik_hit).sum())
+        metrics[name]["floor_ik_only"] = int((ik_hit & ~policy_hit).sum())
     evaluations = RunDir(model_dir).read_evaluations()
     compare = {}
     for p in compare_paths:
@@ -420,12 +489,14 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         "dt": dt,
         "tolerances_m": TOLERANCES,
         "methods": metrics,
-        "verdict": verdict(metrics) + _design_note(config),
+        "goals_below_floor": below_floor,
+        "verdict": verdict(metrics, below_floor) + _design_note(config),
         "training": json.loads((model_dir / "train_info.json").read_text())
         if (model_dir / "train_info.json").exists() else None,
         "machine": machine_info(),
     }
     report["plots"] = make_plots(out, data, report, evaluations, compare)
+    np.savez_compressed(out / "final_q.npz", **{name: d["q"] for name, d in data.items()})
     (out / "report.json").write_text(json.dumps(report, indent=1))
     table = write_markdown(report, out / "report.md")
     print(table)
