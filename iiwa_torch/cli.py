@@ -465,6 +465,46 @@ def _timed(fn, *args):
     return 1e3 * (time.perf_counter() - start), out
 
 
+def _view(args: argparse.Namespace) -> int:
+    try:
+        from . import viewer
+    except ModuleNotFoundError as err:  # pragma: no cover - depends on the install
+        raise _UsageError(f"the viewer needs the viewer extra: pip install 'iiwa-torch[viewer]' ({err})") from None
+    chain = _chain(args)
+    q = None if args.q is None else _q(chain, args.q, args.rad, "view")
+    _say(f"viewer of {chain.name} at http://{args.host}:{args.port} (Ctrl-C stops it)")
+    viewer.show(chain, q, host=args.host, port=args.port)
+    return 0
+
+
+def _workspace(args: argparse.Namespace) -> int:
+    from . import workspace
+
+    _viz()  # matplotlib is needed: say which extra if it is missing
+    chain = _chain(args)
+    _writable(args.plot, "--plot")
+    if args.manipulability:
+        _writable(args.manipulability, "--manipulability")
+    if args.samples <= 0 or args.h <= 0:
+        raise _UsageError(f"--samples and --h must be positive, got {args.samples} and {args.h}")
+    wrist = args.point == "wrist"
+    workspace.plot_workspace(
+        chain,
+        args.plot,
+        manipulability_path=args.manipulability,
+        point=workspace.frame_point(chain, 5) if wrist else None,
+        point_label="wrist centre" if wrist else "flange",
+        h=args.h,
+        n_samples=args.samples,
+        datasheet=workspace.DATASHEET.get(chain.name) if wrist else None,
+        seed=args.seed,
+    )
+    _say(f"side view written to {args.plot}")
+    if args.manipulability:
+        _say(f"manipulability map written to {args.manipulability}")
+    return 0
+
+
 # ---------------------------------------------------------------- parser
 def _parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
@@ -528,6 +568,24 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=10_000, help="configurations in the timing (default 10000)")
     p.add_argument("--no-gif", action="store_true", help="skip writing the animation")
     p.set_defaults(func=_demo, parser=p)
+
+    p = sub.add_parser("view", parents=[common], help="browser viewer: joint sliders, pose read-out, IK target")
+    p.add_argument("--q", nargs="+", type=float, metavar="Q", help="first configuration (deg unless --rad)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.set_defaults(func=_view, parser=p)
+
+    p = sub.add_parser("workspace", parents=[common], help="reachable set: side-view envelope, manipulability map")
+    p.add_argument("--plot", required=True, metavar="PNG", help="write the side view (r-z plane) to this PNG")
+    p.add_argument("--manipulability", metavar="PNG", help="also write a manipulability map to this PNG")
+    p.add_argument(
+        "--point", choices=["wrist", "flange"], default="wrist",
+        help="the point whose reach is drawn (default wrist: the centre KUKA's datasheet draws)",
+    )
+    p.add_argument("--h", type=float, default=0.005, help="grid cell size in m (default 0.005)")
+    p.add_argument("--samples", type=int, default=1 << 23, help="sampled configurations (default 8388608)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the sampling")
+    p.set_defaults(func=_workspace, parser=p)
     return parser
 
 

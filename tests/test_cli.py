@@ -1,4 +1,4 @@
-"""The ``iiwa-torch`` command: JSON outputs against the seed paper, fk -> ik round trips,
+"""The ``iiwa-torch`` command: JSON outputs against the validation poses of Pereira et al., fk -> ik round trips,
 trajectory files, and clear non-zero exits for bad arguments."""
 
 import csv
@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -29,7 +30,7 @@ def _fails(capsys, *argv) -> str:
     return capsys.readouterr().err
 
 
-def test_fk_validation_pose_matches_the_seed_paper(capsys):
+def test_fk_validation_pose_matches_pereira_et_al(capsys):
     out = _run_json(capsys, "fk", "0", "0", "0", "-90", "60", "0", "0", "--flange", "0.090")
     s3 = math.sqrt(3) / 2
     expected = [[0, 0, 1, 0.490], [s3, 0.5, 0, 0], [-0.5, s3, 0, 0.780], [0, 0, 0, 1]]
@@ -270,3 +271,43 @@ def test_drawing_without_the_viz_extra_names_the_extra(capsys, monkeypatch, tmp_
     assert exit_info.value.code == 2
     assert "iiwa-torch[viz]" in capsys.readouterr().err
     assert not (tmp_path / "arm.png").exists()
+
+
+def test_workspace_writes_the_side_view_and_rejects_a_missing_folder(capsys, tmp_path):
+    from PIL import Image
+
+    png = tmp_path / "side.png"
+    assert main(["workspace", "--plot", str(png), "--samples", "200000", "--h", "0.02"]) == 0
+    assert Image.open(png).size[0] > 400
+    assert "does not exist" in _fails(capsys, "workspace", "--plot", str(tmp_path / "no" / "side.png"))
+    assert "positive" in _fails(capsys, "workspace", "--plot", str(png), "--samples", "0")
+
+
+def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
+    pytest.importorskip("viser")
+    import signal
+    import socket
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "iiwa_torch.cli", "view", "--port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    try:
+        assert f"http://127.0.0.1:{port}" in proc.stdout.readline()  # printed before the server starts
+        for _ in range(600):  # wait for the server itself, not for a fixed time
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=1) as page:
+                    assert page.status == 200
+                break
+            except OSError:
+                if proc.poll() is not None:
+                    pytest.fail(f"the viewer exited: {proc.stdout.read()}")
+                time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 0
+    finally:
+        proc.kill()
