@@ -46,9 +46,8 @@ class JointVelocityArm:
         # the same as columns (nj, 1), to broadcast along the state's rows
         self._lower_c, self._upper_c = self.lower[:, None], self.upper[:, None]
         self._max_step_c = self.max_step[:, None]
-        reach = float((self.chain.dh[:, 0].abs() + self.chain.dh[:, 2].abs()).sum() + self.chain.tool[:3, 3].norm())
         #: bound on any end-effector coordinate, m
-        self.position_bound = float(self.chain.base[:3, 3].abs().max()) + reach
+        self.position_bound = self.chain.reach_bound()
 
     def configurations(self, u: Tensor) -> Tensor:
         """Uniform numbers ``(..., nj)`` in ``[0, 1)`` -> joint angles ``(..., nj)`` within the limits."""

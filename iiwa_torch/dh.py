@@ -218,6 +218,21 @@ class DHChain(nn.Module):
         lim = self.geometry(q.dtype).limits
         return torch.maximum(torch.minimum(q, lim[1]), lim[0])
 
+    def reach_bound(self, point=None) -> float:
+        """An upper bound (m) on the distance from the world origin to ``point``, a ``(3,)`` point
+        fixed in the end-effector frame (default: the end effector's origin): the base offset,
+        plus the configuration-independent distances between consecutive frame origins, plus
+        the point's distance from the last link frame's origin."""
+        zero = torch.zeros(self.n_joints, dtype=torch.float64, device=self.dh.device)
+        frames = self.fk_all(zero)  # (n + 1, 4, 4)
+        tip = torch.zeros(4, dtype=torch.float64, device=self.dh.device)
+        tip[3] = 1.0
+        if point is not None:
+            tip[:3] = torch.as_tensor(point, dtype=torch.float64, device=self.dh.device)
+        tip = (self.fk(zero) @ tip)[:3]
+        links = (frames[1:, :3, 3] - frames[:-1, :3, 3]).norm(dim=-1).sum()
+        return float(frames[0, :3, 3].norm() + links + (tip - frames[-1, :3, 3]).norm())
+
     def random_q(
         self, *shape: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
     ) -> Tensor:

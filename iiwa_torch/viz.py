@@ -42,12 +42,6 @@ def _as_q(chain: DHChain, q) -> torch.Tensor:
     return q
 
 
-def _reach(chain: DHChain) -> float:
-    """An upper bound on the distance from the base origin to the end effector (metres)."""
-    links = chain.dh[:, 0].abs().sum() + chain.dh[:, 2].abs().sum()
-    return float(links + chain.tool[:3, 3].norm() + chain.base[:3, 3].norm())
-
-
 def _points(chain: DHChain, q: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """``(k, n)`` -> frame origins plus the end effector ``(k, n + 2, 3)``, and frame rotations
     ``(k, n + 1, 3, 3)``, as numpy arrays (metres)."""
@@ -76,7 +70,7 @@ def draw_chain(ax, chain: DHChain, q, *, frames: bool = False, color=None, alpha
     """
     q = _as_q(chain, q)
     origins, rotations = _points(chain, q)
-    scale = 0.08 * _reach(chain)
+    scale = 0.08 * chain.reach_bound()
     artists = []
     for i, pts in enumerate(origins):
         x, y, z = pts.T
@@ -103,7 +97,7 @@ def _scene(chain: DHChain, size: tuple[int, int], dpi: int, elev: float, azim: f
     canvas = FigureCanvasAgg(fig)
     ax = fig.add_subplot(projection="3d")
     fig.subplots_adjust(left=0, right=1, bottom=0, top=1)
-    r = _reach(chain)
+    r = chain.reach_bound()
     centre = chain.base[:3, 3].cpu().numpy()
     ax.set_xlim(centre[0] - 0.6 * r, centre[0] + 0.6 * r)
     ax.set_ylim(centre[1] - 0.6 * r, centre[1] + 0.6 * r)

@@ -197,16 +197,6 @@ def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e
     return local.mean(0)
 
 
-def _reach_bound(chain: DHChain, point: Tensor) -> float:
-    """An upper bound on the distance from the base origin of any point fixed in the end
-    effector: the sum of the (configuration-independent) distances between consecutive frame
-    origins plus the point's distance from the last frame's origin."""
-    frames = chain.fk_all(torch.zeros(chain.n_joints, dtype=torch.float64))
-    links = (frames[1:, :3, 3] - frames[:-1, :3, 3]).norm(dim=-1).sum().item()
-    tip = (chain.fk(torch.zeros(chain.n_joints, dtype=torch.float64)) @ torch.cat([point, point.new_ones(1)]))[:3]
-    return frames[0, :3, 3].norm().item() + links + (tip - frames[-1, :3, 3]).norm().item()
-
-
 def _as_point(point) -> Tensor:
     p = torch.zeros(3, dtype=torch.float64) if point is None else torch.as_tensor(point, dtype=torch.float64)
     if p.shape != (3,) or not torch.isfinite(p).all():
@@ -248,7 +238,7 @@ def _cell_index(xyz: Tensor, section: Section, lower: tuple[float, ...], shape: 
 
 
 def _grid(chain: DHChain, section: Section, h: float, p: Tensor) -> tuple[tuple[float, ...], tuple[int, ...]]:
-    reach = _reach_bound(chain, p) + h
+    reach = chain.reach_bound(p) + h
     cells = int(math.ceil(2 * reach / h))
     if section is Section.RZ:
         lower, shape = (0.0, -reach), (int(math.ceil(reach / h)), cells)

@@ -548,3 +548,14 @@ def test_replaced_buffer_data_rebuilds_the_geometry():
     _same_kinematics(chain, robots.iiwa14())
     chain.dh.data = robots.iiwa7().dh.clone()  # no version bump: a new storage
     _same_kinematics(chain, robots.iiwa7())
+
+
+@pytest.mark.parametrize("name", list(robots.PRESETS))
+def test_reach_bound_is_never_exceeded(name):
+    chain = robots.PRESETS[name]()
+    q = chain.random_q(20_000, generator=torch.Generator().manual_seed(0))
+    assert float(chain.position(q).norm(dim=-1).max()) <= chain.reach_bound() + 1e-12
+
+
+def test_reach_bound_of_the_iiwa14_is_its_stretched_height_on_the_datasheet():
+    assert robots.iiwa14().reach_bound() == pytest.approx(1.306, abs=1e-12)  # KUKA's dimension A, 1306 mm
