@@ -427,7 +427,6 @@ class World:
         return [(kind, getattr(self, kind)) for kind in _OBSTACLE_DIMS if getattr(self, kind) is not None]
 
 
-
 def check_world(world: World | None, margin: float, capsules: Capsules | None = None) -> None:
     """Check the ``world=``, ``margin=``, ``capsules=`` arguments of a solver: ``world`` a
     :class:`World` or ``None``, ``margin`` a finite number >= 0 (metres), and neither

@@ -127,4 +127,3 @@ def pieper(
     reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None]
     sol = finish(chain, thetas, reachable, branch_dims=3)
     return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)
-
