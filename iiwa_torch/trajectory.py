@@ -434,12 +434,13 @@ def _analytic_stepper(
         return lambda pose, q_prev: _nearest(
             chain, analytic.pieper(chain, pose, world=world, margin=margin, capsules=capsules), q_prev
         )[0]
-    obstacles = None if world is None else Obstacles(world, margin, capsules, batch)
+    obstacles = None if world is None else Obstacles.for_batch(world, margin, capsules, batch)
+    rows_world = None if obstacles is None else obstacles.world  # one row per path (or shared)
 
     def step(pose: Tensor, q_prev: Tensor) -> Tensor:
         target = pose.expand(*batch, 4, 4).reshape(-1, 4, 4)
         q_ref = q_prev.expand(*batch, 7).reshape(-1, 7)
-        q, found, usable = _near_arm_angle(chain, target, q_ref, obstacles and obstacles.world, margin, capsules)
+        q, found, usable = _near_arm_angle(chain, target, q_ref, rows_world, margin, capsules)
         if not found.all():  # nothing valid near the last arm angle: the whole circle
             lost = (~found).nonzero().squeeze(-1)
             extra = (

@@ -37,7 +37,9 @@ pose is still reproduced exactly).
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -349,7 +351,7 @@ def iiwa_solve(
             q0 = torch.broadcast_to(q0.to(target.dtype), (*batch, 7)).reshape(-1, 7)
         except RuntimeError:
             raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
-    obstacles = None if world is None else Obstacles(world, margin, capsules, batch)
+    obstacles = None if world is None else Obstacles.for_batch(world, margin, capsules, batch)
     if flat.shape[0] == 0:  # no poses
         q_best, found = flat.new_zeros(0, 7), torch.zeros(0, dtype=torch.bool, device=flat.device)
     else:
@@ -383,39 +385,47 @@ def iiwa_solve(
     )
 
 
+@dataclass(frozen=True)
 class Obstacles:
-    """A world for a flat batch of ``B`` poses: one shared set of obstacles, or one row per
-    pose (a batched world broadcast to the poses' shape and flattened), with its margin (m)
-    and capsule model."""
+    """A world for a flat batch of ``B`` poses: one shared set of obstacles (``shared``), or
+    one row per pose, with the margin (m) and capsule model. Build it with :meth:`for_batch`."""
 
-    def __init__(self, world: World, margin: float, capsules: Capsules | None, batch: torch.Size) -> None:
-        self.margin, self.capsules = margin, capsules
-        self.shared = len(world.batch_shape) == 0
-        if not self.shared:
-            try:
-                fits = torch.broadcast_shapes(world.batch_shape, batch) == batch
-            except RuntimeError:
-                fits = False
-            if not fits:
-                raise ValueError(
-                    f"the world's batch shape {tuple(world.batch_shape)} must broadcast to the targets' {tuple(batch)}"
-                )
-            world = world.map_batch(
-                lambda t, k: t.expand(*batch, *t.shape[t.ndim - k :]).reshape(-1, *t.shape[t.ndim - k :])
+    world: World
+    margin: float
+    capsules: Capsules | None
+    shared: bool
+
+    @classmethod
+    def for_batch(cls, world: World, margin: float, capsules: Capsules | None, batch: torch.Size) -> Obstacles:
+        """``world``, whose batch shape must broadcast to the poses' ``batch``, flattened to one
+        row per pose (kept as it is when it has no batch shape)."""
+        if not world.batch_shape:
+            return cls(world, margin, capsules, shared=True)
+        try:
+            fits = torch.broadcast_shapes(world.batch_shape, batch) == batch
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"the world's batch shape {tuple(world.batch_shape)} must broadcast to the targets' {tuple(batch)}"
             )
-        self.world = world
+
+        def flatten(t: Tensor, k: int) -> Tensor:
+            own = t.shape[t.ndim - k :]
+            return t.expand(*batch, *own).reshape(-1, *own)
+
+        return cls(world.map_batch(flatten), margin, capsules, shared=False)
 
     def take(self, index) -> Obstacles:
         """The obstacles of the poses ``index`` (a slice or an index tensor)."""
-        out = object.__new__(Obstacles)
-        out.margin, out.capsules, out.shared = self.margin, self.capsules, self.shared
-        out.world = self.world if self.shared else self.world.map_batch(lambda t, k: t[index])
-        return out
+        if self.shared:
+            return self
+        return dataclasses.replace(self, world=self.world.map_batch(lambda t, k: t[index]))
 
     def clearance(self, chain: DHChain, q: Tensor, rows: Tensor | None = None) -> Tensor:
         """Clearance ``(V,)`` of ``q (V, 7)``, row ``v`` against pose ``rows[v]``'s obstacles
         (``rows=None``: ``q`` has one row per pose)."""
-        world = self.world if self.shared or rows is None else self.take(rows).world
+        world = self.world if rows is None else self.take(rows).world
         return clearance(chain, q, world, self.capsules)
 
 
