@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from . import kinematics as kin
+from . import so3
 from ._checks import check_finite, check_float_tensor
 from .kinematics import Frame, Geometry
 
@@ -44,8 +45,14 @@ class Convention(str, Enum):
 
 def _as_matrix(value, name: str) -> Tensor:
     matrix = torch.eye(4, dtype=torch.float64) if value is None else torch.as_tensor(value, dtype=torch.float64)
-    kin.check_rigid(matrix, name)
+    _check_transform(matrix, name)
     return matrix
+
+
+def _check_transform(matrix: Tensor, name: str) -> None:
+    if matrix.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 homogeneous transform, got shape {tuple(matrix.shape)}")
+    so3.check_rigid(matrix, name, exact_bottom_row=True)
 
 
 def _check_limits(lim: Tensor, n: int) -> None:
@@ -161,8 +168,8 @@ class DHChain(nn.Module):
         if self.dh.shape[0] != self.n_joints:
             raise ValueError(f"table must have {self.n_joints} rows (one per joint), got {tuple(self.dh.shape)}")
         _check_limits(self.limits, self.n_joints)
-        kin.check_rigid(self.base, "base")
-        kin.check_rigid(self.tool, "tool")
+        _check_transform(self.base, "base")
+        _check_transform(self.tool, "tool")
 
     def _apply(self, fn, recurse=True):
         self._geometry, self._stamp = {}, ()

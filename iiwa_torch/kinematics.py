@@ -39,14 +39,12 @@ import torch
 __all__ = [
     "BLOCK",
     "POSITION_BLOCK",
-    "RIGID_TOL",
     "SMALL_BATCH",
     "EndPoseFunction",
     "Frame",
     "Geometry",
     "all_poses",
     "blockwise",
-    "check_rigid",
     "elementary_transform",
     "end_pose",
     "end_pose_matmul",
@@ -64,7 +62,6 @@ Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin
 BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
 POSITION_BLOCK = 65536  # the same for the position kernel, whose working set is a third (measured)
 SMALL_BATCH = 128  # up to this many configurations the 4x4-product kernel is faster (measured)
-RIGID_TOL = 1e-6  # base and tool: |R R^T - I| and |det R - 1| at most this
 _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
@@ -90,23 +87,6 @@ def elementary_transform(rot_axis: str, angle: float = 0.0, shift: tuple[float, 
     m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
     m[:3, 3] = torch.tensor(shift, dtype=torch.float64)
     return m
-
-
-def check_rigid(matrix: Tensor, name: str) -> None:
-    """Raise ``ValueError`` unless ``matrix`` is a finite ``(4, 4)`` rigid transform: rotation
-    orthonormal with determinant +1 (within ``RIGID_TOL``), bottom row exactly ``[0, 0, 0, 1]``."""
-    if matrix.shape != (4, 4) or not torch.isfinite(matrix).all():
-        raise ValueError(f"{name} must be a finite 4x4 homogeneous transform, got shape {tuple(matrix.shape)}")
-    m = matrix.detach().cpu().to(torch.float64)
-    if m[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
-        raise ValueError(f"{name}'s bottom row must be exactly [0, 0, 0, 1], got {m[3].tolist()}")
-    rot = m[:3, :3]
-    error = (rot @ rot.T - torch.eye(3, dtype=torch.float64)).abs().max().item()
-    if error > RIGID_TOL:
-        raise ValueError(f"{name}'s rotation part is not orthonormal (|R R^T - I| = {error:.3g} > {RIGID_TOL})")
-    det = torch.linalg.det(rot).item()
-    if abs(det - 1.0) > RIGID_TOL:
-        raise ValueError(f"{name}'s rotation part must have determinant +1 (a rotation, not a reflection), got {det}")
 
 
 def _link_coefficients(dh: Tensor, modified: bool) -> Tensor:

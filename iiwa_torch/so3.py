@@ -160,29 +160,34 @@ def check_pose(pose: torch.Tensor, name: str = "pose") -> None:
 RIGID_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
 
-def check_rigid(pose: torch.Tensor, name: str = "pose") -> None:
+def check_rigid(pose: torch.Tensor, name: str = "pose", exact_bottom_row: bool = False) -> None:
     """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` batch of
     rigid transforms: rotation ``R`` with ``|R^T R - I| <= tol`` entrywise and ``det R > 0``, and
-    bottom row ``[0, 0, 0, 1]`` within ``tol``; ``tol = RIGID_TOL[dtype]`` (1e-6 in float64, 1e-5
-    in float32: FK rounding stays far below). One fused check over the batch (a single sync)."""
+    bottom row ``[0, 0, 0, 1]`` within ``tol`` (exactly if ``exact_bottom_row``); ``tol =
+    RIGID_TOL[dtype]`` (1e-6 in float64, 1e-5 in float32: FK rounding stays far below). One fused
+    check over the batch (a single sync)."""
     check_pose(pose, name)
     if pose.numel() == 0:
         return
+    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=pose.dtype, device=pose.device)
+    if exact_bottom_row and not bool((pose[..., 3, :] == last).all()):
+        bad = (pose[..., 3, :] != last).any(-1).nonzero()[0].tolist()
+        raise ValueError(f"{name}'s bottom row must be exactly [0, 0, 0, 1], got {pose[(*bad, 3)].tolist()}")
     R = pose[..., :3, :3]
     eye = torch.eye(3, dtype=pose.dtype, device=pose.device)
     gram = R.mT @ R - eye
     c0, c1, c2 = R.unbind(-1)
     det = (torch.linalg.cross(c0, c1) * c2).sum(-1)
-    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=pose.dtype, device=pose.device)
     worst = torch.maximum(gram.abs().amax((-2, -1)), (pose[..., 3, :] - last).abs().amax(-1))
     worst = torch.where(det > 0, worst, torch.inf).detach()
     tol = RIGID_TOL.get(pose.dtype, RIGID_TOL[torch.float32])
     if float(worst.max()) <= tol:
         return
     index = tuple((worst > tol).nonzero()[0].tolist())
+    what, where = ("a rigid transform", name) if pose.dim() == 2 else ("rigid transforms", f"{name}[{index}]")
     raise ValueError(
-        f"{name} must be rigid transforms (orthonormal rotation with det +1, bottom row [0, 0, 0, 1], "
-        f"within {tol:g}); {name}[{index}] has max |R^T R - I| = {float(gram[index].abs().max()):.3g}, "
+        f"{name} must be {what} (orthonormal rotation with det +1, bottom row [0, 0, 0, 1], "
+        f"within {tol:g}); {where} has max |R^T R - I| = {float(gram[index].abs().max()):.3g}, "
         f"det R = {float(det[index]):.6g}, bottom row {pose[index][3].tolist()}"
     )
 

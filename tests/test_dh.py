@@ -359,7 +359,7 @@ def test_bad_tables():
         DHChain([[0, 0, 0, 0]], convention="craig")
     with pytest.raises(ValueError, match="limits must have shape"):
         DHChain([[0, 0, 0, 0]], limits=[[1.0], [-1.0]])
-    with pytest.raises(ValueError, match="orthonormal"):
+    with pytest.raises(ValueError, match=r"tool must be a rigid transform .* max \|R\^T R - I\| = 3,"):
         DHChain([[0, 0, 0, 0]], tool=torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0])))
     with pytest.raises(ValueError, match="limits must be finite"):
         DHChain([[0, 0, 0, 0]], limits=[[-math.inf], [1.0]])
@@ -373,11 +373,11 @@ def test_base_and_tool_must_be_rigid(where):
     bottom[3] = torch.tensor([1.0, 2.0, 3.0, 5.0])
     with pytest.raises(ValueError, match=rf"{where}'s bottom row must be exactly \[0, 0, 0, 1\], got \[1.0, 2.0"):
         DHChain([[0, 0, 0, 0]], **{where: bottom})
-    with pytest.raises(ValueError, match="determinant"):  # a mirror: orthonormal, det -1
+    with pytest.raises(ValueError, match=r"max \|R\^T R - I\| = 0, det R = -1,"):  # a mirror: orthonormal, det -1
         DHChain([[0, 0, 0, 0]], **{where: torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0]))})
     sheared = torch.eye(4, dtype=torch.float64)
     sheared[0, 1] = 1e-5  # beyond the documented 1e-6
-    with pytest.raises(ValueError, match="orthonormal"):
+    with pytest.raises(ValueError, match=r"max \|R\^T R - I\| = 1e-05, det R = 1,"):
         DHChain([[0, 0, 0, 0]], **{where: sheared})
     sheared[0, 1] = 1e-8  # rounding noise is accepted
     DHChain([[0, 0, 0, 0]], **{where: sheared})
