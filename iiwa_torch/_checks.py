@@ -29,8 +29,21 @@ def check_float_tensor(x, name: str, shape: str) -> None:
         raise TypeError(f"{name} must be a float32 or float64 tensor, got {x.dtype}")
 
 
+def check_tensor(x, name: str, shape: tuple[int, ...]) -> None:
+    """Raise ``TypeError``/``ValueError`` unless ``x`` is a finite float32/float64 tensor of shape
+    ``(..., *shape)``, e.g. ``shape=(3, 3)`` for rotations."""
+    text = "(..., " + ", ".join(map(str, shape)) + ")"
+    check_float_tensor(x, name, text)
+    if x.ndim < len(shape) or tuple(x.shape[x.ndim - len(shape) :]) != tuple(shape):
+        raise ValueError(f"{name} must have shape {text}, got {tuple(x.shape)}")
+    check_finite(x, name)
+
+
 def check_finite(x: torch.Tensor, name: str) -> None:
-    """Raise ``ValueError`` naming the first NaN/inf element of ``x``, if any."""
+    """Raise ``ValueError`` naming the first NaN/inf element of ``x``, if any (or if ``x`` is a
+    ``meta`` tensor, which has no values)."""
+    if isinstance(x, torch.Tensor) and x.device.type == "meta":
+        raise ValueError(f"{name} is a meta tensor, without values; the kinematics needs real ones (cpu)")
     if not all_finite(x):
         bad = tuple((~torch.isfinite(x)).nonzero()[0].tolist())
         raise ValueError(f"{name} contains NaN or inf (first at index {bad})")
@@ -49,7 +62,19 @@ def check_positive(value, name: str, integer: bool = False) -> None:
         raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
 
 
-def check_nonnegative(value, name: str) -> None:
-    """Raise ``ValueError`` unless ``value`` is a finite number ``>= 0`` (never a bool)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+def check_nonnegative(value, name: str, integer: bool = False) -> None:
+    """Raise ``ValueError`` unless ``value`` is a finite number ``>= 0`` (an int if ``integer``; never a bool)."""
+    kind = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind) or not value >= 0 or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite {'integer' if integer else 'number'} >= 0, got {value!r}")
+
+
+def as_point(point, name: str = "point") -> torch.Tensor:
+    """``point``, 3 finite coordinates (m) or ``None`` (the origin), as a ``(3,)`` float64 tensor."""
+    try:
+        p = torch.zeros(3, dtype=torch.float64) if point is None else torch.as_tensor(point, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        p = None
+    if p is None or p.shape != (3,) or not torch.isfinite(p).all():
+        raise ValueError(f"{name} must be None or 3 finite coordinates (m) in the end-effector frame, got {point!r}")
+    return p

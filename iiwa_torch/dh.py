@@ -28,7 +28,7 @@ from torch import nn
 
 from . import kinematics as kin
 from . import so3
-from ._checks import check_finite, check_float_tensor
+from ._checks import as_point, check_finite, check_float_tensor, check_nonnegative
 from .kinematics import Frame, Geometry
 
 __all__ = ["Convention", "DHChain"]
@@ -120,6 +120,8 @@ class DHChain(nn.Module):
         names = [f"joint{i + 1}" for i in range(n)] if joint_names is None else list(joint_names)
         if len(names) != n:
             raise ValueError(f"joint_names must have {n} names, got {len(names)}")
+        if not isinstance(name, str):
+            raise TypeError(f"name must be a string, got {name!r}")
         self.name = name
         self.joint_names = tuple(names)
         self.register_buffer("dh", dh)
@@ -203,8 +205,6 @@ class DHChain(nn.Module):
             raise ValueError(
                 f"{name} is on {q.device} but the chain is on {self.dh.device}; use chain.to({str(q.device)!r})"
             )
-        if q.device.type == "meta":
-            raise ValueError(f"{name} is a meta tensor, without values; the kinematics needs real ones (cpu)")
         try:
             check_finite(q, name)
         except RuntimeError:  # no storage to read: a torch.func.vmap BatchedTensor
@@ -217,11 +217,14 @@ class DHChain(nn.Module):
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
+        self.check_q(q)
+        check_nonnegative(tol, "tol")
         lim = self.geometry(q.dtype).limits
         return ((q >= lim[0] - tol) & (q <= lim[1] + tol)).all(-1)
 
     def clamp(self, q: Tensor) -> Tensor:
         """``(..., n) -> (..., n)``: ``q`` clamped into the joint limits (a new tensor)."""
+        self.check_q(q)
         lim = self.geometry(q.dtype).limits
         return torch.maximum(torch.minimum(q, lim[1]), lim[0])
 
@@ -234,8 +237,7 @@ class DHChain(nn.Module):
         frames = self.fk_all(zero)  # (n + 1, 4, 4)
         tip = torch.zeros(4, dtype=torch.float64, device=self.dh.device)
         tip[3] = 1.0
-        if point is not None:
-            tip[:3] = torch.as_tensor(point, dtype=torch.float64, device=self.dh.device)
+        tip[:3] = as_point(point).to(self.dh.device)
         tip = (self.fk(zero) @ tip)[:3]
         links = (frames[1:, :3, 3] - frames[:-1, :3, 3]).norm(dim=-1).sum()
         return float(frames[0, :3, 3].norm() + links + (tip - frames[-1, :3, 3]).norm())

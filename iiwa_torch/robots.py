@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+from ._checks import check_nonnegative, check_positive
 from .dh import Convention, DHChain
 
 __all__ = ["iiwa14", "iiwa7", "puma560", "lrmate200ic", "planar3r", "PRESETS", "IIWA_HOME"]
@@ -24,6 +25,7 @@ def _deg(values) -> list[float]:
 
 
 def _iiwa(name: str, l_bs: float, l_se: float, l_ew: float, flange: float, speeds_deg, tool) -> DHChain:
+    check_nonnegative(flange, "flange")
     table = [
         (0, -_PI2, l_bs, 0),
         (0, _PI2, 0, 0),
@@ -94,6 +96,8 @@ def planar3r(l1: float = 1.0, l2: float = 1.0, l3: float = 0.5) -> DHChain:
 
     The end effector moves in the base's xy plane; its heading is ``q1 + q2 + q3``.
     """
+    for value, name in ((l1, "l1"), (l2, "l2"), (l3, "l3")):
+        check_positive(value, name)
     table = [(l1, 0, 0, 0), (l2, 0, 0, 0), (l3, 0, 0, 0)]
     return DHChain(table, name="planar3r")
 

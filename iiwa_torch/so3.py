@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import check_finite, check_float_tensor
+from ._checks import check_tensor
 
 __all__ = [
     "skew",
@@ -29,6 +29,7 @@ __all__ = [
 
 def skew(v: torch.Tensor) -> torch.Tensor:
     """``(..., 3) -> (..., 3, 3)`` cross-product matrix, ``skew(a) @ b == a x b``."""
+    check_tensor(v, "v", (3,))
     x, y, z = v.unbind(-1)
     o = torch.zeros_like(x)
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).unflatten(-1, (3, 3))
@@ -39,6 +40,7 @@ def exp(rotvec: torch.Tensor) -> torch.Tensor:
 
     Uses Taylor series for small angles so values and gradients stay finite at zero.
     """
+    check_tensor(rotvec, "rotvec", (3,))
     theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
     small = theta2 < 1e-8
     safe2 = torch.where(small, torch.ones_like(theta2), theta2)
@@ -56,6 +58,11 @@ def matrix_to_quaternion(rot: torch.Tensor) -> torch.Tensor:
     Each of the four components can be the one recovered from the diagonal; the largest
     is taken (Shepperd's method), so the result is accurate near a half turn too.
     """
+    check_tensor(rot, "rot", (3, 3))
+    return _quaternion_of(rot)
+
+
+def _quaternion_of(rot: torch.Tensor) -> torch.Tensor:
     m = rot.unbind(-1)  # columns
     m00, m10, m20 = m[0].unbind(-1)
     m01, m11, m21 = m[1].unbind(-1)
@@ -88,8 +95,12 @@ def matrix_to_quaternion(rot: torch.Tensor) -> torch.Tensor:
 
 
 def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
-    """Quaternion ``(..., 4)``, ``(w, x, y, z)``, normalised here -> rotation ``(..., 3, 3)``."""
-    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True)).unbind(-1)
+    """Quaternion ``(..., 4)``, ``(w, x, y, z)``, not zero, normalised here -> rotation ``(..., 3, 3)``."""
+    check_tensor(quat, "quat", (4,))
+    norm = quat.norm(dim=-1, keepdim=True)
+    if quat.numel() and not bool((norm > 0).all()):
+        raise ValueError("quat must not be zero (it is normalised)")
+    w, x, y, z = (quat / norm).unbind(-1)
     return torch.stack(
         [
             1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
@@ -107,7 +118,12 @@ def log(rot: torch.Tensor) -> torch.Tensor:
     half turn (no division by ``sin(angle)``). At exactly a half turn the sign of the axis
     is arbitrary, as it must be.
     """
-    quat = matrix_to_quaternion(rot)
+    check_tensor(rot, "rot", (3, 3))
+    return _log(rot)
+
+
+def _log(rot: torch.Tensor) -> torch.Tensor:
+    quat = _quaternion_of(rot)
     w, v = quat[..., :1], quat[..., 1:]
     vn2 = (v * v).sum(-1, keepdim=True)
     small = vn2 < 1e-12
@@ -122,6 +138,7 @@ def matrix_to_rpy(rot: torch.Tensor) -> torch.Tensor:
 
     This is URDF's ``rpy``. At pitch = +-pi/2 (gimbal lock) roll is set to 0.
     """
+    check_tensor(rot, "rot", (3, 3))
     r20 = rot[..., 2, 0].clamp(-1, 1)
     pitch = torch.asin(-r20)
     locked = r20.abs() > 1 - 1e-12
@@ -136,6 +153,7 @@ def matrix_to_rpy(rot: torch.Tensor) -> torch.Tensor:
 
 def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
     """Roll, pitch, yaw ``(..., 3)`` (radians) -> ``Rz(yaw) Ry(pitch) Rx(roll)`` ``(..., 3, 3)``."""
+    check_tensor(rpy, "rpy", (3,))
     cr, cp, cy = torch.cos(rpy).unbind(-1)
     sr, sp, sy = torch.sin(rpy).unbind(-1)
     return torch.stack(
@@ -150,10 +168,7 @@ def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
 
 def check_pose(pose: torch.Tensor, name: str = "pose") -> None:
     """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` tensor."""
-    check_float_tensor(pose, name, "(..., 4, 4)")
-    if pose.shape[-2:] != (4, 4):
-        raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(pose.shape)}")
-    check_finite(pose, name)
+    check_tensor(pose, name, (4, 4))
 
 
 #: Largest deviation a pose may have from a rigid transform, per dtype (see :func:`check_rigid`).
@@ -199,11 +214,14 @@ def pose_error(pose: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, 
     ``log(target_R pose_R^T)`` (radians), the rotation vector that turns ``pose`` into
     ``target``. Both pair with the geometric Jacobian's rows: ``J dq ~ (pos_err, rot_err)``.
     """
+    check_pose(pose, "pose")
+    check_pose(target, "target")
     if pose.dtype != target.dtype or pose.device != target.device:
         raise ValueError(
             f"pose and target must share dtype and device, got {pose.dtype}/{pose.device} "
             f"and {target.dtype}/{target.device}"
         )
     pos_err = target[..., :3, 3] - pose[..., :3, 3]
-    rot_err = log(target[..., :3, :3] @ pose[..., :3, :3].transpose(-1, -2))
+    rot = target[..., :3, :3] @ pose[..., :3, :3].transpose(-1, -2)
+    rot_err = _log(rot)
     return pos_err, rot_err

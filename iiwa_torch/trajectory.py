@@ -25,7 +25,7 @@ from typing import Literal, get_args
 import torch
 
 from . import so3
-from ._checks import check_choice, check_finite
+from ._checks import check_choice, check_finite, check_float_tensor, check_positive
 from .collision import Capsules, World, check_world, clearance
 from .dh import DHChain
 
@@ -143,9 +143,10 @@ def jtraj(
     if (world is None) != (chain is None):
         raise ValueError("jtraj needs both chain= and world= to report the clearance (World() is the floor at z = 0)")
     for name, value in (("q0", q0), ("q1", q1), ("qd0", qd0), ("qd1", qd1)):
-        if value is not None and not (isinstance(value, Tensor) and value.is_floating_point() and value.ndim >= 1):
-            raise TypeError(f"{name} must be a float tensor of shape (..., n), got {value!r:.60}")
         if value is not None:
+            check_float_tensor(value, name, "(..., n)")
+            if value.ndim == 0:
+                raise ValueError(f"{name} must have shape (..., n), got a scalar")
             check_finite(value, name)
     given = [x for x in (q0, q1, qd0, qd1) if x is not None]
     try:
@@ -303,6 +304,10 @@ def track(
     """
     check_choice(method, get_args(Method), "method")
     check_world(world, margin, capsules)
+    check_positive(pos_tol, "pos_tol")
+    check_positive(rot_tol, "rot_tol")
+    if method == "analytic" and rest_gain != 0:  # the gradient solver checks it in [0, 1]
+        raise ValueError(f"rest_gain applies to method='gradient' only, got {rest_gain!r} with method='analytic'")
     so3.check_rigid(poses, "poses")
     chain.check_q(q0, "q0")
     if poses.ndim < 3:

@@ -529,7 +529,7 @@ def test_in_place_edits_rebuild_the_geometry():
 def test_load_state_dict_checks_what_it_loads():
     chain, state = robots.iiwa14(), robots.iiwa14().state_dict()
     state["tool"] = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64))
-    with pytest.raises(ValueError, match="determinant"):
+    with pytest.raises(ValueError, match="det R = -1"):
         chain.load_state_dict(state)
 
 

@@ -297,7 +297,7 @@ def test_dls_step_rejects_bad_input():
         dls_step(J, e[:, :3], 0.1)
     with pytest.raises(ValueError, match="damping must be positive"):
         dls_step(J, e, 0.0)
-    with pytest.raises(TypeError, match="tensors"):
+    with pytest.raises(TypeError, match="jacobian must be a torch.Tensor"):
         dls_step(J.numpy(), e, 0.1)
 
 

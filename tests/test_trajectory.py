@@ -110,7 +110,7 @@ def test_jtraj_rejects_bad_times(t, error, match):
 def test_jtraj_rejects_mismatched_joints():
     with pytest.raises(ValueError, match="broadcast together"):
         jtraj(torch.zeros(7, dtype=F64), torch.zeros(6, dtype=F64), 5)
-    with pytest.raises(TypeError, match="float tensor"):
+    with pytest.raises(TypeError, match="q0 must be a float32 or float64 tensor"):
         jtraj(torch.zeros(7, dtype=torch.int64), torch.zeros(7, dtype=F64), 5)
 
 

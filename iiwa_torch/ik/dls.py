@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import torch
 
+from .._checks import all_finite, check_finite, check_float_tensor, check_positive
+
 __all__ = ["dls_step", "dls_step_batch_last", "cholesky_solve_batch_last"]
 
 Tensor = torch.Tensor
@@ -89,16 +91,24 @@ def dls_step(jacobian: Tensor, error: Tensor, damping: Tensor | float) -> Tensor
     Returns:
         ``(..., n)`` joint step, rad. The batch shape is the broadcast of the three inputs'.
     """
-    if not isinstance(jacobian, Tensor) or not isinstance(error, Tensor) or jacobian.ndim < 2:
-        raise TypeError("jacobian (..., m, n) and error (..., m) must be tensors")
+    check_float_tensor(jacobian, "jacobian", "(..., m, n)")
+    check_float_tensor(error, "error", "(..., m)")
+    if jacobian.ndim < 2:
+        raise ValueError(f"jacobian must have shape (..., m, n), got {tuple(jacobian.shape)}")
     m, n = jacobian.shape[-2:]
     if error.ndim == 0 or error.shape[-1] != m:
         raise ValueError(
             f"error must have shape (..., {m}) to match jacobian (..., {m}, {n}), got {tuple(error.shape)}"
         )
+    if error.dtype != jacobian.dtype:
+        raise TypeError(f"error must have jacobian's dtype {jacobian.dtype}, got {error.dtype}")
+    check_finite(jacobian, "jacobian")
+    check_finite(error, "error")
+    if not isinstance(damping, Tensor):
+        check_positive(damping, "damping")
     damping = torch.as_tensor(damping, dtype=jacobian.dtype, device=jacobian.device)
-    if not bool((damping > 0).all()):
-        raise ValueError("damping must be positive")
+    if not all_finite(damping) or not bool((damping > 0).all()):
+        raise ValueError("damping must be positive and finite")
     batch = torch.broadcast_shapes(jacobian.shape[:-2], error.shape[:-1], damping.shape)
     J = jacobian.expand(*batch, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, n, b)
     e = error.expand(*batch, m).reshape(-1, m).T[:, None]  # (m, 1, b)

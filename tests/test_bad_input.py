@@ -1,0 +1,549 @@
+"""Every public entry point, walked with the classes of bad input: wrong shapes, integer and
+half-precision dtypes, NaN/inf, meta tensors, non-rigid poses, bad choice strings, zero or
+negative counts and tolerances. Each must raise ``ValueError``/``TypeError`` whose message
+names the argument (never a raw torch/numpy error, never a NaN result).
+
+The table :data:`ENTRIES` is checked against the modules' ``__all__`` (and ``DHChain``'s public
+methods): a new public name must get an entry here or a reason in :data:`EXEMPT`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass, fields, is_dataclass
+
+import numpy as np
+import pytest
+import torch
+
+import envs
+from envs.core import ReachTask
+from envs.goals import decode_pose_goal, encode_pose_goal
+from envs.reach import IiwaReachEnv, IiwaReachVectorEnv, goal_env_spaces
+from envs.sb3 import IiwaReachVecEnv
+from iiwa_torch import DHChain, collision, robots, so3, trajectory, workspace
+from iiwa_torch.ik import analytic, dls_step, minimize, solve
+
+CHAIN = robots.iiwa14()
+PUMA = robots.puma560()
+Q = CHAIN.random_q(3, generator=torch.Generator().manual_seed(0))  # (3, 7) float64
+POSE = CHAIN.fk(Q)  # (3, 4, 4)
+PUMA_POSE = PUMA.fk(PUMA.random_q(3, generator=torch.Generator().manual_seed(1)))
+ROT = POSE[:, :3, :3]
+
+
+def _call_method(name: str):
+    return lambda self_, **kw: getattr(self_, name)(**kw)
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One public callable: ``call(**good())`` is valid; each name in ``tensors`` (``poses``) gets
+    every bad float tensor (and every non-rigid pose); ``bad`` adds ``(argument, value)`` pairs.
+    Each bad call must raise ``ValueError``/``TypeError`` whose message names the argument
+    (``names`` maps an argument to the name the message uses, e.g. ``walls`` -> ``walls[0]``)."""
+
+    call: Callable
+    good: Callable[[], dict]
+    tensors: tuple[str, ...] = ()
+    poses: tuple[str, ...] = ()
+    bad: tuple[tuple[str, object], ...] = ()
+    names: tuple[tuple[str, str], ...] = ()
+
+
+def _counts(*names: str, allow_zero=False) -> tuple:
+    """Bad values of integer count arguments."""
+    values = (-1, 2.5, True, "3") + (() if allow_zero else (0,))
+    return tuple((n, v) for n in names for v in values)
+
+
+def _tols(*names: str) -> tuple:
+    """Bad values of positive finite tolerances / sizes."""
+    return tuple((n, v) for n in names for v in (0.0, -1e-3, math.nan, math.inf, "1e-3"))
+
+
+def _env_step(env_cls, n: int | None):
+    def run(action, **kw):
+        env = env_cls(**kw) if n is None else env_cls(n, **kw)
+        env.reset(seed=0)
+        return env.step(action)
+
+    return run
+
+
+def _env_reset(env_cls, n: int | None):
+    def run(seed, **kw):
+        env = env_cls(**kw) if n is None else env_cls(n, **kw)
+        return env.reset(seed=seed)
+
+    return run
+
+
+def _vec_step(action):
+    vec = IiwaReachVecEnv(2, seed=0)
+    vec.reset()
+    vec.step_async(action)
+    return vec.step_wait()
+
+
+def _compute_reward(achieved_goal, desired_goal):
+    return IiwaReachEnv().compute_reward(achieved_goal, desired_goal, None)
+
+
+_TASK_OPTIONS = _tols("dt", "distance_threshold", "orientation_threshold") + (
+    ("orientation_weight", -1.0),
+    ("orientation_weight", math.nan),
+    ("goal_min_distance", -0.1),
+    ("goal_min_distance", math.nan),
+    ("goal", "orientation"),
+    ("reward", "shaped"),
+    ("start", "anywhere"),
+    ("max_episode_steps", 0),
+    ("max_episode_steps", -3),
+    ("max_episode_steps", 2.5),
+    ("dtype", torch.float16),
+    ("dtype", torch.int64),
+    ("robot", "iiwa14"),
+    ("home", torch.full((6,), 0.1)),
+    ("home", torch.full((7,), math.nan)),
+)
+
+ENTRIES: dict[str, Entry] = {
+    # ------------------------------------------------------------------ the chain
+    "iiwa_torch:DHChain": Entry(
+        DHChain,
+        lambda: {"table": CHAIN.dh, "limits": CHAIN.limits, "base": torch.eye(4), "tool": POSE[0]},
+        tensors=("table", "limits"),
+        poses=("base", "tool"),
+        bad=(("convention", "craig"), ("velocity_limits", torch.full((7,), -1.0)), ("name", 3)),
+    ),
+    "DHChain.fk": Entry(CHAIN.fk, lambda: {"q": Q}, tensors=("q",)),
+    "DHChain.fk_all": Entry(CHAIN.fk_all, lambda: {"q": Q}, tensors=("q",)),
+    "DHChain.position": Entry(CHAIN.position, lambda: {"q": Q}, tensors=("q",)),
+    "DHChain.jacobian": Entry(CHAIN.jacobian, lambda: {"q": Q}, tensors=("q",)),
+    "DHChain.clamp": Entry(CHAIN.clamp, lambda: {"q": Q}, tensors=("q",)),
+    "DHChain.within_limits": Entry(CHAIN.within_limits, lambda: {"q": Q}, tensors=("q",)),
+    "DHChain.check_q": Entry(CHAIN.check_q, lambda: {"q": Q}, tensors=("q",)),
+    "DHChain.random_q": Entry(
+        lambda n, **kw: CHAIN.random_q(n, **kw),
+        lambda: {"n": 3},
+        bad=_counts("n", allow_zero=True) + (("dtype", torch.float16), ("dtype", torch.int32), ("generator", 3)),
+        names=(("n", "shape"),),
+    ),
+    "DHChain.reach_bound": Entry(
+        CHAIN.reach_bound, lambda: {"point": torch.zeros(3, dtype=torch.float64)}, bad=(("point", [1.0, math.nan, 0.0]),)
+    ),
+    "iiwa_torch.robots:iiwa14": Entry(robots.iiwa14, lambda: {}, bad=_tols("flange")[1:] + (("tool", torch.eye(3)),)),
+    "iiwa_torch.robots:iiwa7": Entry(robots.iiwa7, lambda: {}, bad=_tols("flange")[1:] + (("tool", torch.eye(3)),)),
+    "iiwa_torch.robots:planar3r": Entry(robots.planar3r, lambda: {}, bad=_tols("l1", "l2", "l3")),
+    # ------------------------------------------------------------------ so3
+    "iiwa_torch.so3:skew": Entry(so3.skew, lambda: {"v": Q[:, :3]}, tensors=("v",)),
+    "iiwa_torch.so3:exp": Entry(so3.exp, lambda: {"rotvec": Q[:, :3]}, tensors=("rotvec",)),
+    "iiwa_torch.so3:log": Entry(so3.log, lambda: {"rot": ROT}, tensors=("rot",)),
+    "iiwa_torch.so3:matrix_to_quaternion": Entry(so3.matrix_to_quaternion, lambda: {"rot": ROT}, tensors=("rot",)),
+    "iiwa_torch.so3:quaternion_to_matrix": Entry(
+        so3.quaternion_to_matrix, lambda: {"quat": Q[:, :4]}, tensors=("quat",), bad=(("quat", torch.zeros(4)),)
+    ),
+    "iiwa_torch.so3:matrix_to_rpy": Entry(so3.matrix_to_rpy, lambda: {"rot": ROT}, tensors=("rot",)),
+    "iiwa_torch.so3:rpy_to_matrix": Entry(so3.rpy_to_matrix, lambda: {"rpy": Q[:, :3]}, tensors=("rpy",)),
+    "iiwa_torch.so3:pose_error": Entry(
+        so3.pose_error, lambda: {"pose": POSE, "target": POSE.flip(0)}, tensors=("pose", "target")
+    ),
+    "iiwa_torch.so3:check_pose": Entry(so3.check_pose, lambda: {"pose": POSE}, tensors=("pose",)),
+    "iiwa_torch.so3:check_rigid": Entry(so3.check_rigid, lambda: {"pose": POSE}, poses=("pose",)),
+    # ------------------------------------------------------------------ inverse kinematics
+    "iiwa_torch.ik:solve": Entry(
+        solve,
+        lambda: {"chain": CHAIN, "target": POSE, "q0": Q, "iterations": 2, "rest": Q},
+        tensors=("q0", "rest"),
+        poses=("target",),
+        bad=(("mode", "orientation"), ("precision", "half"), ("chain", "iiwa14"), ("rest_gain", 2.0))
+        + _counts("seeds", "iterations", "check_every")
+        + _tols("pos_tol", "rot_tol", "rot_weight"),
+    ),
+    "iiwa_torch.ik:minimize": Entry(
+        minimize,
+        lambda: {"chain": CHAIN, "loss": lambda q, p: q.square().sum(-1), "q0": Q, "target": POSE, "steps": 2},
+        tensors=("q0",),
+        poses=("target",),
+        bad=(("mode", "orientation"), ("optimizer", "sgd"), ("loss", None), ("chain", "iiwa14"))
+        + _counts("steps")
+        + _tols("pos_tol", "rot_tol", "lr"),
+    ),
+    "iiwa_torch.ik:dls_step": Entry(
+        dls_step,
+        lambda: {"jacobian": CHAIN.jacobian(Q), "error": torch.ones(3, 6, dtype=torch.float64), "damping": 1e-2},
+        tensors=("jacobian", "error"),
+        bad=_tols("damping")[1:],
+    ),
+    "iiwa_torch.ik.analytic:iiwa": Entry(
+        analytic.iiwa,
+        lambda: {"chain": CHAIN, "target": POSE, "psi": torch.zeros(3, dtype=torch.float64)},
+        tensors=("psi",),
+        poses=("target",),
+        bad=(("chain", PUMA), ("psi", "0")),
+    ),
+    "iiwa_torch.ik.analytic:iiwa_arm_angle": Entry(
+        analytic.iiwa_arm_angle, lambda: {"chain": CHAIN, "q": Q}, tensors=("q",), bad=(("chain", PUMA),)
+    ),
+    "iiwa_torch.ik.analytic:iiwa_q3_locked": Entry(
+        analytic.iiwa_q3_locked,
+        lambda: {"chain": CHAIN, "target": POSE, "q3": torch.zeros(3, dtype=torch.float64)},
+        tensors=("q3",),
+        poses=("target",),
+        bad=(("chain", PUMA),),
+    ),
+    "iiwa_torch.ik.analytic:iiwa_solve": Entry(
+        analytic.iiwa_solve,
+        lambda: {"chain": CHAIN, "target": POSE, "q0": Q, "num_psi": 2},
+        tensors=("q0",),
+        poses=("target",),
+        bad=(("chain", PUMA),) + _counts("num_psi") + _tols("pos_tol", "rot_tol"),
+    ),
+    "iiwa_torch.ik.analytic:pieper": Entry(
+        analytic.pieper, lambda: {"chain": PUMA, "target": PUMA_POSE}, poses=("target",), bad=(("chain", CHAIN),)
+    ),
+    "iiwa_torch.ik.analytic:planar3r": Entry(
+        analytic.planar3r,
+        lambda: {
+            "chain": robots.planar3r(),
+            "x": torch.tensor([1.0, 0.5], dtype=torch.float64),
+            "y": torch.tensor([0.5, 1.0], dtype=torch.float64),
+            "phi": torch.tensor([0.1, 0.2], dtype=torch.float64),
+        },
+        tensors=("x", "y", "phi"),
+        bad=(("chain", CHAIN),),
+    ),
+    # ------------------------------------------------------------------ trajectories
+    "iiwa_torch.trajectory:jtraj": Entry(
+        trajectory.jtraj,
+        lambda: {"q0": Q, "q1": Q.flip(0), "t": 5, "qd0": torch.zeros_like(Q)},
+        tensors=("q0", "q1", "qd0"),
+        bad=(("t", 1), ("t", 0), ("t", -3), ("t", 2.5), ("t", torch.tensor([0.0, 1.0, 0.5], dtype=torch.float64))),
+    ),
+    "iiwa_torch.trajectory:ctraj": Entry(
+        trajectory.ctraj,
+        lambda: {"T0": POSE, "T1": POSE.flip(0), "t": 4},
+        poses=("T0", "T1"),
+        bad=(("t", 1), ("t", -2), ("profile", "cubic")),
+    ),
+    "iiwa_torch.trajectory:track": Entry(
+        trajectory.track,
+        lambda: {"chain": CHAIN, "poses": POSE[None], "q0": Q[0]},
+        tensors=("q0",),
+        poses=("poses",),
+        bad=(("method", "rrt"), ("rest_gain", math.nan), ("rest_gain", -1.0), ("chain", "iiwa14"))
+        + _tols("pos_tol", "rot_tol"),
+    ),
+    "iiwa_torch.trajectory:shortest_duration": Entry(
+        trajectory.shortest_duration,
+        lambda: {"chain": CHAIN, "q0": Q, "q1": Q.flip(0)},
+        tensors=("q0", "q1"),
+        bad=(("speed_scale", 1.5),) + _tols("speed_scale"),
+    ),
+    "iiwa_torch.trajectory:sampled_duration": Entry(
+        trajectory.sampled_duration,
+        lambda: {"chain": CHAIN, "q": Q},
+        tensors=("q",),
+        bad=(("speed_scale", 1.5),) + _tols("speed_scale"),
+    ),
+    # ------------------------------------------------------------------ collision
+    "iiwa_torch.collision:World": Entry(
+        collision.World,
+        lambda: {
+            "floor": 0.0,
+            "walls": (torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64), torch.tensor([-1.0], dtype=torch.float64)),
+            "boxes": (POSE[:1], torch.full((1, 3), 0.1, dtype=torch.float64)),
+        },
+        bad=(
+            ("floor", math.nan),
+            ("floor", "0"),
+            ("walls", torch.zeros(1, 3)),
+            ("walls", (torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, dtype=torch.float64))),
+            ("walls", (torch.tensor([[1.0, 0, 0]]), torch.tensor([math.nan]))),
+            ("spheres", (torch.zeros(1, 3, dtype=torch.float64), torch.full((1,), -0.1, dtype=torch.float64))),
+            ("spheres", (torch.zeros(1, 3, dtype=torch.float16), torch.full((1,), 0.1, dtype=torch.float16))),
+            ("boxes", (2 * POSE[:1], torch.full((1, 3), 0.1, dtype=torch.float64))),
+            ("capsules", (torch.zeros(1, 3, 3, dtype=torch.float64), torch.ones(1, dtype=torch.float64))),
+        ),
+    ),
+    "iiwa_torch.collision:clearance": Entry(
+        collision.clearance,
+        lambda: {"chain": CHAIN, "q": Q, "world": collision.World()},
+        tensors=("q",),
+        bad=(("chain", "iiwa14"), ("world", 0.0), ("capsules", "capsules")),
+    ),
+    "iiwa_torch.collision:pairwise_clearance": Entry(
+        collision.pairwise_clearance,
+        lambda: {"chain": CHAIN, "q": Q, "world": collision.World()},
+        tensors=("q",),
+        bad=(("chain", "iiwa14"), ("world", 0.0), ("capsules", "capsules")),
+    ),
+    "iiwa_torch.collision:robot_capsules": Entry(
+        collision.robot_capsules, lambda: {"chain": CHAIN}, bad=(("chain", "iiwa14"), ("chain", robots.planar3r()))
+    ),
+    "iiwa_torch.collision:self_collision_pairs": Entry(
+        collision.self_collision_pairs,
+        lambda: {"chain": CHAIN, "capsules": collision.robot_capsules(CHAIN), "samples": 64},
+        bad=_counts("samples") + (("seed", -1), ("seed", 1.5), ("capsules", None)),
+    ),
+    "iiwa_torch.collision:segment_distance": Entry(
+        collision.segment_distance,
+        lambda: {"p1": Q[:, :3], "q1": Q[:, 1:4], "p2": Q[:, 2:5], "q2": Q[:, 3:6]},
+        tensors=("p1", "q1", "p2", "q2"),
+    ),
+    "iiwa_torch.collision:segment_box_distance": Entry(
+        collision.segment_box_distance,
+        lambda: {"p": Q[:, :3], "q": Q[:, 1:4], "pose": POSE, "half": torch.full((3, 3), 0.1, dtype=torch.float64)},
+        tensors=("p", "q", "half"),
+        poses=("pose",),
+    ),
+    # ------------------------------------------------------------------ workspace
+    "iiwa_torch.workspace:frame_point": Entry(
+        workspace.frame_point,
+        lambda: {"chain": CHAIN, "frame": 6, "trials": 4},
+        bad=(("frame", -1), ("frame", 9), ("frame", 2.0)) + _counts("trials") + _tols("tol"),
+    ),
+    "iiwa_torch.workspace:sample_points": Entry(
+        workspace.sample_points,
+        lambda: {"chain": CHAIN, "n": 8},
+        bad=_counts("n") + (("point", [0.0, math.nan, 0.0]), ("point", [0.0, 1.0]), ("dtype", torch.float16)),
+    ),
+    "iiwa_torch.workspace:occupancy": Entry(
+        workspace.occupancy,
+        lambda: {"chain": CHAIN, "n_samples": 256, "h": 0.2},
+        bad=_counts("n_samples", "block") + _tols("h") + (("section", "xz"), ("point", [math.inf, 0.0, 0.0])),
+    ),
+    "iiwa_torch.workspace:volume": Entry(
+        workspace.volume,
+        lambda: {"chain": CHAIN, "h": 0.2, "n_start": 256, "max_samples": 1024, "tol": 0.5},
+        bad=_counts("n_start", "max_samples") + _tols("h", "tol") + (("section", "xz"),),
+    ),
+    "iiwa_torch.workspace:extent": Entry(
+        workspace.extent,
+        lambda: {"chain": CHAIN, "n_samples": 64},
+        bad=_counts("n_samples", "block") + (("point", "origin"),),
+    ),
+    "iiwa_torch.workspace:envelopes": Entry(
+        workspace.envelopes,
+        lambda: {"occ": workspace.occupancy(CHAIN, 256, 0.2, section="rz")},
+        bad=(("occ", None), ("axis_gap", -1), ("axis_gap", 1.5)),
+    ),
+    "iiwa_torch.workspace:dexterity": Entry(
+        workspace.dexterity, lambda: {"chain": CHAIN, "q": Q}, tensors=("q",), bad=(("chain", "iiwa14"),)
+    ),
+    "iiwa_torch.workspace:dexterity_map": Entry(
+        workspace.dexterity_map,
+        lambda: {"chain": CHAIN, "n_samples": 64, "h": 0.2},
+        bad=_counts("n_samples", "block") + _tols("h"),
+    ),
+    # ------------------------------------------------------------------ environments
+    "envs:make_task": Entry(
+        envs.make_task,
+        lambda: {"env_id": "IiwaReach-v0"},
+        bad=(("env_id", "IiwaReach-v9"), ("env_id", 3)),
+    ),
+    "envs.core:ReachTask": Entry(ReachTask, lambda: {}, bad=_TASK_OPTIONS),
+    "envs.reach:IiwaReachEnv": Entry(IiwaReachEnv, lambda: {}, bad=_TASK_OPTIONS + (("render_mode", "video"),)),
+    "IiwaReachEnv.step": Entry(
+        _env_step(IiwaReachEnv, None),
+        lambda: {"action": np.zeros(7, dtype=np.float32)},
+        bad=(
+            ("action", np.zeros(6, dtype=np.float32)),
+            ("action", np.full(7, np.nan, dtype=np.float32)),
+            ("action", np.full(7, 1e39)),
+            ("action", "forward"),
+        ),
+    ),
+    "IiwaReachEnv.reset": Entry(
+        _env_reset(IiwaReachEnv, None), lambda: {"seed": 3}, bad=(("seed", -1), ("seed", 2**64), ("seed", 1.5))
+    ),
+    "IiwaReachEnv.compute_reward": Entry(
+        _compute_reward,
+        lambda: {"achieved_goal": np.zeros((2, 3)), "desired_goal": np.ones((2, 3))},
+        bad=(
+            ("achieved_goal", np.zeros((2, 4))),
+            ("desired_goal", np.zeros((3, 3))),
+            ("achieved_goal", np.full((2, 3), np.nan)),
+            ("desired_goal", "goal"),
+        ),
+    ),
+    "envs.reach:IiwaReachVectorEnv": Entry(
+        IiwaReachVectorEnv,
+        lambda: {"num_envs": 2},
+        bad=_counts("num_envs") + (("max_episode_steps", 0),) + _TASK_OPTIONS[:6] + (("render_mode", "video"),),
+    ),
+    "IiwaReachVectorEnv.step": Entry(
+        _env_step(IiwaReachVectorEnv, 2),
+        lambda: {"action": np.zeros((2, 7), dtype=np.float32)},
+        bad=(("action", np.zeros((3, 7), dtype=np.float32)), ("action", np.full((2, 7), np.inf, dtype=np.float32))),
+    ),
+    "IiwaReachVectorEnv.reset": Entry(
+        _env_reset(IiwaReachVectorEnv, 2), lambda: {"seed": 3}, bad=(("seed", -1), ("seed", [1, 2, 3]), ("seed", 0.5))
+    ),
+    "envs.reach:goal_env_spaces": Entry(goal_env_spaces, lambda: {"task": ReachTask()}, bad=(("task", "IiwaReach-v0"),)),
+    "envs.sb3:IiwaReachVecEnv": Entry(
+        IiwaReachVecEnv,
+        lambda: {"num_envs": 2},
+        bad=_counts("num_envs") + (("env_id", "CartPole-v1"), ("seed", -1), ("max_episode_steps", 0)),
+    ),
+    "IiwaReachVecEnv.step": Entry(
+        _vec_step,
+        lambda: {"action": np.zeros((2, 7), dtype=np.float32)},
+        bad=(("action", np.zeros((2, 6), dtype=np.float32)), ("action", np.full((2, 7), np.nan, dtype=np.float32))),
+    ),
+    "envs.goals:encode_pose_goal": Entry(encode_pose_goal, lambda: {"pose": POSE}, poses=("pose",)),
+    "envs.goals:decode_pose_goal": Entry(
+        decode_pose_goal, lambda: {"goal": encode_pose_goal(POSE)}, tensors=("goal",)
+    ),
+}
+
+#: Public names that are not entry points a user feeds data to, with the reason.
+EXEMPT = {
+    "iiwa_torch:Convention": "an Enum of choice strings (checked where taken)",
+    "iiwa_torch:collision": "a module",
+    "iiwa_torch:robots": "a module",
+    "iiwa_torch:so3": "a module",
+    "iiwa_torch.so3:RIGID_TOL": "a constant",
+    "iiwa_torch.robots:PRESETS": "a constant",
+    "iiwa_torch.robots:IIWA_HOME": "a constant",
+    "iiwa_torch.robots:puma560": "no arguments",
+    "iiwa_torch.robots:lrmate200ic": "no arguments",
+    "iiwa_torch.ik:IKResult": "a result type",
+    "iiwa_torch.ik.analytic:AnalyticSolutions": "a result type",
+    "iiwa_torch.trajectory:JointTrajectory": "a result type",
+    "iiwa_torch.trajectory:TrackResult": "a result type",
+    "iiwa_torch.trajectory:Method": "a Literal of choice strings (checked where taken)",
+    "iiwa_torch.trajectory:Profile": "a Literal of choice strings (checked where taken)",
+    "iiwa_torch.collision:Capsules": "a model type, built by robot_capsules",
+    "iiwa_torch.collision:Clearances": "a result type",
+    "iiwa_torch.workspace:Section": "an Enum of choice strings (checked where taken)",
+    "iiwa_torch.workspace:Occupancy": "a result type",
+    "iiwa_torch.workspace:Volume": "a result type",
+    "iiwa_torch.workspace:Extent": "a result type",
+    "iiwa_torch.workspace:Dexterity": "a result type",
+    "iiwa_torch.workspace:DexterityMap": "a result type",
+    "iiwa_torch.workspace:DATASHEET": "a constant",
+    "iiwa_torch.workspace:plot_workspace": "occupancy and dexterity_map with a file path; their checks run first",
+    "DHChain.frames_batch_last": "documented unchecked batch-last kernel (docs/kinematics.md)",
+    "DHChain.tool_frame_batch_last": "documented unchecked batch-last kernel (docs/kinematics.md)",
+    "DHChain.position_batch_last": "documented unchecked batch-last kernel (docs/kinematics.md)",
+    "DHChain.geometry": "the kernels' constants for a dtype (checked: float32/float64)",
+    "envs:ENV_IDS": "a constant",
+    "envs:MAX_EPISODE_STEPS": "a constant",
+    "envs:register_envs": "no arguments",
+    "envs.core:StartKind": "an Enum of choice strings (checked where taken)",
+    "envs.core:ReachState": "the batched state, built by ReachTask",
+    "envs.core:StepResult": "a result type",
+    "envs.goals:GoalKind": "an Enum of choice strings (checked where taken)",
+    "envs.goals:RewardKind": "an Enum of choice strings (checked where taken)",
+    "envs.goals:ReachGoals": "built by ReachTask from its checked options",
+    "envs.goals:enum_option": "the choice check itself",
+}
+
+MODULES = (
+    "iiwa_torch",
+    "iiwa_torch.so3",
+    "iiwa_torch.robots",
+    "iiwa_torch.ik",
+    "iiwa_torch.ik.analytic",
+    "iiwa_torch.trajectory",
+    "iiwa_torch.collision",
+    "iiwa_torch.workspace",
+    "envs",
+    "envs.core",
+    "envs.goals",
+    "envs.reach",
+    "envs.sb3",
+)
+
+
+def _public_names() -> set[str]:
+    names = set()
+    for module in MODULES:
+        mod = importlib.import_module(module)
+        names |= {f"{module}:{n}" for n in mod.__all__}
+    module_methods = set(dir(torch.nn.Module))
+    names |= {f"DHChain.{n}" for n in dir(DHChain) if not n.startswith("_") and n not in module_methods}
+    names -= {"DHChain.n_joints"}  # a property
+    return names
+
+
+def test_every_public_entry_point_is_walked():
+    public = _public_names()
+    missing = sorted(n for n in public if n not in ENTRIES and n not in EXEMPT)
+    assert not missing, f"public names without a bad-input entry (add one to ENTRIES or a reason to EXEMPT): {missing}"
+    stale = sorted(n for n in ENTRIES.keys() | EXEMPT.keys() if ":" in n and n not in public)
+    assert not stale, f"entries for names that are not public: {stale}"
+
+
+def _bad_tensors(good: torch.Tensor) -> dict[str, object]:
+    """Bad versions of a valid float tensor argument."""
+    nan, inf = good.clone(), good.clone()
+    nan.view(-1)[-1] = math.nan
+    inf.view(-1)[0] = -math.inf
+    return {
+        "wrong shape": good[..., :-1] if good.shape[-1] > 1 else good[..., None],
+        "int64": good.round().long(),
+        "float16": good.half(),
+        "bfloat16": good.bfloat16(),
+        "NaN": nan,
+        "inf": inf,
+        "meta": good.to("meta"),
+        "list": good.tolist(),
+    }
+
+
+def _non_rigid(good: torch.Tensor) -> dict[str, torch.Tensor]:
+    scaled, bottom, mirror = good.clone(), good.clone(), good.clone()
+    scaled[..., :3, :3] *= 2
+    bottom[..., 3, 0] = 0.5
+    mirror[..., :3, 2] *= -1
+    return {"scaled rotation": scaled, "bottom row": bottom, "reflection": mirror, **_bad_tensors(good)}
+
+
+def _cases():
+    for key, entry in ENTRIES.items():
+        good = entry.good()
+        for arg in entry.tensors:
+            for label, value in _bad_tensors(good[arg]).items():
+                yield pytest.param(key, arg, value, id=f"{key}-{arg}-{label}")
+        for arg in entry.poses:
+            for label, value in _non_rigid(good[arg]).items():
+                yield pytest.param(key, arg, value, id=f"{key}-{arg}-{label}")
+        for arg, value in entry.bad:
+            yield pytest.param(key, arg, value, id=f"{key}-{arg}={value!r:.30}")
+
+
+@pytest.mark.parametrize(("key", "arg", "value"), list(_cases()))
+def test_bad_input_raises_naming_the_argument(key, arg, value):
+    entry = ENTRIES[key]
+    name = dict(entry.names).get(arg, arg)
+    with pytest.raises((ValueError, TypeError)) as info:
+        entry.call(**{**entry.good(), arg: value})
+    message = str(info.value)
+    assert re.search(rf"(?<![\w.]){re.escape(name)}(?!\w)", message), f"{name!r} not named in: {message}"
+    # a raw torch/numpy error is not a message for a user
+    assert not re.search(r"Expected all tensors|not implemented for|mat1 and mat2|size of tensor a", message), message
+
+
+def _finite(value) -> bool:
+    if isinstance(value, torch.Tensor):
+        return value.dtype == torch.bool or not value.is_floating_point() or bool(torch.isfinite(value).all())
+    if isinstance(value, np.ndarray):
+        return value.dtype.kind not in "fc" or bool(np.isfinite(value).all())
+    if is_dataclass(value) and not inspect.isclass(value):
+        return all(_finite(getattr(value, f.name)) for f in fields(value))
+    if isinstance(value, (tuple, list)):
+        return all(_finite(v) for v in value)
+    return True
+
+
+@pytest.mark.parametrize("key", list(ENTRIES))
+def test_good_input_runs_and_is_finite(key):
+    entry = ENTRIES[key]
+    assert _finite(entry.call(**entry.good()))
