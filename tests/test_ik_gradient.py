@@ -295,7 +295,7 @@ def test_dls_step_rejects_bad_input():
     J, e = torch.zeros(4, 6, 7), torch.zeros(4, 6)
     with pytest.raises(ValueError, match="error must have shape"):
         dls_step(J, e[:, :3], 0.1)
-    with pytest.raises(ValueError, match="damping must be positive"):
+    with pytest.raises(ValueError, match="damping must be a positive number"):
         dls_step(J, e, 0.0)
     with pytest.raises(TypeError, match="jacobian must be a torch.Tensor"):
         dls_step(J.numpy(), e, 0.1)
