@@ -14,6 +14,8 @@ from enum import Enum
 import numpy as np
 import torch
 
+from iiwa_torch._checks import check_finite
+
 __all__ = ["GoalKind", "RewardKind", "ReachGoals", "encode_pose_goal", "decode_pose_goal", "enum_option"]
 
 Tensor = torch.Tensor
@@ -46,13 +48,23 @@ def encode_pose_goal(pose: Tensor) -> Tensor:
     return torch.cat([pose[..., :3, 3], pose[..., :3, 0], pose[..., :3, 1]], -1)
 
 
+def _as_goals(goal, name: str, dtype: torch.dtype) -> Tensor:
+    """Goals (numpy or torch, any float or int dtype) as a finite tensor of ``dtype``."""
+    try:
+        g = torch.as_tensor(goal).to(dtype)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{name} must be a numpy array or tensor of goals, got {goal!r:.60}") from None
+    check_finite(g, name)
+    return g
+
+
 def decode_pose_goal(goal) -> Tensor:
     """Pose goals ``(..., 9)`` (numpy or torch) -> poses ``(..., 4, 4)`` float64.
 
     The two columns are re-orthonormalised (Gram-Schmidt), as observed goals are float32."""
-    g = torch.as_tensor(goal).double()
+    g = _as_goals(goal, "goal", torch.float64)
     if g.shape[-1:] != (9,):
-        raise ValueError(f"pose goals must have shape (..., 9), got {tuple(g.shape)}")
+        raise ValueError(f"goal must have shape (..., 9) (pose goals), got {tuple(g.shape)}")
     x = g[..., 3:6] / g[..., 3:6].norm(dim=-1, keepdim=True)
     y = g[..., 6:9] - (x * g[..., 6:9]).sum(-1, keepdim=True) * x
     y = y / y.norm(dim=-1, keepdim=True)
@@ -136,9 +148,16 @@ class ReachGoals:
 
     def compute_reward(self, achieved_goal, desired_goal) -> np.ndarray:
         """The envs' ``compute_reward``: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy."""
-        ag = torch.as_tensor(achieved_goal, dtype=torch.float32)
-        dg = torch.as_tensor(desired_goal, dtype=torch.float32, device=ag.device)
-        if ag.shape[-1:] != (self.size,) or dg.shape[-1:] != (self.size,):
-            raise ValueError(f"goals must have shape (..., {self.size}), got {tuple(ag.shape)} and {tuple(dg.shape)}")
+        ag = _as_goals(achieved_goal, "achieved_goal", torch.float32)
+        dg = _as_goals(desired_goal, "desired_goal", torch.float32).to(ag.device)
+        for g, name in ((ag, "achieved_goal"), (dg, "desired_goal")):
+            if g.shape[-1:] != (self.size,):
+                raise ValueError(f"{name} must have shape (..., {self.size}), got {tuple(g.shape)}")
+        try:
+            torch.broadcast_shapes(ag.shape, dg.shape)
+        except RuntimeError:
+            raise ValueError(
+                f"achieved_goal {tuple(ag.shape)} and desired_goal {tuple(dg.shape)} do not broadcast"
+            ) from None
         with torch.no_grad():
             return self.reward(ag.movedim(-1, 0), dg.movedim(-1, 0)).numpy(force=True)

@@ -30,6 +30,7 @@ from . import MAX_EPISODE_STEPS, make_task
 from .core import ReachState
 from .goals import GoalKind
 from .reach import goal_env_spaces
+from .seeding import keys_from_seeds
 
 __all__ = ["IiwaReachVecEnv"]
 
@@ -78,6 +79,8 @@ class IiwaReachVecEnv(VecEnv):
         super().__init__(num_envs, observation_space, action_space)
         self._state: ReachState | None = None
         self._actions: torch.Tensor | None = None
+        if seed is not None:
+            keys_from_seeds([seed])  # our check and message first (numpy's rng also takes the seed)
         self._rng = np.random.default_rng(seed)  # only for unseeded resets
         if seed is not None:
             self.seed(seed)

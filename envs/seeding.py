@@ -49,7 +49,7 @@ def keys_from_seeds(seeds, device=None) -> Tensor:
     bad = [v for v in s.tolist() if not isinstance(v, (int, np.integer)) or isinstance(v, bool)
            or not 0 <= v < SEED_BOUND]
     if bad:
-        raise ValueError(f"seeds must be integers in [0, 2**64), got {bad[:5]}")
+        raise ValueError(f"seed must be an integer in [0, 2**64) (one per environment), got {bad[:5]}")
     s = np.array([int(v) for v in s.tolist()], dtype=np.uint64)
     lo = torch.from_numpy((s & np.uint64(_M32)).astype(np.int64)).to(device)
     hi = torch.from_numpy((s >> np.uint64(32)).astype(np.int64)).to(device)

@@ -22,8 +22,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_float_tensor, check_nonnegative
+from ._checks import check_finite, check_float_tensor, check_nonnegative, check_positive, check_tensor
 from .dh import DHChain
+from .so3 import check_rigid
 
 __all__ = [
     "Capsules",
@@ -90,6 +91,22 @@ def _segment_gap(p1: Vec, d1: Vec, p2: Vec, d2: Vec) -> Tensor:
 def segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
     """Distance between segments ``p1 q1`` and ``p2 q2``: ``(..., 3)`` each (broadcast) -> ``(...)``
     metres. A zero-length segment is a point. Differentiable in all four end points."""
+    _check_points(p1=p1, q1=q1, p2=p2, q2=q2)
+    return _segment_distance(p1, q1, p2, q2)
+
+
+def _check_points(**points: Tensor) -> None:
+    for name, x in points.items():
+        check_tensor(x, name, (3,))
+    try:
+        torch.broadcast_shapes(*(x.shape for x in points.values()))
+    except RuntimeError:
+        raise ValueError(
+            f"{', '.join(points)} must broadcast together, got {[tuple(x.shape) for x in points.values()]}"
+        ) from None
+
+
+def _segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
     p1, d1, p2, d2 = (v.unbind(-1) for v in (p1, q1 - p1, p2, q2 - p2))
     return _segment_gap(p1, d1, p2, d2)
 
@@ -111,6 +128,12 @@ def segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Te
     box this is the exact segment-box distance; when the segment enters the box it is minus
     the depth of the segment's deepest point (a lower bound on the penetration depth).
     """
+    _check_points(p=p, q=q, half=half)
+    check_rigid(pose, "pose")
+    return _segment_box_distance(p, q, pose, half)
+
+
+def _segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Tensor:
     rot, centre = pose[..., :3, :3], pose[..., :3, 3]
 
     def to_local(x: Tensor) -> Tensor:
@@ -240,6 +263,8 @@ def self_collision_pairs(
     """Pairs worth checking: every ``(i, j)`` except neighbours in the list (``j = i + 1``, the
     links on either side of a joint) and pairs that overlap in every one of ``samples``
     uniform in-limit configurations (drawn with ``seed``): those touch by construction."""
+    check_positive(samples, "samples", integer=True)
+    check_nonnegative(seed, "seed", integer=True)
     q = chain.random_q(samples, generator=torch.Generator().manual_seed(seed))
     start, direction = _capsule_segments(chain, capsules, q)  # components (K, samples)
     k = len(capsules.names)
@@ -509,17 +534,17 @@ def _distances(
         if world.spheres is not None:
             centre, rad = world.spheres
             c = centre[..., None, :, :]
-            others.append((segment_distance(a, b, c, c) - r - rad[..., None, :]).flatten(-2))
+            others.append((_segment_distance(a, b, c, c) - r - rad[..., None, :]).flatten(-2))
             labels += [(names[x], f"sphere{m}") for x in idx for m in range(centre.shape[-2])]
         if world.boxes is not None:
             pose, half = world.boxes
-            dist = segment_box_distance(a, b, pose[..., None, :, :, :], half[..., None, :, :])
+            dist = _segment_box_distance(a, b, pose[..., None, :, :, :], half[..., None, :, :])
             others.append((dist - r).flatten(-2))
             labels += [(names[x], f"box{m}") for x in idx for m in range(pose.shape[-3])]
         if world.capsules is not None:
             pts, rad = world.capsules
             p = pts[..., None, :, :, :]
-            dist = segment_distance(a, b, p[..., 0, :], p[..., 1, :])
+            dist = _segment_distance(a, b, p[..., 0, :], p[..., 1, :])
             others.append((dist - r - rad[..., None, :]).flatten(-2))
             labels += [(names[x], f"capsule{m}") for x in idx for m in range(pts.shape[-3])]
     if not own and not others:

@@ -68,8 +68,7 @@ def _check_limits(lim: Tensor, n: int) -> None:
 def _check_table(dh: Tensor) -> None:
     if dh.ndim != 2 or dh.shape[1] != 4 or dh.shape[0] < 1:
         raise ValueError(f"table must have shape (n, 4) with rows (a, alpha, d, theta_offset), got {tuple(dh.shape)}")
-    if not torch.isfinite(dh).all():
-        raise ValueError("table contains NaN or inf")
+    check_finite(dh, "table")
 
 
 class DHChain(nn.Module):

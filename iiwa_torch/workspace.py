@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._checks import as_point, check_positive
 from .dh import DHChain
 
 __all__ = [
@@ -167,16 +168,6 @@ def _section(section) -> Section:
         raise ValueError(f"section must be one of {[s.value for s in Section]}, got {section!r}") from None
 
 
-def _positive(value, name: str) -> None:
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-
-
-def _count(value, name: str) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-
-
 def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e-9) -> Tensor:
     """Origin of frame ``frame`` (0 = base, n = last link, as in ``fk_all``) in end-effector
     coordinates, ``(3,)`` metres, float64; raises ``ValueError`` unless that origin is fixed in
@@ -185,6 +176,8 @@ def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e
     n = chain.n_joints
     if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= n:
         raise ValueError(f"frame must be an integer in 0..{n}, got {frame!r}")
+    check_positive(trials, "trials", integer=True)
+    check_positive(tol, "tol")
     q = chain.random_q(trials, generator=torch.Generator().manual_seed(0))
     origin = chain.fk_all(q)[:, frame, :, 3]  # (trials, 4)
     local = torch.linalg.solve(chain.fk(q), origin.unsqueeze(-1)).squeeze(-1)[:, :3]
@@ -197,13 +190,6 @@ def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e
     return local.mean(0)
 
 
-def _as_point(point) -> Tensor:
-    p = torch.zeros(3, dtype=torch.float64) if point is None else torch.as_tensor(point, dtype=torch.float64)
-    if p.shape != (3,) or not torch.isfinite(p).all():
-        raise ValueError(f"point must be None or 3 finite coordinates (m) in the end-effector frame, got {point!r}")
-    return p
-
-
 def sample_points(
     chain: DHChain,
     n: int,
@@ -214,8 +200,8 @@ def sample_points(
 ) -> Tensor:
     """``(n, 3)`` world positions (m) of ``point`` (``(3,)`` m in the end-effector frame, default
     its origin) at ``n`` configurations drawn uniformly within the joint limits."""
-    _count(n, "n")
-    p = _as_point(point)
+    check_positive(n, "n", integer=True)
+    p = as_point(point)
     q = chain.random_q(n, generator=generator, dtype=dtype)
     if not p.any():
         return chain.position(q)
@@ -265,10 +251,10 @@ def occupancy(
     ``h`` (m), processed in blocks of ``block`` configurations; ``counts`` continues an earlier
     result of the same grid (a new object is returned)."""
     section = _section(section)
-    _positive(h, "h")
-    _count(n_samples, "n_samples")
-    _count(block, "block")
-    p = _as_point(point)
+    check_positive(h, "h")
+    check_positive(n_samples, "n_samples", integer=True)
+    check_positive(block, "block", integer=True)
+    p = as_point(point)
     lower, shape = _grid(chain, section, h, p)
     total = torch.zeros(math.prod(shape), dtype=torch.int64)
     done = 0
@@ -311,8 +297,9 @@ def volume(
     Samples ``n_start`` configurations, then doubles the total until the estimate changes by
     less than ``tol`` (relative) in one doubling or ``max_samples`` is reached.
     """
-    _positive(tol, "tol")
-    _count(max_samples, "max_samples")
+    check_positive(tol, "tol")
+    check_positive(n_start, "n_start", integer=True)
+    check_positive(max_samples, "max_samples", integer=True)
     occ = occupancy(chain, n_start, h, section=section, point=point, generator=generator)
     est, low, high = _measure(occ)
     converged = False
@@ -352,8 +339,8 @@ def extent(
     chain: DHChain, n_samples: int, *, point=None, block: int = 1 << 20, generator: torch.Generator | None = None
 ) -> Extent:
     """Highest, lowest and farthest-from-the-axis sampled points (m), see :class:`Extent`."""
-    _count(n_samples, "n_samples")
-    _count(block, "block")
+    check_positive(n_samples, "n_samples", integer=True)
+    check_positive(block, "block", integer=True)
     z_max, z_min, r_max = -math.inf, math.inf, 0.0
     left = n_samples
     while left:
@@ -392,10 +379,10 @@ def dexterity_map(
 ) -> DexterityMap:
     """Mean and max manipulability of ``n_samples`` random configurations, binned by where
     ``point`` lands in the side view (``r``, ``z``) on cells of side ``h`` (m)."""
-    _positive(h, "h")
-    _count(n_samples, "n_samples")
-    _count(block, "block")
-    p = _as_point(point)
+    check_positive(h, "h")
+    check_positive(n_samples, "n_samples", integer=True)
+    check_positive(block, "block", integer=True)
+    p = as_point(point)
     lower, shape = _grid(chain, Section.RZ, h, p)
     size = math.prod(shape)
     count = torch.zeros(size, dtype=torch.float64)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..._checks import check_finite, check_float_tensor
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import Convention, DHChain
 from ...so3 import check_rigid
@@ -201,6 +202,25 @@ def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tu
 def sigma(alpha: float) -> float:
     """``sin(alpha)`` rounded to +-1 for a twist of +-pi/2."""
     return 1.0 if math.sin(alpha) > 0 else -1.0
+
+
+def as_values(value, name: str, dtype: torch.dtype, device: torch.device, batch: tuple | None = None) -> Tensor:
+    """``value``, a number, a sequence or a float32/float64 tensor, as a finite tensor of
+    ``dtype`` on ``device``; with ``batch``, its shape must broadcast with it."""
+    if isinstance(value, Tensor):
+        check_float_tensor(value, name, "(...)")
+        check_finite(value, name)
+    try:
+        t = torch.as_tensor(value, dtype=dtype, device=device)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{name} must be a number or a float tensor, got {value!r:.60}") from None
+    check_finite(t, name)
+    if batch is not None:
+        try:
+            torch.broadcast_shapes(t.shape, batch)
+        except RuntimeError:
+            raise ValueError(f"{name} of shape {tuple(t.shape)} does not broadcast with the batch {batch}") from None
+    return t
 
 
 def check_target(chain: DHChain, target: Tensor) -> None:

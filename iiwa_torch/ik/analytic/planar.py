@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import torch
 
-from ..._checks import check_finite
+from ..._checks import check_float_tensor
 from ...collision import Capsules, World
 from ...dh import DHChain
 from ._common import (
     AnalyticSolutions,
+    as_values,
     check_chain,
     finish,
     reach_tol,
@@ -61,13 +62,19 @@ def planar3r(
     rows = check_chain(chain, 3, [link, link, {"twist0": True}], "planar 3R")
     _check_planar_transform(chain.base, "base")
     _check_planar_transform(chain.tool, "tool")
-    floats = [v.dtype for v in (x, y, phi) if isinstance(v, torch.Tensor) and v.is_floating_point()]
+    named = (("x", x), ("y", y), ("phi", phi))
+    for name, v in named:
+        if isinstance(v, torch.Tensor):
+            check_float_tensor(v, name, "(...)")
+    floats = [v.dtype for v in (x, y, phi) if isinstance(v, torch.Tensor)]
     dtype = floats[0] if floats else chain.dh.dtype  # plain numbers: the chain's float64
     for other in floats[1:]:
         dtype = torch.promote_types(dtype, other)
-    x, y, phi = torch.broadcast_tensors(*(torch.as_tensor(v, dtype=dtype, device=chain.dh.device) for v in (x, y, phi)))
-    for name, v in (("x", x), ("y", y), ("phi", phi)):
-        check_finite(v, name)
+    x, y, phi = (as_values(v, name, dtype, chain.dh.device) for name, v in named)
+    try:
+        x, y, phi = torch.broadcast_tensors(x, y, phi)
+    except RuntimeError:
+        raise ValueError(f"x, y, phi must broadcast together, got {[tuple(v.shape) for v in (x, y, phi)]}") from None
 
     # Pose of frame 3 in frame 0 (base and tool stripped), in the plane: heading h, origin p.
     base, tool = chain.base.to(dtype), chain.tool.to(dtype)

@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..._checks import check_finite, check_positive
+from ..._checks import check_positive
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
 from ...so3 import pose_error
@@ -51,6 +51,7 @@ from ..result import IKResult
 from ._common import (
     AnalyticSolutions,
     acos_pair,
+    as_values,
     check_chain,
     check_target,
     decompose_zxzxz,
@@ -160,7 +161,7 @@ def _iiwa_thetas(chain: DHChain, target: Tensor, psi) -> tuple[list[Tensor], Ten
     ``(..., [K,] 2 shoulder, 2 elbow, 2 wrist)``, and ``reachable`` (broadcastable too)."""
     geo = _Geometry(chain)
     rot, sw = _frames(chain, target)
-    psi = torch.as_tensor(psi, dtype=target.dtype, device=target.device)
+    psi = as_values(psi, "psi", target.dtype, target.device)
     batch_dims = target.ndim - 2
     if psi.ndim == batch_dims + 1:  # K angles per pose
         rot, sw = rot[..., None, :, :], sw[..., None, :]
@@ -169,7 +170,7 @@ def _iiwa_thetas(chain: DHChain, target: Tensor, psi) -> tuple[list[Tensor], Ten
             f"psi must have shape (...) or (..., K) for targets of shape (..., 4, 4) = {tuple(target.shape)}, "
             f"got {tuple(psi.shape)}"
         )
-    check_finite(psi, "psi")
+    as_values(psi[..., 0] if psi.ndim == batch_dims + 1 else psi, "psi", target.dtype, target.device, target.shape[:-2])
     tol = reach_tol(target.dtype)
     theta4, c4, s4, reachable = _elbow(geo, sw, tol)
 
@@ -257,8 +258,7 @@ def iiwa_q3_locked(
     """
     geo = _Geometry(chain)
     rot, sw = _frames(chain, target)
-    theta3 = torch.as_tensor(q3, dtype=target.dtype, device=target.device) + float(chain.dh[2, 3])
-    check_finite(theta3, "q3")
+    theta3 = as_values(q3, "q3", target.dtype, target.device, target.shape[:-2]) + float(chain.dh[2, 3])
     tol = reach_tol(target.dtype)
     sig = geo.sig
     theta4, _, _, reachable = _elbow(geo, sw, tol)  # (..., 2)
