@@ -254,8 +254,7 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"chain": CHAIN, "poses": POSE[None], "q0": Q[0]},
         tensors=("q0",),
         poses=("poses",),
-        bad=(("method", "rrt"), ("rest_gain", math.nan), ("rest_gain", -1.0))
-        + _tols("pos_tol", "rot_tol"),
+        bad=(("method", "rrt"), ("rest_gain", math.nan), ("rest_gain", -1.0)) + _tols("pos_tol", "rot_tol"),
     ),
     "iiwa_torch.trajectory:shortest_duration": Entry(
         trajectory.shortest_duration,
@@ -347,9 +346,7 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"occ": workspace.occupancy(CHAIN, 256, 0.2, section="rz")},
         bad=(("axis_gap", -1), ("axis_gap", 1.5)),
     ),
-    "iiwa_torch.workspace:dexterity": Entry(
-        workspace.dexterity, lambda: {"chain": CHAIN, "q": Q}, tensors=("q",)
-    ),
+    "iiwa_torch.workspace:dexterity": Entry(workspace.dexterity, lambda: {"chain": CHAIN, "q": Q}, tensors=("q",)),
     "iiwa_torch.workspace:dexterity_map": Entry(
         workspace.dexterity_map,
         lambda: {"chain": CHAIN, "n_samples": 64, "h": 0.2},

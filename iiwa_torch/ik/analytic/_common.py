@@ -210,11 +210,13 @@ def as_values(value, name: str, dtype: torch.dtype, device: torch.device, batch:
     if isinstance(value, Tensor):
         check_float_tensor(value, name, "(...)")
         check_finite(value, name)
-    try:
-        t = torch.as_tensor(value, dtype=dtype, device=device)
-    except (TypeError, ValueError, RuntimeError):
-        raise TypeError(f"{name} must be a number or a float tensor, got {value!r:.60}") from None
-    check_finite(t, name)
+        t = value.to(device, dtype)
+    else:
+        try:
+            t = torch.as_tensor(value, dtype=dtype, device=device)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"{name} must be a number or a float tensor, got {value!r:.60}") from None
+        check_finite(t, name)
     if batch is not None:
         try:
             torch.broadcast_shapes(t.shape, batch)
