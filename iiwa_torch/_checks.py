@@ -40,11 +40,20 @@ def check_tensor(x, name: str, shape: tuple[int, ...]) -> None:
 
 
 def check_finite(x: torch.Tensor, name: str) -> None:
-    """Raise ``ValueError`` naming the first NaN/inf element of ``x``, if any (or if ``x`` is a
-    ``meta`` tensor, which has no values)."""
+    """Raise ``ValueError`` naming the first NaN/inf element of ``x``, if any, or if ``x`` is a
+    ``meta`` tensor (no values); ``TypeError`` inside ``torch.func.vmap`` (values cannot be read)."""
     if isinstance(x, torch.Tensor) and x.device.type == "meta":
         raise ValueError(f"{name} is a meta tensor, without values; the kinematics needs real ones (cpu)")
-    if not all_finite(x):
+    try:
+        finite = all_finite(x)
+    except RuntimeError:  # no storage to read: a torch.func.vmap BatchedTensor
+        if isinstance(x, torch.Tensor) and torch._C._functorch.is_functorch_wrapped_tensor(x):
+            raise TypeError(
+                f"{name} is batched by torch.func.vmap, which iiwa_torch does not support (its checks read "
+                "values in Python); pass the batch as leading dimensions instead, e.g. q (..., n)"
+            ) from None
+        raise
+    if not finite:
         bad = tuple((~torch.isfinite(x)).nonzero()[0].tolist())
         raise ValueError(f"{name} contains NaN or inf (first at index {bad})")
 

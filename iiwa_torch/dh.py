@@ -204,15 +204,7 @@ class DHChain(nn.Module):
             raise ValueError(
                 f"{name} is on {q.device} but the chain is on {self.dh.device}; use chain.to({str(q.device)!r})"
             )
-        try:
-            check_finite(q, name)
-        except RuntimeError:  # no storage to read: a torch.func.vmap BatchedTensor
-            if torch._C._functorch.is_functorch_wrapped_tensor(q):
-                raise TypeError(
-                    f"{name} is batched by torch.func.vmap, which the chain does not support (it reads values "
-                    "in Python); pass the batch as leading dimensions instead: q (..., n)"
-                ) from None
-            raise
+        check_finite(q, name)
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""

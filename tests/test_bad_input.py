@@ -555,3 +555,12 @@ def _finite(value) -> bool:
 def test_good_input_runs_and_is_finite(key):
     entry = ENTRIES[key]
     assert _finite(entry.call(**entry.good()))
+
+
+@pytest.mark.parametrize(
+    ("fn", "arg"),
+    [(so3.log, ROT), (so3.exp, Q[:, :3]), (CHAIN.fk, Q), (lambda p: collision.segment_distance(p, p, p, p), Q[:, :3])],
+)
+def test_vmap_gets_a_clear_error(fn, arg):
+    with pytest.raises(TypeError, match=r"batched by torch.func.vmap.*leading dimensions"):
+        torch.func.vmap(fn)(arg)
