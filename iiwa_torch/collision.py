@@ -416,15 +416,7 @@ class World:
             pose, half = self.boxes
             if not (half > 0).all():
                 raise ValueError(f"boxes[1] half extents must be positive, got min {half.min().item()}")
-            rot = pose[..., :3, :3]
-            eye = torch.eye(3, dtype=rot.dtype, device=rot.device)
-            err = (rot.transpose(-1, -2) @ rot - eye).abs().amax().item() if rot.numel() else 0.0
-            bottom = pose[..., 3, :] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=pose.dtype, device=pose.device)
-            if err > 1e-5 or (torch.linalg.det(rot) <= 0).any() or bottom.abs().amax().item() > 0:
-                raise ValueError(
-                    "boxes[0] must be rigid poses (orthonormal rotation, det +1, last row 0 0 0 1), "
-                    f"got |R^T R - I| up to {err:.3g}"
-                )
+            check_rigid(pose, "boxes[0]", exact_bottom_row=True)
 
     def tensors(self) -> list[Tensor]:
         """Every obstacle tensor (for dtype/device checks and moving)."""
