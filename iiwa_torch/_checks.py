@@ -58,6 +58,12 @@ def check_finite(x: torch.Tensor, name: str) -> None:
         raise ValueError(f"{name} contains NaN or inf (first at index {bad})")
 
 
+def check_instance(value, kind: type, name: str) -> None:
+    """Raise ``TypeError`` unless ``value`` is a ``kind`` (e.g. ``chain`` a ``DHChain``)."""
+    if not isinstance(value, kind):
+        raise TypeError(f"{name} must be a {kind.__name__}, got {type(value).__name__}")
+
+
 def check_choice(value, choices: tuple, name: str) -> None:
     """Raise ``ValueError`` unless ``value`` is one of ``choices`` (e.g. ``get_args`` of a ``Literal``)."""
     if value not in choices:

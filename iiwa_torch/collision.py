@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_float_tensor, check_nonnegative, check_positive, check_tensor
+from ._checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
 from .dh import DHChain
 from .so3 import check_rigid
 
@@ -263,6 +263,8 @@ def self_collision_pairs(
     """Pairs worth checking: every ``(i, j)`` except neighbours in the list (``j = i + 1``, the
     links on either side of a joint) and pairs that overlap in every one of ``samples``
     uniform in-limit configurations (drawn with ``seed``): those touch by construction."""
+    check_instance(chain, DHChain, "chain")
+    check_instance(capsules, Capsules, "capsules")
     check_positive(samples, "samples", integer=True)
     check_nonnegative(seed, "seed", integer=True)
     q = chain.random_q(samples, generator=torch.Generator().manual_seed(seed))
@@ -306,6 +308,7 @@ def robot_capsules(chain: DHChain) -> Capsules:
     are in docs/collision.md. The base capsule is not checked against the floor it stands on;
     the planar arm lies in the z = 0 plane, so its default world has no floor. Self pairs:
     every pair but neighbours in the list (no other pair overlaps in every posture)."""
+    check_instance(chain, DHChain, "chain")
     dh = chain.dh.tolist()
     floor_height: float | None = 0.0
     if chain.name in ("iiwa14", "iiwa7"):
@@ -489,8 +492,11 @@ def _distances(
 ) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
     """The robot's own distances (self pairs, then floor) ``(P, B)`` over the flattened batch,
     the other obstacles' ``(..., M)`` blocks, and every pair's names in that order."""
+    check_instance(chain, DHChain, "chain")
     capsules = robot_capsules(chain) if capsules is None else capsules
     world = World(floor=capsules.floor_height) if world is None else world
+    check_instance(capsules, Capsules, "capsules")
+    check_instance(world, World, "world")
     _check_query(chain, q, world, capsules)
     radii = capsules.radii.to(dtype=q.dtype, device=q.device)
     names = capsules.names

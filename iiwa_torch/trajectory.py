@@ -25,7 +25,7 @@ from typing import Literal, get_args
 import torch
 
 from . import so3
-from ._checks import check_choice, check_finite, check_float_tensor, check_positive
+from ._checks import check_choice, check_finite, check_float_tensor, check_instance, check_positive
 from .collision import Capsules, World, check_world, clearance
 from .dh import DHChain
 
@@ -252,6 +252,7 @@ def sampled_duration(chain: DHChain, q: Tensor, *, speed_scale: float = 1.0) -> 
 
 
 def _speed_limits(chain: DHChain, speed_scale: float, dtype: torch.dtype) -> Tensor:
+    check_instance(chain, DHChain, "chain")
     if chain.velocity_limits is None:
         raise ValueError(f"chain {chain.name!r} has no velocity_limits; pass them to DHChain to time-scale")
     if isinstance(speed_scale, bool) or not isinstance(speed_scale, (int, float)) or not 0 < speed_scale <= 1:
@@ -302,6 +303,7 @@ def track(
         requires it) and the path's smallest clearance. Check ``max_step``: a large value means
         a branch switch, a swing around an obstacle or a failure along the way.
     """
+    check_instance(chain, DHChain, "chain")
     check_choice(method, get_args(Method), "method")
     check_world(world, margin, capsules)
     check_positive(pos_tol, "pos_tol")

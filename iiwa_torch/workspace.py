@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import as_point, check_positive
+from ._checks import as_point, check_instance, check_positive
 from .dh import DHChain
 
 __all__ = [
@@ -173,6 +173,7 @@ def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e
     coordinates, ``(3,)`` metres, float64; raises ``ValueError`` unless that origin is fixed in
     the end-effector frame (true for the centre of a spherical wrist: frames 5 and 6 of the iiwa).
     """
+    check_instance(chain, DHChain, "chain")
     n = chain.n_joints
     if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= n:
         raise ValueError(f"frame must be an integer in 0..{n}, got {frame!r}")
@@ -200,6 +201,7 @@ def sample_points(
 ) -> Tensor:
     """``(n, 3)`` world positions (m) of ``point`` (``(3,)`` m in the end-effector frame, default
     its origin) at ``n`` configurations drawn uniformly within the joint limits."""
+    check_instance(chain, DHChain, "chain")
     check_positive(n, "n", integer=True)
     p = as_point(point)
     q = chain.random_q(n, generator=generator, dtype=dtype)
@@ -251,6 +253,7 @@ def occupancy(
     ``h`` (m), processed in blocks of ``block`` configurations; ``counts`` continues an earlier
     result of the same grid (a new object is returned)."""
     section = _section(section)
+    check_instance(chain, DHChain, "chain")
     check_positive(h, "h")
     check_positive(n_samples, "n_samples", integer=True)
     check_positive(block, "block", integer=True)
@@ -321,6 +324,7 @@ def envelopes(occ: Occupancy, *, axis_gap: int = 4) -> tuple[np.ndarray, np.ndar
     A ring cell next to the axis holds little volume (``2 pi r h^2``), so few samples land
     there: an inner radius of fewer than ``axis_gap`` cells is reported as 0 (the axis).
     """
+    check_instance(occ, Occupancy, "occ")
     if occ.section is not Section.RZ:
         raise ValueError(f"envelopes need an RZ occupancy, got section {occ.section.value!r}")
     if not isinstance(axis_gap, int) or axis_gap < 0:
@@ -357,6 +361,7 @@ def dexterity(chain: DHChain, q: Tensor, *, position_only: bool = False) -> Dext
     """Manipulability, condition number and smallest singular value of the Jacobian at
     ``q (..., n)`` radians; each ``(...)``. The full 6 x n Jacobian mixes m/rad (linear rows)
     and 1 (angular rows); ``position_only`` uses the 3 linear rows (units m/rad)."""
+    check_instance(chain, DHChain, "chain")
     jac = chain.jacobian(q)
     if position_only:
         jac = jac[..., :3, :]
@@ -379,6 +384,7 @@ def dexterity_map(
 ) -> DexterityMap:
     """Mean and max manipulability of ``n_samples`` random configurations, binned by where
     ``point`` lands in the side view (``r``, ``z``) on cells of side ``h`` (m)."""
+    check_instance(chain, DHChain, "chain")
     check_positive(h, "h")
     check_positive(n_samples, "n_samples", integer=True)
     check_positive(block, "block", integer=True)

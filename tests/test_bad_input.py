@@ -288,17 +288,19 @@ ENTRIES: dict[str, Entry] = {
         collision.clearance,
         lambda: {"chain": CHAIN, "q": Q, "world": collision.World()},
         tensors=("q",),
+        bad=(("world", 0.0), ("capsules", "capsules")),
     ),
     "iiwa_torch.collision:pairwise_clearance": Entry(
         collision.pairwise_clearance,
         lambda: {"chain": CHAIN, "q": Q, "world": collision.World()},
         tensors=("q",),
+        bad=(("world", 0.0), ("capsules", "capsules")),
     ),
     "iiwa_torch.collision:robot_capsules": Entry(collision.robot_capsules, lambda: {"chain": CHAIN}),
     "iiwa_torch.collision:self_collision_pairs": Entry(
         collision.self_collision_pairs,
         lambda: {"chain": CHAIN, "capsules": collision.robot_capsules(CHAIN), "samples": 64},
-        bad=_counts("samples") + (("seed", -1), ("seed", 1.5)),
+        bad=_counts("samples") + (("seed", -1), ("seed", 1.5), ("capsules", None)),
     ),
     "iiwa_torch.collision:segment_distance": Entry(
         collision.segment_distance,
@@ -340,7 +342,7 @@ ENTRIES: dict[str, Entry] = {
     "iiwa_torch.workspace:envelopes": Entry(
         workspace.envelopes,
         lambda: {"occ": workspace.occupancy(CHAIN, 256, 0.2, section="rz")},
-        bad=(("axis_gap", -1), ("axis_gap", 1.5)),
+        bad=(("occ", None), ("axis_gap", -1), ("axis_gap", 1.5)),
     ),
     "iiwa_torch.workspace:dexterity": Entry(workspace.dexterity, lambda: {"chain": CHAIN, "q": Q}, tensors=("q",)),
     "iiwa_torch.workspace:dexterity_map": Entry(
@@ -523,7 +525,8 @@ def _cases():
             for label, value in variants.items():
                 if label not in skip:
                     yield pytest.param(key, arg, value, id=f"{key}-{arg}-{label}")
-        for arg, value in entry.bad:
+        wrong_types = (("chain", "iiwa14"),) if isinstance(good.get("chain"), DHChain) else ()
+        for arg, value in entry.bad + wrong_types:
             yield pytest.param(key, arg, value, id=f"{key}-{arg}={value!r:.30}")
 
 

@@ -24,7 +24,7 @@ from typing import Literal, NamedTuple, get_args
 import torch
 
 from .. import so3
-from .._checks import check_choice, check_finite, check_positive
+from .._checks import check_choice, check_finite, check_instance, check_positive
 from ..dh import DHChain
 from .dls import dls_step_batch_last
 from .limits import shift_into_limits
@@ -318,6 +318,7 @@ def solve(
     The solve is not differentiable (it runs under ``torch.no_grad``); use :func:`minimize`
     to optimise through IK.
     """
+    check_instance(chain, DHChain, "chain")
     _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
     seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
     check_positive(seeds, "seeds", integer=True)
@@ -521,6 +522,7 @@ def minimize(
     and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
     seen; ``iterations`` is ``steps`` for every problem.
     """
+    check_instance(chain, DHChain, "chain")
     check_choice(mode, get_args(Mode), "mode")
     check_choice(optimizer, get_args(Optimizer), "optimizer")
     check_positive(steps, "steps", integer=True)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..._checks import check_finite, check_float_tensor
+from ..._checks import check_finite, check_float_tensor, check_instance
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import Convention, DHChain
 from ...so3 import check_rigid
@@ -167,8 +167,7 @@ def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tu
     ``+-pi/2`` (``"perp"``) or 0 (``"twist0"``), or a positive ``d``/``a`` (``"d+"``, ``"a+"``).
     Returns the rows ``(a, alpha, d, offset)`` as floats; raises ``ValueError`` otherwise.
     """
-    if not isinstance(chain, DHChain):
-        raise TypeError(f"chain must be a DHChain, got {type(chain).__name__}")
+    check_instance(chain, DHChain, "chain")
     if chain.convention is not Convention.STANDARD:
         raise ValueError(f"the {robot} closed form needs a standard-DH chain, got {chain.convention.value!r}")
     if chain.n_joints != n:
@@ -226,6 +225,7 @@ def as_values(value, name: str, dtype: torch.dtype, device: torch.device, batch:
 
 
 def check_target(chain: DHChain, target: Tensor) -> None:
+    check_instance(chain, DHChain, "chain")
     check_rigid(target, "target")
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
