@@ -189,6 +189,7 @@ def path_clearance(chain: DHChain, q: Tensor, world: World, capsules: Capsules |
     """Clearance (m) of every sample of joint paths ``q (..., T, n) -> (..., T)``, against a
     world whose batch shape broadcasts with the paths' ``(...)``. Only the samples are
     checked, not the motion between them."""
+    check_instance(world, World, "world")
     step = world.map_batch(lambda t, k: t.unsqueeze(t.ndim - k))  # a dim for T before the obstacle dims
     return clearance(chain, q, step, capsules)
 

@@ -252,6 +252,12 @@ ENTRIES: dict[str, Entry] = {
         poses=("poses",),
         bad=(("method", "rrt"), ("rest_gain", math.nan), ("rest_gain", -1.0)) + _tols("pos_tol", "rot_tol"),
     ),
+    "iiwa_torch.trajectory:path_clearance": Entry(
+        trajectory.path_clearance,
+        lambda: {"chain": CHAIN, "q": Q[None], "world": collision.World()},
+        tensors=("q",),
+        bad=(("capsules", "capsules"),),
+    ),
     "iiwa_torch.trajectory:shortest_duration": Entry(
         trajectory.shortest_duration,
         lambda: {"chain": CHAIN, "q0": Q, "q1": Q.flip(0)},
@@ -283,6 +289,11 @@ ENTRIES: dict[str, Entry] = {
             ("boxes", (2 * POSE[:1], torch.full((1, 3), 0.1, dtype=torch.float64))),
             ("capsules", (torch.zeros(1, 3, 3, dtype=torch.float64), torch.ones(1, dtype=torch.float64))),
         ),
+    ),
+    "iiwa_torch.collision:check_world": Entry(
+        collision.check_world,
+        lambda: {"world": collision.World(), "margin": 0.01},
+        bad=(("margin", "1 cm"), ("capsules", "capsules")),
     ),
     "iiwa_torch.collision:clearance": Entry(
         collision.clearance,
@@ -526,6 +537,14 @@ def _cases():
                 if label not in skip:
                     yield pytest.param(key, arg, value, id=f"{key}-{arg}-{label}")
         wrong_types = (("chain", "iiwa14"),) if isinstance(good.get("chain"), DHChain) else ()
+        try:
+            params = inspect.signature(entry.call).parameters
+        except (TypeError, ValueError):
+            params = {}
+        if "world" in params and key != "iiwa_torch.collision:World":
+            wrong_types += (("world", 0.0),)
+        if "margin" in params:
+            wrong_types += (("margin", -1.0), ("margin", math.nan))
         for arg, value in entry.bad + wrong_types:
             yield pytest.param(key, arg, value, id=f"{key}-{arg}={value!r:.30}")
 
