@@ -69,8 +69,13 @@ def run_one(policy: str | None, threads: int, busy: bool, n: int, repeats: int) 
         if burner is not None:
             burner.kill()
             burner.wait()
-    return {"policy": policy or "default", "threads": threads, "load": "busy" if busy else "alone",
-            "loadavg at start": load, **json.loads(out.splitlines()[-1])}
+    return {
+        "policy": policy or "default",
+        "threads": threads,
+        "load": "busy" if busy else "alone",
+        "loadavg at start": load,
+        **json.loads(out.splitlines()[-1]),
+    }
 
 
 def main() -> None:
@@ -91,23 +96,52 @@ def main() -> None:
             rows.append(run_one(policy, threads, busy, n, repeats))
             print(rows[-1], flush=True)
     alone = {(r["policy"], r["threads"]): r["seconds"] for r in rows if r["load"] == "alone"}
-    table = [[r["policy"], r["threads"], r["load"], f"{r['loadavg at start']:.1f}", f"{r['seconds']:.3f}",
-              f"{r['cpu seconds']:.3f}", f"{r['seconds'] / alone[r['policy'], r['threads']]:.1f}x",
-              f"{100 * r['success']:.2f}%"] for r in rows]
+    table = [
+        [
+            r["policy"],
+            r["threads"],
+            r["load"],
+            f"{r['loadavg at start']:.1f}",
+            f"{r['seconds']:.3f}",
+            f"{r['cpu seconds']:.3f}",
+            f"{r['seconds'] / alone[r['policy'], r['threads']]:.1f}x",
+            f"{100 * r['success']:.2f}%",
+        ]
+        for r in rows
+    ]
     command = f"python benchmarks/bench_busy.py{' --quick' if args.quick else ''}"
-    md = [f"# `ik.solve` alone and beside a busy process (`{command}`)\n\n",
-          f"{n:,} random reachable iiwa 14 poses, float64 targets, library defaults; median of {repeats} "
-          "timed call(s) per configuration, each configuration in a fresh process. busy: a second Python "
-          "process spins on one core for the whole configuration. load average: 1-minute, at the start.\n\n"]
+    md = [
+        f"# `ik.solve` alone and beside a busy process (`{command}`)\n\n",
+        f"{n:,} random reachable iiwa 14 poses, float64 targets, library defaults; median of {repeats} "
+        "timed call(s) per configuration, each configuration in a fresh process. busy: a second Python "
+        "process spins on one core for the whole configuration. load average: 1-minute, at the start.\n\n",
+    ]
     if args.note:
         md.append(f"{args.note}\n\n")
-    md.append(markdown_table(["OMP_WAIT_POLICY", "torch threads", "load", "load average", "seconds (wall)",
-                              "seconds (CPU)", "busy / alone", "success 0.1 mm / 1 mrad"], table))
+    md.append(
+        markdown_table(
+            [
+                "OMP_WAIT_POLICY",
+                "torch threads",
+                "load",
+                "load average",
+                "seconds (wall)",
+                "seconds (CPU)",
+                "busy / alone",
+                "success 0.1 mm / 1 mrad",
+            ],
+            table,
+        )
+    )
     machine = machine_info() | {"OMP_WAIT_POLICY": "set per configuration (column policy)"}
-    md.append(f"\nMachine: {machine['cpu']}, {machine['cpu_count']} CPUs, torch {machine['torch']}, "
-              f"{machine['date']}.\n")
-    path = save("busy_quick" if args.quick else "busy", {"command": command, "note": args.note,
-                                                        "machine": machine, "rows": rows}, "".join(md))
+    md.append(
+        f"\nMachine: {machine['cpu']}, {machine['cpu_count']} CPUs, torch {machine['torch']}, {machine['date']}.\n"
+    )
+    path = save(
+        "busy_quick" if args.quick else "busy",
+        {"command": command, "note": args.note, "machine": machine, "rows": rows},
+        "".join(md),
+    )
     print("".join(md))
     print(f"written: {path}")
 
