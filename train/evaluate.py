@@ -516,15 +516,16 @@ def _floor_bands(ax, spacing: dict[str, float] | None, lo: float) -> None:
                    label=f"below {name}'s floor ({FLOOR_SPACINGS} spacings at the goals): rounding")
 
 
-GAP_SHARE = 0.12  # a segment spanning more of the axis than this, with no evaluation inside, is drawn dotted
+GAP_SHARE = 0.12  # a segment wider than this share of the axis and than 3 of its curve's median ones is a gap
 
 
 def _plot_evaluations(ax, x: np.ndarray, y: np.ndarray, colour: str, label: str) -> None:
-    """Markers at each evaluation, solid lines between neighbours, dotted across wide gaps (in the axis'
-    own scale: a log axis stretches the first interval after step 0)."""
+    """Markers at each evaluation, solid lines between neighbours, dotted across gaps: segments much wider
+    than the curve's usual ones, in the axis' own scale (a log axis stretches the interval after step 0)."""
     t = ax.xaxis.get_transform().transform(x)
     lo, hi = ax.xaxis.get_transform().transform(np.array(ax.get_xlim()))
-    wide = np.abs(np.diff(t)) > GAP_SHARE * abs(hi - lo)
+    span = np.abs(np.diff(t))
+    wide = span > max(GAP_SHARE * abs(hi - lo), 3 * float(np.median(span))) if span.size else span.astype(bool)
     ax.plot(x, y, "o", ms=3.5, color=colour)
     ax.plot([], [], "o-", ms=3.5, color=colour, label=label)
     for i in range(len(x) - 1):
@@ -553,7 +554,7 @@ def _learning_curves(plt, report: dict[str, Any], evaluations: list[dict], compa
     axes[1].set(xlabel=f"env steps (linear up to {first:,.0f}, then log)", ylabel="success (%)",
                 title="Learning curve against env steps")
     for a in axes:
-        a.plot([], [], ":", color="0.4", label="no evaluation in between")
+        a.plot([], [], ":", color="0.4", label="a long stretch without an evaluation")
         a.legend(fontsize=8, loc="lower right")
         a.set_ylim(0, 102)
     return fig
