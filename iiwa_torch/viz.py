@@ -8,7 +8,8 @@ gymnasium environments, worker processes and tests.
 - :func:`draw_chain` draws one configuration ``(n,)`` or several ``(k, n)`` on a 3-D axes;
 - :func:`render_rgb` returns an ``(H, W, 3)`` uint8 image (for ``render_mode="rgb_array"``);
 - :func:`save_png` writes that image to a file;
-- :func:`animate` writes a trajectory ``(T, n)`` as a GIF (Pillow) or an MP4 (ffmpeg);
+- :func:`animate` writes a trajectory ``(T, n)`` as a GIF (Pillow) or an MP4 (ffmpeg), seen
+  from the side of the motion (:func:`side_view`);
 - :func:`draw_capsules` and :func:`draw_obstacles` draw a capsule model and a
   :class:`~iiwa_torch.collision.World` on a 3-D axes; :func:`plot_world` draws both with the
   arm, capsules in collision in red and the minimum clearance in the title.
@@ -26,7 +27,16 @@ import torch
 from .collision import Capsules, World, pairwise_clearance, robot_capsules
 from .dh import DHChain
 
-__all__ = ["draw_chain", "render_rgb", "save_png", "animate", "draw_capsules", "draw_obstacles", "plot_world"]
+__all__ = [
+    "draw_chain",
+    "render_rgb",
+    "save_png",
+    "animate",
+    "side_view",
+    "draw_capsules",
+    "draw_obstacles",
+    "plot_world",
+]
 
 _FRAME_COLOURS = ("tab:red", "tab:green", "tab:blue")  # x, y, z axes of a frame
 
@@ -199,7 +209,7 @@ def animate(
     size: tuple[int, int] = (400, 400),
     frames: bool = False,
     elev: float = 20.0,
-    azim: float = -60.0,
+    azim: float | None = None,
     dpi: int = 100,
 ) -> Path:
     """Write the trajectory ``qs`` ``(T, n)`` (radians) as an animation with exactly ``T`` frames.
@@ -207,7 +217,9 @@ def animate(
     The format follows the file's suffix: ``.gif`` (Pillow, looping) or ``.mp4`` (needs the
     ``ffmpeg`` executable on the PATH; a clear ``RuntimeError`` otherwise). ``path`` (``(T, 3)``
     positions or ``(T, 4, 4)`` poses, e.g. the Cartesian path being tracked) is drawn dashed,
-    and the end effector's trace so far as a solid line. Returns the path written.
+    and the end effector's trace so far as a solid line. ``azim=None``: the camera azimuth of
+    :func:`side_view` of that trace, so the motion is not seen end-on; the axes fit the arm over
+    the whole trajectory. Returns the path written.
     """
     file = Path(file)
     suffix = file.suffix.lower()
@@ -218,8 +230,16 @@ def animate(
     if fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
     q = _as_q(chain, qs)
-    trace = _points(chain, q)[0][:, -1]  # (T, 3) end-effector positions
-    fig, canvas, ax = _scene(chain, size, dpi, elev, azim)
+    joints = _points(chain, q)[0]  # (T, joints, 3)
+    trace = joints[:, -1]  # (T, 3) end-effector positions
+    base = chain.base[:3, 3].cpu().numpy()
+    fig, canvas, ax = _scene(chain, size, dpi, elev, side_view(trace, base) if azim is None else azim)
+    drawn = [joints.reshape(-1, 3), base[None]] + ([] if goal is None else [_goal_xyz(goal)])
+    if path is not None:
+        p = torch.as_tensor(path, dtype=torch.float64).cpu()
+        drawn.append((p[..., :3, 3] if p.shape[-2:] == (4, 4) else p).reshape(-1, 3).numpy())
+    everything = np.concatenate(drawn)
+    _fit_cube(ax, np.stack([everything.min(0), everything.max(0)]), margin=0.15)
     _draw_extras(ax, goal, path, None)
     images = []
     for t in range(q.shape[0]):
@@ -234,6 +254,25 @@ def animate(
     else:
         _write_mp4(images, file, fps)
     return file
+
+
+def side_view(points, centre=(0.0, 0.0, 0.0), offset: float = 25.0) -> float:
+    """Camera azimuth (degrees, matplotlib's ``view_init``) that sees the motion through ``points``
+    ``(T, 3)`` (m) from its side: perpendicular to their main horizontal direction, on the side away
+    from ``centre`` (e.g. the robot's base, so the motion is in front of the arm), turned ``offset``
+    degrees towards matplotlib's default -60 so the arm itself is not seen edge-on. Points that do not
+    move horizontally (by less than 1 mm) get the default, -60."""
+    xy = np.asarray(points, dtype=float)[:, :2]
+    spread = xy - xy.mean(0)
+    if np.abs(spread).max() < 1e-3:
+        return -60.0
+    direction = np.linalg.svd(spread, full_matrices=False)[2][0]  # the principal horizontal axis
+    normal = np.array([-direction[1], direction[0]])
+    if normal @ (xy.mean(0) - np.asarray(centre, dtype=float)[:2]) < 0:
+        normal = -normal
+    facing = np.degrees(np.arctan2(normal[1], normal[0]))
+    turn = (-60.0 - facing + 180.0) % 360.0 - 180.0  # signed angle from the side view to the default
+    return float(facing + np.sign(turn) * min(offset, abs(turn)))
 
 
 def _write_gif(images: list[np.ndarray], file: Path, fps: int) -> None:

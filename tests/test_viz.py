@@ -203,3 +203,32 @@ def test_plot_world_float32_world_and_batched_world_rejected(arm):
     batched = World(spheres=(centre.double().expand(2, 1, 3), torch.full((2, 1), 0.1, dtype=F64)))
     with pytest.raises(ValueError, match=r"one world can be drawn, got spheres with batch shape \(2,\)"):
         viz.plot_world(arm, Q_VALIDATION, batched)
+
+
+def _screen_length(a, b, azim: float, elev: float = 20.0) -> float:
+    """Length on screen of the segment ``a``-``b`` (m) under matplotlib's own 3-D projection."""
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d import proj3d
+
+    ax = Figure().add_subplot(projection="3d")
+    ax.set(xlim=(-1, 1), ylim=(-1, 1), zlim=(-1, 1))
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=elev, azim=azim)
+    xs, ys, _ = proj3d.proj_transform(*np.stack([a, b], 1), ax.get_proj())
+    return math.hypot(xs[1] - xs[0], ys[1] - ys[0])
+
+
+@pytest.mark.parametrize(
+    "points, expected",
+    [
+        (np.array([[0.5, y, 0.4] for y in np.linspace(-0.2, 0.3, 9)]), -25.0),  # along y: side view from +x, less 25
+        (np.array([[x, -0.4, 0.4] for x in np.linspace(-0.2, 0.3, 9)]), -65.0),  # along x, at y < 0: from -y, +25
+        (np.array([[0.5, 0.0, z] for z in np.linspace(0.2, 0.6, 9)]), -60.0),  # vertical: the default
+    ],
+)
+def test_side_view_faces_the_motion(points, expected):
+    azim = viz.side_view(points)
+    assert azim == pytest.approx(expected, abs=1e-9)
+    if expected != -60.0:  # brute force over the camera's azimuth: within cos(25 deg) of the longest on screen
+        best = max(_screen_length(points[0], points[-1], a) for a in range(-180, 180, 5))
+        assert _screen_length(points[0], points[-1], azim) >= 0.9 * best

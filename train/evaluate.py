@@ -44,6 +44,10 @@ SINGLE_GOALS = 20  # goals timed one at a time for the "single" wall time
 BATCHED_REPEATS = 3  # batched runs over all goals; the median time is reported (the machine is shared)
 POSE_ENV = "IiwaReachPose-v0"
 ORIENTATION_TOL = 0.1  # rad: the pose env's default orientation threshold
+# An error within this many number spacings of the goal's coordinates is rounding, not accuracy:
+# float32 FK of the iiwa alone differs from float64 by up to 6 spacings on 10,000 random configurations.
+FLOOR_SPACINGS = 8
+FLOAT_TYPES = {"float32": np.float32, "float64": np.float64}
 
 
 # ---------------------------------------------------------------------------- loading
@@ -85,6 +89,13 @@ def _steps_to_reach(distance: np.ndarray, tol: float) -> np.ndarray:
     first = hit.argmax(0).astype(float)
     first[~hit.any(0)] = np.nan
     return first
+
+
+def number_spacing(xyz: np.ndarray, dtype) -> np.ndarray:
+    """``(n, 3)`` positions (m) -> ``(n,)`` length (m) of the vector of the number spacings of each
+    coordinate in ``dtype`` (``np.spacing``: one unit in the last place): the smallest error that
+    format resolves at that point."""
+    return np.linalg.norm(np.spacing(np.abs(np.asarray(xyz)).astype(dtype)).astype(np.float64), axis=-1)
 
 
 def summarise(final_error: np.ndarray, steps: np.ndarray, path: np.ndarray, violations: int,
@@ -249,20 +260,61 @@ def _cmp(policy: float, other: float, lower_wins: bool = True) -> str:
     return "wins" if (policy < other) == lower_wins else "loses"
 
 
-def verdict(m: dict[str, dict[str, Any]], below_floor: int = 0) -> list[str]:
-    """Plain sentences: where the policy loses to the IK solvers and where it wins; ``below_floor``: how many
-    goals lie below the floor (z < 0), where every exact answer collides."""
+def _floor(value: float, spacing: dict[str, float] | None) -> tuple[str, float] | None:
+    """``(format, spacings)`` if the error ``value`` (m) is within ``FLOOR_SPACINGS`` of that format's
+    median ``spacing`` (m) at the goals (float64 tried first), else None: rounding, not accuracy."""
+    for name in ("float64", "float32") if spacing else ():
+        if value <= FLOOR_SPACINGS * spacing[name]:
+            return name, value / spacing[name]
+    return None
+
+
+def _error(value: float, spacing: dict[str, float] | None) -> str:
+    """An error (m) in mm, with the number format's floor it sits at, if any."""
+    floor = _floor(value, spacing)
+    return f"{1e3 * value:.3g} mm" + ("" if floor is None or value == 0 else f" (at {floor[0]}'s floor)")
+
+
+def _median_comparison(p: float, v: float, name: str, spacing: dict[str, float] | None) -> str:
+    """How the two median errors (m) compare, without ranking rounding against rounding."""
+    pf, vf = _floor(p, spacing), _floor(v, spacing)
+    if pf is None and vf is None:
+        ratio = p / max(v, 1e-300)
+        if 0.1 < ratio < 10:
+            return f"{ratio:.2g} times {name}'s"
+        return f"{abs(math.log10(ratio)):.1f} orders of magnitude {'above' if ratio > 1 else 'below'} {name}'s"
+    if pf is not None and vf is not None:
+        if pf[0] == vf[0]:
+            return (f"both are {pf[0]} rounding ({pf[1]:.1f} and {vf[1]:.1f} {pf[0]} spacings at the goal), so the "
+                    f"medians do not rank the two")
+        env = " (its env computes distances in float32)" if pf[0] == "float32" else ""
+        return (f"both are rounding, not accuracy: the policy's is {pf[1]:.1f} {pf[0]} spacings at the goal{env}, "
+                f"{name}'s {vf[1]:.1f} {vf[0]} spacings; the gap between them is the number format")
+    (at, fmt, k), real = (("the policy", *pf), name) if pf is not None else ((name, *vf), "the policy")
+    return (f"{at}'s is {fmt} rounding ({k:.1f} spacings at the goal) and {real}'s is not: {real} is the less "
+            f"accurate at the median")
+
+
+def verdict(m: dict[str, dict[str, Any]], below_floor: int = 0, spacing: dict[str, float] | None = None) -> list[str]:
+    """Plain sentences: where the policy loses to the IK solvers and where it wins. ``below_floor``: how many
+    goals lie below the floor (z < 0), where every exact answer collides; ``spacing``: the median number
+    spacing (m) at the goals per format (``{"float32": ..., "float64": ...}``), below which (times
+    ``FLOOR_SPACINGS``) an error is rounding and is not compared in ratios."""
     p = m["policy"]
     ik = {k: v for k, v in m.items() if k != "policy" and "error" not in v}
     lines = []
     for name, v in ik.items():
-        orders = math.log10(max(p["median_error_m"], 1e-15) / max(v["median_error_m"], 1e-15))
-        ratio = f"{orders:.1f} orders of magnitude" if orders >= 0 else f"{-orders:.1f} orders of magnitude lower"
-        lines.append(f"Accuracy against {name}: median final error {1e3 * p['median_error_m']:.2g} mm against "
-                     f"{1e3 * v['median_error_m']:.2g} mm ({ratio}); success at 1 cm {100 * p['success@1cm']:.1f}% "
-                     f"against {100 * v['success@1cm']:.1f}%, at 1 mm {100 * p['success@1mm']:.1f}% against "
-                     f"{100 * v['success@1mm']:.1f}%; p95 final error {1e3 * p['p95_error_m']:.2g} mm against "
-                     f"{1e3 * v['p95_error_m']:.2g} mm.")
+        beyond = ""
+        if spacing and "beyond_float32_floor" in p and "beyond_float32_floor" in v:
+            beyond = (f"; goals left beyond float32's floor {100 * p['beyond_float32_floor']:.1f}% against "
+                      f"{100 * v['beyond_float32_floor']:.1f}%")
+        lines.append(f"Accuracy against {name}: median final error {1e3 * p['median_error_m']:.3g} mm against "
+                     f"{1e3 * v['median_error_m']:.3g} mm: "
+                     f"{_median_comparison(p['median_error_m'], v['median_error_m'], name, spacing)}. "
+                     f"What separates them: success at 1 cm {100 * p['success@1cm']:.1f}% against "
+                     f"{100 * v['success@1cm']:.1f}%, at 1 mm {100 * p['success@1mm']:.1f}% against "
+                     f"{100 * v['success@1mm']:.1f}%{beyond}; p95 final error {_error(p['p95_error_m'], spacing)} "
+                     f"against {_error(v['p95_error_m'], spacing)}.")
     for name, v in ik.items():
         if p["median_steps_to_reach"] is not None and v["median_steps_to_reach"] is not None:
             won = _cmp(p["median_steps_to_reach"], v["median_steps_to_reach"])
@@ -370,12 +422,15 @@ def write_markdown(report: dict[str, Any], path: Path) -> str:
 
 def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[str, Any],
                evaluations: list[dict], compare: dict[str, list[dict]]) -> list[str]:
+    """Write the report's PNGs into ``out``; returns their file names."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     names = [n for n in data]
+    errors = {n: data[n]["final_error"] for n in names}
+    spacing = report.get("number_spacing_m")
     written = []
 
     def save(fig, name):
@@ -384,23 +439,49 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
         plt.close(fig)
         written.append(name)
 
-    floor = 1e-9  # errors below 1 nm are drawn at 1 nm
-    fig, ax = plt.subplots(figsize=(7, 4))
-    bins = np.logspace(-9, 0, 64)
-    for n in names:
-        ax.hist(np.clip(data[n]["final_error"], floor, None), bins=bins, histtype="step", lw=1.5, label=n)
-    ax.set(xscale="log", xlabel="final position error (m)", ylabel="goals", title="Final error per method")
-    ax.axvline(0.01, color="gray", ls=":", lw=1)
-    ax.legend()
+    positive = np.concatenate([e[e > 0] for e in errors.values()])
+    lo = 10.0 ** math.floor(math.log10(positive.min())) if positive.size else 1e-9  # no non-zero error is clipped
+    hi = 10.0 ** math.ceil(math.log10(max(positive.max(), 0.011))) if positive.size else 1.0
+    per_decade = 4
+    bins = np.logspace(math.log10(lo), math.log10(hi), round(per_decade * math.log10(hi / lo)) + 1)
+    zero_at = lo * 10 ** (-4 / per_decade)  # exact zeros: a bin of their own, left of the first bin, with a gap
+    has_zero = any((e == 0).any() for e in errors.values())
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    for i, n in enumerate(names):
+        e = errors[n]
+        counts, _ = np.histogram(e[e > 0], bins=bins)
+        line = ax.stairs(counts, bins, lw=1.6, label=n, color=f"C{i}")
+        if has_zero and (e == 0).any():
+            ax.stairs([int((e == 0).sum())], zero_at * 10 ** (np.array([-0.5, 0.5]) / per_decade), lw=1.6,
+                      color=line.get_edgecolor(), hatch="///")
+    _floor_bands(ax, spacing, lo)
+    ax.axvline(TOLERANCES["1cm"], color="k", ls=":", lw=1.2, label="1 cm (the env's success)")
+    ax.set(xscale="log", xlabel="final position error (m)", ylabel="goals", xlim=(zero_at / 3 if has_zero else lo, hi),
+           title=f"Final error per method ({report['goals']} goals; {per_decade} bins per decade, none clipped)")
+    if has_zero:
+        ticks = [t for t in ax.get_xticks() if lo <= t <= hi]
+        ax.set_xticks([zero_at, *ticks], ["0\n(exact)", *[f"$10^{{{round(math.log10(t))}}}$" for t in ticks]])
+        ax.axvline(lo * 10 ** (-2 / per_decade), color="0.4", lw=0.8)  # the axis break before the zero bin
+    ax.legend(fontsize=8, loc="upper right")
     save(fig, "final_error.png")
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    tol = np.logspace(np.log10(5e-4), np.log10(5e-2), 100)
-    for n in names:
-        ax.plot(tol, [(data[n]["final_error"] < t).mean() * 100 for t in tol], lw=1.8, label=n)
-    ax.set(xscale="log", xlabel="tolerance (m)", ylabel="success (%)", title="Success rate against tolerance",
-           ylim=(0, 101))
-    ax.legend()
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    tol = np.logspace(math.log10(lo), math.log10(hi), 400)
+    styles = ("-", "--", "-.", ":")
+    for i, n in enumerate(names):
+        beyond = 100 * (errors[n][:, None] >= tol).mean(0)
+        ax.plot(tol, beyond, styles[i % len(styles)], lw=2.2 - 0.4 * i, color=f"C{i}", label=n)
+    _floor_bands(ax, spacing, lo)
+    for t, label in ((TOLERANCES["1mm"], "1 mm"), (TOLERANCES["1cm"], "1 cm")):
+        ax.axvline(t, color="k", ls=":", lw=1)
+        ax.text(t, 30, f" {label}", fontsize=8)
+    one_goal = 100 / report["goals"]
+    ax.set_yscale("symlog", linthresh=one_goal, linscale=0.5)
+    ax.set(xscale="log", xlim=(lo, hi), ylim=(0, 100), xlabel="tolerance (m)",
+           ylabel="goals beyond the tolerance (%)",
+           title=f"Failure rate against tolerance (100% - success; one goal = {one_goal:.2g}%)")
+    ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda y, _: f"{y:g}%"))
+    ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.2, 0.08))
     save(fig, "success_vs_tolerance.png")
 
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -414,9 +495,9 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
     save(fig, "time_per_goal.png")
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    hi = max(float(np.percentile(data[n]["path"], 99.5)) for n in names)
+    top = max(float(np.percentile(data[n]["path"], 99.5)) for n in names)
     for n in names:
-        ax.hist(data[n]["path"], bins=np.linspace(0, hi, 50), histtype="step", lw=1.5, label=n)
+        ax.hist(data[n]["path"], bins=np.linspace(0, top, 50), histtype="step", lw=1.5, label=n)
     ax.set(xlabel="joint-space path length (rad)", ylabel="goals",
            title="Joint-space path length (IK: straight move from home)")
     ax.legend()
@@ -427,18 +508,55 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
     return written
 
 
+def _floor_bands(ax, spacing: dict[str, float] | None, lo: float) -> None:
+    """Shade, per number format, the errors from ``lo`` (m) up to its floor, ``FLOOR_SPACINGS`` median spacings
+    at the goals: rounding in that format (the float64 band lies inside the float32 one)."""
+    for (name, value), colour in zip((spacing or {}).items(), ("0.93", "0.82")):
+        ax.axvspan(lo, FLOOR_SPACINGS * value, color=colour, lw=0, zorder=0,
+                   label=f"below {name}'s floor ({FLOOR_SPACINGS} spacings at the goals): rounding")
+
+
+GAP_SHARE = 0.12  # a segment wider than this share of the axis and than 3 of its curve's median ones is a gap
+
+
+def _plot_evaluations(ax, x: np.ndarray, y: np.ndarray, colour: str, label: str) -> None:
+    """Markers at each evaluation, solid lines between neighbours, dotted across gaps: segments much wider
+    than the curve's usual ones, in the axis' own scale (a log axis stretches the interval after step 0)."""
+    t = ax.xaxis.get_transform().transform(x)
+    lo, hi = ax.xaxis.get_transform().transform(np.array(ax.get_xlim()))
+    span = np.abs(np.diff(t))
+    wide = span > max(GAP_SHARE * abs(hi - lo), 3 * float(np.median(span))) if span.size else span.astype(bool)
+    ax.plot(x, y, "o", ms=3.5, color=colour)
+    ax.plot([], [], "o-", ms=3.5, color=colour, label=label)
+    for i in range(len(x) - 1):
+        ax.plot(x[i : i + 2], y[i : i + 2], ":" if wide[i] else "-", color=colour, lw=1 if wide[i] else 1.6)
+
+
 def _learning_curves(plt, report: dict[str, Any], evaluations: list[dict], compare: dict[str, list[dict]]):
     """The figure of success against training wall time and env steps, this run and ``compare``'s."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     ours = f"{report['env_id']} (ours, {report['algo'].upper()}, {100 * TOLERANCES['1cm']:.0f} cm)"
-    for label, ev in {ours: evaluations, **compare}.items():
-        axes[0].plot([e["wall_time"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
-        axes[1].plot([e["steps"] for e in ev], [100 * e["success"] for e in ev], "o-", ms=3, label=label)
+    curves = {ours: evaluations, **compare}
+    steps = np.concatenate([[e["steps"] for e in ev] for ev in curves.values()]).astype(float)
+    walls = np.concatenate([[e["wall_time"] for e in ev] for ev in curves.values()]).astype(float)
+    first = steps[steps > 0].min() if (steps > 0).any() else 1.0
+    # symlog: linear up to the first non-zero evaluation, so step 0 (an untrained policy) is on the axis
+    axes[1].set_xscale("symlog", linthresh=first, linscale=0.6)
+    axes[0].set_xlim(0, 1.03 * walls.max())
+    axes[1].set_xlim(0, 1.5 * steps.max())
+    decades = 10.0 ** np.arange(math.ceil(math.log10(first)), math.floor(math.log10(1.5 * steps.max())) + 1)
+    axes[1].set_xticks([0, *decades])
+    for i, (label, ev) in enumerate(curves.items()):
+        success = np.array([100 * e["success"] for e in ev])
+        _plot_evaluations(axes[0], np.array([e["wall_time"] for e in ev], float), success, f"C{i}", label)
+        _plot_evaluations(axes[1], np.array([e["steps"] for e in ev], float), success, f"C{i}", label)
     axes[0].set(xlabel="training wall time (s)", ylabel="success (%)", title="Learning curve against wall time")
-    axes[1].set(xscale="log", xlabel="env steps", ylabel="success (%)", title="Learning curve against env steps")
+    axes[1].set(xlabel=f"env steps (linear up to {first:,.0f}, then log)", ylabel="success (%)",
+                title="Learning curve against env steps")
     for a in axes:
-        a.legend(fontsize=8)
-        a.set_ylim(0, 101)
+        a.plot([], [], ":", color="0.4", label="a long stretch without an evaluation")
+        a.legend(fontsize=8, loc="lower right")
+        a.set_ylim(0, 102)
     return fig
 
 
@@ -470,6 +588,10 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         policy_hit, ik_hit = data["policy"]["floor_hit"], data[name]["floor_hit"]
         metrics[name]["floor_policy_only"] = int((policy_hit & ~ik_hit).sum())
         metrics[name]["floor_ik_only"] = int((ik_hit & ~policy_hit).sum())
+    spacing = {k: number_spacing(goals.pose[:, :3, 3].numpy(), t) for k, t in FLOAT_TYPES.items()}
+    for name, d in data.items():
+        metrics[name]["beyond_float32_floor"] = float(np.mean(d["final_error"] > FLOOR_SPACINGS * spacing["float32"]))
+    spacing = {k: float(np.median(v)) for k, v in spacing.items()}
     evaluations = RunDir(model_dir).read_evaluations()
     compare = {}
     for p in compare_paths:
@@ -490,7 +612,8 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         "tolerances_m": TOLERANCES,
         "methods": metrics,
         "goals_below_floor": below_floor,
-        "verdict": verdict(metrics, below_floor) + _design_note(config),
+        "number_spacing_m": spacing,
+        "verdict": verdict(metrics, below_floor, spacing) + _design_note(config),
         "training": json.loads((model_dir / "train_info.json").read_text())
         if (model_dir / "train_info.json").exists() else None,
         "machine": machine_info(),
