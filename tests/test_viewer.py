@@ -425,7 +425,7 @@ def shown(monkeypatch):
 
 def test_cli_view_passes_world_and_options(shown, tmp_path):
     assert cli.main(["view", "--world", json.dumps(_WORLD), "--capsules", "--frames", "--port", "9999"]) == 0
-    (args, kwargs), = shown
+    ((args, kwargs),) = shown
     assert args[0].name == "iiwa14" and kwargs["port"] == 9999
     assert kwargs["show_capsules"] and kwargs["show_frames"]
     np.testing.assert_allclose(kwargs["world"].spheres[1].numpy(), [0.1])
@@ -438,7 +438,7 @@ def test_cli_view_plays_a_traj_csv(shown, tmp_path, capsys):
               "--json"])  # fmt: skip
     out = json.loads(capsys.readouterr().out)
     cli.main(["view", "--path", str(csv_file)])
-    (_, kwargs), = shown
+    ((_, kwargs),) = shown
     np.testing.assert_allclose(kwargs["path"].numpy(), out["q_rad"], atol=1e-8)
     assert kwargs["dt"] == pytest.approx(0.2)
 
@@ -454,7 +454,7 @@ def test_cli_view_rolls_out_the_shipped_policy(chain, shown):
     pytest.importorskip("stable_baselines3")
     policy = Path(__file__).resolve().parents[1] / "train" / "policies" / "ppo_iiwa_reach"
     assert cli.main(["view", "--policy", str(policy), "--goals", "3"]) == 0
-    (_, kwargs), = shown
+    ((_, kwargs),) = shown
     path, goals = kwargs["path"], kwargs["goals"]
     assert path.shape[0] == 3 and path.shape[2] == 7 and goals.shape == (3, 3)
     assert kwargs["dt"] == pytest.approx(0.05)
