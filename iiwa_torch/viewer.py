@@ -256,9 +256,13 @@ class Viewer:
         self._player: threading.Thread | None = None
 
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self._build_scene(show_capsules, show_frames)
-        self._build_gui(show_capsules, show_frames)
-        self._draw(move_target=True)
+        try:
+            self._build_scene(show_capsules, show_frames)
+            self._build_gui(show_capsules, show_frames)
+            self._draw(move_target=True)
+        except BaseException:  # also Ctrl-C: the server's threads must not outlive a half-built viewer
+            self.server.stop()
+            raise
 
     # ------------------------------------------------------------------ state
     @property
@@ -621,8 +625,8 @@ class Viewer:
         if world.floor is not None:
             thick = 0.01 * reach
             nodes["floor"] = [scene.add_box(
-                "/world/floor", dimensions=(3 * reach, 3 * reach, thick), position=(0.0, 0.0, world.floor - thick / 2),
-                color=_OBSTACLE_COLOUR, opacity=0.25,
+                "/world/floor", dimensions=(3 * reach, 3 * reach, thick), position=(0.0, 0.0, world.floor - thick),
+                color=_OBSTACLE_COLOUR, opacity=0.15,
             )]  # fmt: skip
         if world.spheres is not None:
             for i, (c, r) in enumerate(zip(world.spheres[0].numpy(), world.spheres[1].tolist())):
@@ -758,9 +762,9 @@ class Viewer:
         for node in nodes:
             node.visible = visible
 
-    def _arm_text(self) -> str:
-        """The iiwa's arm angle and branch signs at the current angles (module doc of the closed form)."""
-        psi = math.degrees(float(analytic.iiwa_arm_angle(self.chain, self._q)))
+    def _arm_text(self, psi: float) -> str:
+        """The iiwa's arm angle ``psi`` (degrees) and branch signs at the current angles (module doc
+        of the closed form)."""
         theta = (self._q + self.chain.dh[:, 3].to(_F64))[[1, 3, 5]]
         signs = "".join("+" if math.sin(t) >= 0 else "-" for t in theta.tolist())
         return f"  \narm angle (deg): {psi:+.1f}, branch {signs}"
@@ -803,7 +807,13 @@ class Viewer:
             with self._quiet():
                 for slider, angle in zip(self.sliders, torch.rad2deg(self._q).tolist()):
                     slider.value = min(max(round(angle, 1), slider.min), slider.max)
-            arm = self._arm_text() if self._analytic == "iiwa" else ""
+            arm = ""
+            if self._analytic == "iiwa":
+                psi = math.degrees(float(analytic.iiwa_arm_angle(self.chain, self._q)))
+                arm = self._arm_text(psi)
+                if self._arm_angle is None:  # the slider follows the arm, so holding starts from here
+                    with self._quiet():
+                        self._psi_slider.value = psi
             self._readout_md.content = self.readout().text() + arm
             if gap is None:
                 self._clearance_md.content = "clearance: no capsule model"
@@ -837,23 +847,23 @@ def show(
     Ctrl-C, then stops the server and returns None; with ``block=False`` it returns the
     running :class:`Viewer` (call its ``stop()``).
     """
-    viewer = Viewer(
-        chain, q, host=host, port=port, world=world, capsules=capsules, show_capsules=show_capsules,
-        show_frames=show_frames,
-    )  # fmt: skip
-    try:
+    viewer, handed_over = None, False
+    try:  # Ctrl-C may come as soon as the page is served, while the scene is still being built
+        viewer = Viewer(
+            chain, q, host=host, port=port, world=world, capsules=capsules, show_capsules=show_capsules,
+            show_frames=show_frames,
+        )  # fmt: skip
         if path is not None:
             viewer.set_path(path, dt, goals)
-    except (TypeError, ValueError):
-        viewer.stop()
-        raise
-    if not block:
-        return viewer
-    try:
+        if not block:
+            handed_over = True
+            return viewer
         print(f"iiwa-torch viewer of {chain.name} at http://{host}:{port} (Ctrl-C to stop)", flush=True)
         threading.Event().wait()
     except KeyboardInterrupt:
-        pass
+        if not block:
+            raise
     finally:
-        viewer.stop()
+        if viewer is not None and not handed_over:
+            viewer.stop()
     return None
