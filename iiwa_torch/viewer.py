@@ -34,7 +34,7 @@ from ._checks import check_float_tensor, check_positive
 from .dh import Convention, DHChain
 from .ik import analytic
 
-__all__ = ["Readout", "TargetResult", "Viewer", "load_world", "show"]
+__all__ = ["OUTCOMES", "Readout", "TargetResult", "Viewer", "load_world", "show"]
 
 _F64 = torch.float64
 _LINK_COLOUR = (170, 175, 185)
@@ -301,13 +301,17 @@ class Viewer:
         """Smallest signed distance (m, negative in collision) at ``q (n,)`` (default the current
         angles) and the names of its pair (:func:`~iiwa_torch.collision.pairwise_clearance`);
         None without a capsule model."""
-        if self.capsules is None:
+        result = self._pairwise(self._q if q is None else q)
+        if result is None:
             return None
-        q = self._q if q is None else q
-        with torch.no_grad():
-            result = collision.pairwise_clearance(self.chain, q.to(_F64), self.world, self.capsules)
         k = int(result.distance.argmin())
         return float(result.distance[k]), result.pairs[k]
+
+    def _pairwise(self, q: torch.Tensor) -> collision.Clearances | None:
+        if self.capsules is None:
+            return None
+        with torch.no_grad():
+            return collision.pairwise_clearance(self.chain, q.to(_F64), self.world, self.capsules)
 
     # ------------------------------------------------------------------ IK
     def _closed_form(self) -> str | None:
@@ -775,11 +779,15 @@ class Viewer:
         points = self._origins(frames, end)
         mids, quats, _ = _segment_placement(points[self._segments], points[self._segments + 1])
         frame_quats = _quaternions(torch.cat([frames[:, :3, :3], end[None, :3, :3]]))
-        gap = self.clearance()
+        result = self._pairwise(self._q)
         hits = set()
-        if gap is not None:
-            result = collision.pairwise_clearance(self.chain, self._q, self.world, self.capsules)
-            hits = {name for pair, d in zip(result.pairs, result.distance.tolist()) if d < 0 for name in pair}
+        if result is not None:
+            distances = result.distance.tolist()
+            hits = {name for pair, d in zip(result.pairs, distances) if d < 0 for name in pair}
+            k = int(np.argmin(distances))
+            gap = (distances[k], result.pairs[k])
+        if move_target:  # the target is back at the end effector: nothing left to report
+            self.outcome, self.status = None, "drag the target gizmo"
         with self.server.atomic():
             for node, mid, quat in zip(self._links, mids, quats):
                 node.position, node.wxyz = mid, quat
@@ -815,7 +823,7 @@ class Viewer:
                     with self._quiet():
                         self._psi_slider.value = psi
             self._readout_md.content = self.readout().text() + arm
-            if gap is None:
+            if result is None:
                 self._clearance_md.content = "clearance: no capsule model"
             else:
                 state = "**COLLIDING**" if gap[0] < 0 else "clearance"
