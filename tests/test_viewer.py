@@ -170,6 +170,8 @@ def test_unreachable_target_keeps_the_last_configuration(chain, viewer, method):
     assert torch.equal(viewer.q, start)
     assert tuple(viewer._target_marker.color) == (220, 30, 30)  # red
     assert all(math.isfinite(v) for v in viewer.readout().xyz + viewer.readout().rpy_deg)
+    viewer.set_q(start)  # the target jumps back to the end effector: nothing to report
+    assert viewer.outcome is None and tuple(viewer._target_marker.color) == (150, 150, 150)
 
 
 def test_analytic_nearest_solution_is_the_current_one(chain, viewer):
@@ -180,6 +182,24 @@ def test_analytic_nearest_solution_is_the_current_one(chain, viewer):
     result = viewer.solve_target(chain.fk(Q_FREE))
     assert result.outcome == "reached"
     torch.testing.assert_close(viewer.q, Q_FREE, atol=1e-9, rtol=0)
+
+
+def test_analytic_target_of_a_6r_arm():
+    """The PUMA 560's closed form (Pieper) through the viewer: from q, the FK pose of q gives q back."""
+    puma = robots.puma560()
+    q = torch.tensor([0.3, -0.5, 0.4, 0.2, 0.6, -0.3], dtype=F64)
+    assert float(collision.clearance(puma, q)) > 0.01  # a configuration clear of itself and the floor
+    v = Viewer(puma, port=_free_port())
+    try:
+        assert v.ik_methods == ("gradient", "analytic")
+        v.set_ik("analytic")
+        v.set_q(q)
+        assert v.solve_target(puma.fk(q)).outcome == "reached", v.status
+        torch.testing.assert_close(v.q, q, atol=1e-9, rtol=0)
+        with pytest.raises(ValueError, match="arm angle"):
+            v.set_ik("analytic", arm_angle=0.3)
+    finally:
+        v.stop()
 
 
 @pytest.mark.parametrize(("branch", "psi_deg"), [(0, 40.0), (2, -70.0), (5, 120.0)])
