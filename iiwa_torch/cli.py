@@ -33,6 +33,7 @@ examples:
   iiwa-torch traj --from-q 0 30 0 -60 0 60 0 --to-pose 0.5 0.2 0.6 180 0 180 --gif line.gif
   iiwa-torch robots iiwa14
   iiwa-torch demo
+  iiwa-torch view --world '{"spheres": [[0.5, 0, 0.5, 0.1]]}' --capsules
 """
 
 
@@ -472,9 +473,65 @@ def _view(args: argparse.Namespace) -> int:
         raise _UsageError(f"the viewer needs the viewer extra: pip install 'iiwa-torch[viewer]' ({err})") from None
     chain = _chain(args)
     q = None if args.q is None else _q(chain, args.q, args.rad, "view")
+    world = None if args.world is None else viewer.load_world(args.world)
+    if args.policy is not None and args.path is not None:
+        raise _UsageError("give at most one of --policy and --path")
+    path, dt, goals = None, 0.05, None
+    if args.path is not None:
+        path, dt = _csv_path(chain, args.path)
+    elif args.policy is not None:
+        path, dt, goals = _policy_rollouts(chain, args.policy, args.goals, args.seed)
+        _say(f"{args.goals} rollouts of {args.policy}: pick one with the playback panel's path slider")
     _say(f"viewer of {chain.name} at http://{args.host}:{args.port} (Ctrl-C stops it)")
-    viewer.show(chain, q, host=args.host, port=args.port)
+    viewer.show(
+        chain, q, host=args.host, port=args.port, world=world, show_capsules=args.capsules, show_frames=args.frames,
+        path=path, dt=dt, goals=goals,
+    )  # fmt: skip
     return 0
+
+
+def _csv_path(chain: DHChain, file: str) -> tuple[torch.Tensor, float]:
+    """The joint path ``(T, n)`` and time step (s) of a CSV written by ``iiwa-torch traj --csv``."""
+    try:
+        with open(file, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as err:
+        raise _UsageError(f"--path {file}: {err.strerror}") from None
+    columns = [f"{name}_rad" for name in chain.joint_names]
+    if len(rows) < 2 or any(c not in rows[0] for c in ["t_s", *columns]):
+        raise _UsageError(f"--path {file}: expected 2+ rows with columns t_s, {', '.join(columns)} (traj --csv)")
+    try:
+        q = torch.tensor([[float(r[c]) for c in columns] for r in rows], dtype=_F64)
+        t = [float(r["t_s"]) for r in rows]
+    except ValueError as err:
+        raise _UsageError(f"--path {file}: {err}") from None
+    return q, (t[-1] - t[0]) / (len(t) - 1)
+
+
+def _policy_rollouts(chain: DHChain, policy: str, n_goals: int, seed: int):
+    """``(q (n_goals, T + 1, n), dt s, goal positions (n_goals, 3))`` of a trained policy's rollouts
+    on held-out goals (as ``train.evaluate`` runs them)."""
+    try:
+        from envs.sb3 import IiwaReachVecEnv
+        from train.evaluate import load_policy
+        from train.rollout import make_goal_set, policy_actor, rollout
+    except ModuleNotFoundError as err:
+        raise _UsageError(f"--policy needs {err.name}: pip install 'iiwa-torch[rl]'") from None
+    if n_goals < 1:
+        raise _UsageError(f"--goals must be a positive integer, got {n_goals}")
+    try:
+        model, vec_normalize, config = load_policy(Path(policy))
+    except FileNotFoundError as err:
+        raise _UsageError(f"--policy: {err}") from None
+    env_kwargs = config["hyperparams"].get("env_kwargs")
+    task = IiwaReachVecEnv(1, config["env_id"], **(env_kwargs or {})).task
+    if task.robot.name != chain.name:
+        robot = task.robot.name
+        raise _UsageError(f"--policy {policy} drives {robot}, not {chain.name}: use --robot {robot}")
+    goals = make_goal_set(config["env_id"], n_goals, seed, env_kwargs)
+    result = rollout(goals, policy_actor(model, vec_normalize))
+    q = torch.as_tensor(result.q, dtype=_F64).transpose(0, 1).contiguous()
+    return q, task.dt, goals.pose[:, :3, 3].to(_F64)
 
 
 def _workspace(args: argparse.Namespace) -> int:
@@ -573,6 +630,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--q", nargs="+", type=float, metavar="Q", help="first configuration (deg unless --rad)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument(
+        "--world", metavar="JSON",
+        help='obstacles: a JSON file or text, e.g. \'{"spheres": [[0.5, 0, 0.5, 0.1]]}\' (keys: docs/viewer.md)',
+    )  # fmt: skip
+    p.add_argument("--capsules", action="store_true", help="draw the robot's collision capsules")
+    p.add_argument("--frames", action="store_true", help="draw every link frame")
+    p.add_argument("--path", metavar="CSV", help="play back a joint path written by `iiwa-torch traj --csv`")
+    p.add_argument("--policy", metavar="DIR", help="play back a policy's rollouts, e.g. train/policies/ppo_iiwa_reach")
+    p.add_argument("--goals", type=int, default=4, help="--policy: number of held-out goals (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="--policy: goal-set seed (default 0)")
     p.set_defaults(func=_view, parser=p)
 
     p = sub.add_parser("workspace", parents=[common], help="reachable set: side-view envelope, manipulability map")
