@@ -254,7 +254,7 @@ def tune(args: argparse.Namespace) -> Path | None:
                      if value is not None)
     hp = load_hyperparams(args.algo, args.env_id, overrides)  # validates the env id and the overrides
     sweep = {"algo": args.algo, "env_id": args.env_id, "seed": args.seed, "metric": args.metric,
-             "overrides": {**overrides, "n_timesteps": hp["n_timesteps"], "n_envs": hp["n_envs"]}}
+             "overrides": {key: hp[key] for key in ("n_timesteps", "n_envs", *overrides)}}
     if args.storage is None:
         args.out.mkdir(parents=True, exist_ok=True)
     url = args.storage or f"sqlite:///{args.out.resolve() / 'study.db'}"
