@@ -265,8 +265,11 @@ def tune(args: argparse.Namespace) -> Path | None:
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         optuna.storages.fail_stale_trials(study)
     remaining = args.trials - len(study.get_trials(deepcopy=False, states=counted_states()))
-    print(f"study {study_name!r} in {shown}: {args.trials - remaining} of {args.trials} "
-          f"trials counted, running {max(remaining, 0)} here", flush=True)
+    running = len(study.get_trials(deepcopy=False, states=counted_states()[2:]))
+    note = f" ({running} running elsewhere, or left by a killed worker: failed {GRACE} s after its last " \
+        f"heartbeat)" if running else ""
+    print(f"study {study_name!r} in {shown}: {args.trials - remaining} of {args.trials} trials counted{note}, "
+          f"running {max(remaining, 0)} here", flush=True)
     if remaining > 0:
         command = "python -m train.tune " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         study.optimize(lambda trial: objective(trial, sweep, args.out, command, args.verbose), n_trials=remaining,
