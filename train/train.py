@@ -262,8 +262,8 @@ def wrap_normalize(venv, hp: dict[str, Any], gamma: float):
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m train.train", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--algo", choices=ALGOS, help="RL algorithm (required unless --resume)")
-    p.add_argument("--env", dest="env_id", help="env id, e.g. IiwaReach-v0 (required unless --resume)")
+    p.add_argument("--algo", choices=ALGOS, help="RL algorithm (required unless --config or --resume)")
+    p.add_argument("--env", dest="env_id", help="env id, e.g. IiwaReach-v0 (required unless --config or --resume)")
     p.add_argument("--out", required=True, type=Path, help="run directory (created; must be new unless --resume)")
     p.add_argument("--seed", type=int, help="seed of the algorithm and the envs (default 0, or the --config's)")
     p.add_argument("-n", "--timesteps", type=float, help="total env steps (default: n_timesteps of the YAML)")
