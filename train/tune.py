@@ -163,7 +163,7 @@ def open_storage(url: str):
             return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT, grace_period=GRACE)
     except ImportError as err:
         cause = err.__cause__ or err
-        raise ValueError(f"storage {shown}: its database driver is not installed ({cause})") from None
+        raise ValueError(f"storage {shown}: its database driver is not installed ({cause}): pip install it") from None
     except Exception as err:  # SQLAlchemy's parse, dialect and connection errors
         first = str(err).strip().splitlines()[0] if str(err).strip() else ""
         raise ValueError(f"storage {shown} cannot be opened ({type(err).__name__}: {hide_password(first)}); "
