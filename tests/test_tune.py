@@ -197,15 +197,3 @@ def test_missing_optuna_is_a_one_line_error(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "optuna", None)  # import optuna now raises ImportError
     assert "pip install 'iiwa-torch[rl]'" in error_of(capsys, tune_args(tmp_path, 1))
 
-
-def test_train_train_config_flag_errors(tmp_path, capsys):
-    config = tmp_path / "c.yaml"
-    config.write_text("algo: ppo\nenv_id: IiwaReach-v0\n")
-    for argv, message in (
-        (["--config", str(config), "--out", str(tmp_path / "r")], "missing key(s) ['seed', 'hyperparams']"),
-        (["--config", str(config), "--algo", "ppo", "--out", str(tmp_path / "r")], "drop --algo, --env"),
-        (["--config", str(config), "--resume", "--out", str(tmp_path / "r")], "drop --config"),
-    ):
-        with pytest.raises(SystemExit) as exc:
-            tr.main(argv)
-        assert exc.value.code == 2 and message in capsys.readouterr().err
