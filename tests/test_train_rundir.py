@@ -156,6 +156,19 @@ def test_a_failed_start_writes_nothing(tmp_path, capsys, extra, flags, message):
     assert not run.exists()
 
 
+@pytest.mark.parametrize("flags, message", [
+    ([], "missing key(s) ['seed', 'hyperparams']"),
+    (["--algo", "ppo"], "drop --algo, --env and --conf-file"),
+    (["--resume"], "drop --config"),
+])
+def test_bad_config_flag_is_a_one_line_error(tmp_path, capsys, flags, message):
+    config = tmp_path / "c.yaml"
+    config.write_text("algo: ppo\nenv_id: IiwaReach-v0\n")
+    run = tmp_path / "run"
+    assert message in error_of(capsys, tr.main, ["--config", str(config), "--out", str(run), *flags])
+    assert not run.exists()
+
+
 # ---------------------------------------------------------------------------- 16.12: bad configs and models
 def _edit_config(run: Path, edit) -> None:
     config = yaml.safe_load((run / "config.yaml").read_text())

@@ -2,6 +2,7 @@
 
     python -m train.train --algo ppo --env IiwaReach-v0 --seed 0 --out runs/ppo_reach
     python -m train.train --resume --out runs/ppo_reach          # after Ctrl-C or a kill
+    python -m train.train --config runs/tune/best.yaml --out runs/best   # a run's (or train.tune's) config
 
 Hyper-parameters come from ``train/config/<algo>.yaml`` (one block per env id, as in
 rl-baselines3-zoo); ``--timesteps``, ``--n-envs`` and ``--hyperparams key=value ...``
@@ -35,12 +36,16 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from train.run_dir import ALGOS, CheckpointError, RunDir, RunLocked, check_model, read_yaml
+from train.run_dir import ALGOS, CheckpointError, RunDir, RunLocked, check_model, read_yaml, validate_config
+
+if TYPE_CHECKING:
+    from train.callbacks import EvalAndCheckpoint
 
 CONFIG_DIR = Path(__file__).resolve().parent / "config"
 _TRAINER_KEYS = {
@@ -65,7 +70,13 @@ def load_hyperparams(algo: str, env_id: str, overrides: dict[str, Any] | None = 
         raise ValueError(f"{path}: expected a mapping of env ids to hyper-parameters, got {type(table).__name__}")
     if env_id not in table:
         raise ValueError(f"no hyper-parameters for env {env_id!r} in {path}; it has {sorted(table)}")
-    hp = {**table[env_id], **(overrides or {})}
+    return check_hyperparams({**table[env_id], **(overrides or {})}, env_id)
+
+
+def check_hyperparams(hp: dict[str, Any], env_id: str) -> dict[str, Any]:
+    """``hp`` with its step counts as ints and, for the joint features, the env's robot and ``max_step``
+    filled in; ValueError names a bad entry."""
+    hp = dict(hp)
     for key in ("n_envs", "n_timesteps", "eval_freq", "eval_goals", "checkpoint_freq"):
         value = hp.get(key)
         if isinstance(value, str):  # YAML 1.1 reads 1.5e7 (no exponent sign) as a string
@@ -251,13 +262,15 @@ def wrap_normalize(venv, hp: dict[str, Any], gamma: float):
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m train.train", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--algo", choices=ALGOS, help="RL algorithm (required unless --resume)")
-    p.add_argument("--env", dest="env_id", help="env id, e.g. IiwaReach-v0 (required unless --resume)")
+    p.add_argument("--algo", choices=ALGOS, help="RL algorithm (required unless --config or --resume)")
+    p.add_argument("--env", dest="env_id", help="env id, e.g. IiwaReach-v0 (required unless --config or --resume)")
     p.add_argument("--out", required=True, type=Path, help="run directory (created; must be new unless --resume)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the algorithm and the envs (default 0)")
+    p.add_argument("--seed", type=int, help="seed of the algorithm and the envs (default 0, or the --config's)")
     p.add_argument("-n", "--timesteps", type=float, help="total env steps (default: n_timesteps of the YAML)")
     p.add_argument("--n-envs", type=int, help="parallel envs (default: n_envs of the YAML)")
     p.add_argument("--conf-file", type=Path, help="YAML of hyper-parameters (default train/config/<algo>.yaml)")
+    p.add_argument("--config", type=Path, help="a run's config.yaml (e.g. train.tune's best trial): train it anew, "
+                   "with the overrides of --timesteps, --n-envs, --seed and --hyperparams")
     p.add_argument("--hyperparams", "-params", nargs="+", default=[], metavar="KEY=VALUE",
                    help="override hyper-parameters, values parsed as YAML (e.g. learning_rate=3e-4)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
@@ -268,23 +281,35 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def make_config(algo: str, env_id: str, seed: int, hyperparams: dict[str, Any], command: str) -> dict[str, Any]:
+    """A run's config (``config.yaml``): algo, env id, seed, checked hyper-parameters, command and commit."""
+    return {
+        "algo": algo,
+        "env_id": env_id,
+        "seed": seed,
+        "hyperparams": check_hyperparams(hyperparams, env_id),
+        "command": command,
+        "commit": git_commit(),
+    }
+
+
 def _config_from_args(args: argparse.Namespace) -> dict[str, Any]:
-    if args.algo is None or args.env_id is None:
-        raise ValueError("--algo and --env are required for a new run (or use --resume)")
     overrides = parse_overrides(args.hyperparams)
     if args.timesteps is not None:
         overrides["n_timesteps"] = args.timesteps
     if args.n_envs is not None:
         overrides["n_envs"] = args.n_envs
+    command = "python -m train.train " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    if args.config is not None:
+        if args.algo is not None or args.env_id is not None or args.conf_file is not None:
+            raise ValueError("--config names the algo, env and hyper-parameters: drop --algo, --env and --conf-file")
+        base = validate_config(read_yaml(args.config), str(args.config))
+        seed = base["seed"] if args.seed is None else args.seed
+        return make_config(base["algo"], base["env_id"], seed, {**base["hyperparams"], **overrides}, command)
+    if args.algo is None or args.env_id is None:
+        raise ValueError("--algo and --env are required for a new run (or use --config or --resume)")
     hp = load_hyperparams(args.algo, args.env_id, overrides, args.conf_file)
-    return {
-        "algo": args.algo,
-        "env_id": args.env_id,
-        "seed": args.seed,
-        "hyperparams": hp,
-        "command": "python -m train.train " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "commit": git_commit(),
-    }
+    return make_config(args.algo, args.env_id, 0 if args.seed is None else args.seed, hp, command)
 
 
 def _sigterm_as_interrupt(signum, frame):
@@ -297,7 +322,7 @@ def _algo_class(algo: str):
     return {"ppo": PPO, "sac": SAC}[algo]
 
 
-def _new_model(run: RunDir, config: dict[str, Any], args: argparse.Namespace):
+def new_model(run: RunDir, config: dict[str, Any], verbose: int = 0):
     """A fresh model on fresh envs; raises on an unknown hyper-parameter before anything is written.
     For HER it raises ``learning_starts`` to the first episodes of every env (recorded in ``config``)."""
     hp, algo, seed = config["hyperparams"], config["algo"], config["seed"]
@@ -311,7 +336,7 @@ def _new_model(run: RunDir, config: dict[str, Any], args: argparse.Namespace):
     venv = wrap_normalize(venv, hp, kwargs.get("gamma", 0.99))
     policy = kwargs.pop("policy", hp["policy"])
     try:
-        return _algo_class(algo)(policy, venv, seed=seed, device="cpu", verbose=args.verbose,
+        return _algo_class(algo)(policy, venv, seed=seed, device="cpu", verbose=verbose,
                                  tensorboard_log=str(run.path / "tb"), **kwargs)
     except TypeError as err:  # a nested option (policy_kwargs, her) the policy or buffer does not take
         raise ValueError(f"hyper-parameters rejected by {algo.upper()}: {err}") from None
@@ -327,7 +352,7 @@ def _load_file(path: Path, load):
         raise CheckpointError(f"{path} is unreadable ({type(err).__name__}: {err})") from None
 
 
-def _load_checkpoint(run: RunDir, ckpt: Path, config: dict[str, Any], args: argparse.Namespace):
+def _load_checkpoint(run: RunDir, ckpt: Path, config: dict[str, Any], verbose: int):
     """``(model, TrainClock)`` from one checkpoint folder; ``CheckpointError`` names a damaged file."""
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -343,23 +368,23 @@ def _load_checkpoint(run: RunDir, ckpt: Path, config: dict[str, Any], args: argp
     if (ckpt / "vecnormalize.pkl").exists():
         venv = _load_file(ckpt / "vecnormalize.pkl", lambda p: VecNormalize.load(str(p), venv))
     model = _load_file(ckpt / "model.zip", lambda p: _algo_class(algo).load(
-        p, env=venv, device="cpu", tensorboard_log=str(run.path / "tb"), verbose=args.verbose))
+        p, env=venv, device="cpu", tensorboard_log=str(run.path / "tb"), verbose=verbose))
     if (ckpt / "replay_buffer.pkl").exists():
         _load_file(ckpt / "replay_buffer.pkl", model.load_replay_buffer)
     return model, TrainClock(elapsed=state["elapsed"], evaluations=state["evaluations"])
 
 
-def _restore(run: RunDir, config: dict[str, Any], args: argparse.Namespace):
+def _restore(run: RunDir, config: dict[str, Any], verbose: int):
     """``(model, TrainClock)`` from the newest intact checkpoint, saying which damaged ones it skipped."""
     from train.callbacks import TrainClock
 
     checkpoints = run.checkpoints()
     if not checkpoints:
         print(f"resuming {run.path}: no checkpoint yet, starting from step 0", flush=True)
-        return _new_model(run, config, args), TrainClock()
+        return new_model(run, config, verbose), TrainClock()
     for ckpt in checkpoints:
         try:
-            model, clock = _load_checkpoint(run, ckpt, config, args)
+            model, clock = _load_checkpoint(run, ckpt, config, verbose)
         except CheckpointError as err:
             print(f"checkpoint {ckpt.name} is damaged: {err}; trying an older one", file=sys.stderr, flush=True)
             continue
@@ -412,40 +437,70 @@ def _check_new(run: RunDir) -> None:
         raise FileExistsError(f"{run.path} exists and is not empty: pick a new --out, or pass --resume")
 
 
-def train(args: argparse.Namespace) -> Path:
-    """Run (or resume) a training; returns the run directory. Everything is validated (and a new run's
-    model built) before the first write; the run directory is locked while this process trains in it."""
-    import torch
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM stopped the training at env step ``step``; ``checkpoint`` holds that state."""
 
+    def __init__(self, step: int, checkpoint: Path):
+        super().__init__(f"interrupted at step {step}")
+        self.step, self.checkpoint = step, checkpoint
+
+
+def run_training(run: RunDir, config: dict[str, Any], model=None, *, verbose: int = 0, progress_bar: bool = False,
+                 callback: Callable[..., EvalAndCheckpoint] | None = None) -> EvalAndCheckpoint:
+    """Train ``model`` (a fresh one from ``new_model``) in the new run directory ``run``, or, with
+    ``model=None``, resume the run there from its newest intact checkpoint; returns the callback.
+
+    ``callback(run, hp, env_id, env_kwargs, clock)`` builds the evaluation-and-checkpoint callback
+    (default ``EvalAndCheckpoint``). If it stops the training early, a checkpoint is saved (so
+    ``--resume`` can continue) instead of the final model. Raises ``Interrupted`` on Ctrl-C or SIGTERM
+    after saving a checkpoint, and ``RunLocked`` if another process trains in ``run``.
+    """
     from train.callbacks import EvalAndCheckpoint, TrainClock
 
-    torch.set_num_threads(args.threads)
-    run = RunDir(args.out)
-    model = None
-    if args.resume:
-        config = run.read_config()
-        if args.timesteps is not None:
-            config["hyperparams"]["n_timesteps"] = int(args.timesteps)
-    else:
-        config = _config_from_args(args)
-        _check_new(run)
-        model = _new_model(run, config, args)
     with run.lock():
-        if args.resume:
-            model, clock = _restore(run, config, args)
+        if model is None:
+            model, clock = _restore(run, config, verbose)
         else:
             _check_new(run)  # again under the lock: another process may have started here meanwhile
             run.write_config(config)
             clock = TrainClock()
         run.write_json("evaluations.json", clock.evaluations)
         hp = config["hyperparams"]
-        callback = EvalAndCheckpoint(run, hp, config["env_id"], dict(hp.get("env_kwargs") or {}), clock)
-        if not _learn(model, callback, hp["n_timesteps"], args.progress_bar):
-            path = callback.checkpoint()
-            print(f"interrupted at step {model.num_timesteps}: checkpoint {path}; continue with "
-                  f"python -m train.train --resume --out {run.path}", flush=True)
-            raise SystemExit(130)
-        _finish(run, model, callback)
+        cb = (callback or EvalAndCheckpoint)(run, hp, config["env_id"], dict(hp.get("env_kwargs") or {}), clock)
+        if not _learn(model, cb, hp["n_timesteps"], progress_bar):
+            raise Interrupted(model.num_timesteps, cb.checkpoint())
+        if model.num_timesteps < hp["n_timesteps"]:
+            path = cb.checkpoint()
+            print(f"stopped by the callback at step {model.num_timesteps}: checkpoint {path}", flush=True)
+        else:
+            _finish(run, model, cb)
+    return cb
+
+
+def train(args: argparse.Namespace) -> Path:
+    """Run (or resume) a training; returns the run directory. Everything is validated (and a new run's
+    model built) before the first write; the run directory is locked while this process trains in it."""
+    import torch
+
+    torch.set_num_threads(args.threads)
+    run = RunDir(args.out)
+    model = None
+    if args.resume:
+        if args.config is not None:
+            raise ValueError("--resume continues the config.yaml in --out: drop --config")
+        config = run.read_config()
+        if args.timesteps is not None:
+            config["hyperparams"]["n_timesteps"] = int(args.timesteps)
+    else:
+        config = _config_from_args(args)
+        _check_new(run)
+        model = new_model(run, config, args.verbose)
+    try:
+        run_training(run, config, model, verbose=args.verbose, progress_bar=args.progress_bar)
+    except Interrupted as stop:
+        print(f"interrupted at step {stop.step}: checkpoint {stop.checkpoint}; continue with "
+              f"python -m train.train --resume --out {run.path}", flush=True)
+        raise SystemExit(130) from None
     return run.path
 
 
