@@ -30,7 +30,9 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
     nj, g = task.arm.n_joints, task.goals.size
     goal_high = np.full(g, 1.0, dtype=np.float32)
     goal_high[:3] = task.arm.position_bound
-    obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), goal_high])
+    # the obstacle block: flags, cos and sin in [0, 1] or [-1, 1], positions and sizes within reach
+    block_high = np.full(task.transport.obstacle_size, max(1.0, task.arm.position_bound), dtype=np.float32)
+    obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), block_high, goal_high])
     observation = spaces.Dict(
         {
             "observation": spaces.Box(-obs_high, obs_high, dtype=np.float32),
@@ -41,10 +43,12 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
     return observation, spaces.Box(-1.0, 1.0, shape=(nj,), dtype=np.float32)
 
 
-def _info(task: ReachTask, success, distance, angle) -> dict[str, Any]:
+def _info(task: ReachTask, success, distance, angle, collision=None) -> dict[str, Any]:
     info = {"is_success": success, "distance": distance}
     if task.goal_kind is GoalKind.POSE:
         info["orientation_error"] = angle
+    if collision is not None:
+        info["collision"] = collision
     return info
 
 
@@ -149,7 +153,8 @@ class IiwaReachEnv(gym.Env):
         tr = self.task.reset_transition(self._state)
         obs = {k: v[0] for k, v in tr.obs.items()}
         angle = None if tr.angle is None else float(tr.angle[0])
-        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), angle)
+        collision = None if tr.collision is None else bool(tr.collision[0])
+        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), angle, collision)
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -164,10 +169,10 @@ class IiwaReachEnv(gym.Env):
         floats, flags = (part.numpy(force=True)[:, 0] for part in io.pack(self._state, res))
         d = io.packed_size
         reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
-        term, trunc, success = flags.tolist()
+        term, trunc, success, *collision = flags.tolist()  # collision: one flag when checked, else none
         if self.render_mode == "human":
             self.render()
-        info = _info(self.task, success, dist, angle[0] if angle else None)
+        info = _info(self.task, success, dist, angle[0] if angle else None, collision[0] if collision else None)
         return io.split(floats[:d]), reward, term, trunc, info
 
     @property
@@ -179,8 +184,9 @@ class IiwaReachEnv(gym.Env):
         return self._state.q[:, 0].double().cpu().numpy()
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
-        return self.task.goals.compute_reward(achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; the collision
+        penalty is taken from ``info`` (:meth:`envs.core.ReachTask.compute_reward`)."""
+        return self.task.compute_reward(achieved_goal, desired_goal, info)
 
     def render(self):
         """``rgb_array``: an ``(H, W, 3)`` uint8 image of the arm, its end effector and the goal."""
@@ -274,7 +280,7 @@ class IiwaReachVectorEnv(VectorEnv):
             super().reset(seed=seed)
         self._state = state
         tr = self.task.reset_transition(self._state)
-        return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle)
+        return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle, tr.collision)
 
     @torch.inference_mode()
     def step(self, actions):
@@ -283,20 +289,22 @@ class IiwaReachVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         a = self.task.transport.check_action(actions, self.num_envs)
         self._state, tr = self.task.step_autoreset(self._state, a)
-        info = _info(self.task, tr.success, tr.distance, tr.angle)
+        info = _info(self.task, tr.success, tr.distance, tr.angle, tr.collision)
         if tr.final_index.size:
             final = np.full(self.num_envs, None, dtype=object)
             final[tr.final_index] = self.task.transport.obs_per_env(tr.final_obs)  # finished environments only
             done = tr.terminated | tr.truncated
             info["final_obs"], info["_final_obs"] = final, done
             # the finished step's info (already in ``info``), under the name SyncVectorEnv uses
-            info["final_info"] = {**_info(self.task, tr.success, tr.distance, tr.angle), "_is_success": done}
+            info["final_info"] = {**_info(self.task, tr.success, tr.distance, tr.angle, tr.collision),
+                                  "_is_success": done}
             info["_final_info"] = done
         return tr.obs, tr.reward, tr.terminated, tr.truncated, info
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
-        return self.task.goals.compute_reward(achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; the collision
+        penalty is taken from ``info`` (:meth:`envs.core.ReachTask.compute_reward`)."""
+        return self.task.compute_reward(achieved_goal, desired_goal, info)
 
     def render(self):
         """``rgb_array``: a tuple with one image per environment (slow for large ``num_envs``)."""

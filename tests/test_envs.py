@@ -23,7 +23,7 @@ from iiwa_torch.robots import iiwa14
 IIWA14_SPEED_DEG = np.array([85, 85, 100, 75, 130, 135, 135], dtype=np.float64)
 IIWA14_LIMIT_DEG = np.array([170, 120, 170, 120, 170, 120, 175], dtype=np.float64)
 # Options that make episodes end early by success too, not only by time-out.
-EASY = {"distance_threshold": 0.05, "start": "random", "orientation_threshold": 3.0}
+EASY = {"distance_threshold": 0.05, "start": "random", "orientation_threshold": 3.0, "collision": "off"}
 _CHAIN = iiwa14()
 
 
@@ -52,7 +52,7 @@ def _assert_obs_equal(a: dict, b: dict) -> None:
 
 # ------------------------------------------------------------------ registration and checkers
 def test_ids_registered_and_made_three_ways():
-    assert envs.ENV_IDS == ("IiwaReach-v0", "IiwaReachSparse-v0", "IiwaReachPose-v0")
+    assert envs.ENV_IDS == ("IiwaReach-v0", "IiwaReachSparse-v0", "IiwaReachPose-v0", "IiwaReachObstacles-v0")
     for env_id in envs.ENV_IDS:
         assert gym.spec(env_id).max_episode_steps == envs.MAX_EPISODE_STEPS
         assert isinstance(gym.make(env_id).unwrapped, IiwaReachEnv)
