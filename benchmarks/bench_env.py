@@ -23,7 +23,8 @@ batched ``iiwa_torch.collision.clearance`` call per step), except the one marked
   1.4.2 fails with MuJoCo >= 3.3 on this machine).
 
 The vector env's target, 2M env-steps/s at N = 65,536 on 2 cores with collisions checked,
-is read on the 2-thread rows of each wait policy (``--quick`` times N = 65,536 too, briefly) (this machine's figures and advice: docs/envs.md).
+is read on the 2-thread rows of each wait policy (``--quick`` times N = 65,536 too, briefly;
+this machine's figures and advice: docs/envs.md).
 The two ratios with targets (single env / PandaReach-v3, SB3 VecEnv / vector env at N = 256)
 are measured again with the two sides timed in alternation, 7 rounds of 0.5 s each, and
 their median reported: on a shared machine a change of load then hits both sides.

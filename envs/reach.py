@@ -57,9 +57,10 @@ class IiwaReachEnv(gym.Env):
 
     ## Description
 
-    A kinematic 7-joint arm (no dynamics, no collisions): each step integrates the
-    commanded joint velocities over ``dt``, clamps the joints to their limits and computes
-    the end effector by forward kinematics. Goals are the forward kinematics of random
+    A kinematic 7-joint arm (no dynamics): each step integrates the commanded joint
+    velocities over ``dt``, clamps the joints to their limits, computes the end effector by
+    forward kinematics and checks collisions (floor, self, obstacles; ``info["collision"]``,
+    see docs/envs.md). Goals are the forward kinematics of random collision-free
     configurations within the joint limits, so every goal is reachable. The observation
     follows panda-gym's goal-conditioned layout, so hindsight experience replay (HER)
     works out of the box. The step is :meth:`envs.core.ReachTask.step`, the same batched
@@ -106,7 +107,8 @@ class IiwaReachEnv(gym.Env):
 
     ## Episode End
 
-    Terminated when successful (``terminate_on_success=True``, as panda-gym). Truncated
+    Terminated when successful (``terminate_on_success=True``, as panda-gym) or, with
+    ``collision="terminate"`` (default), on a collision. Truncated
     after ``max_episode_steps`` (50 in the registered ids, through gymnasium's
     ``TimeLimit``): from home, a straight full-speed joint move reaches any configuration
     within the limits in at most 48 steps (2.4 s, joint 4's 180 deg at 75 deg/s), so every
@@ -120,7 +122,9 @@ class IiwaReachEnv(gym.Env):
     ``iiwa14()``), ``goal`` (``"position"``/``"pose"``), ``reward`` (``"dense"``/``"sparse"``),
     ``start`` (``"home"``/``"random"``), ``dt`` (0.05 s), ``distance_threshold`` (0.01 m),
     ``orientation_threshold`` (0.1 rad), ``orientation_weight`` (0.1 m/rad),
-    ``goal_min_distance`` (0 m), ``max_episode_steps`` (the env's own limit, default
+    ``goal_min_distance`` (0 m), ``floor`` (0 m; ``None``: none), ``collision``
+    (``"terminate"``/``"penalize"``/``"off"``), ``collision_penalty`` (1.0), ``obstacles`` (0;
+    4 in ``IiwaReachObstacles-v0``), ``max_episode_steps`` (the env's own limit, default
     ``None``: ``gymnasium.make`` adds ``TimeLimit`` instead), ``terminate_on_success``,
     ``home``, ``dtype`` (float32), ``device``. ``render_mode``: ``"rgb_array"`` (matplotlib,
     an ``(H, W, 3)`` uint8 image) or ``"human"`` (a matplotlib window).

@@ -122,7 +122,8 @@ class IiwaReachVecEnv(VecEnv):
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
         """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; the collision
-        penalty is taken from ``info`` (per-env dicts, as HER passes them; :meth:`envs.core.ReachTask.compute_reward`)."""
+        penalty is taken from ``info`` (per-env dicts, as HER passes them;
+        :meth:`envs.core.ReachTask.compute_reward`)."""
         return self.task.compute_reward(achieved_goal, desired_goal, info)
 
     def close(self) -> None:

@@ -96,7 +96,7 @@ def test_penalize_keeps_the_episode_going():
     steps = _drive_into_floor(gym.make("IiwaReach-v0", collision="penalize", collision_penalty=0.5), steps=40)
     hits = [s for s in steps if s[4]["collision"]]
     assert hits and not any(s[2] for s in steps)
-    for obs, reward, *_, info, q in hits:
+    for _, reward, *_, info, q in hits:
         assert reward == pytest.approx(-info["distance"] - 0.5, abs=1e-6)
         assert floor_clearance(q[None])[0] < 0.005
 
