@@ -23,7 +23,7 @@ from iiwa_torch.robots import iiwa14
 IIWA14_SPEED_DEG = np.array([85, 85, 100, 75, 130, 135, 135], dtype=np.float64)
 IIWA14_LIMIT_DEG = np.array([170, 120, 170, 120, 170, 120, 175], dtype=np.float64)
 # Options that make episodes end early by success too, not only by time-out.
-EASY = {"distance_threshold": 0.05, "start": "random", "orientation_threshold": 3.0, "collision": "off"}
+EASY = {"distance_threshold": 0.05, "start": "random", "orientation_threshold": 3.0}
 _CHAIN = iiwa14()
 
 
@@ -79,8 +79,12 @@ def test_gymnasium_and_sb3_checkers(env_id):
 @pytest.mark.parametrize("env_id", ["IiwaReach-v0", "IiwaReachPose-v0"])
 def test_vector_env_matches_single_envs_through_resets(env_id):
     n, steps, seed = 3, 130, 7
-    vec = gym.make_vec(env_id, num_envs=n, **EASY)
-    singles = [gym.make(env_id, **EASY) for _ in range(n)]
+    # Pose goals without collision checks: with them, these seeds draw goals whose orientation
+    # error nears pi, where the angle's asin (slope -> inf) turns the kernels' float32 rounding
+    # into 4e-5 rad; test_envs_world compares single, vector and SB3 envs with collisions on.
+    options = {**EASY, "collision": "off"} if env_id == "IiwaReachPose-v0" else EASY
+    vec = gym.make_vec(env_id, num_envs=n, **options)
+    singles = [gym.make(env_id, **options) for _ in range(n)]
     obs, _ = vec.reset(seed=seed)
     for i, e in enumerate(singles):
         _assert_obs_equal({k: v[i] for k, v in obs.items()}, e.reset(seed=seed + i)[0])
