@@ -272,10 +272,11 @@ class ReachTask:
             def draw_start(idx: Tensor, r: int) -> tuple[Tensor, Tensor]:
                 u = uniform(key[idx], episode[idx], 0 if r == 0 else _START_REDRAWS + r * nj, nj, self.dtype)
                 q = arm.configurations(u)  # (m, nj)
-                free = torch.ones(len(idx), dtype=torch.bool) if world is None else world.clearance(q) > 0
-                return free, q.T
+                if world is None:
+                    return torch.ones(len(idx), dtype=torch.bool, device=q.device), q.T
+                return world.clearance(q) > 0, q.T
 
-            start = _first_found(n, draw_start, lambda: arm.home[:, None].expand(nj, n)).T
+            start = _first_found(n, draw_start, lambda: arm.home[:, None].expand(nj, n), self.device).T
         blank = start.new_zeros(0, n)
         obstacles = blank if world is None or not world.slots else world.draw(key, episode, start, _OBSTACLE_DRAWS,
                                                                               _ROUNDS)
@@ -292,18 +293,18 @@ class ReachTask:
                 both = torch.cat([start[:, None], configs], 1)
                 goals = self.goal_of(both.reshape(-1, nj).T).view(-1, m, k + 1)
                 start_goal["all"], goals = goals[:, :, 0], goals[:, :, 1:]
-            ok = torch.ones(m, k, dtype=torch.bool) if world is None else \
+            ok = torch.ones(m, k, dtype=torch.bool, device=goals.device) if world is None else \
                 world.clearance(configs, obstacles[:, idx] if world.slots else None, extra=1) > 0
-            rank = -torch.arange(k, dtype=goals.dtype)
+            rank = -torch.arange(k, dtype=goals.dtype, device=goals.device)
             if far:  # the first valid candidate far enough, else the farthest valid: no loop, no sync
                 d = torch.linalg.vector_norm(goals[:3] - start_goal["all"][:3, idx, None], dim=0)  # (m, k)
                 rank = torch.where(d >= self.goal_min_distance, rank, d - 1e9)
             score = torch.where(ok, rank, -math.inf)
-            return ok.any(-1), goals[:, torch.arange(m), score.argmax(-1)]
+            return ok.any(-1), goals[:, torch.arange(m, device=goals.device), score.argmax(-1)]
 
         # the last resort (never seen: 32 rounds of collisions): the start's own goal
-        goal = _first_found(n, draw_goal, lambda: start_goal["all"]) if world is not None \
-            else draw_goal(torch.arange(n), 0)[1]
+        goal = _first_found(n, draw_goal, lambda: start_goal["all"], self.device) if world is not None \
+            else draw_goal(torch.arange(n, device=self.device), 0)[1]
         q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
         return ReachState(
             q=q,
@@ -396,11 +397,11 @@ class ReachTask:
         return state, tr._replace(final_index=idx.numpy(force=True), final_obs=io.split(final.numpy(force=True).T))
 
 
-def _first_found(n: int, draw, fallback) -> Tensor:
+def _first_found(n: int, draw, fallback, device: torch.device) -> Tensor:
     """Rounds of ``draw(idx, r) -> (found (m,) bool, values (c, m))`` for the environments ``idx``
     still without a value (round 0: all ``n``), up to ``_ROUNDS``; the rest take the columns of
     ``fallback() (c, n)``. -> ``(c, n)``."""
-    pending = torch.arange(n)
+    pending = torch.arange(n, device=device)
     found, values = draw(pending, 0)
     out = values.new_empty(values.shape[0], n)
     for r in range(1, _ROUNDS + 1):
