@@ -5,7 +5,12 @@
 Measured in the same run, each with pre-drawn uniform random actions and a reset when an
 episode ends (the vector envs reset themselves):
 
+Every iiwa row checks collisions every step (the default: floor and self-collision, one
+batched ``iiwa_torch.collision.clearance`` call per step), except the one marked
+``collision='off'`` (the kinematic step alone, for comparison):
+
 - ``IiwaReach-v0`` through ``gymnasium.make`` (one arm per call, with gymnasium's wrappers);
+- ``IiwaReachObstacles-v0`` (1-4 random spheres or boxes per env) as a single env and a vector env;
 - ``IiwaReachVectorEnv`` (``gymnasium.make_vec``) at N = 1, 256, 4,096, 65,536 arms per call;
   the largest N also on 1 thread, and on 2 threads in child processes with OpenMP's default
   wait policy and with ``OMP_WAIT_POLICY=ACTIVE`` (the policy is read once, when torch
@@ -17,8 +22,9 @@ episode ends (the vector envs reset themselves):
   if installed: ``pip install panda-gym gymnasium-robotics "mujoco<3.3"`` (gymnasium-robotics
   1.4.2 fails with MuJoCo >= 3.3 on this machine).
 
-The vector env's target, 5M env-steps/s at N = 65,536 on 2 cores, is read on the 2-thread
-rows of each wait policy (this machine's figures and advice: docs/envs.md).
+The vector env's target, 2M env-steps/s at N = 65,536 on 2 cores with collisions checked,
+is read on the 2-thread rows of each wait policy (``--quick`` times N = 65,536 too, briefly;
+this machine's figures and advice: docs/envs.md).
 The two ratios with targets (single env / PandaReach-v3, SB3 VecEnv / vector env at N = 256)
 are measured again with the two sides timed in alternation, 7 rounds of 0.5 s each, and
 their median reported: on a shared machine a change of load then hits both sides.
@@ -88,8 +94,8 @@ def alternating_ratios(slow, fast, rounds: int = 7) -> list[float]:
     return [timeit(slow, min_time=0.5, repeats=1) / timeit(fast, min_time=0.5, repeats=1) for _ in range(rounds)]
 
 
-def vector_runner(n: int):
-    vec = gym.make_vec("IiwaReach-v0", num_envs=n)
+def vector_runner(n: int, env_id: str = "IiwaReach-v0", **options):
+    vec = gym.make_vec(env_id, num_envs=n, **options)
     vec.reset(seed=0)
     return batched_runner(vec.step, n)
 
@@ -141,7 +147,7 @@ def main() -> None:
         min_time, repeats = args.largest_only
         print(timeit(vector_runner(VECTOR_SIZES[-1]), min_time=min_time, repeats=int(repeats)))
         return
-    vector_sizes = [n for n in VECTOR_SIZES if n <= 4_096] if args.quick else VECTOR_SIZES
+    vector_sizes = VECTOR_SIZES
     timing = {"min_time": 0.05, "repeats": 3} if args.quick else {"min_time": 1.0, "repeats": 5}
     warnings.filterwarnings("ignore")
     results = []  # (name, arms per call, seconds per call)
@@ -161,6 +167,11 @@ def main() -> None:
     raw = {}
     for n in vector_sizes:
         raw[n] = record("IiwaReachVectorEnv (make_vec)", n, vector_runner(n))
+    unchecked = record("IiwaReachVectorEnv (make_vec), collision='off'", vector_sizes[-1],
+                       vector_runner(vector_sizes[-1], collision="off"))
+    record("IiwaReachObstacles-v0 (gymnasium.make)", 1, single_env_runner(gym.make("IiwaReachObstacles-v0")))
+    obstacles = {n: record("IiwaReachObstacles-v0 (make_vec)", n, vector_runner(n, "IiwaReachObstacles-v0"))
+                 for n in (256, 4_096)}
     largest = {}  # seconds per step at the largest N: 1 thread; 2 threads with other wait policies
     if not args.quick:
         threads = torch.get_num_threads()
@@ -199,11 +210,13 @@ def main() -> None:
         sb3_rounds = alternating_ratios(sb3_runners[256], batched_runner(vec.step, 256))
         print("SB3 VecEnv / vector env at N=256, alternating rounds:", ", ".join(f"{r:.2f}" for r in sb3_rounds))
     checks = {
-        "single env >= 10x PandaReach-v3 steps/s": None if panda is None else panda / single,
+        "single env >= 5x PandaReach-v3 steps/s (collisions checked)": None if panda is None else panda / single,
         "single env vs PandaReach-v3, median of 7 alternating rounds": statistics.median(rounds) if rounds else None,
-        "vector env env-steps/s at N=65,536, 2 threads, OMP_WAIT_POLICY=PASSIVE": (
-            65_536 / raw[65_536] if 65_536 in raw else None
+        "vector env env-steps/s at N=65,536, 2 threads, OMP_WAIT_POLICY=PASSIVE, collisions checked (>= 2M)": (
+            65_536 / raw[65_536]
         ),
+        "the same with collision='off'": vector_sizes[-1] / unchecked,
+        "IiwaReachObstacles-v0 vector env env-steps/s at N=4,096": 4_096 / obstacles[4_096],
         **{f"vector env env-steps/s at N=65,536, {setting}": 65_536 / s for setting, s in largest.items()},
         "SB3 VecEnv / vector env time per step at N=256 (target <= 2)": sb3[256] / raw[256],
         "SB3 / vector env at N=256, median of 7 alternating rounds": (

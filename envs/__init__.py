@@ -25,6 +25,7 @@ _VARIANTS = {
     "IiwaReach-v0": {"goal": "position", "reward": "dense"},
     "IiwaReachSparse-v0": {"goal": "position", "reward": "sparse"},
     "IiwaReachPose-v0": {"goal": "pose", "reward": "dense"},
+    "IiwaReachObstacles-v0": {"goal": "position", "reward": "dense", "obstacles": 4},
 }
 
 #: Every registered environment id.

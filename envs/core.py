@@ -33,12 +33,17 @@ from .goals import GoalKind, ReachGoals, RewardKind, enum_option
 from .robot import JointVelocityArm
 from .seeding import keys_from_seeds, uniform
 from .transport import Transition, Transport
+from .world import ObstacleWorld
 
-__all__ = ["StartKind", "ReachState", "StepResult", "ReachTask"]
+__all__ = ["StartKind", "CollisionKind", "ReachState", "StepResult", "ReachTask"]
 
 Tensor = torch.Tensor
 
 _GOAL_CANDIDATES = 8  # goals drawn per reset when a minimum goal distance is asked for
+_FREE_CANDIDATES = 2  # goals drawn per round when they must be collision-free (the floor rules out ~11%)
+_ROUNDS = 32  # rounds of draws for a collision-free start, goal or obstacle before the fallback
+# Where in each (key, episode) counter stream the redraws of later rounds and the obstacles start
+_START_REDRAWS, _GOAL_REDRAWS, _OBSTACLE_DRAWS = 1 << 24, 2 << 24, 3 << 24
 
 
 class StartKind(str, Enum):
@@ -46,6 +51,17 @@ class StartKind(str, Enum):
 
     HOME = "home"
     RANDOM = "random"
+
+
+class CollisionKind(str, Enum):
+    """What a step into the floor, an obstacle or the arm itself does (``info["collision"]``):
+    ``terminate`` the episode (default) or only ``penalize`` it (both subtract
+    ``collision_penalty`` from that step's reward); ``off``: nothing is checked (the kinematic
+    task of the first versions: goals anywhere in the joint limits, no ``info["collision"]``)."""
+
+    TERMINATE = "terminate"
+    PENALIZE = "penalize"
+    OFF = "off"
 
 
 # ---------------------------------------------------------------------------- state
@@ -60,7 +76,8 @@ class ReachState(NamedTuple):
     joint velocity over the joint speed limits (in ``[-1, 1]``). goal: ``(g, n)`` desired
     goal. achieved: ``(g, n)`` achieved goal at ``q``. t: ``(n,)`` int64 steps taken this
     episode. key: ``(n,)`` int64 random key (from the seed). episode: ``(n,)`` int64 episode
-    counter since seeding.
+    counter since seeding. obstacles: ``(10 M, n)`` the obstacle block of the observation
+    (:mod:`envs.world`; ``(0, n)`` without obstacles).
     """
 
     q: Tensor
@@ -72,12 +89,14 @@ class ReachState(NamedTuple):
     t: Tensor
     key: Tensor
     episode: Tensor
+    obstacles: Tensor
 
 
 class StepResult(NamedTuple):
     """Per-environment outcome of one step, ``(n,)`` each: reward (obs dtype), the
     ``terminated``/``truncated``/``success`` bools, the position distance (m) and the
-    orientation error (rad; ``None`` for position goals)."""
+    orientation error (rad; ``None`` for position goals) and the collision flag (``None``
+    when collisions are off)."""
 
     reward: Tensor
     terminated: Tensor
@@ -85,6 +104,7 @@ class StepResult(NamedTuple):
     success: Tensor
     distance: Tensor
     angle: Tensor | None
+    collision: Tensor | None = None
 
 
 # ---------------------------------------------------------------------------- task
@@ -106,6 +126,14 @@ class ReachTask:
             (the farthest of 8 candidates is kept if none is far enough).
         max_episode_steps: truncate after this many steps (``None``: never).
         terminate_on_success: end the episode when the goal is reached (as panda-gym).
+        floor: height of the floor (m, base frame; ``None``: no floor).
+        collision: ``"terminate"``, ``"penalize"`` or ``"off"`` (:class:`CollisionKind`): a step
+            whose clearance (:func:`iiwa_torch.collision.clearance`: the arm's capsules against
+            themselves, the floor and the obstacles) is negative. Unless ``"off"``, starts and
+            goals are drawn collision-free.
+        collision_penalty: subtracted from the reward of a colliding step (>= 0).
+        obstacles: at most this many random spheres or boxes per episode (1 to ``obstacles``
+            drawn, 0: none), in the observation's obstacle block (:mod:`envs.world`).
         home: start posture for ``start="home"`` (default :data:`iiwa_torch.robots.IIWA_HOME` for 7 joints,
             else zeros; it must lie within the limits).
         dtype: float dtype of the state (observations are always float32).
@@ -126,6 +154,10 @@ class ReachTask:
         goal_min_distance: float = 0.0,
         max_episode_steps: int | None = None,
         terminate_on_success: bool = True,
+        floor: float | None = 0.0,
+        collision: CollisionKind | str = CollisionKind.TERMINATE,
+        collision_penalty: float = 1.0,
+        obstacles: int = 0,
         home=None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
@@ -146,6 +178,18 @@ class ReachTask:
             raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        self.collision = enum_option(CollisionKind, collision, "collision")
+        if floor is not None and (isinstance(floor, bool) or not isinstance(floor, (int, float))
+                                  or not math.isfinite(floor)):
+            raise ValueError(f"floor must be a finite height in metres or None, got {floor!r}")
+        if not (isinstance(collision_penalty, (int, float)) and math.isfinite(collision_penalty)
+                and collision_penalty >= 0) or isinstance(collision_penalty, bool):
+            raise ValueError(f"collision_penalty must be a finite number >= 0, got {collision_penalty!r}")
+        if isinstance(obstacles, bool) or not isinstance(obstacles, int) or not 0 <= obstacles <= 8:
+            raise ValueError(f"obstacles must be an int in [0, 8], got {obstacles!r}")
+        if obstacles and self.collision is CollisionKind.OFF:
+            raise ValueError("obstacles need collision checks: use collision='terminate' or 'penalize', not 'off'")
+        self.collision_penalty = float(collision_penalty)
         self.dt = float(dt)
         self.goal_min_distance = float(goal_min_distance)
         self.max_episode_steps = max_episode_steps
@@ -155,9 +199,16 @@ class ReachTask:
         self.arm = JointVelocityArm(iiwa14() if robot is None else robot, self.dt, home, dtype, self.device)
         self.goals = ReachGoals(goal, reward, float(distance_threshold), float(orientation_threshold),
                                 float(orientation_weight))
-        self.transport = Transport(self.arm.n_joints, self.goals.size, dtype, self.device)
         #: the chain (the task's own copy, in its dtype and device)
         self.robot = self.arm.chain
+        #: the floor, the capsules and the obstacles (``None`` when collisions are off)
+        self.world = None
+        if self.collision is not CollisionKind.OFF:
+            self.world = ObstacleWorld(self.robot, None if floor is None else float(floor), obstacles)
+            if not bool(self.world.clearance(self.arm.home[None]) > 0):
+                raise ValueError(f"home {self.arm.home.tolist()} collides with the floor or the arm itself")
+        block = 0 if self.world is None else self.world.block_size
+        self.transport = Transport(self.arm.n_joints, self.goals.size, dtype, self.device, block)
         #: ``(nj,)`` rad per step at ``|a| = 1``
         self.max_step = self.arm.max_step
         self._home_goal = self.goal_of(self.arm.home[:, None])  # (g, 1): every episode from home starts there
@@ -203,27 +254,57 @@ class ReachTask:
         return self.initial_state(keys_from_seeds([f if s is None else s for f, s in zip(fresh, seeds)], self.device))
 
     def _new_episodes(self, key: Tensor, episode: Tensor) -> ReachState:
-        """Start episode ``episode`` for each key: draw the start and the goal, compute FK once."""
-        arm = self.arm
+        """Start episode ``episode`` for each key: draw the start, the obstacles and the goal.
+
+        Draws 0..nj-1 are the start, then the goal candidates; episodes from home skip the
+        start's draws (counter-based: the goals' draws stay the same). With collision checks,
+        candidates that collide are redrawn in later rounds from other parts of the stream,
+        for the environments that need it only (so each environment's draws stay its own)."""
+        arm, world = self.arm, self.world
         n, nj = key.shape[0], arm.n_joints
-        k = _GOAL_CANDIDATES if self.goal_min_distance > 0 else 1
-        # draws 0..nj-1 are the start, then k goal candidates; starts from home skip the start's
-        # draws (counter-based: the goals' draws stay the same, at half the hashing)
         home = self.start_kind is StartKind.HOME
-        first = nj if home else 0
-        configs = arm.configurations(uniform(key, episode, first, nj * (k + 1) - first, self.dtype).view(n, -1, nj))
-        goals = self.goal_of(configs.reshape(-1, nj).T).view(-1, n, configs.shape[1])  # (g, n, k or k + 1)
+        # the start's goal: from home, home's; else computed with the first goal candidates (in one
+        # FK call whose batch, and so whose kernel and rounding, are those of the first versions)
+        start_goal = {"all": self._home_goal.expand(-1, n)} if home else {}
         if home:
-            start, start_goal, candidates = arm.home.expand(n, nj), self._home_goal.expand(-1, n), goals
+            start = arm.home.expand(n, nj)
         else:
-            start, start_goal, candidates = configs[:, 0], goals[:, :, 0], goals[:, :, 1:]
-        if k > 1:
-            d = torch.linalg.vector_norm(candidates[:3] - start_goal[:3, :, None], dim=0)  # (n, k)
-            # the first candidate far enough, else the farthest: no loop, no sync
-            score = torch.where(d >= self.goal_min_distance, -torch.arange(k, device=d.device, dtype=d.dtype), d - 1e9)
-            goal = candidates[:, torch.arange(n, device=d.device), score.argmax(-1)]
-        else:
-            goal = candidates[:, :, 0]
+            def draw_start(idx: Tensor, r: int) -> tuple[Tensor, Tensor]:
+                u = uniform(key[idx], episode[idx], 0 if r == 0 else _START_REDRAWS + r * nj, nj, self.dtype)
+                q = arm.configurations(u)  # (m, nj)
+                if world is None:
+                    return torch.ones(len(idx), dtype=torch.bool, device=q.device), q.T
+                return world.clearance(q) > 0, q.T
+
+            start = _first_found(n, draw_start, lambda: arm.home[:, None].expand(nj, n), self.device).T
+        blank = start.new_zeros(0, n)
+        obstacles = blank if world is None or not world.slots else world.draw(key, episode, start, _OBSTACLE_DRAWS,
+                                                                              _ROUNDS)
+        far = self.goal_min_distance > 0
+        k = _GOAL_CANDIDATES if far else (1 if world is None else _FREE_CANDIDATES)
+
+        def draw_goal(idx: Tensor, r: int) -> tuple[Tensor, Tensor]:
+            m = len(idx)
+            first = nj if r == 0 else _GOAL_REDRAWS + r * k * nj
+            configs = arm.configurations(uniform(key[idx], episode[idx], first, k * nj, self.dtype).view(m, k, nj))
+            if "all" in start_goal:
+                goals = self.goal_of(configs.reshape(-1, nj).T).view(-1, m, k)
+            else:  # the first round, over every environment
+                both = torch.cat([start[:, None], configs], 1)
+                goals = self.goal_of(both.reshape(-1, nj).T).view(-1, m, k + 1)
+                start_goal["all"], goals = goals[:, :, 0], goals[:, :, 1:]
+            ok = torch.ones(m, k, dtype=torch.bool, device=goals.device) if world is None else \
+                world.clearance(configs, obstacles[:, idx] if world.slots else None, extra=1) > 0
+            rank = -torch.arange(k, dtype=goals.dtype, device=goals.device)
+            if far:  # the first valid candidate far enough, else the farthest valid: no loop, no sync
+                d = torch.linalg.vector_norm(goals[:3] - start_goal["all"][:3, idx, None], dim=0)  # (m, k)
+                rank = torch.where(d >= self.goal_min_distance, rank, d - 1e9)
+            score = torch.where(ok, rank, -math.inf)
+            return ok.any(-1), goals[:, torch.arange(m, device=goals.device), score.argmax(-1)]
+
+        # the last resort (never seen: 32 rounds of collisions): the start's own goal
+        goal = _first_found(n, draw_goal, lambda: start_goal["all"], self.device) if world is not None \
+            else draw_goal(torch.arange(n, device=self.device), 0)[1]
         q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
         return ReachState(
             q=q,
@@ -231,10 +312,11 @@ class ReachTask:
             sin_q=torch.sin(q),
             velocity=torch.zeros(nj, n, dtype=self.dtype, device=self.device),
             goal=goal.contiguous(),
-            achieved=start_goal.clone(memory_format=torch.contiguous_format),
+            achieved=start_goal["all"].clone(memory_format=torch.contiguous_format),
             t=torch.zeros(n, dtype=torch.int64, device=self.device),
             key=key,
             episode=episode,
+            obstacles=obstacles,
         )
 
     def step(self, state: ReachState, action: Tensor) -> tuple[ReachState, StepResult]:
@@ -248,18 +330,40 @@ class ReachTask:
         achieved = self.goal_of(q, (cos_q, sin_q))
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         dist, angle, success = self.goals.errors(*observed)  # the reward of the goals as observed, in float32
-        reward = self.goals.reward_of(dist, angle, success)
+        collision = None
+        if self.world is not None:  # one clearance call for the batch
+            collision = self.world.clearance(q.T, state.obstacles if self.world.slots else None) < 0
+        reward = self.penalised(self.goals.reward_of(dist, angle, success), collision)
         t = state.t + 1
         terminated = success if self.terminate_on_success else torch.zeros_like(success)
+        if self.collision is CollisionKind.TERMINATE:
+            terminated = terminated | collision
         truncated = torch.zeros_like(success) if self.max_episode_steps is None else t >= self.max_episode_steps
-        new = ReachState(q, cos_q, sin_q, velocity, state.goal, achieved, t, state.key, state.episode)
-        return new, StepResult(reward, terminated, truncated, success, dist, angle)
+        new = ReachState(q, cos_q, sin_q, velocity, state.goal, achieved, t, state.key, state.episode, state.obstacles)
+        return new, StepResult(reward, terminated, truncated, success, dist, angle, collision)
+
+    def penalised(self, reward: Tensor, collision: Tensor | None) -> Tensor:
+        """``reward - collision_penalty`` where ``collision`` (``None``: no collision checked)."""
+        return reward if collision is None else torch.where(collision, reward - self.collision_penalty, reward)
+
+    def compute_reward(self, achieved_goal, desired_goal, info=None) -> np.ndarray:
+        """The envs' ``compute_reward``: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy,
+        the step's reward bit for bit. The collision penalty is read from ``info``: a dict whose
+        ``collision`` is a bool or an array (vector envs), or a sequence of per-env dicts (SB3,
+        HER); no ``info`` (or no ``collision`` in it): no penalty."""
+        reward = self.goals.compute_reward(achieved_goal, desired_goal)
+        collision = _collision_of(info)
+        if collision is None or self.world is None:
+            return reward
+        flags = torch.as_tensor(np.broadcast_to(collision, reward.shape).copy())
+        return self.penalised(torch.from_numpy(np.asarray(reward)), flags).numpy()
 
     def reset_transition(self, state: ReachState) -> Transition:
         """The observation and status of a state just reset, as numpy (one transfer)."""
         dist, angle, success = self.goals.errors(state.achieved.float(), state.goal.float())
         no = torch.zeros_like(success)
-        status = StepResult(self.goals.reward_of(dist, angle, success), no, no, success, dist, angle)
+        collision = None if self.world is None else no  # starts are collision-free by construction
+        status = StepResult(self.goals.reward_of(dist, angle, success), no, no, success, dist, angle, collision)
         io = self.transport
         return io.unpack(*(part.numpy(force=True) for part in io.pack(state, status)))
 
@@ -285,8 +389,37 @@ class ReachTask:
                 mine = getattr(state, name)
                 mine.index_copy_(mine.ndim - 1, idx, getattr(fresh, name))
             state = state._replace(
-                goal=state.goal.index_copy(1, idx, fresh.goal), episode=state.episode.index_copy(0, idx, fresh.episode)
+                goal=state.goal.index_copy(1, idx, fresh.goal), episode=state.episode.index_copy(0, idx, fresh.episode),
+                obstacles=state.obstacles.index_copy(1, idx, fresh.obstacles),
             )
             out[:d].index_copy_(1, idx, io.observe(fresh))
         tr = io.unpack(out.numpy(force=True), flags.numpy(force=True))
         return state, tr._replace(final_index=idx.numpy(force=True), final_obs=io.split(final.numpy(force=True).T))
+
+
+def _first_found(n: int, draw, fallback, device: torch.device) -> Tensor:
+    """Rounds of ``draw(idx, r) -> (found (m,) bool, values (c, m))`` for the environments ``idx``
+    still without a value (round 0: all ``n``), up to ``_ROUNDS``; the rest take the columns of
+    ``fallback() (c, n)``. -> ``(c, n)``."""
+    pending = torch.arange(n, device=device)
+    found, values = draw(pending, 0)
+    out = values.new_empty(values.shape[0], n)
+    for r in range(1, _ROUNDS + 1):
+        out[:, pending[found]] = values[:, found]
+        pending = pending[~found]
+        if not pending.numel():
+            return out
+        if r < _ROUNDS:
+            found, values = draw(pending, r)
+    out[:, pending] = fallback()[:, pending]
+    return out
+
+
+def _collision_of(info):
+    """The collision flags of an env's ``info`` (see :meth:`ReachTask.compute_reward`), or None."""
+    if isinstance(info, dict):
+        return None if "collision" not in info else np.asarray(info["collision"], dtype=bool)
+    if info is None or (isinstance(info, np.ndarray) and info.dtype != object):
+        return None
+    flags = [i.get("collision") for i in info]
+    return None if any(f is None for f in flags) else np.asarray(flags, dtype=bool)

@@ -30,7 +30,9 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
     nj, g = task.arm.n_joints, task.goals.size
     goal_high = np.full(g, 1.0, dtype=np.float32)
     goal_high[:3] = task.arm.position_bound
-    obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), goal_high])
+    # the obstacle block: flags, cos and sin in [0, 1] or [-1, 1], positions and sizes within reach
+    block_high = np.full(task.transport.obstacle_size, max(1.0, task.arm.position_bound), dtype=np.float32)
+    obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), block_high, goal_high])
     observation = spaces.Dict(
         {
             "observation": spaces.Box(-obs_high, obs_high, dtype=np.float32),
@@ -41,10 +43,12 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
     return observation, spaces.Box(-1.0, 1.0, shape=(nj,), dtype=np.float32)
 
 
-def _info(task: ReachTask, success, distance, angle) -> dict[str, Any]:
+def _info(task: ReachTask, success, distance, angle, collision=None) -> dict[str, Any]:
     info = {"is_success": success, "distance": distance}
     if task.goal_kind is GoalKind.POSE:
         info["orientation_error"] = angle
+    if collision is not None:
+        info["collision"] = collision
     return info
 
 
@@ -53,9 +57,10 @@ class IiwaReachEnv(gym.Env):
 
     ## Description
 
-    A kinematic 7-joint arm (no dynamics, no collisions): each step integrates the
-    commanded joint velocities over ``dt``, clamps the joints to their limits and computes
-    the end effector by forward kinematics. Goals are the forward kinematics of random
+    A kinematic 7-joint arm (no dynamics): each step integrates the commanded joint
+    velocities over ``dt``, clamps the joints to their limits, computes the end effector by
+    forward kinematics and checks collisions (floor, self, obstacles; ``info["collision"]``,
+    see docs/envs.md). Goals are the forward kinematics of random collision-free
     configurations within the joint limits, so every goal is reachable. The observation
     follows panda-gym's goal-conditioned layout, so hindsight experience replay (HER)
     works out of the box. The step is :meth:`envs.core.ReachTask.step`, the same batched
@@ -102,7 +107,8 @@ class IiwaReachEnv(gym.Env):
 
     ## Episode End
 
-    Terminated when successful (``terminate_on_success=True``, as panda-gym). Truncated
+    Terminated when successful (``terminate_on_success=True``, as panda-gym) or, with
+    ``collision="terminate"`` (default), on a collision. Truncated
     after ``max_episode_steps`` (50 in the registered ids, through gymnasium's
     ``TimeLimit``): from home, a straight full-speed joint move reaches any configuration
     within the limits in at most 48 steps (2.4 s, joint 4's 180 deg at 75 deg/s), so every
@@ -116,7 +122,9 @@ class IiwaReachEnv(gym.Env):
     ``iiwa14()``), ``goal`` (``"position"``/``"pose"``), ``reward`` (``"dense"``/``"sparse"``),
     ``start`` (``"home"``/``"random"``), ``dt`` (0.05 s), ``distance_threshold`` (0.01 m),
     ``orientation_threshold`` (0.1 rad), ``orientation_weight`` (0.1 m/rad),
-    ``goal_min_distance`` (0 m), ``max_episode_steps`` (the env's own limit, default
+    ``goal_min_distance`` (0 m), ``floor`` (0 m; ``None``: none), ``collision``
+    (``"terminate"``/``"penalize"``/``"off"``), ``collision_penalty`` (1.0), ``obstacles`` (0;
+    4 in ``IiwaReachObstacles-v0``), ``max_episode_steps`` (the env's own limit, default
     ``None``: ``gymnasium.make`` adds ``TimeLimit`` instead), ``terminate_on_success``,
     ``home``, ``dtype`` (float32), ``device``. ``render_mode``: ``"rgb_array"`` (matplotlib,
     an ``(H, W, 3)`` uint8 image) or ``"human"`` (a matplotlib window).
@@ -149,7 +157,8 @@ class IiwaReachEnv(gym.Env):
         tr = self.task.reset_transition(self._state)
         obs = {k: v[0] for k, v in tr.obs.items()}
         angle = None if tr.angle is None else float(tr.angle[0])
-        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), angle)
+        collision = None if tr.collision is None else bool(tr.collision[0])
+        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), angle, collision)
         if self.render_mode == "human":
             self.render()
         return obs, info
@@ -164,10 +173,10 @@ class IiwaReachEnv(gym.Env):
         floats, flags = (part.numpy(force=True)[:, 0] for part in io.pack(self._state, res))
         d = io.packed_size
         reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
-        term, trunc, success = flags.tolist()
+        term, trunc, success, *collision = flags.tolist()  # collision: one flag when checked, else none
         if self.render_mode == "human":
             self.render()
-        info = _info(self.task, success, dist, angle[0] if angle else None)
+        info = _info(self.task, success, dist, angle[0] if angle else None, collision[0] if collision else None)
         return io.split(floats[:d]), reward, term, trunc, info
 
     @property
@@ -179,8 +188,9 @@ class IiwaReachEnv(gym.Env):
         return self._state.q[:, 0].double().cpu().numpy()
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
-        return self.task.goals.compute_reward(achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; the collision
+        penalty is taken from ``info`` (:meth:`envs.core.ReachTask.compute_reward`)."""
+        return self.task.compute_reward(achieved_goal, desired_goal, info)
 
     def render(self):
         """``rgb_array``: an ``(H, W, 3)`` uint8 image of the arm, its end effector and the goal."""
@@ -274,7 +284,7 @@ class IiwaReachVectorEnv(VectorEnv):
             super().reset(seed=seed)
         self._state = state
         tr = self.task.reset_transition(self._state)
-        return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle)
+        return tr.obs, _info(self.task, tr.success, tr.distance, tr.angle, tr.collision)
 
     @torch.inference_mode()
     def step(self, actions):
@@ -283,20 +293,22 @@ class IiwaReachVectorEnv(VectorEnv):
             raise RuntimeError("call reset() before step()")
         a = self.task.transport.check_action(actions, self.num_envs)
         self._state, tr = self.task.step_autoreset(self._state, a)
-        info = _info(self.task, tr.success, tr.distance, tr.angle)
+        info = _info(self.task, tr.success, tr.distance, tr.angle, tr.collision)
         if tr.final_index.size:
             final = np.full(self.num_envs, None, dtype=object)
             final[tr.final_index] = self.task.transport.obs_per_env(tr.final_obs)  # finished environments only
             done = tr.terminated | tr.truncated
             info["final_obs"], info["_final_obs"] = final, done
             # the finished step's info (already in ``info``), under the name SyncVectorEnv uses
-            info["final_info"] = {**_info(self.task, tr.success, tr.distance, tr.angle), "_is_success": done}
+            info["final_info"] = {**_info(self.task, tr.success, tr.distance, tr.angle, tr.collision),
+                                  "_is_success": done}
             info["_final_info"] = done
         return tr.obs, tr.reward, tr.terminated, tr.truncated, info
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
-        return self.task.goals.compute_reward(achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; the collision
+        penalty is taken from ``info`` (:meth:`envs.core.ReachTask.compute_reward`)."""
+        return self.task.compute_reward(achieved_goal, desired_goal, info)
 
     def render(self):
         """``rgb_array``: a tuple with one image per environment (slow for large ``num_envs``)."""

@@ -96,6 +96,9 @@ class IiwaReachVecEnv(VecEnv):
         self._reset_options()
         tr = self.task.reset_transition(self._state)
         self.reset_infos = [{"is_success": s, "distance": d} for s, d in zip(tr.success.tolist(), tr.distance.tolist())]
+        if tr.collision is not None:
+            for info, hit in zip(self.reset_infos, tr.collision.tolist()):
+                info["collision"] = hit
         return tr.obs
 
     def step_async(self, actions: np.ndarray) -> None:
@@ -112,14 +115,19 @@ class IiwaReachVecEnv(VecEnv):
         if self.task.goal_kind is GoalKind.POSE:
             for info, angle in zip(infos, tr.angle.tolist()):
                 info["orientation_error"] = angle
+        if tr.collision is not None:
+            for info, hit in zip(infos, tr.collision.tolist()):
+                info["collision"] = hit
         finished = self.task.transport.obs_per_env(tr.final_obs)  # finished environments only
         for i, last in zip(tr.final_index.tolist(), finished):
             infos[i]["terminal_observation"] = last
         return tr.obs, tr.reward, tr.terminated | tr.truncated, infos
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
-        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; ``info`` is unused."""
-        return self.task.goals.compute_reward(achieved_goal, desired_goal)
+        """Batched reward: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy; the collision
+        penalty is taken from ``info`` (per-env dicts, as HER passes them;
+        :meth:`envs.core.ReachTask.compute_reward`)."""
+        return self.task.compute_reward(achieved_goal, desired_goal, info)
 
     def close(self) -> None:
         self._state = None

@@ -1,7 +1,8 @@
 """Between the torch state and the envs' numpy: actions in, observations and step results out.
 
 Observations travel as one ``(D, n)`` float32 block per step, ``D = packed_size`` rows: the
-observation (cos q, sin q, normalised joint velocity, achieved goal), then the desired goal;
+observation (cos q, sin q, normalised joint velocity, the obstacle block if any, achieved goal),
+then the desired goal;
 the envs' observation dicts are views of its numpy transpose.
 """
 
@@ -24,7 +25,7 @@ class Transition(NamedTuple):
     (after auto-reset), ``reward`` ``(n,)`` float32, ``terminated``/``truncated``/``success``
     ``(n,)`` bool, ``distance`` (m) and ``angle`` (rad; ``None`` for position goals) ``(n,)``
     float32, ``final_index`` the ``(m,)`` rows that finished and ``final_obs`` their last
-    observations ``(m, ...)``."""
+    observations ``(m, ...)``, ``collision`` ``(n,)`` bool (``None`` when collisions are off)."""
 
     obs: dict
     reward: np.ndarray
@@ -35,22 +36,25 @@ class Transition(NamedTuple):
     angle: np.ndarray | None
     final_index: np.ndarray
     final_obs: dict
+    collision: np.ndarray | None = None
 
 
 class Transport:
-    """Conversions for a task of ``n_joints`` joints and goals of ``goal_size`` numbers whose state
-    is in ``dtype`` on ``device``."""
+    """Conversions for a task of ``n_joints`` joints, goals of ``goal_size`` numbers and an
+    obstacle block of ``obstacle_size`` numbers whose state is in ``dtype`` on ``device``."""
 
-    def __init__(self, n_joints: int, goal_size: int, dtype: torch.dtype, device: torch.device) -> None:
+    def __init__(self, n_joints: int, goal_size: int, dtype: torch.dtype, device: torch.device,
+                 obstacle_size: int = 0) -> None:
         self.n_joints, self.goal_size, self.dtype, self.device = n_joints, goal_size, dtype, device
-        #: length of ``observation``: cos q, sin q, joint velocity (normalised), the achieved goal
-        self.observation_size = 3 * n_joints + goal_size
+        self.obstacle_size = obstacle_size
+        #: length of ``observation``: cos q, sin q, joint velocity (normalised), obstacles, the achieved goal
+        self.observation_size = 3 * n_joints + obstacle_size + goal_size
         #: rows of :meth:`observe`: the observation, then the desired goal
         self.packed_size = self.observation_size + goal_size
 
-    @staticmethod
-    def _rows(state) -> list[Tensor]:
-        return [state.cos_q, state.sin_q, state.velocity, state.achieved, state.goal]
+    def _rows(self, state) -> list[Tensor]:
+        block = [state.obstacles] if self.obstacle_size else []
+        return [state.cos_q, state.sin_q, state.velocity, *block, state.achieved, state.goal]
 
     def observe(self, state) -> Tensor:
         """A :class:`~envs.core.ReachState` -> ``(D, n)`` float32: the observation rows, then
@@ -60,7 +64,7 @@ class Transport:
     def pack(self, state, result) -> tuple[Tensor, Tensor]:
         """Everything a step returns, for two transfers: ``(D + k, n)`` float32, the observation
         rows then reward, distance and, for pose goals, angle (``k`` = 2 or 3); and ``(3, n)``
-        bool, terminated, truncated and success.
+        bool, terminated, truncated and success, plus collision when it is checked.
 
         Each is one ``cat``/``stack`` of rows of one dtype, written once, with no type promotion
         (a mixed bool and float ``stack`` costs 4x a plain one for one env). ``out=`` writes into
@@ -69,7 +73,8 @@ class Transport:
         status = [result.reward, result.distance] + ([] if result.angle is None else [result.angle])
         floats = torch.cat([*self._rows(state), torch.stack(status)], 0)
         floats = floats if floats.dtype == torch.float32 else floats.float()
-        return floats, torch.stack([result.terminated, result.truncated, result.success])
+        flags = [result.terminated, result.truncated, result.success]
+        return floats, torch.stack(flags if result.collision is None else [*flags, result.collision])
 
     def unpack(self, floats: np.ndarray, flags: np.ndarray) -> Transition:
         """``pack``'s outputs as numpy -> a :class:`Transition` without finished episodes.
@@ -87,6 +92,7 @@ class Transport:
             angle=floats[d + 2] if floats.shape[0] > d + 2 else None,
             final_index=np.zeros(0, dtype=np.int64),
             final_obs=self.split(floats[:d, :0].T),
+            collision=flags[3] if flags.shape[0] > 3 else None,
         )
 
     def split(self, packed: np.ndarray) -> dict[str, np.ndarray]:

@@ -35,14 +35,14 @@ def test_a_step_below_the_floor_is_counted_for_the_path_not_the_final_configurat
     # independent of the capsule model: the flange itself is below z = 0, so its capsule is too
     assert flange_z < 0 and bool(chain.within_limits(down[None]).all())
     path = torch.stack([torch.stack([home, home]), torch.stack([down, home]), torch.stack([home, home])])  # (3, 2, 7)
-    m, floor_hit = ev.collision_metrics(chain, path.numpy())
-    assert floor_hit.tolist() == [True, False]
+    m, floor_hit, collided = ev.collision_metrics(chain, path.numpy())
+    assert floor_hit.tolist() == [True, False] and collided.tolist() == [True, False]
     assert (m["collisions"], m["floor_collisions"], m["self_collisions"], m["final_collisions"]) == (1, 1, 0, 0)
     assert m["collision_share"] == 0.5
     assert m["min_clearance_worst_m"] <= flange_z
     lowest = clearance(chain, path, capsules=robot_capsules(chain)).amin(0)
     assert np.isclose(m["min_clearance_median_m"], lowest.mean().item(), atol=1e-12)
-    ended_down, _ = ev.collision_metrics(chain, torch.stack([home, down])[None].numpy())
+    ended_down, *_ = ev.collision_metrics(chain, torch.stack([home, down])[None].numpy())
     assert (ended_down["collisions"], ended_down["final_collisions"]) == (1, 1)
 
 
@@ -53,7 +53,8 @@ def test_report_collision_fields_agree_with_a_recomputation(tmp_path):
     finals = np.load(out / "final_q.npz")
     chain = _chain()
     capsules = robot_capsules(chain)
-    goals = make_goal_set("IiwaReach-v0", GOALS, SEED)
+    # the env the policy was trained in (its config: no collision checks), as train.evaluate uses
+    goals = make_goal_set("IiwaReach-v0", GOALS, SEED, ev.load_policy(POLICY)[2]["hyperparams"]["env_kwargs"])
     below = (goals.pose[:, 2, 3] < 0).numpy()
     assert below.any(), "this goal set must hold a goal below the floor for the check to mean something"
     assert report["goals_below_floor"] == int(below.sum())

@@ -280,3 +280,9 @@ def test_evaluation_summary_by_hand():
     assert out == pytest.approx({"success": 0.5, "median_distance": 0.0125, "p95_distance": 0.428})
     out = summarise_finals(final, 0.01, np.array([0.05, 0.01, 0.2, 0.0]), 0.1)
     assert out["success"] == 0.25 and out["success_position"] == 0.5 and out["median_angle"] == pytest.approx(0.03)
+
+
+def test_evaluate_rejects_malformed_env_kwargs(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        ev.main(["--model", str(_shipped()[0]), "--out", str(tmp_path), "--env-kwargs", "collision"])
+    assert "expected KEY=VALUE" in capsys.readouterr().err

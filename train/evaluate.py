@@ -2,6 +2,10 @@
 
     python -m train.evaluate --model train/policies/ppo_reach --goals 1000 --seed 0 --out reports/ppo_reach
 
+``--env-kwargs key=value ...`` overrides the env options of the policy's config (values are
+YAML), e.g. ``--env-kwargs collision=terminate`` to evaluate a policy trained without
+collision checks on the default env (collision-free goals).
+
 ``--model`` is a run directory of ``train.train`` (or a shipped policy folder) holding
 ``model.zip``, ``config.yaml`` and, if the run normalised observations, ``vecnormalize.pkl``.
 The goals are the FK of ``--goals`` configurations drawn within the joint limits with
@@ -125,11 +129,12 @@ def _limit_violations(chain, q) -> int:
     return int((~chain.within_limits(torch.as_tensor(q, dtype=torch.float64), tol=1e-9)).sum())
 
 
-def collision_metrics(chain, q_path: np.ndarray) -> tuple[dict[str, Any], np.ndarray]:
+def collision_metrics(chain, q_path: np.ndarray) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     """Collisions along ``q_path (T + 1, n, nj)`` (rad; ``T = 0`` for an end configuration alone) with the
     preset's capsules and default world (floor at z = 0): a goal collides if any of its configurations has
     a signed distance below 0. ``(metrics, floor_hit (n,) bool)``: counts over goals, clearances (m) of the
-    per-goal minimum over the path, and which goals touch the floor."""
+    per-goal minimum over the path. ``(metrics, floor_hit (n,) bool, collided (n,) bool)``: which goals
+    touch the floor, which collide at all."""
     import torch
 
     from iiwa_torch.collision import pairwise_clearance, robot_capsules
@@ -151,7 +156,7 @@ def collision_metrics(chain, q_path: np.ndarray) -> tuple[dict[str, Any], np.nda
         "final_collisions": int((final < 0).sum()),
         "min_clearance_median_m": float(np.median(lowest)),
         "min_clearance_worst_m": float(lowest.min()),
-    }, floor_min < 0
+    }, floor_min < 0, lowest < 0
 
 
 def _median_time(fn, reps: int) -> float:
@@ -183,8 +188,10 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     # the policy network alone, all steps
     metrics["network_time_per_goal_batched_s"] = float(np.median([x.act_seconds for x in runs])) / goals.n
     lo, hi = chain.limits.numpy()
-    collisions, floor_hit = collision_metrics(chain, r.q)
+    collisions, floor_hit, collided = collision_metrics(chain, r.q)
     metrics.update(collisions)
+    # what the default env (collision="terminate") counts: reached, and never a collision on the way
+    metrics["success@1cm_collision_free"] = float(np.mean((final < TOLERANCES["1cm"]) & ~collided))
     metrics["touched_a_limit"] = float(np.mean(((r.q - lo < 1e-4) | (hi - r.q < 1e-4)).any(axis=(0, 2))))
     if pose:
         summary = evaluator.summary(r)
@@ -232,8 +239,9 @@ def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[s
     steps = np.ceil(np.max(np.abs(delta) / max_step, axis=-1))  # a straight full-speed joint move
     steps[final >= TOLERANCES["1cm"]] = np.nan
     metrics = summarise(final, steps, path, _limit_violations(chain, q), batched, single, goals.n)
-    collisions, floor_hit = collision_metrics(chain, q.numpy()[None])
+    collisions, floor_hit, collided = collision_metrics(chain, q.numpy()[None])
     metrics.update(collisions)
+    metrics["success@1cm_collision_free"] = float(np.mean((final < TOLERANCES["1cm"]) & ~collided))
     metrics["solver_success"] = float(result.success.double().mean())
     if not position_only:
         from iiwa_torch.so3 import pose_error
@@ -560,7 +568,8 @@ def _learning_curves(plt, report: dict[str, Any], evaluations: list[dict], compa
     return fig
 
 
-def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths: list[Path]) -> dict[str, Any]:
+def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths: list[Path],
+             env_overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     import torch
 
     import envs
@@ -571,7 +580,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     torch.set_num_threads(1)
     model, vec_normalize, config = load_policy(model_dir)
     env_id = config["env_id"]
-    env_kwargs = config["hyperparams"].get("env_kwargs") or {}
+    env_kwargs = {**(config["hyperparams"].get("env_kwargs") or {}), **(env_overrides or {})}
     task = envs.make_task(env_id, **env_kwargs)
     chain, dt = task.robot, task.dt
     goals = make_goal_set(env_id, n_goals, seed, env_kwargs)
@@ -607,6 +616,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         "model": str(model_dir),
         "goals": n_goals,
         "seed": seed,
+        "env_kwargs": env_kwargs,
         "episode_steps": task.max_episode_steps,
         "dt": dt,
         "tolerances_m": TOLERANCES,
@@ -640,14 +650,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, type=Path, help="report folder")
     p.add_argument("--compare", nargs="*", type=Path, default=[],
                    help="evaluations JSON of other runs to draw on the learning curve (e.g. panda-gym)")
+    p.add_argument("--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="env options over the policy config's (YAML values), e.g. collision=terminate")
     args = p.parse_args(argv)
+    import yaml
+
+    overrides = {}
+    for item in args.env_kwargs:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            p.error(f"--env-kwargs: expected KEY=VALUE, got {item!r}")
+        overrides[key] = yaml.safe_load(value)
     if args.goals < 1:
         p.error(f"--goals must be >= 1, got {args.goals}")
     for path in args.compare:
         if not path.is_file():
             p.error(f"--compare: {path} not found; expected an evaluations JSON (a run's evaluations.json)")
     try:
-        evaluate(args.model, args.goals, args.seed, args.out, args.compare)
+        evaluate(args.model, args.goals, args.seed, args.out, args.compare, overrides)
     except (FileNotFoundError, ValueError) as err:
         p.error(str(err))
     return 0

@@ -7,8 +7,10 @@ small integers, so these goals are held out from training. Every arm starts at h
 
 A rollout runs the policy for the env's ``max_episode_steps`` with
 ``terminate_on_success=False``: no early stop, so the final distance says whether the
-controller reached the goal *and stayed there*. Joint angles are read back from the
-observation's documented ``cos q``, ``sin q`` entries.
+controller reached the goal *and stayed there*. A collision does not stop it either: an env
+whose ``collision`` is ``"terminate"`` (the default) is rolled out with ``"penalize"``, the
+same dynamics and goals, so the whole path is there to be checked for collisions. Joint angles
+are read back from the observation's documented ``cos q``, ``sin q`` entries.
 
 For the IK solvers a goal set also carries full goal poses: for position goals, the
 orientation comes from ``IiwaReachPose-v0`` with the same seeds (the same configuration
@@ -42,6 +44,8 @@ def _env(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None):
     from envs.sb3 import IiwaReachVecEnv
 
     options = {**(env_kwargs or {}), "terminate_on_success": False, "start": "home"}
+    if options.get("collision", "terminate") == "terminate":
+        options["collision"] = "penalize"
     return IiwaReachVecEnv(n, env_id, seed=held_out_seed(seed), **options)
 
 

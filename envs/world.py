@@ -1,0 +1,123 @@
+"""The reaching task's world: the floor, the arm's own capsules and random obstacles, batched.
+
+Obstacles live in a fixed-size block of the observation, ``SLOT_SIZE`` numbers per slot and
+``slots`` slots (``(SLOT_SIZE * slots, n)`` in the state, components first)::
+
+    active, is_box, cx, cy, cz, sx, sy, sz, cos_yaw, sin_yaw
+
+``active`` and ``is_box`` are 0 or 1; the centre ``c`` is in metres in the base frame; ``s``
+holds a box's half extents, or a sphere's radius three times; a box is turned by ``yaw``
+about the vertical (a sphere has yaw 0). An inactive slot is all zeros. The distances are
+those of :func:`iiwa_torch.collision.clearance`: a slot that is not a sphere (or not a box)
+is handed to it as a small one parked ``PARK`` metres above the base, where it touches nothing.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from iiwa_torch.collision import World, clearance, pairwise_clearance, robot_capsules
+from iiwa_torch.dh import DHChain
+
+from .seeding import uniform
+
+__all__ = ["SLOT_SIZE", "PARK", "ObstacleWorld", "obstacle_world"]
+
+Tensor = torch.Tensor
+
+SLOT_SIZE = 10
+PARK = 100.0  # m: height of the stand-in of an absent sphere or box
+START_MARGIN = 0.05  # m: an obstacle clears the start configuration by at least this much
+# Where obstacles are drawn: around the arm, where it reaches (m, m, m, rad)
+RADIUS_RANGE = (0.3, 0.8)  # from the base axis
+HEIGHT_RANGE = (0.05, 1.0)
+SPHERE_RADIUS_RANGE = (0.05, 0.15)
+HALF_EXTENT_RANGE = (0.03, 0.15)
+_DRAWS_PER_SLOT = 8
+
+
+def _scale(u: Tensor, bounds: tuple[float, float]) -> Tensor:
+    return bounds[0] + u * (bounds[1] - bounds[0])
+
+
+def obstacle_world(block: Tensor | None, floor: float | None, extra: int = 0) -> World:
+    """Obstacle blocks ``(SLOT_SIZE * M, m)`` (``None`` or no rows: no obstacle) -> a :class:`World`
+    with the floor at ``floor`` and obstacles of batch shape ``(m,)`` plus ``extra`` dims of
+    size 1 (to broadcast with several configurations per env)."""
+    if block is None or not block.shape[0]:
+        return World(floor=floor)
+    b = block.reshape(block.shape[0] // SLOT_SIZE, SLOT_SIZE, -1).permute(2, 0, 1)  # (m, M, SLOT_SIZE)
+    active, is_box = b[..., 0] > 0.5, b[..., 1] > 0.5
+    centre, size, cos, sin = b[..., 2:5], b[..., 5:8], b[..., 8], b[..., 9]
+    sphere, box = active & ~is_box, active & is_box
+    sphere_centre = torch.where(sphere[..., None], centre, centre.new_tensor([0.0, 0.0, PARK]))
+    sphere_radius = torch.where(sphere, size[..., 0], 0.01)
+    zero, one = torch.zeros_like(cos), torch.ones_like(cos)
+    c, s = torch.where(box, cos, one), torch.where(box, sin, zero)
+    rows = [[c, -s, zero, torch.where(box, centre[..., 0], 0.0)],
+            [s, c, zero, torch.where(box, centre[..., 1], 0.0)],
+            [zero, zero, one, torch.where(box, centre[..., 2], PARK)],
+            [zero, zero, zero, one]]
+    pose = torch.stack([torch.stack(r, -1) for r in rows], -2)  # (m, M, 4, 4)
+    half = torch.where(box[..., None], size, 0.01)
+    lead = (b.shape[0],) + (1,) * extra
+    sphere_centre, sphere_radius, pose, half = (t.reshape(*lead, *t.shape[1:]) for t in (sphere_centre, sphere_radius,
+                                                                                           pose, half))
+    return World(floor=floor, spheres=(sphere_centre, sphere_radius), boxes=(pose, half))
+
+
+class ObstacleWorld:
+    """The floor at ``floor`` metres (``None``: none), the capsules of ``chain`` (its preset
+    model, :func:`iiwa_torch.collision.robot_capsules`) and up to ``slots`` obstacles per env."""
+
+    def __init__(self, chain: DHChain, floor: float | None, slots: int) -> None:
+        self.chain, self.floor, self.slots = chain, floor, slots
+        self.capsules = robot_capsules(chain)
+        self.block_size = SLOT_SIZE * slots
+
+    def clearance(self, q: Tensor, block: Tensor | None = None, extra: int = 0) -> Tensor:
+        """Smallest signed distance (m) of ``q (m, *extra, nj)`` to itself, the floor and the
+        obstacles of ``block`` (one batched :func:`~iiwa_torch.collision.clearance` call)."""
+        return clearance(self.chain, q, obstacle_world(block, self.floor, extra), self.capsules)
+
+    def draw(self, key: Tensor, episode: Tensor, start: Tensor, offset: int, rounds: int) -> Tensor:
+        """Obstacle blocks ``(SLOT_SIZE * slots, n)`` for ``n`` envs starting at ``start (n, nj)``:
+        1 to ``slots`` obstacles, each a sphere or a box with equal odds, each clear of the start
+        configuration by ``START_MARGIN`` (redrawn, up to ``rounds`` times, else left out).
+        Draws ``offset`` (the count) and on from the counter stream of each (key, episode)."""
+        n, m = key.shape[0], self.slots
+        count = 1 + (uniform(key, episode, offset, 1, start.dtype)[:, 0] * m).long().clamp_(max=m - 1)
+        slot = torch.arange(m, device=key.device)
+        block = start.new_zeros(n, m, SLOT_SIZE)
+        env = torch.arange(n, device=key.device).repeat_interleave(m)  # one item per (env, slot)
+        item_slot = slot.repeat(n)
+        pending = (item_slot < count[env]).nonzero().squeeze(-1)
+        for r in range(rounds):
+            if not pending.numel():
+                break
+            e, s = env[pending], item_slot[pending]
+            u = uniform(key[e], episode[e], offset + 1 + r * m * _DRAWS_PER_SLOT, m * _DRAWS_PER_SLOT, start.dtype)
+            u = u.view(-1, m, _DRAWS_PER_SLOT)[torch.arange(e.shape[0], device=e.device), s]  # (p, 8)
+            rows = self._slot_rows(u)
+            # each item alone against its env's start (rows.T: one slot per column)
+            d = pairwise_clearance(self.chain, start[e], obstacle_world(rows.T, None), self.capsules)
+            facing = torch.tensor([b in ("sphere0", "box0") for _, b in d.pairs], device=key.device)
+            ok = d.distance[:, facing].amin(-1) > START_MARGIN
+            block[e[ok], s[ok]] = rows[ok]
+            pending = pending[~ok]
+        return block.reshape(n, -1).T.contiguous()
+
+    @staticmethod
+    def _slot_rows(u: Tensor) -> Tensor:
+        """Uniform numbers ``(p, 8)`` -> ``(p, SLOT_SIZE)`` active slots (the layout above)."""
+        is_box = (u[:, 0] < 0.5).to(u.dtype)
+        radius, angle = _scale(u[:, 1], RADIUS_RANGE), _scale(u[:, 2], (-math.pi, math.pi))
+        centre = torch.stack([radius * torch.cos(angle), radius * torch.sin(angle), _scale(u[:, 3], HEIGHT_RANGE)], -1)
+        sphere_size = _scale(u[:, 4], SPHERE_RADIUS_RANGE)[:, None].expand(-1, 3)
+        box_size = _scale(u[:, 4:7], HALF_EXTENT_RANGE)
+        size = torch.where(is_box[:, None] > 0, box_size, sphere_size)
+        yaw = torch.where(is_box > 0, _scale(u[:, 7], (-math.pi, math.pi)), 0.0)
+        return torch.cat([torch.ones_like(is_box)[:, None], is_box[:, None], centre, size,
+                          torch.cos(yaw)[:, None], torch.sin(yaw)[:, None]], -1)
