@@ -438,6 +438,7 @@ EXEMPT = {
     "iiwa_torch.trajectory:TrackResult": "a result type",
     "iiwa_torch.trajectory:Method": "a Literal of choice strings (checked where taken)",
     "iiwa_torch.trajectory:Profile": "a Literal of choice strings (checked where taken)",
+    "envs.core:CollisionKind": "a Literal of choice strings (checked where taken)",
     "iiwa_torch.collision:Capsules": "a model type, built by robot_capsules",
     "iiwa_torch.collision:Clearances": "a result type",
     "iiwa_torch.workspace:Section": "an Enum of choice strings (checked where taken)",

@@ -44,8 +44,9 @@ def test_readme_comparison_row_is_what_the_shipped_command_prints(tmp_path):
     torch.set_num_threads(1)  # as evaluate(): the reduction order, hence the float32 rounding, follows it
     try:
         model, vec_normalize, config = ev.load_policy(POLICY)
-        task = envs.make_task(config["env_id"])
-        goals = make_goal_set(config["env_id"], 1000, 0, {})
+        env_kwargs = config["hyperparams"].get("env_kwargs") or {}  # as the command: the env it was trained on
+        task = envs.make_task(config["env_id"], **env_kwargs)
+        goals = make_goal_set(config["env_id"], 1000, 0, env_kwargs)
         metrics, data = {}, {}
         metrics["policy"], data["policy"] = ev.run_policy(goals, model, vec_normalize, task.robot)
         for name in ("analytic_ik", "gradient_ik"):
