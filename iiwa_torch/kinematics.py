@@ -8,9 +8,11 @@ its first argument and has no other state.
 
 Which kernel runs (``b`` configurations):
 
+- one CPU configuration with nothing to differentiate (:func:`floats_ok`): the end pose and
+  the Jacobian in Python floats (:func:`end_pose_floats`, :func:`jacobian_floats`), the same
+  frame recursion as the elementwise kernel; no torch op but the result's creation.
 - :func:`end_pose`, :func:`all_poses`, :func:`jacobian`: up to ``SMALL_BATCH`` (128)
-  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`; one CPU
-  configuration without autograd in numpy); above, the elementwise batch-last kernel
+  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`); above, the elementwise batch-last kernel
   :func:`frames_batch_last`, in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`).
 - :func:`position_batch_last`: one CPU configuration in Python floats, up to 128 the ``4x4``
   products, above Horner's scheme (:func:`position_horner`) in blocks of ``POSITION_BLOCK``.
@@ -49,9 +51,12 @@ __all__ = [
     "check_rigid",
     "elementary_transform",
     "end_pose",
+    "end_pose_floats",
     "end_pose_matmul",
+    "floats_ok",
     "frames_batch_last",
     "jacobian",
+    "jacobian_floats",
     "pose_vjp",
     "position_batch_last",
     "position_horner",
@@ -300,12 +305,6 @@ def _cross(u, v) -> tuple[Tensor, Tensor, Tensor]:
     )
 
 
-def _off_torch_ok(q: Tensor) -> bool:
-    """On the CPU with nothing to differentiate: one configuration may be computed outside torch
-    (numpy, Python floats), whose per-call overhead is a fraction of torch's."""
-    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
-
-
 # ---------------------------------------------------------------------- batch last
 # Frames are "batch last": a (F, 3, 4, b) tensor of frame, row, column (x, y, z axes, origin)
 # and configuration, with F = n + 1 (base and links) if ``keep``, else 1 (the last link).
@@ -371,7 +370,7 @@ def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | No
     ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if the caller has them (the envs'
     observations do): large batches then skip their own trigonometry."""
     b = q.shape[1]
-    if b == 1 and _off_torch_ok(q):
+    if b == 1 and floats_ok(q):
         return _position_floats(g, q)
     if b <= SMALL_BATCH:
         return end_pose_matmul(g, q.T)[:, :3, 3].T
@@ -427,6 +426,75 @@ def _position_floats(g: Geometry, q: Tensor) -> Tensor:
     return torch.from_numpy(np.array(point, dtype=_NUMPY_DTYPES[q.dtype]).reshape(3, 1))
 
 
+# ---------------------------------------------------------------------- one configuration, Python floats
+def _turn_x(y: tuple, z: tuple, ca: float, sa: float) -> tuple[tuple, tuple]:
+    """:func:`_rotate_x` on the frame axes ``y``, ``z`` given as 3-tuples of floats."""
+    if ca == 0.0:
+        return (z, (-y[0], -y[1], -y[2])) if sa > 0 else ((-z[0], -z[1], -z[2]), y)
+    if sa == 0.0:
+        return (y, z) if ca > 0 else ((-y[0], -y[1], -y[2]), (-z[0], -z[1], -z[2]))
+    return (tuple(ca * u + sa * v for u, v in zip(y, z)), tuple(ca * v - sa * u for u, v in zip(y, z)))
+
+
+def _frames_floats(g: Geometry, q: Tensor) -> tuple[tuple, list[tuple]]:
+    """One configuration, ``q`` with ``n`` elements, in Python floats (double precision): the same
+    frame recursion as :func:`frames_batch_last` and the tool of :func:`tool_frame_batch_last`.
+    Returns the end frame ``(x, y, z, p)`` (tool applied) and the joint axes ``[(z_i, p_i)]``,
+    each vector a 3-tuple. Some 40 float operations per joint and no array op."""
+    r0, r1, r2 = g.base_rows
+    x, y, z, p = (r0[0], r1[0], r2[0]), (r0[1], r1[1], r2[1]), (r0[2], r1[2], r2[2]), (r0[3], r1[3], r2[3])
+    axes, modified, cos, sin = [], g.modified, math.cos, math.sin
+    for t, offset, (a, ca, sa, d) in zip(q.reshape(-1).tolist(), g.offset_list, g.steps):
+        if modified:
+            y, z = _turn_x(y, z, ca, sa)
+            if a:
+                p = (p[0] + a * x[0], p[1] + a * x[1], p[2] + a * x[2])
+        axes.append((z, p))
+        c, s = cos(t + offset), sin(t + offset)
+        (x0, x1, x2), (y0, y1, y2) = x, y
+        x, y = (c * x0 + s * y0, c * x1 + s * y1, c * x2 + s * y2), (c * y0 - s * x0, c * y1 - s * x1, c * y2 - s * x2)
+        if d:
+            p = (p[0] + d * z[0], p[1] + d * z[1], p[2] + d * z[2])
+        if not modified:
+            if a:
+                p = (p[0] + a * x[0], p[1] + a * x[1], p[2] + a * x[2])
+            y, z = _turn_x(y, z, ca, sa)
+    if g.has_tool:
+        frame = (x, y, z)
+        x, y, z, p = (tuple(sum(w * axis[k] for w, axis in zip(column, frame)) + (p[k] if j == 3 else 0.0)
+                            for k in range(3)) for j, column in enumerate(g.tool_columns))
+    return (x, y, z, p), axes
+
+
+def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
+    """One configuration ``q (..., n)`` (a single one: ``q.numel() == n``) -> its end pose
+    ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), not checked.
+    For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
+    tensor outside autograd. Its latency is a fraction of any torch kernel's."""
+    (x, y, z, p), _ = _frames_floats(g, q)
+    rows = [x[0], y[0], z[0], p[0], x[1], y[1], z[1], p[1], x[2], y[2], z[2], p[2], 0.0, 0.0, 0.0, 1.0]
+    return torch.from_numpy(np.array(rows, dtype=_NUMPY_DTYPES[q.dtype]).reshape(*q.shape[:-1], 4, 4))
+
+
+def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
+    """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
+    :func:`jacobian`, computed in Python floats, not checked; for :func:`floats_ok` inputs.
+    Column i is ``[z_i x (p_e - p_i); z_i]``."""
+    (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q)
+    columns = []
+    for (z0, z1, z2), (p0, p1, p2) in axes:
+        l0, l1, l2 = e0 - p0, e1 - p1, e2 - p2
+        columns.append((z1 * l2 - z2 * l1, z2 * l0 - z0 * l2, z0 * l1 - z1 * l0, z0, z1, z2))
+    out = np.array(columns, dtype=_NUMPY_DTYPES[q.dtype]).T  # (6, n)
+    return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
+
+
+def floats_ok(q: Tensor) -> bool:
+    """Whether one configuration ``q`` may take :func:`end_pose_floats` and :func:`jacobian_floats`:
+    on the CPU with nothing to differentiate (no ``requires_grad`` under grad mode)."""
+    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
+
+
 # ---------------------------------------------------------------------- batch first, small batches
 def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
     """``(b, n)`` -> the n link transforms ``A_i``, each ``(b, 4, 4)``, or ``(4, 4)`` if b is 1
@@ -442,20 +510,11 @@ def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
 
 def end_pose_matmul(g: Geometry, q: Tensor) -> Tensor:
     """The small-batch kernel: ``q (b, n) -> (b, 4, 4)`` end poses (tool included), a chain of
-    4x4 products (any batch size; one CPU configuration without autograd in numpy)."""
-    if q.shape[0] == 1 and _off_torch_ok(q):
-        return torch.from_numpy(_end_pose_numpy(g, q)[None])
+    4x4 products (any batch size; one CPU configuration without autograd in Python floats)."""
+    if q.shape[0] == 1 and floats_ok(q):
+        return end_pose_floats(g, q)
     product = torch.mm if q.shape[0] == 1 else torch.bmm
     return reduce(product, _link_matrices(g, q, end=True)).view(q.shape[0], 4, 4)
-
-
-def _end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
-    """One configuration, ``(1, n)`` or ``(n, 1)`` -> its ``(4, 4)`` end pose: the same products
-    as :func:`_link_matrices` and :func:`end_pose_matmul`, in numpy. Its latency is all per-call
-    overhead, and numpy's is about a third of torch's (measured: one call about half as long)."""
-    phase, coeffs, const = g.end_numpy
-    trig = np.sin(q.numpy().reshape(-1, 1, 1) + phase)  # (n, 1, 2): cos, sin
-    return reduce(np.matmul, (const + trig @ coeffs).reshape(-1, 4, 4))
 
 
 def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:
@@ -538,7 +597,10 @@ def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
 
 
 def jacobian(g: Geometry, q: Tensor) -> Tensor:
-    """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first)."""
+    """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first);
+    one CPU configuration without autograd in Python floats."""
+    if q.shape[0] == 1 and floats_ok(q):
+        return jacobian_floats(g, q)
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
     z = z.unbind(1)
     rows = (*_cross(z, (end - origin).unbind(1)), *z)  # 6 x (n, b)

@@ -468,6 +468,52 @@ def test_every_fast_path_matches_the_reference(make, dtype):
     torch.testing.assert_close(chain.position(one), ref[-1, :3, 3], atol=tol, rtol=0)
 
 
+def _reference_jacobian(chain, q):
+    """``(n,) -> (6, n)`` from autograd through the reference: the linear rows are dp/dq, the
+    angular rows the axial vector of dR/dq_i R^T."""
+    d = torch.autograd.functional.jacobian(lambda x: _reference(chain, x)[-1], q)  # (4, 4, n)
+    rot = _reference(chain, q)[-1, :3, :3]
+    w = torch.einsum("ijn,kj->nik", d[:3, :3], rot)  # (n, 3, 3): dR/dq_i R^T, skew
+    return torch.cat([d[:3, 3], torch.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]])], 0)
+
+
+@pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_one_configuration_in_floats_matches_the_batched_kernels_and_the_reference(make, dtype):
+    chain = make()
+    n, tol = chain.n_joints, 1e-12 if dtype == torch.float64 else 2e-5
+    q2 = sample(chain, 2, seed=36)
+    ref_pose, ref_jac = _reference(chain, q2[0])[-1], _reference_jacobian(chain, q2[0])
+    batched_pose, batched_jac = chain.fk(q2.to(dtype))[0], chain.jacobian(q2.to(dtype))[0]  # the 4x4 products
+    for shape in ((n,), (1, n), (1, 1, n)):
+        one = q2[0].to(dtype).reshape(shape)
+        assert kinematics.floats_ok(one)
+        pose, jac = chain.fk(one), chain.jacobian(one)
+        assert pose.shape == (*shape[:-1], 4, 4) and jac.shape == (*shape[:-1], 6, n)
+        assert pose.dtype == jac.dtype == dtype and pose.is_contiguous() and jac.is_contiguous()
+        torch.testing.assert_close(pose.reshape(4, 4), batched_pose, atol=tol, rtol=0)
+        torch.testing.assert_close(jac.reshape(6, n), batched_jac, atol=tol, rtol=0)
+        torch.testing.assert_close(pose.reshape(4, 4), ref_pose.to(dtype), atol=tol, rtol=0)
+        torch.testing.assert_close(jac.reshape(6, n), ref_jac.to(dtype), atol=tol, rtol=0)
+    with torch.inference_mode():
+        torch.testing.assert_close(chain.fk(q2[0].to(dtype)), ref_pose.to(dtype), atol=tol, rtol=0)
+    # With something to differentiate, the torch kernels run and autograd sees them.
+    x = q2[0].to(dtype).requires_grad_()
+    assert not kinematics.floats_ok(x)
+    pose = chain.fk(x)
+    assert pose.grad_fn is not None
+    grad, = torch.autograd.grad(pose[:3, 3].sum(), x)
+    torch.testing.assert_close(grad, ref_jac[:3].sum(0).to(dtype), atol=10 * tol, rtol=0)
+    with torch.no_grad():
+        assert kinematics.floats_ok(x)
+        torch.testing.assert_close(chain.fk(x), ref_pose.to(dtype), atol=tol, rtol=0)
+    # Bad input is refused as before.
+    with pytest.raises(ValueError, match="NaN or inf"):
+        chain.jacobian(torch.full((n,), math.nan, dtype=dtype))
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., "):
+        chain.fk(torch.zeros(n + 1, dtype=dtype))
+
+
 @pytest.mark.parametrize("b", [1, 2, 129, 1000, 8193])
 def test_gradients_match_autograd_through_the_reference(b):
     chain = _with_base_and_tool(False)
