@@ -12,7 +12,8 @@ Which kernel runs (``b`` configurations):
   the Jacobian in Python floats (:func:`end_pose_floats`, :func:`jacobian_floats`), the same
   frame recursion as the elementwise kernel; no torch op but the result's creation.
 - :func:`end_pose`, :func:`all_poses`, :func:`jacobian`: up to ``SMALL_BATCH`` (128)
-  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`); above, the elementwise batch-last kernel
+  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`; the end pose in
+  numpy when :func:`floats_ok`, :func:`end_pose_numpy`); above, the elementwise batch-last kernel
   :func:`frames_batch_last`, in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`).
 - :func:`position_batch_last`: one CPU configuration in Python floats, up to 128 the ``4x4``
   products, above Horner's scheme (:func:`position_horner`) in blocks of ``POSITION_BLOCK``.
@@ -53,6 +54,7 @@ __all__ = [
     "end_pose",
     "end_pose_floats",
     "end_pose_matmul",
+    "end_pose_numpy",
     "floats_ok",
     "frames_batch_last",
     "jacobian",
@@ -510,11 +512,21 @@ def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
 
 def end_pose_matmul(g: Geometry, q: Tensor) -> Tensor:
     """The small-batch kernel: ``q (b, n) -> (b, 4, 4)`` end poses (tool included), a chain of
-    4x4 products (any batch size; one CPU configuration without autograd in Python floats)."""
-    if q.shape[0] == 1 and floats_ok(q):
-        return end_pose_floats(g, q)
+    4x4 products (any batch size). On the CPU with nothing to differentiate (:func:`floats_ok`):
+    one configuration in Python floats, more in numpy (:func:`end_pose_numpy`)."""
+    if floats_ok(q):
+        return end_pose_floats(g, q) if q.shape[0] == 1 else torch.from_numpy(end_pose_numpy(g, q))
     product = torch.mm if q.shape[0] == 1 else torch.bmm
     return reduce(product, _link_matrices(g, q, end=True)).view(q.shape[0], 4, 4)
+
+
+def end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
+    """``q (b, n)`` on the CPU -> ``(b, 4, 4)`` end poses: the products of :func:`end_pose_matmul`
+    in numpy, whose per-op overhead is a fraction of torch's (a batch of 10: about half the
+    time). Not differentiable: for :func:`floats_ok` inputs."""
+    phase, coeffs, const = g.end_numpy
+    trig = np.sin(q.numpy().T[:, :, None] + phase)  # (n, b, 2): cos, sin
+    return reduce(np.matmul, (const + trig @ coeffs).reshape(g.n_joints, -1, 4, 4))
 
 
 def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:

@@ -479,12 +479,17 @@ def _reference_jacobian(chain, q):
 
 @pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True)])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_one_configuration_in_floats_matches_the_batched_kernels_and_the_reference(make, dtype):
+def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
     chain = make()
     n, tol = chain.n_joints, 1e-12 if dtype == torch.float64 else 2e-5
     q2 = sample(chain, 2, seed=36)
     ref_pose, ref_jac = _reference(chain, q2[0])[-1], _reference_jacobian(chain, q2[0])
-    batched_pose, batched_jac = chain.fk(q2.to(dtype))[0], chain.jacobian(q2.to(dtype))[0]  # the 4x4 products
+    # the torch 4x4-product kernels: a batch, under autograd (the fast paths are for neither)
+    q_grad = q2.to(dtype).clone().requires_grad_()
+    batched_pose, batched_jac = chain.fk(q_grad)[0].detach(), chain.jacobian(q_grad)[0]
+    assert not kinematics.floats_ok(q_grad)
+    q10 = sample(chain, 10, seed=37).to(dtype)  # the end pose of a few in numpy
+    torch.testing.assert_close(chain.fk(q10), chain.fk(q10.clone().requires_grad_()).detach(), atol=tol, rtol=0)
     for shape in ((n,), (1, n), (1, 1, n)):
         one = q2[0].to(dtype).reshape(shape)
         assert kinematics.floats_ok(one)
