@@ -59,6 +59,7 @@ __all__ = [
     "frames_batch_last",
     "jacobian",
     "jacobian_floats",
+    "jacobian_numpy",
     "pose_vjp",
     "position_batch_last",
     "position_horner",
@@ -145,7 +146,8 @@ class Geometry:
     ``link_const (n, 1, 16)`` (``end_*``: the base folded into the first link, the tool into the
     last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``, ``offsets (n, 1)``,
     ``offset_trig (2, n, 1)`` their cos and sin; ``end_numpy`` the numpy copies of
-    ``trig_phase, end_trig, end_const`` on the CPU (else ``None``).
+    ``trig_phase, end_trig, end_const`` on the CPU (else ``None``), ``link_numpy`` those of
+    ``trig_phase, link_trig, link_const``, the base and the tool ``(4, 4)``.
     """
 
     modified: bool
@@ -166,6 +168,7 @@ class Geometry:
     offsets: Tensor
     offset_trig: Tensor
     end_numpy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    link_numpy: tuple[np.ndarray, ...] | None
 
     @property
     def n_joints(self) -> int:
@@ -208,9 +211,11 @@ class Geometry:
             "offsets": put(offsets[:, None]),
             "offset_trig": put(torch.stack([offsets.cos(), offsets.sin()])[..., None]),
         }
-        end_numpy = None
+        end_numpy = link_numpy = None
         if device.type == "cpu":
             end_numpy = tuple(tensors[k].numpy() for k in ("trig_phase", "end_trig", "end_const"))
+            link_numpy = (*(tensors[k].numpy() for k in ("trig_phase", "link_trig", "link_const", "base")),
+                          tool.to(dtype).numpy())
         offset_list = tuple(offsets.tolist())
         return cls(
             modified=modified,
@@ -222,6 +227,7 @@ class Geometry:
             tool_columns=tuple(map(tuple, tool[:3].T.tolist())),
             base_rows=tuple(map(tuple, base[:3].tolist())),
             end_numpy=end_numpy,
+            link_numpy=link_numpy,
             **tensors,
         )
 
@@ -529,6 +535,26 @@ def end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
     return reduce(np.matmul, (const + trig @ coeffs).reshape(g.n_joints, -1, 4, 4))
 
 
+def jacobian_numpy(g: Geometry, q: Tensor) -> Tensor:
+    """``q (b, n)`` on the CPU -> ``(b, 6, n)`` Jacobians as :func:`jacobian`, from the link frames
+    of the 4x4-product kernel computed in numpy (a few dozen ops, each a fraction of a torch
+    op's overhead). Not differentiable: for :func:`floats_ok` inputs."""
+    phase, coeffs, const, base, tool = g.link_numpy
+    b, n = q.shape
+    trig = np.sin(q.numpy().T[:, :, None] + phase)  # (n, b, 2): cos, sin
+    links = (const + trig @ coeffs).reshape(n, b, 4, 4)
+    frames = np.stack(list(accumulate(links, np.matmul, initial=np.broadcast_to(base, (b, 4, 4)))))
+    axes = frames[1:] if g.modified else frames[:-1]  # (n, b, 4, 4)
+    out = np.empty((b, 6, n), dtype=links.dtype)
+    out[:, 3:] = axes[:, :, :3, 2].transpose(1, 2, 0)  # the joint axes z_i, (b, 3, n)
+    z = out[:, 3:]
+    end = frames[-1, :, :3, :3] @ tool[:3, 3] + frames[-1, :, :3, 3]  # (b, 3)
+    lever = end[:, :, None] - axes[:, :, :3, 3].transpose(1, 2, 0)  # (b, 3, n)
+    for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
+        np.subtract(z[:, i] * lever[:, j], z[:, j] * lever[:, i], out=out[:, r])
+    return torch.from_numpy(out)
+
+
 def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:
     """Small batches: ``(b, n) -> (n + 1, b, 4, 4)``: the base and every link frame."""
     b = q.shape[0]
@@ -610,9 +636,10 @@ def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
 
 def jacobian(g: Geometry, q: Tensor) -> Tensor:
     """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first);
-    one CPU configuration without autograd in Python floats."""
-    if q.shape[0] == 1 and floats_ok(q):
-        return jacobian_floats(g, q)
+    on the CPU with nothing to differentiate (:func:`floats_ok`), one configuration in Python
+    floats, up to ``SMALL_BATCH`` in numpy."""
+    if q.shape[0] <= SMALL_BATCH and floats_ok(q):
+        return jacobian_floats(g, q) if q.shape[0] == 1 else jacobian_numpy(g, q)
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
     z = z.unbind(1)
     rows = (*_cross(z, (end - origin).unbind(1)), *z)  # 6 x (n, b)

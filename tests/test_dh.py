@@ -488,8 +488,12 @@ def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
     q_grad = q2.to(dtype).clone().requires_grad_()
     batched_pose, batched_jac = chain.fk(q_grad)[0].detach(), chain.jacobian(q_grad)[0]
     assert not kinematics.floats_ok(q_grad)
-    q10 = sample(chain, 10, seed=37).to(dtype)  # the end pose of a few in numpy
-    torch.testing.assert_close(chain.fk(q10), chain.fk(q10.clone().requires_grad_()).detach(), atol=tol, rtol=0)
+    q10 = sample(chain, 10, seed=37).to(dtype)  # a few: the end pose and the Jacobian in numpy
+    x10 = q10.clone().requires_grad_()
+    torch.testing.assert_close(chain.fk(q10), chain.fk(x10).detach(), atol=tol, rtol=0)
+    torch.testing.assert_close(chain.jacobian(q10), chain.jacobian(x10), atol=tol, rtol=0)
+    ref10 = torch.stack([_reference_jacobian(chain, x) for x in q10.double()]).to(dtype)
+    torch.testing.assert_close(chain.jacobian(q10), ref10, atol=tol, rtol=0)
     for shape in ((n,), (1, n), (1, 1, n)):
         one = q2[0].to(dtype).reshape(shape)
         assert kinematics.floats_ok(one)
@@ -507,7 +511,7 @@ def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
     assert not kinematics.floats_ok(x)
     pose = chain.fk(x)
     assert pose.grad_fn is not None
-    grad, = torch.autograd.grad(pose[:3, 3].sum(), x)
+    (grad,) = torch.autograd.grad(pose[:3, 3].sum(), x)
     torch.testing.assert_close(grad, ref_jac[:3].sum(0).to(dtype), atol=10 * tol, rtol=0)
     with torch.no_grad():
         assert kinematics.floats_ok(x)
