@@ -435,43 +435,47 @@ def _position_floats(g: Geometry, q: Tensor) -> Tensor:
 
 
 # ---------------------------------------------------------------------- one configuration, Python floats
-def _turn_x(y: tuple, z: tuple, ca: float, sa: float) -> tuple[tuple, tuple]:
-    """:func:`_rotate_x` on the frame axes ``y``, ``z`` given as 3-tuples of floats."""
-    if ca == 0.0:
-        return (z, (-y[0], -y[1], -y[2])) if sa > 0 else ((-z[0], -z[1], -z[2]), y)
+def _turn_x_floats(y0, y1, y2, z0, z1, z2, ca: float, sa: float) -> tuple[float, ...]:
+    """:func:`_rotate_x` on frame axes ``y``, ``z`` given by their components (floats)."""
+    if ca == 0.0:  # alpha = +-pi/2: a swap and a sign flip
+        return (z0, z1, z2, -y0, -y1, -y2) if sa > 0 else (-z0, -z1, -z2, y0, y1, y2)
     if sa == 0.0:
-        return (y, z) if ca > 0 else ((-y[0], -y[1], -y[2]), (-z[0], -z[1], -z[2]))
-    return (tuple(ca * u + sa * v for u, v in zip(y, z)), tuple(ca * v - sa * u for u, v in zip(y, z)))
+        return (y0, y1, y2, z0, z1, z2) if ca > 0 else (-y0, -y1, -y2, -z0, -z1, -z2)
+    return (ca * y0 + sa * z0, ca * y1 + sa * z1, ca * y2 + sa * z2,
+            ca * z0 - sa * y0, ca * z1 - sa * y1, ca * z2 - sa * y2)  # fmt: skip
 
 
-def _frames_floats(g: Geometry, q: Tensor) -> tuple[tuple, list[tuple]]:
+def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool) -> tuple[tuple, list[tuple]]:
     """One configuration, ``q`` with ``n`` elements, in Python floats (double precision): the same
     frame recursion as :func:`frames_batch_last` and the tool of :func:`tool_frame_batch_last`.
-    Returns the end frame ``(x, y, z, p)`` (tool applied) and the joint axes ``[(z_i, p_i)]``,
-    each vector a 3-tuple. Some 40 float operations per joint and no array op."""
-    r0, r1, r2 = g.base_rows
-    x, y, z, p = (r0[0], r1[0], r2[0]), (r0[1], r1[1], r2[1]), (r0[2], r1[2], r2[2]), (r0[3], r1[3], r2[3])
+    Returns the end frame ``(x, y, z, p)`` (tool applied), each a 3-tuple, and, if
+    ``keep_axes``, the joint axes ``[(z_i, p_i)]``. Scalars throughout: no array op at all."""
+    (x0, y0, z0, p0), (x1, y1, z1, p1), (x2, y2, z2, p2) = g.base_rows
     axes, modified, cos, sin = [], g.modified, math.cos, math.sin
     for t, offset, (a, ca, sa, d) in zip(q.reshape(-1).tolist(), g.offset_list, g.steps):
-        if modified:
-            y, z = _turn_x(y, z, ca, sa)
+        if modified:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
+            y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
             if a:
-                p = (p[0] + a * x[0], p[1] + a * x[1], p[2] + a * x[2])
-        axes.append((z, p))
+                p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+        if keep_axes:
+            axes.append(((z0, z1, z2), (p0, p1, p2)))
         c, s = cos(t + offset), sin(t + offset)
-        (x0, x1, x2), (y0, y1, y2) = x, y
-        x, y = (c * x0 + s * y0, c * x1 + s * y1, c * x2 + s * y2), (c * y0 - s * x0, c * y1 - s * x1, c * y2 - s * x2)
+        x0, x1, x2, y0, y1, y2 = (c * x0 + s * y0, c * x1 + s * y1, c * x2 + s * y2,
+                                  c * y0 - s * x0, c * y1 - s * x1, c * y2 - s * x2)  # fmt: skip
         if d:
-            p = (p[0] + d * z[0], p[1] + d * z[1], p[2] + d * z[2])
-        if not modified:
+            p0, p1, p2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
+        if not modified:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
             if a:
-                p = (p[0] + a * x[0], p[1] + a * x[1], p[2] + a * x[2])
-            y, z = _turn_x(y, z, ca, sa)
-    if g.has_tool:
-        frame = (x, y, z)
-        x, y, z, p = (tuple(sum(w * axis[k] for w, axis in zip(column, frame)) + (p[k] if j == 3 else 0.0)
-                            for k in range(3)) for j, column in enumerate(g.tool_columns))
-    return (x, y, z, p), axes
+                p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+            y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
+    if not g.has_tool:
+        return ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)), axes
+    end = [  # column k of the tool, (u, v, w), in the world: u x + v y + w z (plus p for the origin)
+        (u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1, u * x2 + v * y2 + w * z2)
+        for u, v, w in g.tool_columns
+    ]
+    o0, o1, o2 = end[3]
+    return (end[0], end[1], end[2], (p0 + o0, p1 + o1, p2 + o2)), axes
 
 
 def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
@@ -479,7 +483,7 @@ def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
     ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), not checked.
     For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
     tensor outside autograd. Its latency is a fraction of any torch kernel's."""
-    (x, y, z, p), _ = _frames_floats(g, q)
+    (x, y, z, p), _ = _frames_floats(g, q, keep_axes=False)
     rows = [x[0], y[0], z[0], p[0], x[1], y[1], z[1], p[1], x[2], y[2], z[2], p[2], 0.0, 0.0, 0.0, 1.0]
     return torch.from_numpy(np.array(rows, dtype=_NUMPY_DTYPES[q.dtype]).reshape(*q.shape[:-1], 4, 4))
 
@@ -488,7 +492,7 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
     :func:`jacobian`, computed in Python floats, not checked; for :func:`floats_ok` inputs.
     Column i is ``[z_i x (p_e - p_i); z_i]``."""
-    (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q)
+    (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q, keep_axes=True)
     columns = []
     for (z0, z1, z2), (p0, p1, p2) in axes:
         l0, l1, l2 = e0 - p0, e1 - p1, e2 - p2

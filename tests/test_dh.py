@@ -477,7 +477,11 @@ def _reference_jacobian(chain, q):
     return torch.cat([d[:3, 3], torch.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]])], 0)
 
 
-@pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True)])
+_TWISTED = [[0.1, 0.3, 0.2, 0.1], [0.2, -1.1, 0.0, 0.0], [0.05, math.pi, 0.1, -0.2], [0.0, 0.0, 0.3, 0.0]]
+
+
+@pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True),
+                                  lambda: DHChain(_TWISTED), lambda: DHChain(_TWISTED, convention="modified")])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
     chain = make()
