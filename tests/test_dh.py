@@ -414,9 +414,10 @@ def test_meta_and_vmap_give_clear_errors():
 
 
 # ---------------------------------------------------------------- every kernel against the reference
-# Batch sizes across every kernel switch the docs name: 1 (Python floats / numpy), up to 128
-# (4x4 products), above (elementwise), above 8,192 (blocks), above 65,536 (position blocks).
-BATCHES = [1, 2, 100, 128, 129, 1000, 8193, 20000]
+# Batch sizes across every kernel switch the docs name: 1 (Python floats / numpy), up to 32
+# (batch-last frames in numpy), up to 128 (4x4 products), above (elementwise), above 8,192
+# (blocks), above 65,536 (position blocks).
+BATCHES = [1, 2, kinematics.FRAMES_NUMPY_BATCH, kinematics.FRAMES_NUMPY_BATCH + 1, 100, 128, 129, 1000, 8193, 20000]
 
 
 def _reference(chain, q):
@@ -498,6 +499,12 @@ def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
     torch.testing.assert_close(chain.jacobian(q10), chain.jacobian(x10), atol=tol, rtol=0)
     ref10 = torch.stack([_reference_jacobian(chain, x) for x in q10.double()]).to(dtype)
     torch.testing.assert_close(chain.jacobian(q10), ref10, atol=tol, rtol=0)
+    for keep in (True, False):  # the batch-last frames in numpy against the elementwise kernel
+        fast, slow = chain.frames_batch_last(q10.T, keep), chain.frames_batch_last(x10.T, keep)
+        for got, want in zip(fast, slow):  # frames, then axes (none without keep)
+            assert len(got) == len(want)
+            for g, w in zip(got, want):
+                torch.testing.assert_close(torch.stack(g), torch.stack(w).detach(), atol=tol, rtol=0)
     for shape in ((n,), (1, n), (1, 1, n)):
         one = q2[0].to(dtype).reshape(shape)
         assert kinematics.floats_ok(one)
