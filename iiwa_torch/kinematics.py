@@ -8,10 +8,15 @@ its first argument and has no other state.
 
 Which kernel runs (``b`` configurations):
 
+- one CPU configuration with nothing to differentiate (:func:`floats_ok`): the end pose and
+  the Jacobian in Python floats (:func:`end_pose_floats`, :func:`jacobian_floats`), the same
+  frame recursion as the elementwise kernel; no torch op but the result's creation.
 - :func:`end_pose`, :func:`all_poses`, :func:`jacobian`: up to ``SMALL_BATCH`` (128)
-  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`; one CPU
-  configuration without autograd in numpy); above, the elementwise batch-last kernel
+  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`; the end pose in
+  numpy when :func:`floats_ok`, :func:`end_pose_numpy`); above, the elementwise batch-last kernel
   :func:`frames_batch_last`, in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`).
+- :func:`frames_batch_last`: up to ``FRAMES_NUMPY_BATCH`` (32) CPU configurations without
+  autograd, the 4x4 products in numpy; above, the elementwise kernel.
 - :func:`position_batch_last`: one CPU configuration in Python floats, up to 128 the ``4x4``
   products, above Horner's scheme (:func:`position_horner`) in blocks of ``POSITION_BLOCK``.
 - :class:`EndPoseFunction`: ``fk`` above 128 configurations under autograd, whose backward is
@@ -40,6 +45,7 @@ __all__ = [
     "BLOCK",
     "POSITION_BLOCK",
     "SMALL_BATCH",
+    "FRAMES_NUMPY_BATCH",
     "EndPoseFunction",
     "Frame",
     "Geometry",
@@ -47,9 +53,14 @@ __all__ = [
     "blockwise",
     "elementary_transform",
     "end_pose",
+    "end_pose_floats",
     "end_pose_matmul",
+    "end_pose_numpy",
+    "floats_ok",
     "frames_batch_last",
     "jacobian",
+    "jacobian_floats",
+    "jacobian_numpy",
     "pose_vjp",
     "position_batch_last",
     "position_horner",
@@ -62,6 +73,7 @@ Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin
 BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
 POSITION_BLOCK = 65536  # the same for the position kernel, whose working set is a third (measured)
 SMALL_BATCH = 128  # up to this many configurations the 4x4-product kernel is faster (measured)
+FRAMES_NUMPY_BATCH = 32  # frames_batch_last: numpy 4x4 products up to this many (measured: faster to ~48)
 _NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
@@ -118,7 +130,8 @@ class Geometry:
     ``link_const (n, 1, 16)`` (``end_*``: the base folded into the first link, the tool into the
     last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``, ``offsets (n, 1)``,
     ``offset_trig (2, n, 1)`` their cos and sin; ``end_numpy`` the numpy copies of
-    ``trig_phase, end_trig, end_const`` on the CPU (else ``None``).
+    ``trig_phase, end_trig, end_const`` on the CPU (else ``None``), ``link_numpy`` those of
+    ``trig_phase, link_trig, link_const``, the base and the tool ``(4, 4)``.
     """
 
     modified: bool
@@ -139,6 +152,7 @@ class Geometry:
     offsets: Tensor
     offset_trig: Tensor
     end_numpy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    link_numpy: tuple[np.ndarray, ...] | None
 
     @property
     def n_joints(self) -> int:
@@ -181,9 +195,11 @@ class Geometry:
             "offsets": put(offsets[:, None]),
             "offset_trig": put(torch.stack([offsets.cos(), offsets.sin()])[..., None]),
         }
-        end_numpy = None
+        end_numpy = link_numpy = None
         if device.type == "cpu":
             end_numpy = tuple(tensors[k].numpy() for k in ("trig_phase", "end_trig", "end_const"))
+            link_numpy = (*(tensors[k].numpy() for k in ("trig_phase", "link_trig", "link_const", "base")),
+                          tool.to(dtype).numpy())
         offset_list = tuple(offsets.tolist())
         return cls(
             modified=modified,
@@ -195,6 +211,7 @@ class Geometry:
             tool_columns=tuple(map(tuple, tool[:3].T.tolist())),
             base_rows=tuple(map(tuple, base[:3].tolist())),
             end_numpy=end_numpy,
+            link_numpy=link_numpy,
             **tensors,
         )
 
@@ -280,12 +297,6 @@ def _cross(u, v) -> tuple[Tensor, Tensor, Tensor]:
     )
 
 
-def _off_torch_ok(q: Tensor) -> bool:
-    """On the CPU with nothing to differentiate: one configuration may be computed outside torch
-    (numpy, Python floats), whose per-call overhead is a fraction of torch's."""
-    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
-
-
 # ---------------------------------------------------------------------- batch last
 # Frames are "batch last": a (F, 3, 4, b) tensor of frame, row, column (x, y, z axes, origin)
 # and configuration, with F = n + 1 (base and links) if ``keep``, else 1 (the last link).
@@ -314,7 +325,11 @@ def frames_batch_last(g: Geometry, q: Tensor, keep: bool = True) -> tuple[list[F
     ``axes`` holds ``(z_i, p_i)``, joint i's axis and a point on it (if ``keep``). The tool is
     not applied (:func:`tool_frame_batch_last`). The moving frame's axes are rotated with
     elementwise multiply-adds over the whole batch; the constant twists (``alpha`` of 0 or
-    +-pi/2) are swaps and sign flips; no 4x4 products."""
+    +-pi/2) are swaps and sign flips; no 4x4 products. Up to ``FRAMES_NUMPY_BATCH`` CPU
+    configurations with nothing to differentiate (:func:`floats_ok`), the same frames come from
+    the 4x4 products in numpy instead (fewer ops, each cheaper: about 0.7x the time for 8)."""
+    if q.shape[1] <= FRAMES_NUMPY_BATCH and floats_ok(q):
+        return _frames_batch_last_numpy(g, q, keep)
     c, s = _cos_sin(g, q)
     x, y, z, p = g.base[:3, :, None].expand(3, 4, q.shape[1]).unbind(1)  # each (3, b)
     frames, axes = [(x, y, z, p)], []
@@ -351,7 +366,7 @@ def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | No
     ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if the caller has them (the envs'
     observations do): large batches then skip their own trigonometry."""
     b = q.shape[1]
-    if b == 1 and _off_torch_ok(q):
+    if b == 1 and floats_ok(q):
         return _position_floats(g, q)
     if b <= SMALL_BATCH:
         return end_pose_matmul(g, q.T)[:, :3, 3].T
@@ -407,6 +422,79 @@ def _position_floats(g: Geometry, q: Tensor) -> Tensor:
     return torch.from_numpy(np.array(point, dtype=_NUMPY_DTYPES[q.dtype]).reshape(3, 1))
 
 
+# ---------------------------------------------------------------------- one configuration, Python floats
+def _turn_x_floats(y0, y1, y2, z0, z1, z2, ca: float, sa: float) -> tuple[float, ...]:
+    """:func:`_rotate_x` on frame axes ``y``, ``z`` given by their components (floats)."""
+    if ca == 0.0:  # alpha = +-pi/2: a swap and a sign flip
+        return (z0, z1, z2, -y0, -y1, -y2) if sa > 0 else (-z0, -z1, -z2, y0, y1, y2)
+    if sa == 0.0:
+        return (y0, y1, y2, z0, z1, z2) if ca > 0 else (-y0, -y1, -y2, -z0, -z1, -z2)
+    return (ca * y0 + sa * z0, ca * y1 + sa * z1, ca * y2 + sa * z2,
+            ca * z0 - sa * y0, ca * z1 - sa * y1, ca * z2 - sa * y2)  # fmt: skip
+
+
+def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool) -> tuple[tuple, list[tuple]]:
+    """One configuration, ``q`` with ``n`` elements, in Python floats (double precision): the same
+    frame recursion as :func:`frames_batch_last` and the tool of :func:`tool_frame_batch_last`.
+    Returns the end frame ``(x, y, z, p)`` (tool applied), each a 3-tuple, and, if
+    ``keep_axes``, the joint axes ``[(z_i, p_i)]``. Scalars throughout: no array op at all."""
+    (x0, y0, z0, p0), (x1, y1, z1, p1), (x2, y2, z2, p2) = g.base_rows
+    axes, modified, cos, sin = [], g.modified, math.cos, math.sin
+    for t, offset, (a, ca, sa, d) in zip(q.reshape(-1).tolist(), g.offset_list, g.steps):
+        if modified:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
+            y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
+            if a:
+                p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+        if keep_axes:
+            axes.append(((z0, z1, z2), (p0, p1, p2)))
+        c, s = cos(t + offset), sin(t + offset)
+        x0, x1, x2, y0, y1, y2 = (c * x0 + s * y0, c * x1 + s * y1, c * x2 + s * y2,
+                                  c * y0 - s * x0, c * y1 - s * x1, c * y2 - s * x2)  # fmt: skip
+        if d:
+            p0, p1, p2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
+        if not modified:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
+            if a:
+                p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+            y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
+    if not g.has_tool:
+        return ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)), axes
+    end = [  # column k of the tool, (u, v, w), in the world: u x + v y + w z (plus p for the origin)
+        (u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1, u * x2 + v * y2 + w * z2)
+        for u, v, w in g.tool_columns
+    ]
+    o0, o1, o2 = end[3]
+    return (end[0], end[1], end[2], (p0 + o0, p1 + o1, p2 + o2)), axes
+
+
+def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
+    """One configuration ``q (..., n)`` (a single one: ``q.numel() == n``) -> its end pose
+    ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), not checked.
+    For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
+    tensor outside autograd. Its latency is a fraction of any torch kernel's."""
+    (x, y, z, p), _ = _frames_floats(g, q, keep_axes=False)
+    rows = [x[0], y[0], z[0], p[0], x[1], y[1], z[1], p[1], x[2], y[2], z[2], p[2], 0.0, 0.0, 0.0, 1.0]
+    return torch.from_numpy(np.array(rows, dtype=_NUMPY_DTYPES[q.dtype]).reshape(*q.shape[:-1], 4, 4))
+
+
+def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
+    """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
+    :func:`jacobian`, computed in Python floats, not checked; for :func:`floats_ok` inputs.
+    Column i is ``[z_i x (p_e - p_i); z_i]``."""
+    (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q, keep_axes=True)
+    columns = []
+    for (z0, z1, z2), (p0, p1, p2) in axes:
+        l0, l1, l2 = e0 - p0, e1 - p1, e2 - p2
+        columns.append((z1 * l2 - z2 * l1, z2 * l0 - z0 * l2, z0 * l1 - z1 * l0, z0, z1, z2))
+    out = np.array(columns, dtype=_NUMPY_DTYPES[q.dtype]).T  # (6, n)
+    return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
+
+
+def floats_ok(q: Tensor) -> bool:
+    """Whether one configuration ``q`` may take :func:`end_pose_floats` and :func:`jacobian_floats`:
+    on the CPU with nothing to differentiate (no ``requires_grad`` under grad mode)."""
+    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
+
+
 # ---------------------------------------------------------------------- batch first, small batches
 def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
     """``(b, n)`` -> the n link transforms ``A_i``, each ``(b, 4, 4)``, or ``(4, 4)`` if b is 1
@@ -422,20 +510,66 @@ def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
 
 def end_pose_matmul(g: Geometry, q: Tensor) -> Tensor:
     """The small-batch kernel: ``q (b, n) -> (b, 4, 4)`` end poses (tool included), a chain of
-    4x4 products (any batch size; one CPU configuration without autograd in numpy)."""
-    if q.shape[0] == 1 and _off_torch_ok(q):
-        return torch.from_numpy(_end_pose_numpy(g, q)[None])
+    4x4 products (any batch size). On the CPU with nothing to differentiate (:func:`floats_ok`):
+    one configuration in Python floats, more in numpy (:func:`end_pose_numpy`)."""
+    if floats_ok(q):
+        return end_pose_floats(g, q) if q.shape[0] == 1 else torch.from_numpy(end_pose_numpy(g, q))
     product = torch.mm if q.shape[0] == 1 else torch.bmm
     return reduce(product, _link_matrices(g, q, end=True)).view(q.shape[0], 4, 4)
 
 
-def _end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
-    """One configuration, ``(1, n)`` or ``(n, 1)`` -> its ``(4, 4)`` end pose: the same products
-    as :func:`_link_matrices` and :func:`end_pose_matmul`, in numpy. Its latency is all per-call
-    overhead, and numpy's is about a third of torch's (measured: one call about half as long)."""
+def end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
+    """``q (b, n)`` on the CPU -> ``(b, 4, 4)`` end poses: the products of :func:`end_pose_matmul`
+    in numpy, whose per-op overhead is a fraction of torch's (a batch of 10: about half the
+    time). Not differentiable: for :func:`floats_ok` inputs."""
     phase, coeffs, const = g.end_numpy
-    trig = np.sin(q.numpy().reshape(-1, 1, 1) + phase)  # (n, 1, 2): cos, sin
-    return reduce(np.matmul, (const + trig @ coeffs).reshape(-1, 4, 4))
+    trig = np.sin(q.numpy().T[:, :, None] + phase)  # (n, b, 2): cos, sin
+    return reduce(np.matmul, (const + trig @ coeffs).reshape(g.n_joints, -1, 4, 4))
+
+
+def _frames_numpy(g: Geometry, q: np.ndarray) -> np.ndarray:
+    """``q (b, n)`` -> ``(n + 1, b, 4, 4)``: the base and every link frame (no tool), the
+    4x4-product kernel (:func:`_link_matrices`, :func:`_frames_matmul`) in numpy."""
+    phase, coeffs, const, base, _ = g.link_numpy
+    b, n = q.shape
+    trig = np.sin(q.T[:, :, None] + phase)  # (n, b, 2): cos, sin
+    links = (const + trig @ coeffs).reshape(n, b, 4, 4)
+    return np.stack(list(accumulate(links, np.matmul, initial=np.broadcast_to(base, (b, 4, 4)))))
+
+
+def _frames_batch_last_numpy(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
+    """:func:`frames_batch_last` from :func:`_frames_numpy`: the same frames, in its layout."""
+    frames = _frames_numpy(g, q.numpy().T)
+    if not keep:
+        frames = frames[-1:]
+    top = np.ascontiguousarray(frames[:, :, :3].transpose(0, 2, 3, 1))  # (F, 3, 4, b)
+    out = [tuple(f.unbind(1)) for f in torch.from_numpy(top).unbind(0)]
+    if not keep:
+        return out, []
+    if not g.modified:  # joint i turns about frame i - 1's z axis, through its origin
+        return out, [(f[2], f[3]) for f in out[:-1]]
+    # modified: frame i's z axis, through the point the elementwise kernel takes (origin - d_i z_i)
+    d = np.array([step[3] for step in g.steps], dtype=top.dtype)[:, None, None]
+    points = torch.from_numpy(top[1:, :, 3] - d * top[1:, :, 2]).unbind(0)
+    return out, [(f[2], p) for f, p in zip(out[1:], points)]
+
+
+def jacobian_numpy(g: Geometry, q: Tensor) -> Tensor:
+    """``q (b, n)`` on the CPU -> ``(b, 6, n)`` Jacobians as :func:`jacobian`, from the link frames
+    of the 4x4-product kernel computed in numpy (a few dozen ops, each a fraction of a torch
+    op's overhead). Not differentiable: for :func:`floats_ok` inputs."""
+    b, n = q.shape
+    frames = _frames_numpy(g, q.numpy())
+    axes = frames[1:] if g.modified else frames[:-1]  # (n, b, 4, 4)
+    tool = g.link_numpy[4]
+    out = np.empty((b, 6, n), dtype=frames.dtype)
+    out[:, 3:] = axes[:, :, :3, 2].transpose(1, 2, 0)  # the joint axes z_i, (b, 3, n)
+    z = out[:, 3:]
+    end = frames[-1, :, :3, :3] @ tool[:3, 3] + frames[-1, :, :3, 3]  # (b, 3)
+    lever = end[:, :, None] - axes[:, :, :3, 3].transpose(1, 2, 0)  # (b, 3, n)
+    for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
+        np.subtract(z[:, i] * lever[:, j], z[:, j] * lever[:, i], out=out[:, r])
+    return torch.from_numpy(out)
 
 
 def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:
@@ -518,7 +652,11 @@ def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
 
 
 def jacobian(g: Geometry, q: Tensor) -> Tensor:
-    """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first)."""
+    """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first);
+    on the CPU with nothing to differentiate (:func:`floats_ok`), one configuration in Python
+    floats, up to ``SMALL_BATCH`` in numpy."""
+    if q.shape[0] <= SMALL_BATCH and floats_ok(q):
+        return jacobian_floats(g, q) if q.shape[0] == 1 else jacobian_numpy(g, q)
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
     z = z.unbind(1)
     rows = (*_cross(z, (end - origin).unbind(1)), *z)  # 6 x (n, b)

@@ -414,9 +414,10 @@ def test_meta_and_vmap_give_clear_errors():
 
 
 # ---------------------------------------------------------------- every kernel against the reference
-# Batch sizes across every kernel switch the docs name: 1 (Python floats / numpy), up to 128
-# (4x4 products), above (elementwise), above 8,192 (blocks), above 65,536 (position blocks).
-BATCHES = [1, 2, 100, 128, 129, 1000, 8193, 20000]
+# Batch sizes across every kernel switch the docs name: 1 (Python floats / numpy), up to 32
+# (batch-last frames in numpy), up to 128 (4x4 products), above (elementwise), above 8,192
+# (blocks), above 65,536 (position blocks).
+BATCHES = [1, 2, kinematics.FRAMES_NUMPY_BATCH, kinematics.FRAMES_NUMPY_BATCH + 1, 100, 128, 129, 1000, 8193, 20000]
 
 
 def _reference(chain, q):
@@ -466,6 +467,71 @@ def test_every_fast_path_matches_the_reference(make, dtype):
     ref = _reference(chain, q_all[0]).to(dtype)
     torch.testing.assert_close(chain.fk(one), ref[-1], atol=tol, rtol=0)
     torch.testing.assert_close(chain.position(one), ref[-1, :3, 3], atol=tol, rtol=0)
+
+
+def _reference_jacobian(chain, q):
+    """``(n,) -> (6, n)`` from autograd through the reference: the linear rows are dp/dq, the
+    angular rows the axial vector of dR/dq_i R^T."""
+    d = torch.autograd.functional.jacobian(lambda x: _reference(chain, x)[-1], q)  # (4, 4, n)
+    rot = _reference(chain, q)[-1, :3, :3]
+    w = torch.einsum("ijn,kj->nik", d[:3, :3], rot)  # (n, 3, 3): dR/dq_i R^T, skew
+    return torch.cat([d[:3, 3], torch.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]])], 0)
+
+
+_TWISTED = [[0.1, 0.3, 0.2, 0.1], [0.2, -1.1, 0.0, 0.0], [0.05, math.pi, 0.1, -0.2], [0.0, 0.0, 0.3, 0.0]]
+
+
+@pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True),
+                                  lambda: DHChain(_TWISTED), lambda: DHChain(_TWISTED, convention="modified")])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
+    chain = make()
+    n, tol = chain.n_joints, 1e-12 if dtype == torch.float64 else 2e-5
+    q2 = sample(chain, 2, seed=36)
+    ref_pose, ref_jac = _reference(chain, q2[0])[-1], _reference_jacobian(chain, q2[0])
+    # the torch 4x4-product kernels: a batch, under autograd (the fast paths are for neither)
+    q_grad = q2.to(dtype).clone().requires_grad_()
+    batched_pose, batched_jac = chain.fk(q_grad)[0].detach(), chain.jacobian(q_grad)[0]
+    assert not kinematics.floats_ok(q_grad)
+    q10 = sample(chain, 10, seed=37).to(dtype)  # a few: the end pose and the Jacobian in numpy
+    x10 = q10.clone().requires_grad_()
+    torch.testing.assert_close(chain.fk(q10), chain.fk(x10).detach(), atol=tol, rtol=0)
+    torch.testing.assert_close(chain.jacobian(q10), chain.jacobian(x10), atol=tol, rtol=0)
+    ref10 = torch.stack([_reference_jacobian(chain, x) for x in q10.double()]).to(dtype)
+    torch.testing.assert_close(chain.jacobian(q10), ref10, atol=tol, rtol=0)
+    for keep in (True, False):  # the batch-last frames in numpy against the elementwise kernel
+        fast, slow = chain.frames_batch_last(q10.T, keep), chain.frames_batch_last(x10.T, keep)
+        for got, want in zip(fast, slow):  # frames, then axes (none without keep)
+            assert len(got) == len(want)
+            for g, w in zip(got, want):
+                torch.testing.assert_close(torch.stack(g), torch.stack(w).detach(), atol=tol, rtol=0)
+    for shape in ((n,), (1, n), (1, 1, n)):
+        one = q2[0].to(dtype).reshape(shape)
+        assert kinematics.floats_ok(one)
+        pose, jac = chain.fk(one), chain.jacobian(one)
+        assert pose.shape == (*shape[:-1], 4, 4) and jac.shape == (*shape[:-1], 6, n)
+        assert pose.dtype == jac.dtype == dtype and pose.is_contiguous() and jac.is_contiguous()
+        torch.testing.assert_close(pose.reshape(4, 4), batched_pose, atol=tol, rtol=0)
+        torch.testing.assert_close(jac.reshape(6, n), batched_jac, atol=tol, rtol=0)
+        torch.testing.assert_close(pose.reshape(4, 4), ref_pose.to(dtype), atol=tol, rtol=0)
+        torch.testing.assert_close(jac.reshape(6, n), ref_jac.to(dtype), atol=tol, rtol=0)
+    with torch.inference_mode():
+        torch.testing.assert_close(chain.fk(q2[0].to(dtype)), ref_pose.to(dtype), atol=tol, rtol=0)
+    # With something to differentiate, the torch kernels run and autograd sees them.
+    x = q2[0].to(dtype).requires_grad_()
+    assert not kinematics.floats_ok(x)
+    pose = chain.fk(x)
+    assert pose.grad_fn is not None
+    (grad,) = torch.autograd.grad(pose[:3, 3].sum(), x)
+    torch.testing.assert_close(grad, ref_jac[:3].sum(0).to(dtype), atol=10 * tol, rtol=0)
+    with torch.no_grad():
+        assert kinematics.floats_ok(x)
+        torch.testing.assert_close(chain.fk(x), ref_pose.to(dtype), atol=tol, rtol=0)
+    # Bad input is refused as before.
+    with pytest.raises(ValueError, match="NaN or inf"):
+        chain.jacobian(torch.full((n,), math.nan, dtype=dtype))
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., "):
+        chain.fk(torch.zeros(n + 1, dtype=dtype))
 
 
 @pytest.mark.parametrize("b", [1, 2, 129, 1000, 8193])

@@ -109,7 +109,8 @@ def test_vector_env_matches_single_envs_through_resets(env_id):
         for i, env in enumerate(singles):
             o, r, te, tr, inf = env.step(action[i])
             assert (te, tr, inf["is_success"]) == (term[i], trunc[i], info["is_success"][i])
-            assert r == pytest.approx(reward[i], rel=2e-6, abs=1e-6)
+            # float32: a single env's one configuration is computed in double precision, the batch in float32
+            assert r == pytest.approx(reward[i], rel=5e-6, abs=2e-6)
             if te or tr:
                 ends["terminated" if te else "truncated"] += 1
                 assert info["_final_obs"][i]
