@@ -320,6 +320,10 @@ def robot_capsules(chain: DHChain) -> Capsules:
 
 
 # ---------------------------------------------------------------------------- obstacles
+# each obstacle kind's two tensors: their shapes after the leading (batch..., M)
+_OBSTACLE_SHAPES = {"walls": ((3,), ()), "spheres": ((3,), ()), "boxes": ((4, 4), (3,)), "capsules": ((2, 3), ())}
+
+
 @dataclass(frozen=True)
 class World:
     """Obstacles, each kind with an optional leading batch shape (one set per environment).
@@ -345,14 +349,8 @@ class World:
     def __post_init__(self) -> None:
         if self.floor is not None and not (isinstance(self.floor, (int, float)) and math.isfinite(self.floor)):
             raise ValueError(f"floor must be a finite height in metres or None, got {self.floor!r}")
-        specs = {
-            "walls": ((3,), ()),
-            "spheres": ((3,), ()),
-            "boxes": ((4, 4), (3,)),
-            "capsules": ((2, 3), ()),
-        }
         first = None
-        for kind, (shape_a, shape_b) in specs.items():
+        for kind, (shape_a, shape_b) in _OBSTACLE_SHAPES.items():
             pair = getattr(self, kind)
             if pair is None:
                 continue
@@ -400,6 +398,28 @@ class World:
                     "boxes[0] must be rigid poses (orthonormal rotation, det +1, last row 0 0 0 1), "
                     f"got |R^T R - I| up to {err:.3g}"
                 )
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The broadcast of every obstacle kind's leading (per-environment) shape; ``()`` if none has one."""
+        shapes = [
+            pair[0].shape[: pair[0].ndim - len(_OBSTACLE_SHAPES[kind][0]) - 1]
+            for kind in _OBSTACLE_SHAPES
+            if (pair := getattr(self, kind)) is not None
+        ]
+        return torch.broadcast_shapes(*shapes)
+
+    def map(self, fn) -> World:
+        """A world with ``fn(tensor, event_dims)`` applied to every obstacle tensor (the floor is
+        kept); ``event_dims`` counts the tensor's trailing dimensions that are not batch, the
+        obstacle count ``M`` included (e.g. 2 for sphere centres ``(..., S, 3)``). For moving,
+        casting, broadcasting or indexing the batch."""
+        kinds = {}
+        for kind, shapes in _OBSTACLE_SHAPES.items():
+            pair = getattr(self, kind)
+            if pair is not None:
+                kinds[kind] = tuple(fn(t, len(shape) + 1) for t, shape in zip(pair, shapes))
+        return World(floor=self.floor, **kinds)
 
     def tensors(self) -> list[Tensor]:
         """Every obstacle tensor (for dtype/device checks and moving)."""

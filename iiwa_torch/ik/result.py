@@ -17,6 +17,7 @@ class IKResult:
         pos_err: ``(...)`` position error norm of ``fk(q)`` against the target (metres).
         rot_err: ``(...)`` rotation error angle (radians); 0 for position-only problems.
         iterations: ``(...)`` int64, iterations spent on each problem (0 for closed forms).
+        clearance: ``(...)`` minimum signed clearance of q (metres) when a world was given, else None.
     """
 
     q: torch.Tensor
@@ -24,3 +25,4 @@ class IKResult:
     pos_err: torch.Tensor
     rot_err: torch.Tensor
     iterations: torch.Tensor
+    clearance: torch.Tensor | None = None
