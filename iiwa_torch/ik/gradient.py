@@ -31,7 +31,7 @@ from .dls import dls_step_batch_last
 from .limits import shift_into_limits
 from .result import IKResult
 
-__all__ = ["Mode", "Optimizer", "Precision", "solve", "minimize"]
+__all__ = ["Mode", "Optimizer", "Precision", "clearance_shortfall", "solve", "minimize"]
 
 Tensor = torch.Tensor
 Mode = Literal["pose", "position"]
@@ -149,11 +149,20 @@ def _clearance_row(q: Tensor, obstacles: _Obstacles) -> tuple[Tensor, Tensor]:
     so it does not alternate between two obstacles."""
     with torch.enable_grad():
         x = q.T.detach().requires_grad_(True)
-        d = pairwise_clearance(obstacles.chain, x, obstacles.world, obstacles.capsules).distance
-        sq = (obstacles.margin + _CLEAR_BUFFER - d).clamp_min(0).square().sum(-1)
+        sq = clearance_shortfall(obstacles.chain, x, obstacles.world, obstacles.margin, obstacles.capsules)
         (grad,) = torch.autograd.grad(sq.sum(), x)
     r = sq.detach().sqrt()
     return r, grad.T / (2 * r).clamp_min(torch.finfo(q.dtype).tiny)
+
+
+def clearance_shortfall(
+    chain: DHChain, q: Tensor, world: World, margin: float, capsules: Capsules | None = None
+) -> Tensor:
+    """``sum_p max(0, margin + 2 mm - d_p)^2`` over every checked pair's signed distance ``d_p``
+    (:func:`~iiwa_torch.collision.pairwise_clearance`): ``q (..., n) -> (...)``, m^2, zero once
+    every pair clears ``margin`` by 2 mm. Differentiable; the penalty both solvers use."""
+    d = pairwise_clearance(chain, q, world, capsules).distance
+    return (margin + _CLEAR_BUFFER - d).clamp_min(0).square().sum(-1)
 
 
 def _pose_terms(
@@ -659,6 +668,9 @@ def minimize(
     pos_tol: float = 1e-4,
     rot_tol: float = 1e-3,
     success_fn: Callable[[Tensor, Tensor], Tensor] | None = None,
+    world: World | None = None,
+    margin: float = 0.0,
+    clearance_weight: float = 1.0,
 ) -> IKResult:
     """IK by gradient descent on any differentiable loss, for a batch of problems.
 
@@ -679,6 +691,11 @@ def minimize(
         pos_tol, rot_tol: success tolerances, metres and radians.
         success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion of the caller's
             loss (e.g. "elbow above 0.5 m"); success needs it and the tolerances.
+        world, margin, clearance_weight: optional :class:`~iiwa_torch.collision.World` (``q0``'s
+            dtype and device, batch broadcasting to ``q0``'s), a clearance in metres (>= 0) and
+            a weight (1/m^2 of loss per m^2): the loss gets the term ``clearance_weight *``
+            :func:`clearance_shortfall`, success needs a clearance >= ``margin``, and the
+            result carries ``clearance``.
 
     Joint limits are kept by projection: the loss sees the parameters clamped into the limits,
     and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
@@ -694,6 +711,19 @@ def minimize(
     chain.check_q(q0, "q0")
     batch = q0.shape[:-1]
     _check_target(target, mode, q0.dtype, batch)
+    _check_world(world, margin, target, batch)
+    check_positive(clearance_weight, "clearance_weight")
+    capsules = None if world is None else robot_capsules(chain)
+
+    def objective(q: Tensor) -> Tensor:
+        value = loss(q, chain.fk(q))
+        if not isinstance(value, torch.Tensor) or value.shape != batch:
+            raise ValueError(
+                f"loss must return one value per problem, shape {tuple(batch)}, got {getattr(value, 'shape', value)}"
+            )
+        if world is None:
+            return value
+        return value + clearance_weight * clearance_shortfall(chain, q, world, margin, capsules)
 
     lo, hi = _inner_limits(chain, q0.dtype)
 
@@ -709,11 +739,7 @@ def minimize(
         nonlocal best_loss
         opt.zero_grad()
         q = clamp(u)
-        value = loss(q, chain.fk(q))
-        if not isinstance(value, torch.Tensor) or value.shape != batch:
-            raise ValueError(
-                f"loss must return one value per problem, shape {tuple(batch)}, got {getattr(value, 'shape', value)}"
-            )
+        value = objective(q)
         with torch.no_grad():  # every evaluated q is within limits, so any may be the answer
             better = value < best_loss
             best_q.copy_(torch.where(better[..., None], q, best_q))
@@ -729,8 +755,9 @@ def minimize(
             decay.step()
     with torch.no_grad():
         q = clamp(u)
-        best_q = torch.where((loss(q, chain.fk(q)) < best_loss)[..., None], q, best_q)
-        return _minimize_result(chain, best_q, target, mode, pos_tol, rot_tol, steps, success_fn)
+        best_q = torch.where((objective(q) < best_loss)[..., None], q, best_q)
+        result = _minimize_result(chain, best_q, target, mode, pos_tol, rot_tol, steps, success_fn)
+        return result if world is None else _with_clearance(chain, result, world, margin)
 
 
 def _optimizer(u: Tensor, optimizer: str, steps: int, lr: float | None):
