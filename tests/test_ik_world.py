@@ -192,3 +192,22 @@ def test_bad_world_or_margin(kwargs, error, words):
     q0 = ARM.random_q(5, generator=torch.Generator().manual_seed(1))
     with pytest.raises(error, match=words):
         minimize(ARM, lambda q, pose: q.square().sum(-1), q0, target=target, **kwargs)
+
+
+def test_world_batch_shape_and_map():
+    spheres = (torch.zeros(5, 1, 2, 3, dtype=F), torch.ones(5, 1, 2, dtype=F))
+    walls = (torch.tensor([[0.0, 0.0, 1.0]], dtype=F).expand(3, 1, 3), torch.zeros(3, 1, dtype=F))
+    assert World().batch_shape == () and World(spheres=(spheres[0][0, 0], spheres[1][0, 0])).batch_shape == ()
+    world = World(floor=0.5, spheres=spheres, walls=walls)
+    assert world.batch_shape == (5, 3)
+    seen = []
+
+    def cast(t, event):
+        seen.append(event)
+        return t.float()
+
+    single = world.map(cast)
+    assert seen == [2, 1, 2, 1]  # walls (normals, offsets), then spheres (centres, radii)
+    assert single.floor == 0.5 and all(t.dtype == torch.float32 for t in single.tensors())
+    first = World(spheres=spheres).map(lambda t, _: t[:2])
+    assert first.batch_shape == (2, 1) and torch.equal(first.spheres[1], spheres[1][:2])
