@@ -125,6 +125,17 @@ def test_float32_and_an_unbatched_world():
     assert result.success.double().mean() >= 0.95
 
 
+def test_position_mode_with_a_world(solved):
+    _, target, centres, radii, world, _ = solved
+    few = slice(0, 40)
+    goal = target[few, :3, 3]
+    result = solve(ARM, goal, mode="position", world=world.map(lambda t, _: t[few]), margin=MARGIN)
+    err = (ARM.fk(result.q)[:, :3, 3] - goal).norm(dim=-1)
+    ok = (err <= 1e-4) & (brute_world_clearance(result.q, centres[few], radii[few]) >= MARGIN)
+    assert torch.equal(result.success, ok & (clearance(ARM, result.q, World(floor=None)) >= MARGIN))
+    assert result.success.all()
+
+
 def test_target_reachable_only_through_the_floor():
     # flange 3 cm above the floor: the wrist capsule (radius 0.075) ends there, so every exact
     # solution puts it into the floor

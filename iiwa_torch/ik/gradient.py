@@ -431,8 +431,8 @@ def solve(
         flat = flat.to(work)
         lo, hi = (x[:, None] for x in _inner_limits(chain, work))  # (n, 1) each
         first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
-        # Seeds: q0, then pool configurations ranked by pose distance to each target.
         obstacles = None if world is None else _obstacles(chain, world, margin, batch, work)
+        # Seeds: q0, then pool configurations ranked by pose distance to each target.
         pool = distance = None  # not needed when q0 is the only seed (tracking)
         if seeds > (first is not None):
             pool = chain.random_q(max(_POOL, seeds), generator=generator, dtype=work)
