@@ -11,7 +11,9 @@ roboticstoolbox's analytic ``Puma560.ikine_a`` (one call per branch) and its C++
 ``ikine_LM`` on the iiwa, and our gradient solver ``iiwa_torch.ik.solve``. Last, the
 arm-angle sweep ``iiwa_solve`` on 100,000 reachable poses: its success rate, and for every
 miss, whether a 4096-angle sweep or the gradient solver with 64 seeds finds a solution.
-Writes results/analytic.json and results/analytic.md (``_quick`` with ``--quick``).
+And ``iiwa_solve`` in a world (the floor and 3 random spheres near the arm, per pose) on
+poses of collision-free configurations: success and ms per pose, every answer checked by
+FK and clearance. Writes results/analytic.json and results/analytic.md (``_quick`` with ``--quick``).
 """
 
 from __future__ import annotations
@@ -28,11 +30,13 @@ import torch  # noqa: E402
 from common import markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import robots  # noqa: E402
+from iiwa_torch.collision import World, clearance, robot_capsules  # noqa: E402
 from iiwa_torch.ik import analytic, solve  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.so3 import pose_error  # noqa: E402
 
 K_PSI = 4  # arm angles per pose for the iiwa
+MARGIN = 0.01  # clearance (m) required of the answers in a world, and exceeded by each target configuration
 CHUNK = 25_000  # poses per call for the iiwa with K arm angles (bounded memory)
 
 
@@ -237,6 +241,76 @@ def sweep_success(n: int) -> dict:
     return out
 
 
+def sphere_worlds(chain, q: torch.Tensor, gen: torch.Generator, spheres: int = 3) -> tuple[World, torch.Tensor]:
+    """The floor and ``spheres`` spheres near the arm for each configuration of ``q (N, 7)``:
+    each centred off a random point of a random capsule, radius 0.05-0.12 m, its surface
+    0.02-0.15 m from that capsule's; redrawn (up to 50 times) until the configuration clears
+    the world by more than ``MARGIN``. Returns the world (batch ``(N',)``) and the kept rows."""
+    caps = robot_capsules(chain)
+    n, dtype = q.shape[0], q.dtype
+    frames = chain.fk_all(q)[:, list(caps.frames)]  # (N, K, 4, 4)
+    centres = torch.zeros(n, spheres, 3, dtype=dtype)
+    radii = torch.zeros(n, spheres, dtype=dtype)
+    todo = torch.ones(n, dtype=torch.bool)
+    for _ in range(50):
+        rows = todo.nonzero().squeeze(-1)
+        if not rows.numel():
+            break
+        m = rows.numel()
+        k = torch.randint(len(caps.names), (m, spheres), generator=gen)
+        t = torch.rand(m, spheres, 1, generator=gen, dtype=dtype)
+        ends = caps.points.to(dtype)[k]  # (m, S, 2, 3)
+        local = ends[..., 0, :] + t * (ends[..., 1, :] - ends[..., 0, :])
+        frame = frames[rows[:, None], k]  # (m, S, 4, 4)
+        point = (frame[..., :3, :3] @ local[..., None])[..., 0] + frame[..., :3, 3]
+        direction = torch.nn.functional.normalize(torch.randn(m, spheres, 3, generator=gen, dtype=dtype), dim=-1)
+        r = 0.05 + 0.07 * torch.rand(m, spheres, generator=gen, dtype=dtype)
+        gap = 0.02 + 0.13 * torch.rand(m, spheres, generator=gen, dtype=dtype)
+        centres[rows] = point + direction * (caps.radii.to(dtype)[k] + r + gap)[..., None]
+        radii[rows] = r
+        world = World(floor=0.0, spheres=(centres[rows], radii[rows]))
+        todo[rows] = clearance(chain, q[rows], world) <= MARGIN
+    keep = (~todo).nonzero().squeeze(-1)
+    return World(floor=0.0, spheres=(centres[keep], radii[keep])), keep
+
+
+def world_sweep(n: int) -> dict:
+    """``iiwa_solve`` with and without a world on ``n`` poses of collision-free configurations
+    (self and floor clear by more than ``MARGIN``), each with its own 3 spheres near the arm."""
+    iiwa = robots.iiwa14()
+    gen = torch.Generator().manual_seed(5)
+    q = iiwa.random_q(2 * n, generator=gen)
+    q = q[clearance(iiwa, q) > MARGIN][:n]
+    world, keep = sphere_worlds(iiwa, q, gen)
+    target = iiwa.fk(q[keep])
+    start = time.perf_counter()
+    plain = analytic.iiwa_solve(iiwa, target)
+    plain_s = time.perf_counter() - start
+    start = time.perf_counter()
+    res = analytic.iiwa_solve(iiwa, target, world=world, margin=MARGIN)
+    world_s = time.perf_counter() - start
+    pos, rot = pose_error(iiwa.fk(res.q), target)
+    recomputed = clearance(iiwa, res.q, world)
+    verified = (pos.norm(dim=-1) <= 1e-4) & (rot.norm(dim=-1) <= 1e-3) & (recomputed >= MARGIN)
+    out = {
+        "poses": int(keep.numel()),
+        "margin_m": MARGIN,
+        "success": res.success.float().mean().item(),
+        "verified_by_fk_and_clearance": int(verified.sum()),
+        "success_count": int(res.success.sum()),
+        "plain_answer_collides": (clearance(iiwa, plain.q, world) < MARGIN).float().mean().item(),
+        "plain_success": plain.success.float().mean().item(),
+        "ms_per_pose": world_s / keep.numel() * 1e3,
+        "plain_ms_per_pose": plain_s / keep.numel() * 1e3,
+    }
+    print(
+        f"iiwa_solve, floor + 3 spheres, {out['poses']:,} poses: success {out['success']:.4f} "
+        f"({out['verified_by_fk_and_clearance']} verified), {out['ms_per_pose']:.3f} ms/pose "
+        f"(without the world {out['plain_ms_per_pose']:.3f}; its answers collide on {out['plain_answer_collides']:.3f})"
+    )
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="10,000 poses, fewer repeats (a smoke run)")
@@ -245,6 +319,7 @@ def main() -> None:
     closed = bench_closed_forms(n, repeats)
     peers = bench_peers(n_rtb=50 if args.quick else 300, n_grad=1_000 if args.quick else 10_000)
     sweep = sweep_success(2_000 if args.quick else 100_000)
+    obstacles = world_sweep(500 if args.quick else 10_000)
 
     headers = [
         "solver", "dtype", "branches", "s per call (median)", "M branches/s (median)", "M branches/s (best)",
@@ -283,10 +358,24 @@ def main() -> None:
         f"{len(sweep['missed'])} missed; {sweep['grid16_without_valid_branch']} poses have no in-limit branch on a "
         f"plain 16-angle grid (narrow feasible arm-angle intervals, found by the finer retry: "
         f"success there {sweep.get('grid16_misses_iiwa_solve_success', float('nan')):.3f}, gradient solver "
-        f"{sweep.get('grid16_misses_gradient_success', float('nan')):.3f}).\n\nMachine: {info}\n"
+        f"{sweep.get('grid16_misses_gradient_success', float('nan')):.3f}).\n\n"
+        + "In a world (floor + 3 random spheres near the arm per pose, margin "
+        f"{obstacles['margin_m'] * 1e3:.0f} mm, poses of collision-free configurations):\n\n"
+        + markdown_table(
+            ["solver", "poses", "success", "verified (FK + clearance)", "ms per pose", "without the world"],
+            [
+                [
+                    "iiwa_solve(world=...)", f"{obstacles['poses']:,}", f"{obstacles['success']:.4f}",
+                    f"{obstacles['verified_by_fk_and_clearance']:,}", f"{obstacles['ms_per_pose']:.3f}",
+                    f"{obstacles['plain_ms_per_pose']:.3f} ms, "
+                    f"answers colliding {obstacles['plain_answer_collides']:.3f}",
+                ]
+            ],
+        )
+        + f"\nMachine: {info}\n"
     )
     print(md)
-    payload = {"machine": info, "closed_forms": closed, "peers": peers, "sweep": sweep}
+    payload = {"machine": info, "closed_forms": closed, "peers": peers, "sweep": sweep, "world": obstacles}
     path = save("analytic_quick" if args.quick else "analytic", payload, md)
     print(f"wrote {path}")
 

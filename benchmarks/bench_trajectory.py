@@ -9,7 +9,9 @@
 - tracking one 0.36 m line of 50 poses: ours ``track`` (analytic and gradient) against
   roboticstoolbox ``ETS.ik_LM`` (C++) called at each pose, warm-started from the last answer
   (tol 1e-10, so that it reaches our 1e-6 m), all scored by our FK;
-- tracking 256 lines x 30 poses at once (ours; the peer's per-line time scales linearly).
+- tracking 256 lines x 30 poses at once (ours; the peer's per-line time scales linearly);
+- tracking the one line past a sphere (radius 5 cm, where the untroubled path's elbow passes
+  half way) with ``world=``: time, the path's smallest clearance and largest joint step.
 
 Values are checked against the peer where both compute the same thing. Writes
 results/trajectory.json and results/trajectory.md.
@@ -28,8 +30,9 @@ import torch  # noqa: E402
 from common import markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import robots, so3  # noqa: E402
+from iiwa_torch.collision import World  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
-from iiwa_torch.trajectory import ctraj, jtraj, track  # noqa: E402
+from iiwa_torch.trajectory import ctraj, jtraj, path_clearance, track  # noqa: E402
 
 F64 = torch.float64
 CHAIN = robots.iiwa14()
@@ -158,6 +161,24 @@ def bench_track_batch(lines: int, repeats: int) -> dict:
     return rows
 
 
+def bench_track_world(repeats: int) -> dict:
+    path = line(Q_START, [0.0, 0.3, -0.2], 50)
+    free = track(CHAIN, path, Q_START, method="analytic")
+    centre = CHAIN.fk_all(free.q[25])[3, :3, 3]  # the elbow half way
+    world = World(floor=0.0, spheres=(centre[None], torch.tensor([0.05], dtype=F64)))
+    rows = {}
+    for name, kwargs in (
+        ("analytic, no world", {"method": "analytic"}),
+        ("analytic, world, margin 1 cm", {"method": "analytic", "world": world, "margin": 0.01}),
+        ("gradient, world (checked only)", {"method": "gradient", "world": world, "margin": 0.01}),
+    ):
+        seconds = timeit(lambda k=kwargs: track(CHAIN, path, Q_START, **k), repeats=repeats, min_time=0.0)
+        res = track(CHAIN, path, Q_START, **kwargs)
+        lowest = path_clearance(CHAIN, res.q, world).amin()
+        rows[name] = {"s/line": seconds, "min clearance m": float(lowest)} | score(res.q, path)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller batches, fewer repeats (a smoke run)")
@@ -172,6 +193,8 @@ def main() -> None:
     print("track one line", results["track one line"], flush=True)
     results["track many lines"] = bench_track_batch(lines, repeats)
     print("track many lines", results["track many lines"], flush=True)
+    results["track past a sphere"] = bench_track_world(repeats)
+    print("track past a sphere", results["track past a sphere"], flush=True)
     results["machine"]["loadavg_at_end"] = os.getloadavg()
 
     md = ["# Trajectory benchmark\n", f"`python benchmarks/bench_trajectory.py{' --quick' if args.quick else ''}`; "]
@@ -201,6 +224,23 @@ def main() -> None:
     ]
     md.append(
         markdown_table(["tracking lines at once, 30 poses", "lines", "ms/line", "solved", "jumps > 0.1 rad"], rows)
+    )
+    md.append("\n")
+    rows = [
+        [
+            name,
+            f"{r['s/line'] * 1e3:.0f}",
+            f"{r['min clearance m'] * 1e3:.1f}",
+            f"{r['max pos err m']:.1e}",
+            f"{r['max joint step rad']:.3f}",
+        ]
+        for name, r in results["track past a sphere"].items()
+    ]
+    md.append(
+        markdown_table(
+            ["one line past a sphere, 50 poses", "ms", "min clearance (mm)", "max pos err (m)", "max joint step (rad)"],
+            rows,
+        )
     )
     path = save("trajectory_quick" if args.quick else "trajectory", results, "".join(md))
     print("".join(md))

@@ -15,19 +15,21 @@ and stay finite when segments are parallel, of zero length or touching.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ._checks import check_finite, check_float_tensor
+from ._checks import check_finite, check_float_tensor, check_nonnegative
 from .dh import DHChain
 
 __all__ = [
     "Capsules",
     "Clearances",
     "World",
+    "check_world",
     "clearance",
     "pairwise_clearance",
     "robot_capsules",
@@ -320,8 +322,8 @@ def robot_capsules(chain: DHChain) -> Capsules:
 
 
 # ---------------------------------------------------------------------------- obstacles
-# each obstacle kind's two tensors: their shapes after the leading (batch..., M)
-_OBSTACLE_SHAPES = {"walls": ((3,), ()), "spheres": ((3,), ()), "boxes": ((4, 4), (3,)), "capsules": ((2, 3), ())}
+# each kind's per-obstacle dims after M: (first tensor, second tensor)
+_OBSTACLE_DIMS = {"walls": ((3,), ()), "spheres": ((3,), ()), "boxes": ((4, 4), (3,)), "capsules": ((2, 3), ())}
 
 
 @dataclass(frozen=True)
@@ -350,7 +352,7 @@ class World:
         if self.floor is not None and not (isinstance(self.floor, (int, float)) and math.isfinite(self.floor)):
             raise ValueError(f"floor must be a finite height in metres or None, got {self.floor!r}")
         first = None
-        for kind, (shape_a, shape_b) in _OBSTACLE_SHAPES.items():
+        for kind, (shape_a, shape_b) in _OBSTACLE_DIMS.items():
             pair = getattr(self, kind)
             if pair is None:
                 continue
@@ -399,33 +401,43 @@ class World:
                     f"got |R^T R - I| up to {err:.3g}"
                 )
 
-    @property
-    def batch_shape(self) -> torch.Size:
-        """The broadcast of every obstacle kind's leading (per-environment) shape; ``()`` if none has one."""
-        shapes = [
-            pair[0].shape[: pair[0].ndim - len(_OBSTACLE_SHAPES[kind][0]) - 1]
-            for kind in _OBSTACLE_SHAPES
-            if (pair := getattr(self, kind)) is not None
-        ]
-        return torch.broadcast_shapes(*shapes)
-
-    def map(self, fn) -> World:
-        """A world with ``fn(tensor, event_dims)`` applied to every obstacle tensor (the floor is
-        kept); ``event_dims`` counts the tensor's trailing dimensions that are not batch, the
-        obstacle count ``M`` included (e.g. 2 for sphere centres ``(..., S, 3)``). For moving,
-        casting, broadcasting or indexing the batch."""
-        kinds = {}
-        for kind, shapes in _OBSTACLE_SHAPES.items():
-            pair = getattr(self, kind)
-            if pair is not None:
-                kinds[kind] = tuple(fn(t, len(shape) + 1) for t, shape in zip(pair, shapes))
-        return World(floor=self.floor, **kinds)
-
     def tensors(self) -> list[Tensor]:
         """Every obstacle tensor (for dtype/device checks and moving)."""
         return [
             t for kind in ("walls", "spheres", "boxes", "capsules") if getattr(self, kind) for t in getattr(self, kind)
         ]
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The broadcast leading batch shape of the obstacles (``()`` for one shared set)."""
+        shapes = [a.shape[: a.ndim - len(_OBSTACLE_DIMS[kind][0]) - 1] for kind, (a, _) in self._kinds()]
+        return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
+
+    def map_batch(self, fn) -> World:
+        """A world with ``fn(t, k)`` applied to every obstacle tensor ``t`` whose last ``k``
+        dims are the obstacle dims (``M`` and each obstacle's own): the dims before them are
+        the batch, which ``fn`` may reshape, expand or index (e.g. to one world per pose)."""
+        changed = {
+            kind: tuple(fn(t, 1 + len(dims)) for t, dims in zip(pair, _OBSTACLE_DIMS[kind]))
+            for kind, pair in self._kinds()
+        }
+        return dataclasses.replace(self, **changed)
+
+    def _kinds(self) -> list[tuple[str, tuple[Tensor, Tensor]]]:
+        return [(kind, getattr(self, kind)) for kind in _OBSTACLE_DIMS if getattr(self, kind) is not None]
+
+
+def check_world(world: World | None, margin: float, capsules: Capsules | None = None) -> None:
+    """Check the ``world=``, ``margin=``, ``capsules=`` arguments of a solver: ``world`` a
+    :class:`World` or ``None``, ``margin`` a finite number >= 0 (metres), and neither
+    ``margin`` nor ``capsules`` given without a world."""
+    if world is not None and not isinstance(world, World):
+        raise TypeError(f"world must be an iiwa_torch.collision.World or None, got {type(world).__name__}")
+    if capsules is not None and not isinstance(capsules, Capsules):
+        raise TypeError(f"capsules must be an iiwa_torch.collision.Capsules or None, got {type(capsules).__name__}")
+    check_nonnegative(margin, "margin")
+    if world is None and (margin != 0 or capsules is not None):
+        raise ValueError("margin and capsules apply to a world: pass world=World(...) (World() is the floor at z = 0)")
 
 
 # ---------------------------------------------------------------------------- queries

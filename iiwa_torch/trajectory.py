@@ -17,6 +17,7 @@ in seconds, shape ``(T,)`` or ``(..., T)`` (increasing; the move runs from ``t[.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Literal, get_args
@@ -25,6 +26,7 @@ import torch
 
 from . import so3
 from ._checks import check_choice, check_finite
+from .collision import Capsules, World, check_world, clearance
 from .dh import DHChain
 
 __all__ = [
@@ -34,6 +36,7 @@ __all__ = [
     "Profile",
     "jtraj",
     "ctraj",
+    "path_clearance",
     "track",
     "shortest_duration",
     "sampled_duration",
@@ -45,6 +48,7 @@ Profile = Literal["linear", "quintic"]
 
 _PEAK_SPEED = 15 / 8  # peak of d/ds (10 s^3 - 15 s^4 + 6 s^5), at s = 1/2
 _LOG_STEPS, _ZOOM_STEPS, _ZOOMS = 24, 9, 3  # analytic tracking: arm-angle offsets 1e-6..pi either side, then zooms
+_BRANCH_FIELDS = ("q", "valid", "reachable", "within_limits", "clearance", "collision_free")
 
 
 @dataclass(frozen=True)
@@ -55,11 +59,14 @@ class JointTrajectory:
         q: positions (rad).
         qd: velocities (rad/s, or rad per unit duration when ``t`` was a step count).
         qdd: accelerations (rad/s^2, or per unit duration squared).
+        min_clearance: ``(...)`` smallest clearance over the ``T`` samples (m) when a world was
+            given, else None.
     """
 
     q: Tensor
     qd: Tensor
     qdd: Tensor
+    min_clearance: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -72,6 +79,10 @@ class TrackResult:
         pos_err: ``(..., T)`` position error norm of ``fk(q)`` against the pose (m).
         rot_err: ``(..., T)`` rotation error angle (rad).
         max_step: ``(...)`` largest change of any joint between consecutive steps (rad).
+        clearance: ``(..., T)`` clearance of each step (m) when a world was given, else None.
+        collision_free: ``(..., T)`` bool, ``clearance >= margin``, when a world was given, else
+            None; ``success`` requires it.
+        min_clearance: ``(...)`` smallest clearance along the path (m) when a world was given, else None.
     """
 
     q: Tensor
@@ -79,6 +90,9 @@ class TrackResult:
     pos_err: Tensor
     rot_err: Tensor
     max_step: Tensor
+    clearance: Tensor | None = None
+    collision_free: Tensor | None = None
+    min_clearance: Tensor | None = None
 
 
 def _times(t, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -99,19 +113,35 @@ def _times(t, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]
     return (t - t[..., :1]) / duration, duration
 
 
-def jtraj(q0: Tensor, q1: Tensor, t, qd0: Tensor | None = None, qd1: Tensor | None = None) -> JointTrajectory:
+def jtraj(
+    q0: Tensor,
+    q1: Tensor,
+    t,
+    qd0: Tensor | None = None,
+    qd1: Tensor | None = None,
+    *,
+    chain: DHChain | None = None,
+    world: World | None = None,
+    capsules: Capsules | None = None,
+) -> JointTrajectory:
     """Quintic joint-space trajectory from ``q0`` to ``q1``.
 
     Args:
         q0, q1: ``(..., n)`` start and goal joint angles (rad), broadcast together.
         t: number of steps ``T`` or a time vector ``(T,)`` / ``(..., T)`` in seconds (module doc).
         qd0, qd1: optional ``(..., n)`` boundary velocities (default 0), in the units of ``t``.
+        chain, world, capsules: with a world (and the chain it is checked for), the result's
+            ``min_clearance`` is the smallest :func:`iiwa_torch.collision.clearance` over the
+            samples (the world's batch shape broadcasting with ``(...)``).
 
     Returns:
         :class:`JointTrajectory` with ``q, qd, qdd`` each ``(..., T, n)``; boundary
         accelerations are zero. Differentiable in every input. NaN or inf in an input is a
         ``ValueError`` (as in :func:`ctraj` and :func:`track`).
     """
+    check_world(world, 0.0, capsules)
+    if (world is None) != (chain is None):
+        raise ValueError("jtraj needs both chain= and world= to report the clearance (World() is the floor at z = 0)")
     for name, value in (("q0", q0), ("q1", q1), ("qd0", qd0), ("qd1", qd1)):
         if value is not None and not (isinstance(value, Tensor) and value.is_floating_point() and value.ndim >= 1):
             raise TypeError(f"{name} must be a float tensor of shape (..., n), got {value!r:.60}")
@@ -150,7 +180,16 @@ def jtraj(q0: Tensor, q1: Tensor, t, qd0: Tensor | None = None, qd1: Tensor | No
     q = basis @ coeffs
     qd = d_basis @ coeffs / scale
     qdd = dd_basis @ coeffs / (scale * scale)
-    return JointTrajectory(q=q, qd=qd, qdd=qdd)
+    lowest = None if world is None else path_clearance(chain, q, world, capsules).amin(-1)
+    return JointTrajectory(q=q, qd=qd, qdd=qdd, min_clearance=lowest)
+
+
+def path_clearance(chain: DHChain, q: Tensor, world: World, capsules: Capsules | None = None) -> Tensor:
+    """Clearance (m) of every sample of joint paths ``q (..., T, n) -> (..., T)``, against a
+    world whose batch shape broadcasts with the paths' ``(...)``. Only the samples are
+    checked, not the motion between them."""
+    step = world.map_batch(lambda t, k: t.unsqueeze(t.ndim - k))  # a dim for T before the obstacle dims
+    return clearance(chain, q, step, capsules)
 
 
 def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
@@ -228,6 +267,9 @@ def track(
     pos_tol: float = 1e-7,
     rot_tol: float = 1e-6,
     rest_gain: float = 0.0,
+    world: World | None = None,
+    margin: float = 0.0,
+    capsules: Capsules | None = None,
 ) -> TrackResult:
     """Inverse kinematics along Cartesian paths, each step started from the previous solution.
 
@@ -245,18 +287,28 @@ def track(
             Both methods thus take (close to) the smallest joint step at each pose.
         pos_tol, rot_tol: success tolerances at each pose (m, rad).
         rest_gain: null-space gain of the gradient method (0 to 1).
+        world, margin, capsules: optional obstacles (batch shape broadcasting with the paths'
+            ``(...)``), the clearance required (m, >= 0) and the capsule model. The analytic
+            method then takes, at each step, the nearest solution whose clearance is at least
+            ``margin`` (for the iiwa: any arm angle, searching the whole circle when none near
+            the last one clears); where none exists it keeps the nearest in-limit solution,
+            colliding, and says so in ``collision_free``. The gradient method does not steer
+            away from obstacles; its path is only checked.
 
     Returns:
-        :class:`TrackResult`: joint path, per-step errors and success, and the largest joint step.
-        Check ``max_step``: a large value means a branch switch or a failure along the way.
+        :class:`TrackResult`: joint path, per-step errors and success, and the largest joint step;
+        with a world, also each step's clearance, whether it clears ``margin`` (``success``
+        requires it) and the path's smallest clearance. Check ``max_step``: a large value means
+        a branch switch, a swing around an obstacle or a failure along the way.
     """
     check_choice(method, get_args(Method), "method")
+    check_world(world, margin, capsules)
     so3.check_rigid(poses, "poses")
     chain.check_q(q0, "q0")
     if poses.ndim < 3:
         raise ValueError(f"poses must have shape (..., T, 4, 4), got {tuple(poses.shape)}")
     try:
-        torch.broadcast_shapes(poses.shape[:-3], q0.shape[:-1])
+        batch = torch.broadcast_shapes(poses.shape[:-3], q0.shape[:-1])
     except RuntimeError:
         raise ValueError(
             f"the batch shapes of poses {tuple(poses.shape)} (..., T, 4, 4) and q0 {tuple(q0.shape)} (..., n) "
@@ -265,7 +317,7 @@ def track(
     if method == "gradient":
         step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain)
     else:
-        step = _analytic_stepper(chain, pos_tol, rot_tol)
+        step = _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules)
     q_prev = q0.to(poses.dtype)
     qs = []
     for k in range(poses.shape[-3]):  # sequential by nature: each step starts from the last
@@ -276,8 +328,21 @@ def track(
     pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
     steps = q.diff(dim=-2).abs().amax(-1)  # (..., T - 1)
     max_step = steps.amax(-1) if steps.shape[-1] else torch.zeros(q.shape[:-2], dtype=q.dtype, device=q.device)
+    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    clear = free = lowest = None
+    if world is not None:
+        clear = path_clearance(chain, q, world, capsules)
+        free = clear >= margin
+        success, lowest = success & free, clear.amin(-1)
     return TrackResult(
-        q=q, success=(pos_err <= pos_tol) & (rot_err <= rot_tol), pos_err=pos_err, rot_err=rot_err, max_step=max_step
+        q=q,
+        success=success,
+        pos_err=pos_err,
+        rot_err=rot_err,
+        max_step=max_step,
+        clearance=clear,
+        collision_free=free,
+        min_clearance=lowest,
     )
 
 
@@ -301,23 +366,32 @@ def _gradient_stepper(chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float
     return step
 
 
-def _nearest(chain: DHChain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _nearest(chain: DHChain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Of the candidates ``sol.q (..., B, n)`` (closed-form branches), the one nearest to
-    ``q_prev (..., n)``: valid ones first, then reachable ones (clamped). Returns ``q (..., n)``,
-    its index ``(...)`` and whether it is valid ``(...)``."""
+    ``q_prev (..., n)``: valid ones first, then reachable ones within the limits (colliding, when
+    ``sol`` was checked against a world), then the other reachable ones (clamped). Returns
+    ``q (..., n)``, its index ``(...)``, whether it is valid and whether it is reachable and
+    within the limits ``(...)``."""
     dist = (sol.q - q_prev[..., None, :]).square().sum(-1)  # (..., B)
-    key = torch.where(sol.valid, dist, torch.where(sol.reachable, dist + 1e6, torch.full_like(dist, math.inf)))
+    penalty = 1e6 * (~sol.valid).to(dist.dtype) + 2e6 * (~sol.within_limits).to(dist.dtype)
+    key = torch.where(sol.reachable, dist + penalty, torch.full_like(dist, math.inf))
     best = key.argmin(-1)
     q = sol.q.gather(-2, best[..., None, None].expand(*best.shape, 1, chain.n_joints)).squeeze(-2)
-    return chain.clamp(q), best, sol.valid.gather(-1, best[..., None]).squeeze(-1)
+
+    def at_best(mask: Tensor) -> Tensor:
+        return mask.expand_as(dist).gather(-1, best[..., None]).squeeze(-1)
+
+    return chain.clamp(q), best, at_best(sol.valid), at_best(sol.reachable & sol.within_limits)
 
 
-def _near_arm_angle(chain: DHChain, pose: Tensor, q_prev: Tensor) -> tuple[Tensor, Tensor]:
+def _near_arm_angle(chain: DHChain, pose: Tensor, q_prev: Tensor, world: World | None, margin: float, capsules):
     """iiwa: the closed-form solution of ``pose (B, 4, 4)`` nearest to ``q_prev (B, 7)`` over
     arm angles near the previous one's: offsets from 1e-6 to pi either side on a log scale,
     then ``_ZOOMS`` finer rounds around the best (0 is in every round, so the pick never gets
     farther). Near a shoulder or wrist alignment the nearest solution sits in an arm-angle
-    window of about a milliradian, which an even grid misses. Returns ``q``, ``found``."""
+    window of about a milliradian, which an even grid misses. ``world`` (one row per pose, or
+    shared) makes colliding branches invalid. Returns ``q``, ``found`` (valid) and whether it
+    is reachable and within the limits."""
     from .ik import analytic
 
     steps = torch.logspace(-6, math.log10(math.pi), _LOG_STEPS, dtype=pose.dtype, device=pose.device)
@@ -327,36 +401,57 @@ def _near_arm_angle(chain: DHChain, pose: Tensor, q_prev: Tensor) -> tuple[Tenso
     centre = analytic.iiwa_arm_angle(chain, q_prev)
     width = None
     for _ in range(1 + _ZOOMS):
-        sol = analytic.iiwa(chain, pose, centre[:, None] + offsets)  # q (B, K, 8, 7)
-        flat = type(sol)(*(x.flatten(1, 2) for x in (sol.q, sol.valid, sol.reachable, sol.within_limits)))
-        q, best, found = _nearest(chain, flat, q_prev)
+        sol = analytic.iiwa(chain, pose, centre[:, None] + offsets, world=world, margin=margin, capsules=capsules)
+        flat = dataclasses.replace(
+            sol, **{f: getattr(sol, f).flatten(1, 2) for f in _BRANCH_FIELDS if getattr(sol, f) is not None}
+        )
+        q, best, found, usable = _nearest(chain, flat, q_prev)
         chosen = offsets.gather(-1, (best // 8)[:, None])  # (B, 1): 8 branches per arm angle
         centre = centre + chosen[:, 0]
         width = ratio * chosen.abs() + 1e-6 if width is None else 2 * width / (_ZOOM_STEPS - 1)
         offsets = unit * width
-    return q, found
+    return q, found, usable
 
 
-def _analytic_stepper(chain: DHChain, pos_tol: float, rot_tol: float):
+def _analytic_stepper(
+    chain: DHChain,
+    pos_tol: float,
+    rot_tol: float,
+    batch: torch.Size,
+    world: World | None,
+    margin: float,
+    capsules: Capsules | None,
+):
     from .ik import analytic
+    from .ik.analytic.srs import Obstacles
 
     if chain.n_joints not in (6, 7):
         raise ValueError(
             f"method='analytic' tracks 7-joint iiwa-like arms and 6R spherical-wrist arms; "
             f"{chain.name!r} has {chain.n_joints} joints (use method='gradient')"
         )
+    if chain.n_joints == 6:
+        return lambda pose, q_prev: _nearest(
+            chain, analytic.pieper(chain, pose, world=world, margin=margin, capsules=capsules), q_prev
+        )[0]
+    obstacles = None if world is None else Obstacles.for_batch(world, margin, capsules, batch)
+    rows_world = None if obstacles is None else obstacles.world  # one row per path (or shared)
 
     def step(pose: Tensor, q_prev: Tensor) -> Tensor:
-        if chain.n_joints == 6:
-            return _nearest(chain, analytic.pieper(chain, pose), q_prev)[0]
-        batch = torch.broadcast_shapes(pose.shape[:-2], q_prev.shape[:-1])
         target = pose.expand(*batch, 4, 4).reshape(-1, 4, 4)
         q_ref = q_prev.expand(*batch, 7).reshape(-1, 7)
-        q, found = _near_arm_angle(chain, target, q_ref)
-        if not found.all():  # no arm angle near the last one is within the limits: the whole circle
-            lost = ~found
-            q = q.clone()
-            q[lost] = analytic.iiwa_solve(chain, target[lost], q_ref[lost], pos_tol=pos_tol, rot_tol=rot_tol).q
+        q, found, usable = _near_arm_angle(chain, target, q_ref, rows_world, margin, capsules)
+        if not found.all():  # nothing valid near the last arm angle: the whole circle
+            lost = (~found).nonzero().squeeze(-1)
+            extra = (
+                {}
+                if obstacles is None
+                else {"world": obstacles.take(lost).world, "margin": margin, "capsules": capsules}
+            )
+            far = analytic.iiwa_solve(chain, target[lost], q_ref[lost], pos_tol=pos_tol, rot_tol=rot_tol, **extra)
+            # keep a colliding near solution rather than jump to another that also fails
+            take = far.success | ~usable[lost]
+            q = q.index_put((lost,), torch.where(take[:, None], far.q, q[lost]))
         return q.reshape(*batch, 7)
 
     return step

@@ -129,7 +129,7 @@ def test_position_mode_with_a_world(solved):
     _, target, centres, radii, world, _ = solved
     few = slice(0, 40)
     goal = target[few, :3, 3]
-    result = solve(ARM, goal, mode="position", world=world.map(lambda t, _: t[few]), margin=MARGIN)
+    result = solve(ARM, goal, mode="position", world=world.map_batch(lambda t, _: t[few]), margin=MARGIN)
     err = (ARM.fk(result.q)[:, :3, 3] - goal).norm(dim=-1)
     ok = (err <= 1e-4) & (brute_world_clearance(result.q, centres[few], radii[few]) >= MARGIN)
     assert torch.equal(result.success, ok & (clearance(ARM, result.q, World(floor=None)) >= MARGIN))
@@ -191,7 +191,7 @@ def test_minimize_with_a_clearance_term():
         ({"world": World(), "margin": math.nan}, ValueError, "margin"),
         ({"world": World(), "margin": math.inf}, ValueError, "margin"),
         ({"world": World(), "margin": True}, ValueError, "margin"),
-        ({"margin": 0.01}, ValueError, "needs a world"),
+        ({"margin": 0.01}, ValueError, "apply to a world"),
         ({"world": World(spheres=(torch.zeros(1, 3), torch.ones(1)))}, TypeError, "float32"),
         ({"world": World(spheres=(torch.zeros(3, 1, 3, dtype=F), torch.ones(3, 1, dtype=F)))}, ValueError, "batch"),
     ],
@@ -203,22 +203,3 @@ def test_bad_world_or_margin(kwargs, error, words):
     q0 = ARM.random_q(5, generator=torch.Generator().manual_seed(1))
     with pytest.raises(error, match=words):
         minimize(ARM, lambda q, pose: q.square().sum(-1), q0, target=target, **kwargs)
-
-
-def test_world_batch_shape_and_map():
-    spheres = (torch.zeros(5, 1, 2, 3, dtype=F), torch.ones(5, 1, 2, dtype=F))
-    walls = (torch.tensor([[0.0, 0.0, 1.0]], dtype=F).expand(3, 1, 3), torch.zeros(3, 1, dtype=F))
-    assert World().batch_shape == () and World(spheres=(spheres[0][0, 0], spheres[1][0, 0])).batch_shape == ()
-    world = World(floor=0.5, spheres=spheres, walls=walls)
-    assert world.batch_shape == (5, 3)
-    seen = []
-
-    def cast(t, event):
-        seen.append(event)
-        return t.float()
-
-    single = world.map(cast)
-    assert seen == [2, 1, 2, 1]  # walls (normals, offsets), then spheres (centres, radii)
-    assert single.floor == 0.5 and all(t.dtype == torch.float32 for t in single.tensors())
-    first = World(spheres=spheres).map(lambda t, _: t[:2])
-    assert first.batch_shape == (2, 1) and torch.equal(first.spheres[1], spheres[1][:2])

@@ -25,7 +25,7 @@ import torch
 
 from .. import so3
 from .._checks import check_choice, check_finite, check_positive
-from ..collision import Capsules, World, clearance, pairwise_clearance, robot_capsules
+from ..collision import Capsules, World, check_world, clearance, pairwise_clearance, robot_capsules
 from ..dh import DHChain
 from .dls import dls_step_batch_last
 from .limits import shift_into_limits
@@ -89,7 +89,7 @@ class _Obstacles(NamedTuple):
     def take(self, index: Tensor) -> _Obstacles:
         if not self.batched:
             return self
-        return self._replace(world=self.world.map(lambda t, _: t.index_select(0, index)))
+        return self._replace(world=self.world.map_batch(lambda t, _: t.index_select(0, index)))
 
     def clearance(self, q: Tensor) -> Tensor:
         """``q (n, b)`` -> minimum signed clearance ``(b,)``, m."""
@@ -469,15 +469,12 @@ def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_e
 
 
 def _check_world(world, margin, target: Tensor, batch: torch.Size) -> None:
-    """Validate :func:`solve`'s (or :func:`minimize`'s) ``world`` and ``margin`` for ``target``."""
+    """Validate :func:`solve`'s (or :func:`minimize`'s) ``world`` and ``margin`` for ``target``:
+    :func:`~iiwa_torch.collision.check_world`, then the target's dtype and device and a batch
+    shape that broadcasts to the targets'."""
+    check_world(world, margin)
     if world is None:
-        if margin != 0:
-            raise ValueError(f"margin={margin!r} needs a world; pass world=World() for the floor at z = 0")
         return
-    if not isinstance(world, World):
-        raise TypeError(f"world must be an iiwa_torch.collision.World or None, got {type(world).__name__}")
-    if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not math.isfinite(margin) or margin < 0:
-        raise ValueError(f"margin must be a finite clearance in metres >= 0, got {margin!r}")
     for t in world.tensors():
         if t.dtype != target.dtype or t.device != target.device:
             raise TypeError(
@@ -504,7 +501,7 @@ def _obstacles(chain: DHChain, world: World, margin: float, batch: torch.Size, w
             t = t.expand(*batch, *event_shape).reshape(-1, *event_shape)
         return t.to(work)
 
-    return _Obstacles(chain, world.map(cast), batched, robot_capsules(chain), float(margin))
+    return _Obstacles(chain, world.map_batch(cast), batched, robot_capsules(chain), float(margin))
 
 
 def _clear_answers(settings: _Settings, tgt: _Target, rest, pool, distance, answers: _Answers) -> None:

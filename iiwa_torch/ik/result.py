@@ -17,7 +17,7 @@ class IKResult:
         pos_err: ``(...)`` position error norm of ``fk(q)`` against the target (metres).
         rot_err: ``(...)`` rotation error angle (radians); 0 for position-only problems.
         iterations: ``(...)`` int64, iterations spent on each problem (0 for closed forms).
-        clearance: ``(...)`` minimum signed clearance of q (metres) when a world was given, else None.
+        clearance: ``(...)`` minimum signed clearance of ``q`` (metres) when a world was given, else None.
     """
 
     q: torch.Tensor

@@ -12,12 +12,14 @@ otherwise turn into NaN through ``0 * inf`` in the backward pass.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
 
 import torch
 
+from ...collision import Capsules, World, check_world, clearance
 from ...dh import Convention, DHChain
 from ...so3 import check_rigid
 from ..limits import shift_into_limits
@@ -40,12 +42,18 @@ class AnalyticSolutions:
         valid: ``(..., B)`` bool, ``reachable & within_limits``.
         reachable: ``(..., B)`` bool, the branch exists geometrically (the target is in reach).
         within_limits: ``(..., B)`` bool, every joint of ``q`` lies within the chain's limits.
+        clearance: ``(..., B)`` minimum signed clearance of each branch (metres,
+            :func:`iiwa_torch.collision.clearance`) when a world was given, else None.
+        collision_free: ``(..., B)`` bool, ``clearance >= margin`` when a world was given (then
+            ``valid`` requires it too), else None.
     """
 
     q: Tensor
     valid: Tensor
     reachable: Tensor
     within_limits: Tensor
+    clearance: Tensor | None = None
+    collision_free: Tensor | None = None
 
 
 # ---------------------------------------------------------------- guarded trigonometry
@@ -265,3 +273,25 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
     within = within.expand(shape).flatten(-branch_dims)
     reachable = reachable.expand(shape).flatten(-branch_dims)
     return AnalyticSolutions(q=q, valid=reachable & within, reachable=reachable, within_limits=within)
+
+
+def with_clearance(
+    chain: DHChain,
+    sol: AnalyticSolutions,
+    batch_ndim: int,
+    world: World | None,
+    margin: float,
+    capsules: Capsules | None,
+) -> AnalyticSolutions:
+    """``sol`` with every branch's clearance against ``world`` (``sol`` itself for ``None``).
+
+    The world's batch shape broadcasts with the targets' ``(...)``, the first ``batch_ndim``
+    dims of ``sol.valid``; the branch dims after them are inserted into it."""
+    check_world(world, margin, capsules)
+    if world is None:
+        return sol
+    extra = sol.valid.ndim - batch_ndim
+    local = world.map_batch(lambda t, k: t.reshape(*t.shape[: t.ndim - k], *(1,) * extra, *t.shape[t.ndim - k :]))
+    clear = clearance(chain, sol.q, local, capsules)
+    free = clear >= margin
+    return dataclasses.replace(sol, valid=sol.valid & free, clearance=clear, collision_free=free)

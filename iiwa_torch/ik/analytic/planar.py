@@ -5,8 +5,18 @@ from __future__ import annotations
 import torch
 
 from ..._checks import check_finite
+from ...collision import Capsules, World
 from ...dh import DHChain
-from ._common import AnalyticSolutions, check_chain, finish, reach_tol, safe_atan2, safe_norm2, triangle
+from ._common import (
+    AnalyticSolutions,
+    check_chain,
+    finish,
+    reach_tol,
+    safe_atan2,
+    safe_norm2,
+    triangle,
+    with_clearance,
+)
 
 __all__ = ["planar3r"]
 
@@ -20,7 +30,9 @@ def _check_planar_transform(matrix: Tensor, name: str) -> None:
         )
 
 
-def planar3r(chain: DHChain, x, y, phi) -> AnalyticSolutions:
+def planar3r(
+    chain: DHChain, x, y, phi, *, world: World | None = None, margin: float = 0.0, capsules: Capsules | None = None
+) -> AnalyticSolutions:
     """Both IK solutions of a planar 3R arm for the end-effector pose ``(x, y, phi)``.
 
     Args:
@@ -30,6 +42,9 @@ def planar3r(chain: DHChain, x, y, phi) -> AnalyticSolutions:
         x, y: end-effector position (m) in the world xy plane, broadcastable tensors or floats
             (the result takes the tensors' float dtype, float64 for plain numbers).
         phi: end-effector heading (rad): the angle of its x axis from the world x axis.
+        world, margin, capsules: optional obstacles, margin and capsule model, as in
+            :func:`~iiwa_torch.ik.analytic.pieper` (the arm lies in the z = 0 plane: use
+            ``World(floor=None, ...)``).
 
     Returns:
         :class:`AnalyticSolutions` with ``q (..., 2, 3)``; branch 0 has the elbow angle
@@ -76,4 +91,5 @@ def planar3r(chain: DHChain, x, y, phi) -> AnalyticSolutions:
     theta2 = torch.atan2(s2, c2)
     theta1 = safe_atan2(wy, wx)[..., None] - safe_atan2(a2 * s2, a1 + a2 * c2)
     theta3 = h[..., None] - theta1 - theta2
-    return finish(chain, [theta1, theta2, theta3], ok[..., None], branch_dims=1)
+    sol = finish(chain, [theta1, theta2, theta3], ok[..., None], branch_dims=1)
+    return with_clearance(chain, sol, x.ndim, world, margin, capsules)

@@ -36,6 +36,7 @@ import math
 
 import torch
 
+from ...collision import Capsules, World
 from ...dh import DHChain
 from ._common import (
     _TINY,
@@ -52,6 +53,7 @@ from ._common import (
     sigma,
     transpose_times,
     triangle,
+    with_clearance,
     zxzx,
 )
 
@@ -69,13 +71,18 @@ _ROWS = [
 ]
 
 
-def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
+def pieper(
+    chain: DHChain, target: Tensor, *, world: World | None = None, margin: float = 0.0, capsules: Capsules | None = None
+) -> AnalyticSolutions:
     """All 8 IK solutions of a 6R spherical-wrist arm (structure in the module doc).
 
     Args:
         chain: e.g. :func:`iiwa_torch.robots.puma560` or :func:`~iiwa_torch.robots.lrmate200ic`;
             its base and tool transforms are honoured.
         target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
+        world, margin, capsules: optional obstacles (batch shape broadcasting with ``(...)``),
+            a clearance margin (m) and a capsule model (default ``robot_capsules(chain)``): each
+            branch then carries its ``clearance`` and ``collision_free`` (``valid`` requires it).
 
     Returns:
         :class:`AnalyticSolutions` with ``q (..., 8, 6)``, branch ``k = 4 shoulder + 2 elbow +
@@ -118,5 +125,5 @@ def pieper(chain: DHChain, target: Tensor) -> AnalyticSolutions:
     theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5)  # (..., 2, 2, 2)
     thetas = [theta1[..., None, None], theta2[..., None], theta3[..., None], theta4, theta5, theta6]
     reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None]
-    return finish(chain, thetas, reachable, branch_dims=3)
-
+    sol = finish(chain, thetas, reachable, branch_dims=3)
+    return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)

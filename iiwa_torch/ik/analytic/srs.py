@@ -37,11 +37,14 @@ pose is still reproduced exactly).
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from dataclasses import dataclass
 
 import torch
 
 from ..._checks import check_finite, check_positive
+from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
 from ...so3 import pose_error
 from ..result import IKResult
@@ -62,6 +65,7 @@ from ._common import (
     sigma,
     transpose_times,
     triangle,
+    with_clearance,
     zxzx,
 )
 
@@ -72,6 +76,7 @@ Tensor = torch.Tensor
 _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
 _REFINE = 3  # refining passes when a reference q0 is given
+_ROUNDS = ((0, 1), (1, 4), (4, 16), (16, 1 << 30))  # candidate ranks whose clearance iiwa_solve checks, round by round
 _ROWS = [
     {"a0": True, "perp": True},
     {"a0": True, "d0": True, "perp": True},
@@ -121,7 +126,15 @@ def _dot(a: tuple, b: tuple) -> Tensor:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
+def iiwa(
+    chain: DHChain,
+    target: Tensor,
+    psi,
+    *,
+    world: World | None = None,
+    margin: float = 0.0,
+    capsules: Capsules | None = None,
+) -> AnalyticSolutions:
     """All 8 IK branches of an iiwa-like 7R arm for given arm angles.
 
     Args:
@@ -129,13 +142,17 @@ def iiwa(chain: DHChain, target: Tensor, psi) -> AnalyticSolutions:
         target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
         psi: arm angles (rad, module doc), a float or a tensor of shape ``(...)``
             (broadcastable: one angle per pose) or ``(..., K)`` (K angles per pose).
+        world, margin, capsules: optional obstacles (batch shape broadcasting with ``(...)``),
+            a clearance margin (m) and a capsule model (default ``robot_capsules(chain)``): each
+            branch then carries its ``clearance`` and ``collision_free`` (``valid`` requires it).
 
     Returns:
         :class:`AnalyticSolutions` with ``q (..., [K,] 8, 7)``, branch ``k = 4 shoulder +
         2 elbow + wrist`` (module doc).
     """
     thetas, reachable = _iiwa_thetas(chain, target, psi)
-    return finish(chain, thetas, reachable, branch_dims=3)
+    sol = finish(chain, thetas, reachable, branch_dims=3)
+    return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)
 
 
 def _iiwa_thetas(chain: DHChain, target: Tensor, psi) -> tuple[list[Tensor], Tensor]:
@@ -211,13 +228,22 @@ def iiwa_arm_angle(chain: DHChain, q: Tensor) -> Tensor:
     return safe_atan2(_dot(se, w_ref), _dot(se, v_ref))
 
 
-def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
+def iiwa_q3_locked(
+    chain: DHChain,
+    target: Tensor,
+    q3=0.0,
+    *,
+    world: World | None = None,
+    margin: float = 0.0,
+    capsules: Capsules | None = None,
+) -> AnalyticSolutions:
     """All 8 IK branches of the iiwa with joint 3 held at ``q3`` (seed 002's 6-DOF arm).
 
     Args:
         chain: as for :func:`iiwa`.
         target: ``(..., 4, 4)`` end-effector poses in the world frame (m).
         q3: the locked joint angle (rad), a float or a tensor broadcastable to ``(...)``.
+        world, margin, capsules: as for :func:`iiwa`.
 
     Returns:
         :class:`AnalyticSolutions` with ``q (..., 8, 7)`` (``q[..., 2] == q3``), branch
@@ -264,7 +290,8 @@ def iiwa_q3_locked(chain: DHChain, target: Tensor, q3=0.0) -> AnalyticSolutions:
         theta4[..., None, :, None],
         *(t.transpose(-3, -2) for t in (t5, t6, t7)),
     ]
-    return finish(chain, thetas, (reachable[..., None] & ok)[..., None, :, None], branch_dims=3)
+    sol = finish(chain, thetas, (reachable[..., None] & ok)[..., None, :, None], branch_dims=3)
+    return with_clearance(chain, sol, sol.valid.ndim - 1, world, margin, capsules)
 
 
 def iiwa_solve(
@@ -275,6 +302,9 @@ def iiwa_solve(
     num_psi: int = 16,
     pos_tol: float = 1e-4,
     rot_tol: float = 1e-3,
+    world: World | None = None,
+    margin: float = 0.0,
+    capsules: Capsules | None = None,
 ) -> IKResult:
     """One IK solution per pose by sweeping the arm angle: interchangeable with the
     gradient solver :func:`iiwa_torch.ik.solve`.
@@ -289,21 +319,29 @@ def iiwa_solve(
         num_psi: arm angles sampled evenly over ``[-pi, pi)`` (plus the arm angle of ``q0``),
             ``8 * num_psi`` candidates per pose; then 9 angles spanning one step either side of
             the best are tried (3 times, each a 4x finer window, when ``q0`` is given). Poses
-            with no candidate within the limits are swept once more with ``16 * num_psi`` angles
+            with no valid candidate are swept once more with ``16 * num_psi`` angles
             (narrow feasible intervals).
         pos_tol, rot_tol: success tolerances (m, rad), as in the gradient solver.
+        world: optional :class:`~iiwa_torch.collision.World` (batch shape broadcasting to
+            ``(...)``: one set of obstacles per pose). A candidate is then valid only if its
+            clearance (self pairs and obstacles) is at least ``margin`` metres; among the valid
+            ones the rule above picks. ``None``: no collision check (and no cost).
+        margin: clearance required with a world (m, >= 0).
+        capsules: the robot's capsule model (default :func:`~iiwa_torch.collision.robot_capsules`).
 
     Returns:
         :class:`~iiwa_torch.ik.IKResult` with ``q (..., 7)`` within the joint limits,
         ``success`` where the FK of ``q`` reproduces the target within ``pos_tol`` and
         ``rot_tol`` (whatever the branch geometry says: a target a rounding error beyond
-        reach succeeds with that error), ``iterations`` 0. Where no candidate is within the
-        limits, ``q`` is the candidate nearest ``q0`` (or violating the limits least),
-        reachable ones first, clamped into them.
+        reach succeeds with that error) and, with a world, ``clearance >= margin``;
+        ``iterations`` 0. Where no candidate is within the limits, ``q`` is the candidate nearest
+        ``q0`` (or violating the limits least), reachable ones first, clamped into them. Where
+        every in-limit candidate collides, ``q`` is the one with the largest clearance.
     """
     check_positive(num_psi, "num_psi", integer=True)
     for value, name in ((pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
         check_positive(value, name)
+    check_world(world, margin, capsules)
     check_target(chain, target)
     batch = target.shape[:-2]
     flat = target.reshape(-1, 4, 4)
@@ -313,23 +351,87 @@ def iiwa_solve(
             q0 = torch.broadcast_to(q0.to(target.dtype), (*batch, 7)).reshape(-1, 7)
         except RuntimeError:
             raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
+    obstacles = None if world is None else Obstacles.for_batch(world, margin, capsules, batch)
     if flat.shape[0] == 0:  # no poses
         q_best, found = flat.new_zeros(0, 7), torch.zeros(0, dtype=torch.bool, device=flat.device)
     else:
-        q_best, found = _sweep(chain, flat, q0, num_psi)
+        q_best, found = _sweep(chain, flat, q0, num_psi, obstacles)
     missed = (~found).nonzero().squeeze(-1)
     if missed.numel():  # narrow feasible arm-angle intervals: once more, 16 times finer
-        q_fine, found_fine = _sweep(chain, flat[missed], None if q0 is None else q0[missed], 16 * num_psi)
+        q_fine, found_fine = _sweep(
+            chain,
+            flat[missed],
+            None if q0 is None else q0[missed],
+            16 * num_psi,
+            None if obstacles is None else obstacles.take(missed),
+        )
         q_best, found = q_best.index_put((missed,), q_fine), found.index_put((missed,), found_fine)
-    q_best, found = q_best.reshape(*batch, 7), found.reshape(batch)
-    pos_vec, rot_vec = pose_error(chain.fk(q_best), target)
+    pos_vec, rot_vec = pose_error(chain.fk(q_best), flat)
     pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
     success = (pos_err <= pos_tol) & (rot_err <= rot_tol)  # q is within the limits: the FK error decides
+    clear = None
+    if obstacles is not None:
+        clear = obstacles.clearance(chain, q_best)
+        success = success & (clear >= margin)
+        clear = clear.reshape(batch)
     iterations = torch.zeros(batch, dtype=torch.int64, device=target.device)
-    return IKResult(q=q_best, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
+    return IKResult(
+        q=q_best.reshape(*batch, 7),
+        success=success.reshape(batch),
+        pos_err=pos_err.reshape(batch),
+        rot_err=rot_err.reshape(batch),
+        iterations=iterations,
+        clearance=clear,
+    )
 
 
-def _sweep(chain: DHChain, target: Tensor, q0: Tensor | None, num_psi: int) -> tuple[Tensor, Tensor]:
+@dataclass(frozen=True)
+class Obstacles:
+    """A world for a flat batch of ``B`` poses: one shared set of obstacles (``shared``), or
+    one row per pose, with the margin (m) and capsule model. Build it with :meth:`for_batch`."""
+
+    world: World
+    margin: float
+    capsules: Capsules | None
+    shared: bool
+
+    @classmethod
+    def for_batch(cls, world: World, margin: float, capsules: Capsules | None, batch: torch.Size) -> Obstacles:
+        """``world``, whose batch shape must broadcast to the poses' ``batch``, flattened to one
+        row per pose (kept as it is when it has no batch shape)."""
+        if not world.batch_shape:
+            return cls(world, margin, capsules, shared=True)
+        try:
+            fits = torch.broadcast_shapes(world.batch_shape, batch) == batch
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"the world's batch shape {tuple(world.batch_shape)} must broadcast to the targets' {tuple(batch)}"
+            )
+
+        def flatten(t: Tensor, k: int) -> Tensor:
+            own = t.shape[t.ndim - k :]
+            return t.expand(*batch, *own).reshape(-1, *own)
+
+        return cls(world.map_batch(flatten), margin, capsules, shared=False)
+
+    def take(self, index) -> Obstacles:
+        """The obstacles of the poses ``index`` (a slice or an index tensor)."""
+        if self.shared:
+            return self
+        return dataclasses.replace(self, world=self.world.map_batch(lambda t, k: t[index]))
+
+    def clearance(self, chain: DHChain, q: Tensor, rows: Tensor | None = None) -> Tensor:
+        """Clearance ``(V,)`` of ``q (V, 7)``, row ``v`` against pose ``rows[v]``'s obstacles
+        (``rows=None``: ``q`` has one row per pose)."""
+        world = self.world if rows is None else self.take(rows).world
+        return clearance(chain, q, world, self.capsules)
+
+
+def _sweep(
+    chain: DHChain, target: Tensor, q0: Tensor | None, num_psi: int, obstacles: Obstacles | None
+) -> tuple[Tensor, Tensor]:
     """Best candidate of each pose ``target (B, 4, 4)`` over ``num_psi`` evenly spaced arm
     angles (plus the arm angle of ``q0 (B, 7)`` when given), then over finer grids of
     ``_LOCAL`` angles spanning one step either side of the best so far (their centre)."""
@@ -337,25 +439,35 @@ def _sweep(chain: DHChain, target: Tensor, q0: Tensor | None, num_psi: int) -> t
     psi = (torch.arange(num_psi, dtype=target.dtype, device=target.device) * step - math.pi).expand(target.shape[0], -1)
     if q0 is not None:
         psi = torch.cat([iiwa_arm_angle(chain, q0)[:, None], psi], -1)  # (B, K + 1)
-    q, found, psi_best = _pick_chunked(chain, target, psi, q0)
+    q, found, psi_best = _pick_chunked(chain, target, psi, q0, obstacles)
     for _ in range(_REFINE if q0 is not None else 1):  # a margin is flat near its best: one pass
         local = torch.linspace(-step, step, _LOCAL, dtype=target.dtype, device=target.device)
-        q, found, psi_best = _pick_chunked(chain, target, psi_best[:, None] + local, q0)
+        q, found, psi_best = _pick_chunked(chain, target, psi_best[:, None] + local, q0, obstacles)
         step = 2 * step / (_LOCAL - 1)  # the next window spans the neighbours of the best
     return q, found
 
 
-def _pick_chunked(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def _pick_chunked(
+    chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None, obstacles: Obstacles | None
+) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_pick` over chunks of poses, so that memory stays bounded."""
     chunk = max(1, _CANDIDATES // (8 * psi.shape[-1]))
     picks = [
-        _pick(chain, target[i : i + chunk], psi[i : i + chunk], None if q0 is None else q0[i : i + chunk])
+        _pick(
+            chain,
+            target[i : i + chunk],
+            psi[i : i + chunk],
+            None if q0 is None else q0[i : i + chunk],
+            None if obstacles is None else obstacles.take(slice(i, i + chunk)),
+        )
         for i in range(0, target.shape[0], chunk)
     ]
     return tuple(torch.cat(parts) for parts in zip(*picks))
 
 
-def _pick(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def _pick(
+    chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None, obstacles: Obstacles | None
+) -> tuple[Tensor, Tensor, Tensor]:
     """Best of the ``K * 8`` candidates of each pose: ``target (B, 4, 4)``, ``psi (B, K)``,
     ``q0 (B, 7)`` or None -> ``q (B, 7)`` clamped into the limits, ``found (B,)`` bool (the
     candidate is valid) and its arm angle ``(B,)``."""
@@ -375,11 +487,49 @@ def _pick(chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None) -> tup
     # ones (their cosines clamped: a target a rounding error out of reach is met to that error).
     big = 1e6
     key = cost + big * (~within).to(cost.dtype) + 2 * big * (~reachable).to(cost.dtype)
-    best = key.reshape(batch, -1).argmin(-1)  # (B,)
+    if obstacles is None:
+        best = key.reshape(batch, -1).argmin(-1)  # (B,)
+        found = valid.reshape(batch, -1).gather(-1, best[:, None]).squeeze(-1)
+    else:
+        best, found = _free_pick(chain, key.reshape(batch, -1), valid.reshape(batch, -1), qs, obstacles)
     index = torch.unravel_index(best, shape[1:])  # arm angle, shoulder, elbow, wrist
     rows = torch.arange(batch, device=best.device)
     zero = torch.zeros_like(best)
     q_best = torch.stack(
         [qj[(rows,) + tuple(ix if n > 1 else zero for ix, n in zip(index, qj.shape[1:]))] for qj in qs], -1
     )
-    return chain.clamp(q_best), valid[(rows, *index)], psi.gather(-1, index[0][:, None]).squeeze(-1)
+    return chain.clamp(q_best), found, psi.gather(-1, index[0][:, None]).squeeze(-1)
+
+
+def _free_pick(
+    chain: DHChain, key: Tensor, valid: Tensor, qs: list[Tensor], obstacles: Obstacles
+) -> tuple[Tensor, Tensor]:
+    """Per pose, the lowest-``key`` valid candidate whose clearance is at least the margin:
+    ``key, valid (B, N)`` over the candidates, ``qs`` their joints (broadcasting to
+    ``(B, ...)`` with ``N`` entries after the first dim) -> its index ``(B,)`` and whether one
+    was found. Clearance is computed in key order, in rounds of growing size, only for the
+    poses still without one; where no valid candidate clears the margin, the valid one with
+    the largest clearance is returned, and where none is valid, the lowest key."""
+    batch, n = key.shape
+    order = key.argsort(-1)  # valid candidates first: the others carry a key >= 1e6
+    n_valid = valid.sum(-1)
+    shape = torch.broadcast_shapes(*(q.shape for q in qs))
+    joints = [q.expand(shape).reshape(batch, n) for q in qs]
+    clear = key.new_full((batch, n), -math.inf)
+    best, found = order[:, 0].clone(), torch.zeros(batch, dtype=torch.bool, device=key.device)
+    undecided = n_valid > 0
+    for lo, hi in _ROUNDS:
+        ranks = torch.arange(lo, min(hi, n), device=key.device)
+        todo = undecided[:, None] & (ranks < n_valid[:, None])  # (B, R)
+        if not todo.any():
+            break
+        rows, cols = todo.nonzero().unbind(-1)
+        picked = order[rows, ranks[cols]]
+        values = obstacles.clearance(chain, torch.stack([q[rows, picked] for q in joints], -1), rows)
+        clear[rows, picked] = values
+        free = torch.zeros_like(todo).index_put((rows, cols), values >= obstacles.margin)
+        hit = free.any(-1)
+        first = ranks[free.to(torch.int8).argmax(-1)]  # the first free rank of each pose
+        best = torch.where(hit, order.gather(-1, first[:, None]).squeeze(-1), best)
+        found, undecided = found | hit, undecided & ~hit
+    return torch.where(undecided, clear.argmax(-1), best), found
