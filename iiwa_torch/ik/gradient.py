@@ -620,8 +620,8 @@ def _check_slots(
         inside = ((state.q >= settings.lo) & (state.q <= settings.hi)).all(0)
         done, E = done & inside, torch.where(inside, E, math.inf)
     stop = done
-    if obstacles is not None:
-        at = done.nonzero().squeeze(1)
+    at = None if obstacles is None else done.nonzero().squeeze(1)
+    if at is not None and at.numel():  # a clearance query costs milliseconds even for a few slots
         clear = obstacles.take(at).clearance(_take(state.q, at)) >= obstacles.margin + _CLEAR_BUFFER / 2
         done = done.index_put((at,), clear)
         stop = done if obstacles.residual else stop
