@@ -14,7 +14,10 @@ Solvers, all on the same targets (FK of seeded random configurations within the 
 Every answer is scored by the same code: our ``chain.fk`` and ``so3.pose_error`` (after a
 check that each peer's FK agrees with ours), success at 0.1 mm / 1 mrad and at 1 mm /
 10 mrad, and the share of answers within the joint limits. Then the success/time trade-off
-of ours as seeds and iterations vary. Writes results/ik.json and results/ik.md.
+of ours as seeds and iterations vary, and ours with a world: random collision-free
+configurations' poses, each with the floor and 3 random spheres near the arm (clear of that
+configuration), ``solve(..., world=, margin=0.01)`` scored by FK and ``collision.clearance``.
+Writes results/ik.json and results/ik.md.
 """
 
 from __future__ import annotations
@@ -32,12 +35,14 @@ import torch  # noqa: E402
 from common import markdown_table, save  # noqa: E402
 
 from iiwa_torch import robots, so3  # noqa: E402
+from iiwa_torch.collision import World, clearance, robot_capsules  # noqa: E402
 from iiwa_torch.ik import solve  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.urdf import to_urdf  # noqa: E402
 
 CHAIN = robots.iiwa14()
 TOLERANCES = {"0.1mm/1mrad": (1e-4, 1e-3), "1mm/10mrad": (1e-3, 1e-2)}
+MARGIN = 0.01  # clearance required with a world, m
 
 
 def score(q: torch.Tensor, target: torch.Tensor) -> dict:
@@ -77,6 +82,46 @@ def ours(target: torch.Tensor, repeats: int, samples: list | None = None, **opti
     row |= score(result.q, target.to(torch.float64))
     row["mean iterations"] = float(result.iterations.double().mean())
     return row
+
+
+def world_problems(count: int, seed: int) -> tuple[torch.Tensor, World]:
+    """Poses of ``count`` random configurations clear of themselves and the floor by MARGIN + 2 cm,
+    and per pose 3 spheres (radius 4-10 cm), each beside a random point on a random capsule's
+    axis, clear of the whole arm (and the floor) by MARGIN + 1-6 cm: ``(targets, world)``."""
+    g = torch.Generator().manual_seed(seed)
+    caps = robot_capsules(CHAIN)
+    q = CHAIN.random_q(3 * count, generator=g)
+    q = q[clearance(CHAIN, q, capsules=caps) >= MARGIN + 0.02][:count]
+    frames = CHAIN.fk_all(q)[:, list(caps.frames)]  # (b, K, 4, 4)
+    ends = torch.einsum("bkij,kej->bkei", frames[..., :3, :3], caps.points) + frames[:, :, None, :3, 3]
+    centres, radii = torch.zeros(count, 3, 3, dtype=torch.float64), torch.zeros(count, 3, dtype=torch.float64)
+    for sphere in range(3):
+        todo = torch.arange(count)
+        while todo.numel():  # rejection: redraw the spheres that touch the arm or the floor
+            m = todo.numel()
+            k = torch.randint(0, len(caps.names), (m,), generator=g)
+            e = ends[todo, k]
+            point = e[:, 0] + torch.rand(m, 1, generator=g, dtype=torch.float64) * (e[:, 1] - e[:, 0])
+            r = 0.04 + 0.06 * torch.rand(m, generator=g, dtype=torch.float64)
+            gap = MARGIN + 0.01 + 0.05 * torch.rand(m, generator=g, dtype=torch.float64)
+            u = torch.randn(m, 3, generator=g, dtype=torch.float64)
+            c = point + u / u.norm(dim=-1, keepdim=True) * (caps.radii[k] + r + gap)[:, None]
+            ok = clearance(CHAIN, q[todo], World(spheres=(c[:, None], r[:, None])), caps) >= MARGIN + 0.01
+            ok &= c[:, 2] - r >= MARGIN + 0.01
+            centres[todo[ok], sphere], radii[todo[ok], sphere] = c[ok], r[ok]
+            todo = todo[~ok]
+    return CHAIN.fk(q), World(floor=0.0, spheres=(centres, radii))
+
+
+def world_score(q: torch.Tensor, target: torch.Tensor, world: World) -> dict:
+    """Success at 0.1 mm / 1 mrad (our FK) with a clearance >= MARGIN (``collision.clearance``)."""
+    pos, rot = so3.pose_error(CHAIN.fk(q), target)
+    clear = clearance(CHAIN, q, world) >= MARGIN
+    reached = (pos.norm(dim=-1) <= 1e-4) & (rot.norm(dim=-1) <= 1e-3)
+    return {
+        "success 0.1mm/1mrad, clear": float((reached & clear).double().mean()),
+        "clear": float(clear.double().mean()),
+    }
 
 
 def timing_row(seconds: tuple[float, float], count: int) -> dict:
@@ -198,6 +243,17 @@ def main() -> None:
             tradeoff.append({"seeds": seeds, "iterations per seed": iterations} | row)
             print(f"trade-off seeds={seeds} iterations={iterations}: {row}", flush=True)
 
+    # With a world (float64 targets, float32 iterations, 1 thread); the solve without the world on
+    # the same targets shows how often a plain answer collides.
+    world_target, world = world_problems(count, 7)
+    world_rows = {}
+    for name, options in (("with world, margin 1 cm", {"world": world, "margin": MARGIN}),
+                          ("without world (answers checked against it)", {})):  # fmt: skip
+        row = ours(world_target, repeats, **options)
+        world_rows[name] = row | world_score(solve(CHAIN, world_target, **options).q, world_target, world)
+    for name, row in world_rows.items():
+        print(f"world: {name}: {row}", flush=True)
+
     best_ours = min(
         (r for k, r in rows.items() if k.startswith("iiwa-torch") and k.endswith("1 thread")),
         key=lambda r: r["seconds"],
@@ -243,10 +299,36 @@ def main() -> None:
             ],
             trade_table,
         )
+        + f"\nOurs with a world: {count:,} poses of random collision-free configurations, each with the floor "
+        "and 3 random spheres near the arm (clear of that configuration), margin 1 cm; float64 targets, "
+        "float32 iterations, 1 thread; success needs 0.1 mm / 1 mrad by our FK and clearance >= margin by "
+        "`collision.clearance`:\n\n"
+        + markdown_table(
+            [
+                "solve",
+                "per target, wall (ms)",
+                "per target, CPU (ms)",
+                "success 0.1 mm / 1 mrad, clear",
+                "clearance >= margin",
+                "mean iterations",
+            ],
+            [
+                [
+                    name,
+                    f"{r['per target ms']:.4f}",
+                    f"{r['per target cpu ms']:.4f}",
+                    f"{100 * r['success 0.1mm/1mrad, clear']:.2f}%",
+                    f"{100 * r['clear']:.2f}%",
+                    f"{r['mean iterations']:.1f}",
+                ]
+                for name, r in world_rows.items()
+            ],
+        )  # fmt: skip
         + f"\nMachine: {info}\n"
     )
     name = "ik_quick" if args.quick else "ik"
-    path = save(name, {"machine": info, "targets": count, "command": command, "solvers": rows, "tradeoff": tradeoff},
+    path = save(name, {"machine": info, "targets": count, "command": command, "solvers": rows, "tradeoff": tradeoff,
+                 "world": world_rows},
                 markdown)  # fmt: skip
     print(markdown)
     print(f"wrote {path}", file=sys.stderr)

@@ -295,8 +295,9 @@ def track(
             method then takes, at each step, the nearest solution whose clearance is at least
             ``margin`` (for the iiwa: any arm angle, searching the whole circle when none near
             the last one clears); where none exists it keeps the nearest in-limit solution,
-            colliding, and says so in ``collision_free``. The gradient method does not steer
-            away from obstacles; its path is only checked.
+            colliding, and says so in ``collision_free``. The gradient method passes ``world``
+            and ``margin`` to :func:`iiwa_torch.ik.solve` at each step (the preset's capsule
+            model: ``capsules`` is for the analytic method).
 
     Returns:
         :class:`TrackResult`: joint path, per-step errors and success, and the largest joint step;
@@ -323,7 +324,9 @@ def track(
             "do not broadcast"
         ) from None
     if method == "gradient":
-        step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain)
+        if capsules is not None:
+            raise ValueError("capsules= applies to method='analytic'; ik.solve uses the preset's capsule model")
+        step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain, world, margin)
     else:
         step = _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules)
     q_prev = q0.to(poses.dtype)
@@ -354,7 +357,9 @@ def track(
     )
 
 
-def _gradient_stepper(chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float):
+def _gradient_stepper(
+    chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float, world: World | None, margin: float
+):
     from .ik import solve
 
     def step(pose: Tensor, q_prev: Tensor) -> Tensor:
@@ -368,6 +373,8 @@ def _gradient_stepper(chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float
             iterations=50,
             rest=q0.to(pose.dtype),
             rest_gain=rest_gain,
+            world=world,
+            margin=margin,
         )
         return result.q
 

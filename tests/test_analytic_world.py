@@ -252,6 +252,21 @@ def test_track_says_where_no_arm_angle_clears(line):
     torch.testing.assert_close(r6.clearance, clearance(six, r6.q, World()))
 
 
+def test_track_gradient_steers_round_a_sphere_on_the_elbow_path(line):
+    """A sphere where the obstacle-free path's elbow passes: the gradient tracker with the world keeps
+    every step 1 cm clear (distances recomputed with coal) and still meets each pose."""
+    q0, path = line
+    free = track(ARM, path, q0, method="analytic")
+    elbow = ARM.fk_all(free.q[path.shape[0] // 2])[3, :3, 3]
+    centres, radii = elbow[None], torch.tensor([0.05], dtype=F64)
+    res = track(ARM, path, q0, method="gradient", world=World(floor=0.0, spheres=(centres, radii)), margin=0.01)
+    ref = np.array([_coal_clearance(ARM, x, centres, radii) for x in res.q])
+    assert ref.min() >= 0.01 - 1e-9
+    assert bool(res.success.all()) and float(res.pos_err.max()) < 1e-7
+    with pytest.raises(ValueError, match="capsules= applies to method='analytic'"):
+        track(ARM, path, q0, method="gradient", world=World(), capsules=robot_capsules(ARM))
+
+
 def test_track_gradient_and_jtraj_report_the_clearance_along_the_path(line):
     q0, path = line
     world = World(floor=0.0, spheres=(CENTRES, RADII))

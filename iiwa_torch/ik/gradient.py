@@ -18,19 +18,20 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple, get_args
 
 import torch
 
 from .. import so3
 from .._checks import check_choice, check_finite, check_instance, check_positive
+from ..collision import Capsules, World, check_world, clearance, pairwise_clearance, robot_capsules
 from ..dh import DHChain
 from .dls import dls_step_batch_last
 from .limits import shift_into_limits
 from .result import IKResult
 
-__all__ = ["Mode", "Optimizer", "Precision", "solve", "minimize"]
+__all__ = ["Mode", "Optimizer", "Precision", "clearance_shortfall", "solve", "minimize"]
 
 Tensor = torch.Tensor
 Mode = Literal["pose", "position"]
@@ -42,6 +43,11 @@ _MIN_BATCH = 1024  # below this many problems, run several seeds of each side by
 _FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
 _LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
 _DAMP_DOWN, _DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
+# With a world, the clearance residual acts below margin + _CLEAR_BUFFER and a seed counts as
+# clear at margin + _CLEAR_BUFFER / 2 (m): far above float32 rounding of the distances, so the
+# float64 check of the answer agrees.
+_CLEAR_BUFFER = 2e-3
+_COLLIDING_RANK = 100.0  # added to a colliding pool entry's pose distance: clear entries are tried first
 
 
 # ---------------------------------------------------------------------- batch-last kinematics
@@ -67,25 +73,102 @@ def _take(values: Tensor, index: Tensor) -> Tensor:
     return values.reshape(-1, values.shape[-1]).index_select(1, index).reshape(*values.shape[:-1], -1)
 
 
+class _Obstacles(NamedTuple):
+    """A world in the loop's dtype: ``world`` unbatched, or with one leading dimension over the
+    problems (``batched``), the robot's ``capsules`` and the clearance ``margin`` (m). With
+    ``residual``, the LM objective has the clearance residual; else the clearance is only
+    checked when a slot's pose has converged."""
+
+    chain: DHChain
+    world: World
+    batched: bool
+    capsules: Capsules
+    margin: float
+    residual: bool = False
+
+    def take(self, index: Tensor) -> _Obstacles:
+        if not self.batched:
+            return self
+        return self._replace(world=self.world.map_batch(lambda t, _: t.index_select(0, index)))
+
+    def clearance(self, q: Tensor) -> Tensor:
+        """``q (n, b)`` -> minimum signed clearance ``(b,)``, m."""
+        return clearance(self.chain, q.T, self.world, self.capsules)
+
+    def colliding(self, pool: Tensor) -> Tensor:
+        """``pool (p, n)`` -> ``(p,)`` float, 1 where a configuration is not clear of the part of
+        the world every problem shares (all of it, or the robot itself and the floor if batched)."""
+        shared = World(floor=self.world.floor) if self.batched else self.world
+        return (clearance(self.chain, pool, shared, self.capsules) < self.margin + _CLEAR_BUFFER).to(pool.dtype)
+
+
 class _Target:
     """Targets in the loop's layout: rotation axes ``(3, 3, b)`` (axis, component) and the same
-    with rolled components (for cross products), position ``(3, b)``; or position only."""
+    with rolled components (for cross products), position ``(3, b)``; or position only. With
+    ``obstacles``, the objective also has the clearance residual (:func:`_clearance_row`)."""
 
-    def __init__(self, rot: Tensor | None, pos: Tensor, rolled: Tensor | None = None) -> None:
-        self.pos, self.rot = pos, rot
+    def __init__(
+        self, rot: Tensor | None, pos: Tensor, rolled: Tensor | None = None, obstacles: _Obstacles | None = None
+    ) -> None:
+        self.pos, self.rot, self.obstacles = pos, rot, obstacles
         self.rolled = None if rot is None else _roll(rot, 1) if rolled is None else rolled
 
     def take(self, index: Tensor) -> _Target:
+        obstacles = None if self.obstacles is None else self.obstacles.take(index)
         if self.rot is None:
-            return _Target(None, _take(self.pos, index))
-        return _Target(_take(self.rot, index), _take(self.pos, index), _take(self.rolled, index))
+            return _Target(None, _take(self.pos, index), obstacles=obstacles)
+        return _Target(_take(self.rot, index), _take(self.pos, index), _take(self.rolled, index), obstacles)
+
+    def with_obstacles(self, obstacles: _Obstacles) -> _Target:
+        return _Target(self.rot, self.pos, self.rolled, obstacles)
 
 
 def _evaluate(
     chain: DHChain, q: Tensor, target: _Target, weight: float
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """``q (n, b)`` -> weighted Jacobian ``J (m, n, b)``, weighted error ``e (m, b)`` (m = 6 or 3),
-    squared weighted error ``E (b,)``, position error ``(b,)`` m, rotation error ``(b,)`` rad."""
+    """``q (n, b)`` -> weighted Jacobian ``J (m, n, b)``, weighted error ``e (m, b)`` (m = 6 or 3,
+    one more with obstacles: the clearance residual), squared weighted error ``E (b,)``, position
+    error ``(b,)`` m, rotation error ``(b,)`` rad."""
+    terms = _pose_terms(chain, q, target, weight)
+    if target.obstacles is None or not target.obstacles.residual:
+        return terms
+    J, e, E, pos_err, rot_err = terms
+    r, grad = _clearance_row(q, target.obstacles)
+    return torch.cat([J, grad[None]]), torch.cat([e, -r[None]]), E + r * r, pos_err, rot_err
+
+
+def _clearance_row(q: Tensor, obstacles: _Obstacles) -> tuple[Tensor, Tensor]:
+    """``q (n, b)`` -> the clearance residual ``r = |max(0, margin + buffer - d)| (b,)`` (m) over
+    every checked pair's distance ``d``, and its gradient ``(n, b)`` (m/rad).
+
+    A residual beside the six pose rows, rather than a clearance-gradient step projected into
+    the Jacobian's null space, lets LM weigh the two: where the arm's redundancy can satisfy
+    both, the 7-row system's solution moves along the null space of the pose rows; where it
+    cannot, the step is the least-squares compromise and the answer stays finite. The norm
+    over all pairs (not the minimum) keeps every pair that is too near in the step at once,
+    so it does not alternate between two obstacles."""
+    with torch.enable_grad():
+        x = q.T.detach().requires_grad_(True)
+        sq = clearance_shortfall(obstacles.chain, x, obstacles.world, obstacles.margin, obstacles.capsules)
+        (grad,) = torch.autograd.grad(sq.sum(), x)
+    r = sq.detach().sqrt()
+    return r, grad.T / (2 * r).clamp_min(torch.finfo(q.dtype).tiny)
+
+
+def clearance_shortfall(
+    chain: DHChain, q: Tensor, world: World, margin: float, capsules: Capsules | None = None
+) -> Tensor:
+    """``sum_p max(0, margin + 2 mm - d_p)^2`` over every checked pair's signed distance ``d_p``
+    (:func:`~iiwa_torch.collision.pairwise_clearance`): ``q (..., n) -> (...)``, m^2, zero once
+    every pair clears ``margin`` by 2 mm. Differentiable; the penalty both solvers use."""
+    d = pairwise_clearance(chain, q, world, capsules).distance
+    return (margin + _CLEAR_BUFFER - d).clamp_min(0).square().sum(-1)
+
+
+def _pose_terms(
+    chain: DHChain, q: Tensor, target: _Target, weight: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`_evaluate` for the pose (or position) rows alone."""
     n, b = q.shape
     pose = target.rot is not None
     J = q.new_empty(6 if pose else 3, n, b)
@@ -280,6 +363,8 @@ def solve(
     check_every: int = 2,
     precision: Precision = "auto",
     generator: torch.Generator | None = None,
+    world: World | None = None,
+    margin: float = 0.0,
 ) -> IKResult:
     """Inverse kinematics for a batch of targets by damped least squares (Levenberg-Marquardt).
 
@@ -308,12 +393,21 @@ def solve(
             float64; ``"input"``: iterate in the target's dtype.
         generator: source of the random seeds (default: a fresh generator seeded with 0, so
             results are reproducible).
+        world: optional :class:`~iiwa_torch.collision.World` (the target's dtype and device;
+            a batch shape, if any, broadcasting to the targets'). Then ``success`` also needs
+            the clearance of ``q`` (self pairs and world, :func:`~iiwa_torch.collision.clearance`)
+            to be at least ``margin``: collision-free pool seeds are tried first, and every
+            answer that is not clear is solved again from itself and further seeds with a
+            clearance residual in the LM system. ``None``: no collision check.
+        margin: the clearance required with a world, metres (>= 0).
 
     Returns:
         :class:`IKResult` with ``q (..., n)`` always within the joint limits; the errors and
         ``success`` come from ``chain.fk(q)``; ``iterations`` counts every iteration spent on a
-        problem, over all its seeds. A target that cannot be reached is not an error: its
-        ``success`` is False and ``q`` is the best attempt (smallest weighted error).
+        problem, over all its seeds; ``clearance`` is the clearance of ``q`` with a world, else
+        None. A target that cannot be reached (or only through a collision) is not an error:
+        its ``success`` is False and ``q`` is the best attempt (smallest weighted error, the
+        clearance shortfall included).
 
     The solve is not differentiable (it runs under ``torch.no_grad``); use :func:`minimize`
     to optimise through IK.
@@ -325,6 +419,7 @@ def solve(
     batch = _check_target(target, mode, None, None)
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
+    _check_world(world, margin, target, batch)
     dtype, device, n = target.dtype, target.device, chain.n_joints
     loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
     work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
@@ -337,14 +432,18 @@ def solve(
         flat = flat.to(work)
         lo, hi = (x[:, None] for x in _inner_limits(chain, work))  # (n, 1) each
         first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
+        obstacles = None if world is None else _obstacles(chain, world, margin, batch, work)
         # Seeds: q0, then pool configurations ranked by pose distance to each target.
         pool = distance = None  # not needed when q0 is the only seed (tracking)
         if seeds > (first is not None):
             pool = chain.random_q(max(_POOL, seeds), generator=generator, dtype=work)
             distance = _pool_distance(chain, pool, flat, mode)  # (pool, b)
+            if obstacles is not None:
+                distance += _COLLIDING_RANK * obstacles.colliding(pool)[:, None]
         tgt = _Target(
             None if mode == "position" else flat[:, :3, :3].permute(2, 1, 0).contiguous(),
             (flat if mode == "position" else flat[:, :3, 3]).T.contiguous(),
+            obstacles=obstacles,
         )
         settings = _Settings(
             chain, float(rot_weight), lo, hi, 1e-12 if work == torch.float64 else 1e-6, rest_gain,
@@ -352,8 +451,11 @@ def solve(
         )  # fmt: skip
         answers = _Answers.empty(n, flat.shape[0], work, device)
         _run_rounds(settings, tgt, rest_flat, pool, distance, first, answers)
+        if obstacles is not None:
+            _clear_answers(settings, tgt, rest_flat, pool, distance, answers)
         q_out = answers.q.T.to(dtype).reshape(*batch, n)
-        return _result(chain, q_out, target, mode, pos_tol, rot_tol, answers.used.reshape(batch))
+        result = _result(chain, q_out, target, mode, pos_tol, rot_tol, answers.used.reshape(batch))
+        return result if world is None else _with_clearance(chain, result, world, margin)
 
 
 def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
@@ -365,6 +467,63 @@ def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_e
     if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
         raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
     check_choice(precision, get_args(Precision), "precision")
+
+
+def _check_world(world, margin, target: Tensor, batch: torch.Size) -> None:
+    """Validate :func:`solve`'s (or :func:`minimize`'s) ``world`` and ``margin`` for ``target``:
+    :func:`~iiwa_torch.collision.check_world`, then the target's dtype and device and a batch
+    shape that broadcasts to the targets'."""
+    check_world(world, margin)
+    if world is None:
+        return
+    for t in world.tensors():
+        if t.dtype != target.dtype or t.device != target.device:
+            raise TypeError(
+                f"world obstacles are {t.dtype} on {t.device} but the target is {target.dtype} on {target.device}; "
+                "build the world in the target's dtype and device"
+            )
+    try:
+        fits = torch.broadcast_shapes(world.batch_shape, batch) == batch
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(
+            f"world's batch shape {tuple(world.batch_shape)} must broadcast to the targets' {tuple(batch)}"
+        )
+
+
+def _obstacles(chain: DHChain, world: World, margin: float, batch: torch.Size, work: torch.dtype) -> _Obstacles:
+    """``world`` in the loop's dtype, a batch shape (if any) expanded and flattened to the problems'."""
+    batched = len(world.batch_shape) > 0
+
+    def cast(t: Tensor, event: int) -> Tensor:
+        if batched:
+            event_shape = t.shape[t.ndim - event :]
+            t = t.expand(*batch, *event_shape).reshape(-1, *event_shape)
+        return t.to(work)
+
+    return _Obstacles(chain, world.map_batch(cast), batched, robot_capsules(chain), float(margin))
+
+
+def _clear_answers(settings: _Settings, tgt: _Target, rest, pool, distance, answers: _Answers) -> None:
+    """Solve again, with the clearance residual, every problem none of whose seeds converged
+    clear of the obstacles, from its best answer and then from its pool seeds."""
+    tgt = tgt.with_obstacles(tgt.obstacles._replace(residual=True))
+    redo = (answers.E >= 0).nonzero().squeeze(1)
+    if not redo.numel():
+        return
+    again = _Answers.empty(answers.q.shape[0], redo.numel(), answers.q.dtype, answers.q.device)
+    sub_rest = None if rest is None else rest[redo]
+    sub_distance = None if distance is None else distance[:, redo]
+    _run_rounds(settings, tgt.take(redo), sub_rest, pool, sub_distance, answers.q[:, redo].T, again)
+    answers.q[:, redo] = again.q
+    answers.used[redo] += again.used
+
+
+def _with_clearance(chain: DHChain, result: IKResult, world: World, margin: float) -> IKResult:
+    """``result`` with the clearance of its ``q`` (in the target's dtype); success needs ``>= margin``."""
+    d = clearance(chain, result.q, world)
+    return replace(result, success=result.success & (d >= margin), clearance=d)
 
 
 class _Settings(NamedTuple):
@@ -442,7 +601,7 @@ def _run_round(settings: _Settings, q, slot_tgt: _Target, slot_rest, problem, nu
             continue
         answers.used.index_add_(0, problem, torch.full_like(problem, step + 1 - checked))
         checked = step + 1
-        keep = _check_slots(settings, state, step, problem, number, answers)
+        keep = _check_slots(settings, state, step, problem, number, answers, slot_tgt.obstacles)
         if keep.numel() < problem.numel():
             problem, number, slot_tgt, state = problem[keep], number[keep], slot_tgt.take(keep), state.take(keep)
             slot_rest = None if slot_rest is None else _take(slot_rest, keep)
@@ -450,13 +609,23 @@ def _run_round(settings: _Settings, q, slot_tgt: _Target, slot_rest, problem, nu
             break
 
 
-def _check_slots(settings: _Settings, state: _LMState, step: int, problem, number, answers: _Answers) -> Tensor:
-    """Record each problem's best slot in ``answers``; return the indices of the slots that run on."""
+def _check_slots(
+    settings: _Settings, state: _LMState, step: int, problem, number, answers: _Answers, obstacles
+) -> Tensor:
+    """Record each problem's best slot in ``answers``; return the indices of the slots that run on.
+    With ``obstacles``, a slot is done when its pose has converged and it is clear; without the
+    clearance residual, one whose pose converged in a collision stops (its next seed may be clear)."""
     done = (state.pos_err <= 0.5 * settings.pos_tol) & (state.rot_err <= 0.5 * settings.rot_tol)
     E = state.E
     if step < settings.free_steps:  # only the unconstrained start can leave the limits
         inside = ((state.q >= settings.lo) & (state.q <= settings.hi)).all(0)
         done, E = done & inside, torch.where(inside, E, math.inf)
+    stop = done
+    at = None if obstacles is None else done.nonzero().squeeze(1)
+    if at is not None and at.numel():  # a clearance query costs milliseconds even for a few slots
+        clear = obstacles.take(at).clearance(_take(state.q, at)) >= obstacles.margin + _CLEAR_BUFFER / 2
+        done = done.index_put((at,), clear)
+        stop = done if obstacles.residual else stop
     # Converged slots rank below every error, the lowest seed number first, so the
     # answer does not depend on how many seeds ran side by side.
     seeds = settings.seeds
@@ -464,7 +633,7 @@ def _check_slots(settings: _Settings, state: _LMState, step: int, problem, numbe
     answers.E = _keep_best(answers.q, answers.E, state.q, key, problem)
     # A slot runs on while no lower-numbered seed of its problem has converged.
     winner = torch.where(answers.E < 0, answers.E + seeds, seeds)  # lowest converged seed number
-    return (~done & (number < winner[problem])).nonzero().squeeze(1)
+    return (~stop & (number < winner[problem])).nonzero().squeeze(1)
 
 
 def _result(
@@ -497,6 +666,9 @@ def minimize(
     pos_tol: float = 1e-4,
     rot_tol: float = 1e-3,
     success_fn: Callable[[Tensor, Tensor], Tensor] | None = None,
+    world: World | None = None,
+    margin: float = 0.0,
+    clearance_weight: float = 1.0,
 ) -> IKResult:
     """IK by gradient descent on any differentiable loss, for a batch of problems.
 
@@ -517,6 +689,11 @@ def minimize(
         pos_tol, rot_tol: success tolerances, metres and radians.
         success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion of the caller's
             loss (e.g. "elbow above 0.5 m"); success needs it and the tolerances.
+        world, margin, clearance_weight: optional :class:`~iiwa_torch.collision.World` (``q0``'s
+            dtype and device, batch broadcasting to ``q0``'s), a clearance in metres (>= 0) and
+            a weight (1/m^2 of loss per m^2): the loss gets the term ``clearance_weight *``
+            :func:`clearance_shortfall`, success needs a clearance >= ``margin``, and the
+            result carries ``clearance``.
 
     Joint limits are kept by projection: the loss sees the parameters clamped into the limits,
     and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
@@ -533,6 +710,19 @@ def minimize(
     chain.check_q(q0, "q0")
     batch = q0.shape[:-1]
     _check_target(target, mode, q0.dtype, batch)
+    _check_world(world, margin, target, batch)
+    check_positive(clearance_weight, "clearance_weight")
+    capsules = None if world is None else robot_capsules(chain)
+
+    def objective(q: Tensor) -> Tensor:
+        value = loss(q, chain.fk(q))
+        if not isinstance(value, torch.Tensor) or value.shape != batch:
+            raise ValueError(
+                f"loss must return one value per problem, shape {tuple(batch)}, got {getattr(value, 'shape', value)}"
+            )
+        if world is None:
+            return value
+        return value + clearance_weight * clearance_shortfall(chain, q, world, margin, capsules)
 
     lo, hi = _inner_limits(chain, q0.dtype)
 
@@ -548,11 +738,7 @@ def minimize(
         nonlocal best_loss
         opt.zero_grad()
         q = clamp(u)
-        value = loss(q, chain.fk(q))
-        if not isinstance(value, torch.Tensor) or value.shape != batch:
-            raise ValueError(
-                f"loss must return one value per problem, shape {tuple(batch)}, got {getattr(value, 'shape', value)}"
-            )
+        value = objective(q)
         with torch.no_grad():  # every evaluated q is within limits, so any may be the answer
             better = value < best_loss
             best_q.copy_(torch.where(better[..., None], q, best_q))
@@ -568,8 +754,9 @@ def minimize(
             decay.step()
     with torch.no_grad():
         q = clamp(u)
-        best_q = torch.where((loss(q, chain.fk(q)) < best_loss)[..., None], q, best_q)
-        return _minimize_result(chain, best_q, target, mode, pos_tol, rot_tol, steps, success_fn)
+        best_q = torch.where((objective(q) < best_loss)[..., None], q, best_q)
+        result = _minimize_result(chain, best_q, target, mode, pos_tol, rot_tol, steps, success_fn)
+        return result if world is None else _with_clearance(chain, result, world, margin)
 
 
 def _optimizer(u: Tensor, optimizer: str, steps: int, lr: float | None):
