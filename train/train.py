@@ -504,16 +504,22 @@ def train(args: argparse.Namespace) -> Path:
     return run.path
 
 
-def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def check_run_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Exit with status 2 and one line on a bad ``--timesteps``, ``--n-envs`` or ``--threads``
+    (the options ``train.train`` and ``train.tune`` share)."""
     if args.timesteps is not None and (args.timesteps <= 0 or int(args.timesteps) != args.timesteps):
         parser.error(f"--timesteps must be a positive integer, got {args.timesteps:g}")
     if args.n_envs is not None and args.n_envs < 1:
         parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
     if args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    check_run_args(parser, args)
     try:
         train(args)
     except (ValueError, FileNotFoundError, FileExistsError, RunLocked) as err:

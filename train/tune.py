@@ -290,12 +290,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.trials < 1:
         parser.error(f"--trials must be >= 1, got {args.trials}")
-    if args.timesteps is not None and (args.timesteps <= 0 or int(args.timesteps) != args.timesteps):
-        parser.error(f"--timesteps must be a positive integer, got {args.timesteps:g}")
-    if args.n_envs is not None and args.n_envs < 1:
-        parser.error(f"--n-envs must be >= 1, got {args.n_envs}")
-    if args.threads < 1:
-        parser.error(f"--threads must be >= 1, got {args.threads}")
+    from train.train import check_run_args
+
+    check_run_args(parser, args)
     try:
         import optuna  # noqa: F401
     except ImportError:
