@@ -175,6 +175,9 @@ def test_evaluate_shipped_policy_writes_documented_report(tmp_path):
     for plot in report["plots"]:
         assert (out / plot).stat().st_size > 1000
     assert (out / "report.md").read_text().startswith("# Policy versus IK")
+    # the verdict names the training env's collision setting, read here from the config's own text
+    trained = yaml.safe_load((policies[0] / "config.yaml").read_text())["hyperparams"]["env_kwargs"]
+    assert sum(f"collision='{trained.get('collision', 'terminate')}'" in line for line in report["verdict"]) == 1
 
 
 @pytest.mark.parametrize("name, minimum", [("ppo_iiwa_reach", 0.97), ("ppo_iiwa_reach_pose", 0.8)])

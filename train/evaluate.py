@@ -255,13 +255,22 @@ def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[s
 
 
 # ---------------------------------------------------------------------------- verdict and report
-def _design_note(config: dict[str, Any]) -> list[str]:
-    """What the policy is built on, when it is not a plain network (so the comparison stays honest)."""
-    if config["hyperparams"].get("policy") != "ResidualDLSPolicy":
-        return []
-    return ["How the policy is built: its action is a damped-least-squares joint step (the library's Jacobian, "
-            "inside the network) plus a learned correction that fades near the goal. What the DLS step achieves "
-            "alone, without the network, is measured in docs/training.md."]
+def _design_note(config: dict[str, Any], trained_in) -> list[str]:
+    """What the policy is built on, when it is not a plain network, and what its training env checked
+    (``trained_in``: the :class:`envs.core.ReachTask` of its config), so the comparison stays honest."""
+    from envs.core import CollisionKind
+
+    if trained_in.collision is CollisionKind.OFF:
+        lines = ["The policy was trained without a floor or a self-collision term (collision='off'): nothing in "
+                 "its reward keeps it clear."]
+    else:
+        lines = [f"The policy was trained with the floor and self-collision checked (collision="
+                 f"'{trained_in.collision.value}', a colliding step costs {trained_in.collision_penalty:g})."]
+    if config["hyperparams"].get("policy") == "ResidualDLSPolicy":
+        lines.append("How the policy is built: its action is a damped-least-squares joint step (the library's "
+                     "Jacobian, inside the network) plus a learned correction that fades near the goal. What the DLS "
+                     "step achieves alone, without the network, is measured in docs/training.md.")
+    return lines
 
 
 def _cmp(policy: float, other: float, lower_wins: bool = True) -> str:
@@ -364,8 +373,9 @@ def _collision_verdict(p: dict[str, Any], ik: dict[str, dict[str, Any]], below_f
 
     lines = [f"Collisions (capsule model, floor at z = 0): the policy's rollout collides on {p['collisions']} goals "
              f"({100 * p['collision_share']:.1f}%; floor {p['floor_collisions']}, self {p['self_collisions']}), its "
-             f"final configuration on {p['final_collisions']}; {clear(p)}. {below_floor} of the goals lie below "
-             f"the floor (z < 0): every exact answer to them collides."]
+             f"final configuration on {p['final_collisions']}; {clear(p)}."
+             + (f" {below_floor} of the goals lie below the floor (z < 0): every exact answer to them collides."
+                if below_floor else "")]
     for name, v in ik.items():
         lines.append(f"Collisions of {name}: its solution collides on {v['collisions']} goals "
                      f"({100 * v['collision_share']:.1f}%; floor {v['floor_collisions']}, self "
@@ -373,9 +383,6 @@ def _collision_verdict(p: dict[str, Any], ik: dict[str, dict[str, Any]], below_f
         lines.append(f"Goal by goal against {name}: the policy's rollout touches the floor where {name}'s "
                      f"solution does not on {v['floor_policy_only']} goals; {name}'s solution touches it where the "
                      f"policy does not on {v['floor_ik_only']}.")
-    if p["collisions"]:
-        lines.append("The policy was trained without a floor or a self-collision term: nothing in its reward "
-                     "keeps it clear.")
     return lines
 
 
@@ -623,7 +630,8 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         "methods": metrics,
         "goals_below_floor": below_floor,
         "number_spacing_m": spacing,
-        "verdict": verdict(metrics, below_floor, spacing) + _design_note(config),
+        "verdict": verdict(metrics, below_floor, spacing)
+        + _design_note(config, envs.make_task(env_id, **(config["hyperparams"].get("env_kwargs") or {}))),
         "training": json.loads((model_dir / "train_info.json").read_text())
         if (model_dir / "train_info.json").exists() else None,
         "machine": machine_info(),
