@@ -170,7 +170,7 @@ def bench_track_world(repeats: int) -> dict:
     for name, kwargs in (
         ("analytic, no world", {"method": "analytic"}),
         ("analytic, world, margin 1 cm", {"method": "analytic", "world": world, "margin": 0.01}),
-        ("gradient, world (checked only)", {"method": "gradient", "world": world, "margin": 0.01}),
+        ("gradient, world, margin 1 cm", {"method": "gradient", "world": world, "margin": 0.01}),
     ):
         seconds = timeit(lambda k=kwargs: track(CHAIN, path, Q_START, **k), repeats=repeats, min_time=0.0)
         res = track(CHAIN, path, Q_START, **kwargs)
