@@ -213,7 +213,7 @@ def solve_small(
         remaining = remaining[problems.E[remaining] >= 0]
     q_out = torch.from_numpy(problems.q).to(dtype).reshape(*batch, n)
     # errors and success from the public chain.fk of the answer, as the batched path's
-    _, pos_err, _, rot_err = pose_errors(chain.fk(q_out).reshape(b, 4, 4).double().numpy(), pos, rot, 0.0)
+    _, pos_err, _, rot_err = pose_errors(chain.fk(q_out).reshape(b, 4, 4).double().numpy(), pos, rot, problems.eps)
     success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
     out = (torch.from_numpy(x).reshape(batch) for x in (success, pos_err, rot_err, problems.used))
     success, pos_err, rot_err, used = out
