@@ -5,6 +5,8 @@ the batched loop forced by setting the threshold to 0; every answer is verified 
 chain.fk and so3.pose_error, and its joints against the chain's float64 limits.
 """
 
+import warnings
+
 import pytest
 import torch
 
@@ -151,3 +153,14 @@ def test_which_path(calls):
     with torch.no_grad():  # requires_grad without grad mode: nothing to differentiate
         solve(chain, target[:3].clone().requires_grad_(True))
     assert len(calls) == 2
+
+
+def test_exact_answer_is_finite():
+    """q0 already at the target: zero errors, no 0/0 in the rotation angle."""
+    chain = CHAINS["iiwa14"]
+    target, q = targets(chain, 2, 7, torch.float64, "pose")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = solve(chain, target, q, seeds=1)
+    assert bool(result.success.all()) and bool((result.rot_err < 1e-7).all())
+    assert torch.equal(result.q, q)
