@@ -49,6 +49,7 @@ __all__ = [
     "minimize",
     "pool_distance",
     "round_width",
+    "seed_ranks",
     "solve",
 ]
 
@@ -302,18 +303,23 @@ def broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dty
         ) from None
 
 
-def pool_distance(pool_pose, target, mode: str):
-    """``(pool, b)``: how far each pool configuration's end pose ``pool_pose (pool, 4, 4)`` is
-    from each target ``(b, 4, 4)`` (or position ``(b, 3)``), as the squared position distance
-    plus ``0.3^2`` times the squared Frobenius rotation distance, less terms that are the same
-    for every pool entry. Torch tensors or numpy arrays (the same arithmetic for both)."""
-    p = pool_pose[:, :3, 3]
+def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str) -> Tensor:
+    """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
+    squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
+    less terms that are the same for every pool entry."""
+    pose = chain.fk(pool)
     if mode == "pose":
-        rot = pool_pose[:, :3, :3].reshape(-1, 9) @ target[:, :3, :3].reshape(-1, 9).T
-        cross = p @ target[:, :3, 3].T + 0.09 * rot
+        feat_pool = torch.cat([pose[:, :3, 3], 0.3 * pose[:, :3, :3].flatten(1)], 1)
+        feat_target = torch.cat([target[:, :3, 3], 0.3 * target[:, :3, :3].flatten(1)], 1)
     else:
-        cross = p @ target.T
-    return (p * p).sum(1)[:, None] - 2 * cross
+        feat_pool, feat_target = pose[:, :3, 3], target
+    return pose[:, :3, 3].square().sum(1, keepdim=True) - 2 * feat_pool @ feat_target.T
+
+
+def seed_ranks(distance: Tensor, count: int) -> Tensor:
+    """``(count, b)``: the indices of the ``count`` pool entries nearest each target, nearest
+    first, from :func:`pool_distance` ``(pool, b)``."""
+    return distance.argmin(0, keepdim=True) if count == 1 else distance.topk(count, 0, largest=False).indices
 
 
 def round_width(seeds: int, next_seed: int, remaining: int) -> int:
@@ -330,8 +336,7 @@ def _seed_q(
     shift = 0 if first is None else 1
     count = start + width - shift  # pool ranks needed: 0 .. count - 1
     if count > 0:
-        dist = distance[:, problems]
-        nearest = dist.argmin(0, keepdim=True) if count == 1 else dist.topk(count, 0, largest=False).indices
+        nearest = seed_ranks(distance[:, problems], count)
     seeds = []
     for number in range(start, start + width):
         seeds.append(first[problems] if number < shift else pool[nearest[number - shift]])
@@ -471,7 +476,7 @@ def solve(
         pool = distance = None  # not needed when q0 is the only seed (tracking)
         if seeds > (first is not None):
             pool = chain.random_q(max(POOL, seeds), generator=generator, dtype=work)
-            distance = pool_distance(chain.fk(pool), flat, mode)  # (pool, b)
+            distance = pool_distance(chain, pool, flat, mode)  # (pool, b)
             if obstacles is not None:
                 distance += _COLLIDING_RANK * obstacles.colliding(pool)[:, None]
         tgt = _Target(

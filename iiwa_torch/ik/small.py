@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..dh import DHChain
-from ..kinematics import end_pose_numpy, floats_ok, pose_jacobian_numpy
+from ..kinematics import floats_ok, pose_jacobian_numpy
 from .gradient import (
     DAMP_DOWN,
     DAMP_UP,
@@ -29,6 +29,7 @@ from .gradient import (
     into_limits,
     pool_distance,
     round_width,
+    seed_ranks,
 )
 from .result import IKResult
 
@@ -191,8 +192,7 @@ def solve_small(
     pool = order = None
     if seeds > shift:
         pool_t = chain.random_q(max(POOL, seeds), generator=generator, dtype=work)
-        distance = pool_distance(end_pose_numpy(chain.geometry(work), pool_t), flat.to(work).numpy(), mode)
-        order = np.argsort(distance, axis=0, kind="stable")[: seeds - shift]  # (ranks, b) pool indices
+        order = seed_ranks(pool_distance(chain, pool_t, flat.to(work), mode), seeds - shift).numpy()  # (ranks, b)
         pool = pool_t.double().numpy()
     flat = flat.double().numpy()
     pos, rot = (flat, None) if mode == "position" else (flat[:, :3, 3], flat[:, :3, :3])
