@@ -164,3 +164,13 @@ def test_exact_answer_is_finite():
         result = solve(chain, target, q, seeds=1)
     assert bool(result.success.all()) and bool((result.rot_err < 1e-7).all())
     assert torch.equal(result.q, q)
+
+
+def test_bad_q0_and_rest_raise_as_before():
+    chain = CHAINS["iiwa14"]
+    target, q = targets(chain, 2, 8, torch.float64, "pose")
+    with pytest.raises(TypeError, match="q0"):
+        solve(chain, target, q.tolist())
+    with pytest.raises(TypeError, match="rest"):
+        solve(chain, target, rest=q.tolist(), rest_gain=0.1)
+    assert bool(solve(chain, target, rest="ignored without a gain").success.all())

@@ -33,7 +33,7 @@ from .gradient import (
 )
 from .result import IKResult
 
-__all__ = ["SMALL_BATCH", "applies", "solve_small"]
+__all__ = ["SMALL_BATCH", "applies", "pose_errors", "solve_small"]
 
 SMALL_BATCH = 64  # up to this many targets per call, solve iterates in numpy
 
@@ -42,8 +42,9 @@ def applies(target: torch.Tensor, q0, rest, world, size: int) -> bool:
     """Whether :func:`~iiwa_torch.ik.solve` takes this path for ``size`` targets: at most
     ``SMALL_BATCH``, no world, and ``target``, ``q0`` and ``rest`` on the CPU with nothing to
     differentiate (:func:`~iiwa_torch.kinematics.floats_ok`)."""
-    tensors = (t for t in (target, q0, rest) if t is not None)
-    return world is None and size <= SMALL_BATCH and all(floats_ok(t) for t in tensors)
+    given = [t for t in (target, q0, rest) if t is not None]
+    # anything but a tensor goes the batched way, to the same error message as before
+    return world is None and size <= SMALL_BATCH and all(isinstance(t, torch.Tensor) and floats_ok(t) for t in given)
 
 
 _SKEW = np.array([5, 6, 1]), np.array([7, 2, 3])  # (1, 2), (2, 0), (0, 1) and their mirrors in a flat 3x3
