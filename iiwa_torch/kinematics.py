@@ -61,6 +61,7 @@ __all__ = [
     "jacobian",
     "jacobian_floats",
     "jacobian_numpy",
+    "pose_jacobian_numpy",
     "pose_vjp",
     "position_batch_last",
     "position_horner",
@@ -534,7 +535,11 @@ def _frames_numpy(g: Geometry, q: np.ndarray) -> np.ndarray:
     b, n = q.shape
     trig = np.sin(q.T[:, :, None] + phase)  # (n, b, 2): cos, sin
     links = (const + trig @ coeffs).reshape(n, b, 4, 4)
-    return np.stack(list(accumulate(links, np.matmul, initial=np.broadcast_to(base, (b, 4, 4)))))
+    frames = np.empty((n + 1, b, 4, 4), dtype=links.dtype)  # filled in place: np.stack costs as much as the products
+    frames[0] = base
+    for i in range(n):
+        np.matmul(frames[i], links[i], out=frames[i + 1])
+    return frames
 
 
 def _frames_batch_last_numpy(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
@@ -558,18 +563,24 @@ def jacobian_numpy(g: Geometry, q: Tensor) -> Tensor:
     """``q (b, n)`` on the CPU -> ``(b, 6, n)`` Jacobians as :func:`jacobian`, from the link frames
     of the 4x4-product kernel computed in numpy (a few dozen ops, each a fraction of a torch
     op's overhead). Not differentiable: for :func:`floats_ok` inputs."""
+    return torch.from_numpy(pose_jacobian_numpy(g, q.numpy())[1])
+
+
+def pose_jacobian_numpy(g: Geometry, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``q (b, n)``, a numpy array in ``g``'s dtype (``g`` on the CPU) -> the end poses
+    ``(b, 4, 4)`` (tool included) and the Jacobians ``(b, 6, n)`` (as :func:`jacobian`), from one
+    pass of the 4x4-product kernel's link frames in numpy."""
     b, n = q.shape
-    frames = _frames_numpy(g, q.numpy())
+    frames = _frames_numpy(g, q)
     axes = frames[1:] if g.modified else frames[:-1]  # (n, b, 4, 4)
-    tool = g.link_numpy[4]
+    end = frames[-1] @ g.link_numpy[4]  # (b, 4, 4)
     out = np.empty((b, 6, n), dtype=frames.dtype)
-    out[:, 3:] = axes[:, :, :3, 2].transpose(1, 2, 0)  # the joint axes z_i, (b, 3, n)
     z = out[:, 3:]
-    end = frames[-1, :, :3, :3] @ tool[:3, 3] + frames[-1, :, :3, 3]  # (b, 3)
-    lever = end[:, :, None] - axes[:, :, :3, 3].transpose(1, 2, 0)  # (b, 3, n)
+    z[:] = axes[:, :, :3, 2].transpose(1, 2, 0)  # the joint axes z_i, (b, 3, n)
+    lever = end[:, :3, 3, None] - axes[:, :, :3, 3].transpose(1, 2, 0)  # (b, 3, n)
     for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
         np.subtract(z[:, i] * lever[:, j], z[:, j] * lever[:, i], out=out[:, r])
-    return torch.from_numpy(out)
+    return end, out
 
 
 def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:

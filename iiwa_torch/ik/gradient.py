@@ -31,18 +31,38 @@ from .dls import dls_step_batch_last
 from .limits import shift_into_limits
 from .result import IKResult
 
-__all__ = ["Mode", "Optimizer", "Precision", "clearance_shortfall", "solve", "minimize"]
+__all__ = [
+    "DAMP_DOWN",
+    "DAMP_UP",
+    "FREE_STEPS",
+    "LAMBDA0",
+    "MIN_BATCH",
+    "POOL",
+    "Mode",
+    "Optimizer",
+    "Precision",
+    "broadcast_q",
+    "clearance_shortfall",
+    "ik_result",
+    "inner_limits",
+    "into_limits",
+    "minimize",
+    "pool_distance",
+    "round_width",
+    "seed_ranks",
+    "solve",
+]
 
 Tensor = torch.Tensor
 Mode = Literal["pose", "position"]
 Optimizer = Literal["adam", "lbfgs"]
 Precision = Literal["auto", "input"]
 
-_POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
-_MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
-_FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
-_LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
-_DAMP_DOWN, _DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
+POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
+MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
+FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
+LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
+DAMP_DOWN, DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
 # With a world, the clearance residual acts below margin + _CLEAR_BUFFER and a seed counts as
 # clear at margin + _CLEAR_BUFFER / 2 (m): far above float32 rounding of the distances, so the
 # float64 check of the answer agrees.
@@ -232,7 +252,7 @@ def _lm_step(chain, state: _LMState, target, weight, limits, rest, rest_gain, la
         dq = dls_step_batch_last(J, e[:, None], lam, lam_min, free)[:, 0]
     else:  # pull toward the rest posture inside the (damped) null space of J, while the damping
         # is low: a large damping would turn the projected pull into the full pull.
-        pull = rest_gain * (rest - q) * (lam <= _LAMBDA0)
+        pull = rest_gain * (rest - q) * (lam <= LAMBDA0)
         pull = pull if free is None else pull * free
         sol = dls_step_batch_last(J, torch.stack([e, (J * pull).sum(1)], 1), lam, lam_min, free)
         dq = sol[:, 0] + pull - sol[:, 1]
@@ -246,13 +266,13 @@ def _lm_step(chain, state: _LMState, target, weight, limits, rest, rest_gain, la
         torch.lerp(E, E_new, kept),
         torch.lerp(pos_err, pos_new, kept),
         torch.lerp(rot_err, rot_new, kept),
-        (lam * torch.lerp(torch.full_like(lam, _DAMP_UP), torch.full_like(lam, _DAMP_DOWN), kept)).clamp_(
+        (lam * torch.lerp(torch.full_like(lam, DAMP_UP), torch.full_like(lam, DAMP_DOWN), kept)).clamp_(
             lam_min, lam_max
         ),
     )
 
 
-def _inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+def inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """``(lo, hi)``, each ``(n,)``, the joint limits in ``dtype`` rounded inward, so an angle
     within them is within the chain's float64 limits too (float32 rounding could cross them)."""
     exact = chain.limits
@@ -262,7 +282,7 @@ def _inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     return lo, hi
 
 
-def _into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+def into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Joint angles into ``[lo, hi]``: an angle outside is first shifted by a multiple of 2 pi
     (the same pose for a revolute joint), then clamped to the nearer limit (around the circle)
     if still outside."""
@@ -272,7 +292,7 @@ def _into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     return torch.where(fits, shifted, nearer)
 
 
-def _broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
+def broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
     """Check ``value (..., n)`` and broadcast it to ``(prod(batch), n)``."""
     chain.check_q(value, name)
     try:
@@ -283,7 +303,7 @@ def _broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dt
         ) from None
 
 
-def _pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str) -> Tensor:
+def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str) -> Tensor:
     """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
     squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
     less terms that are the same for every pool entry."""
@@ -296,6 +316,18 @@ def _pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str) -> T
     return pose[:, :3, 3].square().sum(1, keepdim=True) - 2 * feat_pool @ feat_target.T
 
 
+def seed_ranks(distance: Tensor, count: int) -> Tensor:
+    """``(count, b)``: the indices of the ``count`` pool entries nearest each target, nearest
+    first, from :func:`pool_distance` ``(pool, b)``."""
+    return distance.argmin(0, keepdim=True) if count == 1 else distance.topk(count, 0, largest=False).indices
+
+
+def round_width(seeds: int, next_seed: int, remaining: int) -> int:
+    """How many seeds (from ``next_seed`` on) each of ``remaining`` problems tries side by side
+    in the next round: enough to fill ``MIN_BATCH`` slots."""
+    return min(seeds - next_seed, max(1, -(-MIN_BATCH // remaining)))
+
+
 def _seed_q(
     pool: Tensor | None, distance: Tensor | None, first: Tensor | None, problems: Tensor, width: int, start: int
 ) -> Tensor:
@@ -304,8 +336,7 @@ def _seed_q(
     shift = 0 if first is None else 1
     count = start + width - shift  # pool ranks needed: 0 .. count - 1
     if count > 0:
-        dist = distance[:, problems]
-        nearest = dist.argmin(0, keepdim=True) if count == 1 else dist.topk(count, 0, largest=False).indices
+        nearest = seed_ranks(distance[:, problems], count)
     seeds = []
     for number in range(start, start + width):
         seeds.append(first[problems] if number < shift else pool[nearest[number - shift]])
@@ -424,20 +455,28 @@ def solve(
     loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
     work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
     flat = target.reshape(-1, *target.shape[len(batch) :])
-    rest_flat = None if rest is None or rest_gain == 0 else _broadcast_q(rest, chain, batch, "rest", work)
+    rest_flat = None if rest is None or rest_gain == 0 else broadcast_q(rest, chain, batch, "rest", work)
     if generator is None:
         generator = torch.Generator(device).manual_seed(0)
+    from . import small  # imports this module, so not at the top
+
+    if small.applies(target, q0, rest, world, flat.shape[0]):
+        return small.solve_small(
+            chain, target, q0, rest_flat, mode=mode, work=work, generator=generator, rot_weight=rot_weight,
+            pos_tol=pos_tol, rot_tol=rot_tol, seeds=seeds, iterations=iterations, rest_gain=rest_gain,
+            check_every=check_every,
+        )  # fmt: skip
 
     with torch.no_grad():
         flat = flat.to(work)
-        lo, hi = (x[:, None] for x in _inner_limits(chain, work))  # (n, 1) each
-        first = None if q0 is None else _into_limits(_broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
+        lo, hi = (x[:, None] for x in inner_limits(chain, work))  # (n, 1) each
+        first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
         obstacles = None if world is None else _obstacles(chain, world, margin, batch, work)
         # Seeds: q0, then pool configurations ranked by pose distance to each target.
         pool = distance = None  # not needed when q0 is the only seed (tracking)
         if seeds > (first is not None):
-            pool = chain.random_q(max(_POOL, seeds), generator=generator, dtype=work)
-            distance = _pool_distance(chain, pool, flat, mode)  # (pool, b)
+            pool = chain.random_q(max(POOL, seeds), generator=generator, dtype=work)
+            distance = pool_distance(chain, pool, flat, mode)  # (pool, b)
             if obstacles is not None:
                 distance += _COLLIDING_RANK * obstacles.colliding(pool)[:, None]
         tgt = _Target(
@@ -447,14 +486,14 @@ def solve(
         )
         settings = _Settings(
             chain, float(rot_weight), lo, hi, 1e-12 if work == torch.float64 else 1e-6, rest_gain,
-            iterations, min(_FREE_STEPS, iterations // 2), check_every, seeds, pos_tol, rot_tol,
+            iterations, min(FREE_STEPS, iterations // 2), check_every, seeds, pos_tol, rot_tol,
         )  # fmt: skip
         answers = _Answers.empty(n, flat.shape[0], work, device)
         _run_rounds(settings, tgt, rest_flat, pool, distance, first, answers)
         if obstacles is not None:
             _clear_answers(settings, tgt, rest_flat, pool, distance, answers)
         q_out = answers.q.T.to(dtype).reshape(*batch, n)
-        result = _result(chain, q_out, target, mode, pos_tol, rot_tol, answers.used.reshape(batch))
+        result = ik_result(chain, q_out, target, mode, pos_tol, rot_tol, answers.used.reshape(batch))
         return result if world is None else _with_clearance(chain, result, world, margin)
 
 
@@ -569,7 +608,7 @@ def _run_rounds(settings: _Settings, tgt: _Target, rest, pool, distance, first, 
     device = answers.E.device
     remaining, next_seed = torch.arange(b, device=device), 0
     while remaining.numel() and next_seed < seeds:
-        width = min(seeds - next_seed, max(1, -(-_MIN_BATCH // remaining.numel())))
+        width = round_width(seeds, next_seed, remaining.numel())
         problem = remaining.repeat(width)  # slot -> problem
         number = torch.arange(next_seed, next_seed + width, device=device).repeat_interleave(remaining.numel())
         q = _seed_q(pool, distance, first, remaining, width, next_seed)
@@ -586,14 +625,14 @@ def _run_round(settings: _Settings, q, slot_tgt: _Target, slot_rest, problem, nu
     lower-numbered seed of their problem converges."""
     chain, weight, lo, hi = settings.chain, settings.weight, settings.lo, settings.hi
     J, e, E, pos_err, rot_err = _evaluate(chain, q, slot_tgt, weight)
-    # Initial damping: 1% of the squared error, at most _LAMBDA0: a seed near its answer
+    # Initial damping: 1% of the squared error, at most LAMBDA0: a seed near its answer
     # (tracking) starts with nearly Gauss-Newton steps (measured: 2.7 instead of 4.1
     # iterations from 0.05 rad away; no change from random seeds).
-    state = _LMState(q, J, e, E, pos_err, rot_err, (0.01 * E).clamp(settings.lam_min, _LAMBDA0))
+    state = _LMState(q, J, e, E, pos_err, rot_err, (0.01 * E).clamp(settings.lam_min, LAMBDA0))
     checked = 0
     for step in range(settings.iterations):
         if step == settings.free_steps and step:  # the unconstrained start ends: into the limits
-            q = _into_limits(state.q, lo, hi)
+            q = into_limits(state.q, lo, hi)
             state = _LMState(q, *_evaluate(chain, q, slot_tgt, weight), state.lam)
         limits = None if step < settings.free_steps else (lo, hi)
         state = _lm_step(chain, state, slot_tgt, weight, limits, slot_rest, settings.rest_gain, settings.lam_min, 1e4)
@@ -636,7 +675,7 @@ def _check_slots(
     return (~stop & (number < winner[problem])).nonzero().squeeze(1)
 
 
-def _result(
+def ik_result(
     chain: DHChain, q: Tensor, target: Tensor, mode: str, pos_tol: float, rot_tol: float, iterations: Tensor
 ) -> IKResult:
     """Errors and success from the public ``chain.fk`` of the returned ``q``."""
@@ -724,7 +763,7 @@ def minimize(
             return value
         return value + clearance_weight * clearance_shortfall(chain, q, world, margin, capsules)
 
-    lo, hi = _inner_limits(chain, q0.dtype)
+    lo, hi = inner_limits(chain, q0.dtype)
 
     def clamp(q: Tensor) -> Tensor:
         return torch.minimum(torch.maximum(q, lo), hi)
@@ -782,7 +821,7 @@ def _minimize_result(chain, q, target, mode, pos_tol, rot_tol, steps, success_fn
     """:func:`minimize`'s answer ``q (..., n)`` -> :class:`IKResult`, with the caller's extra criterion."""
     batch = q.shape[:-1]
     iterations = torch.full(batch, steps, dtype=torch.long, device=q.device)
-    result = _result(chain, q, target, mode, pos_tol, rot_tol, iterations)
+    result = ik_result(chain, q, target, mode, pos_tol, rot_tol, iterations)
     if success_fn is None:
         return result
     extra = success_fn(q, chain.fk(q))

@@ -1,0 +1,221 @@
+"""The low-overhead path of :func:`~iiwa_torch.ik.solve` for a few targets on the CPU.
+
+For a batch of ``SMALL_BATCH`` targets or fewer, on the CPU, with no world and nothing to
+differentiate (:func:`applies`), :func:`~iiwa_torch.ik.solve` runs its Levenberg-Marquardt
+iteration here in numpy (float64) instead of torch: the same seeds (the same pool, drawn from
+the same generator, in the same order), the same rounds of seeds side by side, damping
+schedule, free steps and projection into the limits, convergence checks and choice of
+answer, with the end pose and Jacobian of
+:func:`~iiwa_torch.kinematics.pose_jacobian_numpy`. A torch op costs several microseconds
+however small its tensors, a numpy op about one, and an iteration takes a few dozen ops.
+The layout is batch first: ``(slots, ...)``, a slot being one seed of one problem.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..dh import DHChain
+from ..kinematics import floats_ok, pose_jacobian_numpy
+from .gradient import (
+    DAMP_DOWN,
+    DAMP_UP,
+    FREE_STEPS,
+    LAMBDA0,
+    POOL,
+    broadcast_q,
+    inner_limits,
+    into_limits,
+    pool_distance,
+    round_width,
+    seed_ranks,
+)
+from .result import IKResult
+
+__all__ = ["SMALL_BATCH", "applies", "pose_errors", "solve_small"]
+
+SMALL_BATCH = 64  # up to this many targets per call, solve iterates in numpy
+
+
+def applies(target: torch.Tensor, q0, rest, world, size: int) -> bool:
+    """Whether :func:`~iiwa_torch.ik.solve` takes this path for ``size`` targets: at most
+    ``SMALL_BATCH``, no world, and ``target``, ``q0`` and ``rest`` on the CPU with nothing to
+    differentiate (:func:`~iiwa_torch.kinematics.floats_ok`)."""
+    given = [t for t in (target, q0, rest) if t is not None]
+    # anything but a tensor goes the batched way, to the same error message as before
+    return world is None and size <= SMALL_BATCH and all(isinstance(t, torch.Tensor) and floats_ok(t) for t in given)
+
+
+_SKEW = np.array([5, 6, 1]), np.array([7, 2, 3])  # (1, 2), (2, 0), (0, 1) and their mirrors in a flat 3x3
+
+
+def pose_errors(pose: np.ndarray, pos: np.ndarray, rot: np.ndarray | None, eps: float):
+    """End poses ``pose (s, 4, 4)`` against target positions ``pos (s, 3)`` and rotations
+    ``rot (s, 3, 3)`` (None: position only) -> position error ``(s, 3)`` (target - pose, m)
+    and its norm ``(s,)``, the rotation vector ``log(rot R^T) (s, 3)`` (rad; zeros without
+    ``rot``) and its angle ``(s,)``. Below ``eps`` of sine the vector only shrinks (finite
+    also at a half turn, as the batched loop's)."""
+    e_pos = pos - pose[:, :3, 3]
+    pos_err = np.sqrt((e_pos * e_pos).sum(1))
+    if rot is None:
+        return e_pos, pos_err, np.zeros_like(e_pos), np.zeros_like(pos_err)
+    # log(R_t R^T): its skew part is sum_k r_k x t_k / 2 over the axes (columns) r_k, t_k, the
+    # antisymmetric part of W = R R_t^T, and its trace is sum_k r_k . t_k
+    W = (pose[:, :3, :3] @ rot.transpose(0, 2, 1)).reshape(-1, 9)
+    v = 0.5 * (W[:, _SKEW[0]] - W[:, _SKEW[1]])  # sin(angle) * axis
+    sin = np.sqrt((v * v).sum(1))
+    angle = np.arctan2(sin, (W[:, 0] + W[:, 4] + W[:, 8] - 1) * 0.5)
+    return e_pos, pos_err, v * (angle / np.maximum(sin, eps))[:, None], angle
+
+
+class _Problems:
+    """What every round shares: targets ``pos (b, 3)`` and ``rot (b, 3, 3)`` (or None) in
+    float64, the rest posture ``rest (b, n)`` or None, limits ``lo, hi (n,)``, the options of
+    :func:`~iiwa_torch.ik.solve`, and the answers so far: ``q (b, n)``, key ``E (b,)``
+    (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``."""
+
+    def __init__(self, chain: DHChain, pos, rot, rest, lo, hi, options: dict, lam_min: float, eps: float):
+        self.g = chain.geometry(torch.float64)
+        self.pos, self.rot, self.rest, self.lo, self.hi = pos, rot, rest, lo, hi
+        self.weight = float(options["rot_weight"])
+        self.rest_gain = options["rest_gain"]
+        self.iterations, self.check_every = options["iterations"], options["check_every"]
+        self.free_steps = min(FREE_STEPS, self.iterations // 2)
+        self.seeds, self.pos_tol, self.rot_tol = options["seeds"], options["pos_tol"], options["rot_tol"]
+        self.lam_min, self.eps = lam_min, eps
+        b, n = pos.shape[0], chain.n_joints
+        self.q, self.E, self.used = np.empty((b, n)), np.full(b, np.inf), np.zeros(b, dtype=np.int64)
+
+    def evaluate(self, q, pos, rot):
+        """``q (s, n)`` and the slots' targets -> weighted Jacobian ``J (s, m, n)``, weighted error
+        ``e (s, m)``, squared weighted error ``E (s,)``, position and rotation errors ``(s,)``."""
+        pose, J = pose_jacobian_numpy(self.g, q)
+        e_pos, pos_err, e_rot, rot_err = pose_errors(pose, pos, rot, self.eps)
+        if rot is None:
+            return J[:, :3], e_pos, pos_err * pos_err, pos_err, rot_err
+        if self.weight != 1:
+            J[:, 3:] *= self.weight
+            e_rot *= self.weight
+        return J, np.concatenate([e_pos, e_rot], 1), pos_err * pos_err + (self.weight * rot_err) ** 2, pos_err, rot_err
+
+    def step(self, state, pos, rot, rest, limits: bool):
+        """One LM step of every slot, as :func:`~iiwa_torch.ik.gradient` takes it: kept where it
+        lowers ``E``; with ``limits``, joints at a limit that ``E`` pushes outward stay put."""
+        q, J, e, E, pos_err, rot_err, lam = state
+        lo, hi = self.lo, self.hi
+        free = None
+        Jt = J.transpose(0, 2, 1)
+        if limits:
+            descent = (Jt @ e[:, :, None])[:, :, 0]  # J^T e, where E wants each joint to go
+            free = (np.minimum(np.maximum(q + np.sign(descent), lo), hi) != q).astype(q.dtype)
+        A = (J if free is None else J * free[:, None]) @ Jt
+        A.reshape(A.shape[0], -1)[:, :: A.shape[1] + 1] += lam[:, None]  # the diagonal
+        if rest is None:
+            rhs = e[:, :, None]
+        else:
+            pull = self.rest_gain * (rest - q) * (lam <= LAMBDA0)[:, None]
+            pull = pull if free is None else pull * free
+            rhs = np.stack([e, (J @ pull[:, :, None])[:, :, 0]], 2)
+        # J diag(free) J^T + lam I has every eigenvalue >= lam >= lam_min, far above rounding
+        dq = Jt @ np.linalg.solve(A, rhs)  # (s, n, k)
+        if free is not None:
+            dq *= free[:, :, None]
+        dq = dq[:, :, 0] if rest is None else dq[:, :, 0] + pull - dq[:, :, 1]
+        q_new = q + dq if not limits else np.minimum(np.maximum(q + dq, lo), hi)
+        new = self.evaluate(q_new, pos, rot)
+        kept = new[2] < E
+        out = [np.where(kept.reshape(-1, *(1,) * (old.ndim - 1)), x, old) for x, old in zip((q_new, *new), state)]
+        out.append(np.minimum(np.maximum(lam * np.where(kept, DAMP_DOWN, DAMP_UP), self.lam_min), 1e4))
+        return out
+
+    def check(self, state, step: int, problem, number):
+        """Record each problem's best slot; return the indices of the slots that run on."""
+        q, E, pos_err, rot_err = state[0], state[3], state[4], state[5]
+        done = (pos_err <= 0.5 * self.pos_tol) & (rot_err <= 0.5 * self.rot_tol)
+        if step < self.free_steps:  # only the unconstrained start can leave the limits
+            inside = ((q >= self.lo) & (q <= self.hi)).all(1)
+            done, E = done & inside, np.where(inside, E, np.inf)
+        # converged slots rank below every error, the lowest seed number first
+        key = np.where(done, (number - self.seeds).astype(E.dtype), E)
+        lowest = self.E.copy()
+        np.minimum.at(lowest, problem, key)
+        better = ((key <= lowest[problem]) & (key < self.E[problem])).nonzero()[0]
+        winner = np.full(self.E.shape[0], -1)
+        np.maximum.at(winner, problem[better], better)
+        improved = winner >= 0
+        self.q[improved] = q[winner[improved]]
+        self.E = lowest
+        first_done = np.where(lowest < 0, lowest + self.seeds, self.seeds)  # lowest converged seed
+        return (~done & (number < first_done[problem])).nonzero()[0]
+
+    def run_round(self, q, problem, number) -> None:
+        """The LM iterations of one round of seeds ``q (s, n)``."""
+        pos, rot = self.pos[problem], None if self.rot is None else self.rot[problem]
+        rest = None if self.rest is None else self.rest[problem]
+        J, e, E, pos_err, rot_err = self.evaluate(q, pos, rot)
+        state = [q, J, e, E, pos_err, rot_err, np.clip(0.01 * E, self.lam_min, LAMBDA0)]
+        checked = 0
+        for step in range(self.iterations):
+            if step == self.free_steps and step:  # the unconstrained start ends: into the limits
+                q = into_limits(torch.from_numpy(state[0]), torch.from_numpy(self.lo), torch.from_numpy(self.hi))
+                q = q.numpy()
+                state = [q, *self.evaluate(q, pos, rot), state[6]]
+            state = self.step(state, pos, rot, rest, step >= self.free_steps)
+            if (step + 1) % self.check_every and step + 1 < self.iterations:
+                continue
+            np.add.at(self.used, problem, step + 1 - checked)
+            checked = step + 1
+            keep = self.check(state, step, problem, number)
+            if keep.size < problem.size:
+                problem, number, pos = problem[keep], number[keep], pos[keep]
+                rot = None if rot is None else rot[keep]
+                rest = None if rest is None else rest[keep]
+                state = [x[keep] for x in state]
+            if not problem.size:
+                break
+
+
+def solve_small(
+    chain: DHChain, target: torch.Tensor, q0, rest, *, mode: str, work: torch.dtype, generator, **options
+) -> IKResult:
+    """:func:`~iiwa_torch.ik.solve` for checked inputs that :func:`applies` to: ``target`` as
+    given, ``q0`` as given or None, ``rest (b, n)`` in ``work`` (or None), ``work`` the dtype
+    the batched loop would iterate in (the seed pool is drawn and ranked in it), ``options``
+    the remaining options of :func:`~iiwa_torch.ik.solve` (``seeds`` resolved)."""
+    dtype, n, seeds = target.dtype, chain.n_joints, options["seeds"]
+    batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
+    flat = target.reshape(-1, *target.shape[len(batch) :])
+    b = flat.shape[0]
+    lo, hi = (x.double() for x in inner_limits(chain, dtype))  # within the limits in dtype too
+    first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64), lo, hi).numpy()
+    shift = 0 if first is None else 1
+    pool = order = None
+    if seeds > shift:
+        pool_t = chain.random_q(max(POOL, seeds), generator=generator, dtype=work)
+        order = seed_ranks(pool_distance(chain, pool_t, flat.to(work), mode), seeds - shift).numpy()  # (ranks, b)
+        pool = pool_t.double().numpy()
+    flat = flat.double().numpy()
+    pos, rot = (flat, None) if mode == "position" else (flat[:, :3, 3], flat[:, :3, :3])
+    rest = None if rest is None else rest.double().numpy()
+    lam_min = 1e-12 if work == torch.float64 else 1e-6
+    problems = _Problems(chain, pos, rot, rest, lo.numpy(), hi.numpy(), options, lam_min, torch.finfo(work).eps)
+    remaining, next_seed = np.arange(b), 0
+    while remaining.size and next_seed < seeds:
+        width = round_width(seeds, next_seed, remaining.size)
+        problem = np.tile(remaining, width)  # slot -> problem
+        number = np.repeat(np.arange(next_seed, next_seed + width), remaining.size)
+        numbers = range(next_seed, next_seed + width)
+        q = np.concatenate([first[remaining] if k < shift else pool[order[k - shift, remaining]] for k in numbers])
+        if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
+            problems.q[:] = q[:b]
+        problems.run_round(q, problem, number)
+        next_seed += width
+        remaining = remaining[problems.E[remaining] >= 0]
+    q_out = torch.from_numpy(problems.q).to(dtype).reshape(*batch, n)
+    # errors and success from the public chain.fk of the answer, as the batched path's
+    _, pos_err, _, rot_err = pose_errors(chain.fk(q_out).reshape(b, 4, 4).double().numpy(), pos, rot, problems.eps)
+    success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
+    out = (torch.from_numpy(x).reshape(batch) for x in (success, pos_err, rot_err, problems.used))
+    success, pos_err, rot_err, used = out
+    return IKResult(q_out, success, pos_err.to(dtype), rot_err.to(dtype), used)

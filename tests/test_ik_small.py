@@ -1,0 +1,176 @@
+"""The small-batch path of ik.solve (iiwa_torch.ik.small) against the batched torch loop.
+
+Both run on the same targets (FK of random configurations within the limits, so reachable),
+the batched loop forced by setting the threshold to 0; every answer is verified by its own
+chain.fk and so3.pose_error, and its joints against the chain's float64 limits.
+"""
+
+import warnings
+
+import pytest
+import torch
+
+from iiwa_torch import robots, so3
+from iiwa_torch.collision import World
+from iiwa_torch.ik import small, solve
+
+CHAINS = {"iiwa14": robots.iiwa14(), "puma560": robots.puma560(), "planar3r": robots.planar3r()}
+
+
+def targets(chain, count, seed, dtype, mode):
+    q = chain.random_q(count, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    pose = chain.fk(q).to(dtype)
+    return (pose if mode == "pose" else pose[:, :3, 3]), q.to(dtype)
+
+
+def in_chunks(chain, target, q0=None, **options):
+    """solve on ``target`` in calls of at most SMALL_BATCH targets, concatenated."""
+    size, rest = small.SMALL_BATCH, options.pop("rest", None)
+    parts = [
+        solve(chain, target[i : i + size], *(None if x is None else x[i : i + size] for x in (q0,)), **options,
+              rest=None if rest is None else rest[i : i + size])
+        for i in range(0, target.shape[0], size)
+    ]  # fmt: skip
+    return {k: torch.cat([getattr(p, k) for p in parts]) for k in ("q", "success", "pos_err", "rot_err")}
+
+
+def batched(monkeypatch, chain, target, q0=None, **options):
+    with monkeypatch.context() as m:
+        m.setattr(small, "SMALL_BATCH", 0)
+        return solve(chain, target, q0, **options)
+
+
+def check_answers(chain, target, out, mode, pos_tol=1e-4, rot_tol=1e-3):
+    """Errors recomputed from chain.fk(q) match the result's; success means both within tolerance."""
+    pose = chain.fk(out["q"].double())
+    if mode == "pose":
+        pos_vec, rot_vec = so3.pose_error(pose, target.double())
+    else:
+        pos_vec, rot_vec = target.double() - pose[:, :3, 3], None
+    pos_err = pos_vec.norm(dim=-1)
+    rot_err = torch.zeros_like(pos_err) if rot_vec is None else rot_vec.norm(dim=-1)
+    slack = 1e-5 if target.dtype == torch.float32 else 1e-9
+    assert torch.allclose(out["pos_err"].double(), pos_err, atol=slack)
+    assert torch.allclose(out["rot_err"].double(), rot_err, atol=10 * slack)
+    ok = out["success"]
+    assert bool((pos_err[ok] <= pos_tol + slack).all() and (rot_err[ok] <= rot_tol + 10 * slack).all())
+    assert bool(chain.within_limits(out["q"].double()).all())
+
+
+def agree(fast, slow, count):
+    """The same success set, up to 0.5% of the targets (borderline cases of rounding)."""
+    differ = int((fast["success"] != slow.success).sum())
+    assert differ <= max(1, count // 200), f"{differ} of {count} targets differ in success"
+    assert abs(int(fast["success"].sum()) - int(slow.success.sum())) <= max(1, count // 200)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("mode", ["pose", "position"])
+@pytest.mark.parametrize("name", list(CHAINS))
+def test_same_answers_as_the_batched_loop(monkeypatch, name, mode, dtype):
+    chain = CHAINS[name]
+    count = 128
+    target, _ = targets(chain, count, 1, dtype, mode)
+    fast = in_chunks(chain, target, mode=mode)
+    slow = batched(monkeypatch, chain, target, mode=mode)
+    check_answers(chain, target, fast, mode)
+    agree(fast, slow, count)
+    assert fast["success"].float().mean() > (0.95 if mode == "pose" else 0.99)
+    both = fast["success"] & slow.success
+    # the same seed converges in both (the same method): answers near each other
+    assert (fast["q"][both] - slow.q[both]).abs().max() < 1e-2
+
+
+def test_one_thousand_iiwa_poses(monkeypatch):
+    chain = CHAINS["iiwa14"]
+    target, _ = targets(chain, 1000, 2, torch.float64, "pose")
+    fast = in_chunks(chain, target)
+    slow = batched(monkeypatch, chain, target)
+    check_answers(chain, target, fast, "pose")
+    agree(fast, slow, 1000)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_q0_rest_and_options(monkeypatch, dtype):
+    """A first seed (some angles a turn outside the limits), a rest posture, a rotation weight,
+    fewer iterations and seeds; tight tolerances iterated in the target's dtype."""
+    chain = CHAINS["iiwa14"]
+    target, q = targets(chain, 40, 3, dtype, "pose")
+    gen = torch.Generator().manual_seed(4)
+    q0 = q + 0.1 * torch.randn(q.shape, generator=gen, dtype=dtype)
+    q0[::3, 0] += 2 * torch.pi
+    options = dict(rest=q, rest_gain=0.1, rot_weight=0.5, seeds=3, iterations=12, check_every=3)
+    # tolerances near float32's resolution only in float64: there the rounding of a float64
+    # answer to float32 decides some borderline targets
+    tight = {"pos_tol": 1e-6, "rot_tol": 1e-5, "precision": "input"}
+    for extra in ({}, tight) if dtype == torch.float64 else ({},):
+        fast = in_chunks(chain, target, q0, **options, **extra)
+        slow = batched(monkeypatch, chain, target, q0, **options, **extra)
+        check_answers(chain, target, fast, "pose", extra.get("pos_tol", 1e-4), extra.get("rot_tol", 1e-3))
+        agree(fast, slow, 40)
+        assert fast["success"].float().mean() > 0.75  # few seeds and iterations, a rest pull
+    only_q0 = solve(chain, target[:5], q0[:5], seeds=1)  # no pool at all
+    assert bool(only_q0.success.all())
+
+
+def test_shapes_and_iterations(monkeypatch):
+    chain = CHAINS["iiwa14"]
+    target, _ = targets(chain, 6, 5, torch.float64, "pose")
+    fast = solve(chain, target.reshape(2, 3, 4, 4))
+    slow = batched(monkeypatch, chain, target.reshape(2, 3, 4, 4))
+    for field in ("q", "success", "pos_err", "rot_err", "iterations"):
+        a, b = getattr(fast, field), getattr(slow, field)
+        assert a.shape == b.shape and a.dtype == b.dtype, field
+    assert bool((fast.iterations > 0).all())
+    one = solve(chain, target[0])  # no batch dimension
+    assert one.q.shape == (7,) and one.success.shape == ()
+
+
+@pytest.fixture
+def calls(monkeypatch):
+    """How many times solve took the small path."""
+    seen = []
+    original = small.solve_small
+
+    def spy(*args, **kwargs):
+        seen.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(small, "solve_small", spy)
+    return seen
+
+
+def test_which_path(calls):
+    chain = CHAINS["iiwa14"]
+    target, q = targets(chain, small.SMALL_BATCH + 1, 6, torch.float64, "pose")
+    solve(chain, target[:3])
+    assert len(calls) == 1
+    solve(chain, target)  # above the threshold
+    solve(chain, target[:3], world=World(floor=-1.0))  # a world
+    solve(chain, target[:3].clone().requires_grad_(True))  # something to differentiate
+    solve(chain, target[:3], q[:3].clone().requires_grad_(True))
+    assert len(calls) == 1
+    with torch.no_grad():  # requires_grad without grad mode: nothing to differentiate
+        solve(chain, target[:3].clone().requires_grad_(True))
+    assert len(calls) == 2
+
+
+def test_exact_answer_is_finite():
+    """q0 already at the target: zero errors, no 0/0 in the rotation angle."""
+    chain = CHAINS["iiwa14"]
+    target, q = targets(chain, 2, 7, torch.float64, "pose")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = solve(chain, target, q, seeds=1)
+    assert bool(result.success.all()) and bool((result.rot_err < 1e-7).all())
+    assert torch.equal(result.q, q)
+
+
+def test_bad_q0_and_rest_raise_as_before():
+    chain = CHAINS["iiwa14"]
+    target, q = targets(chain, 2, 8, torch.float64, "pose")
+    with pytest.raises(TypeError, match="q0"):
+        solve(chain, target, q.tolist())
+    with pytest.raises(TypeError, match="rest"):
+        solve(chain, target, rest=q.tolist(), rest_gain=0.1)
+    assert bool(solve(chain, target, rest="ignored without a gain").success.all())
