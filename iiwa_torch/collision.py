@@ -39,9 +39,7 @@ __all__ = [
     "segment_box_distance",
 ]
 
-_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 _BLOCK = 4096  # configurations per block of the robot's own distances
-_BOX_ITERATIONS = 48  # golden-section steps: the bracket shrinks to 0.618**48 ~ 1e-10 of the segment
 
 
 # ---------------------------------------------------------------------------- distance kernels
@@ -122,15 +120,55 @@ def segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Te
     ``(..., 4, 4)`` and half extents ``(..., 3)`` (all broadcast): ``min_t sdf(p + t (q - p))``,
     metres, negative inside.
 
-    The box's signed distance is convex, so along the segment it is a convex function of
-    ``t``, minimised here by golden-section search (48 steps: the minimiser is bracketed to
-    1e-10 of the segment's length, and the distance is 1-Lipschitz in the point). Outside the
-    box this is the exact segment-box distance; when the segment enters the box it is minus
-    the depth of the segment's deepest point (a lower bound on the penetration depth).
+    Exact (closed form, see :func:`_box_minimisers`): outside the box this is the segment-box
+    distance; when the segment enters the box it is minus the depth of the segment's deepest
+    point (a lower bound on the penetration depth).
     """
     _check_points(p=p, q=q, half=half)
     check_rigid(pose, "pose")
     return _segment_box_distance(p, q, pose, half)
+
+
+def _box_minimisers(p: Tensor, d: Tensor, half: Tensor) -> Tensor:
+    """The two candidate minimisers ``(..., 2)`` in [0, 1] of the box's signed distance along
+    ``p + t d`` (box frame, ``(..., 3)`` each): one of them is the exact minimiser.
+
+    Outside: ``f(t) = |max(|x(t)| - h, 0)|^2`` is convex and C1, its derivative
+    ``psi(t) = sum_i d_i (x_i - clamp(x_i, -h_i, h_i))`` is nondecreasing and linear between
+    the breakpoints ``x_i(t) = +-h_i``; the zero of ``psi`` lies between the last of
+    ``{0, 1, breakpoints}`` with ``psi <= 0`` and the first with ``psi > 0``, found by one
+    Newton step from that bracket's midpoint. Inside: ``g(t) = max_i(|x_i| - h_i)`` is the
+    larger of the increasing lines ``s_i x_i - h_i`` (``s_i = sign d_i``) and the decreasing
+    ones ``-s_j x_j - h_j``; it is smallest where the two envelopes cross, at
+    ``min_i max_j t_ij`` with ``t_ij`` the crossing of line ``i`` with line ``j``."""
+    with torch.no_grad():
+        p, d, h = (x.double() for x in (p, d, half))
+        p, d, h = torch.broadcast_tensors(p, d, h)
+        tiny = torch.finfo(p.dtype).tiny
+        # outside: bracket the zero of psi among t = 0, 1 and the six breakpoints
+        bounds = (
+            torch.cat(
+                [p.new_zeros(p.shape[:-1] + (1,)), p.new_ones(p.shape[:-1] + (1,)), ((h - p) / d), ((-h - p) / d)], -1
+            )
+            .nan_to_num(0.0)
+            .clamp(0, 1)
+        )  # (..., 8)
+        x = torch.addcmul(p[..., None, :], bounds[..., None], d[..., None, :])  # (..., 8, 3)
+        psi = (d[..., None, :] * (x - torch.maximum(torch.minimum(x, h[..., None, :]), -h[..., None, :]))).sum(-1)
+        below = psi <= 0
+        lo = torch.where(below, bounds, 0.0).amax(-1)
+        hi = torch.where(below, 1.0, bounds).amin(-1)
+        mid = (lo + hi) / 2
+        xm = torch.addcmul(p, mid[..., None], d)
+        excess = xm - torch.maximum(torch.minimum(xm, h), -h)
+        slope = (d * d * (excess != 0)).sum(-1)
+        outside = torch.minimum(torch.maximum(mid - (d * excess).sum(-1) / slope.clamp(min=tiny), lo), hi)
+        # inside: the crossing of the increasing and decreasing envelopes of g's six lines
+        u = torch.where(d < 0, -p, p)
+        a = d.abs()
+        cross = ((h - u)[..., :, None] - (h + u)[..., None, :]) / (a[..., :, None] + a[..., None, :])
+        inside = cross.nan_to_num(0.0).amax(-1).amin(-1).clamp(0, 1)
+        return torch.stack([outside, inside], -1).to(half.dtype)
 
 
 def _segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Tensor:
@@ -140,24 +178,9 @@ def _segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> T
         return ((x - centre)[..., None, :] @ rot)[..., 0, :]
 
     lp, lq = to_local(p), to_local(q)
-    with torch.no_grad():
-        dp, dq, hd = lp.detach(), lq.detach(), half.detach()
-
-        def sdf_at(t: Tensor) -> Tensor:
-            return _box_sdf(dp + t[..., None] * (dq - dp), hd)
-
-        shape = torch.broadcast_shapes(dp.shape[:-1], hd.shape[:-1])
-        lo, hi = dp.new_zeros(shape), dp.new_ones(shape)
-        x1, x2 = hi - _GOLDEN, lo + _GOLDEN
-        f1, f2 = sdf_at(x1), sdf_at(x2)
-        for _ in range(_BOX_ITERATIONS):
-            left = f1 <= f2  # the minimum lies in [lo, x2]
-            lo, hi = torch.where(left, lo, x1), torch.where(left, x2, hi)
-            x1, x2 = torch.where(left, hi - _GOLDEN * (hi - lo), x2), torch.where(left, x1, lo + _GOLDEN * (hi - lo))
-            fnew = sdf_at(torch.where(left, x1, x2))
-            f1, f2 = torch.where(left, fnew, f2), torch.where(left, f1, fnew)
-        t = (lo + hi) / 2
-    return _box_sdf(lp + t[..., None] * (lq - lp), half)
+    t = _box_minimisers(lp, lq - lp, half)
+    points = lp[..., None, :] + t[..., None] * (lq - lp)[..., None, :]  # (..., 2, 3)
+    return _box_sdf(points, half[..., None, :]).amin(-1)
 
 
 # ---------------------------------------------------------------------------- robot model
