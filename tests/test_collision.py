@@ -488,3 +488,19 @@ def test_gradient_is_finite_when_an_obstacle_sits_on_a_capsule_axis():
     assert d.item() == pytest.approx(-0.13)  # forearm radius 0.08 + 0.05, centre distance 0
     grads = torch.autograd.grad(d, (q, centre, points))
     assert all(torch.isfinite(g).all() for g in grads)
+
+
+def test_one_configuration_equals_its_row_of_a_large_batch():
+    chain = robots.iiwa14()
+    q = chain.random_q(200, generator=torch.Generator().manual_seed(11))  # above the 4x4 kernel's batch sizes
+    pose = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    pose[:, :3, 3] = torch.tensor([[0.5, 0.0, 0.5], [0.0, -0.4, 0.8]], dtype=torch.float64)
+    world = World(
+        floor=0.0,
+        spheres=(torch.tensor([[0.3, 0.3, 0.9]], dtype=torch.float64), torch.tensor([0.1], dtype=torch.float64)),
+        boxes=(pose, torch.full((2, 3), 0.1, dtype=torch.float64)),
+    )
+    batch = pairwise_clearance(chain, q, world).distance
+    single = torch.stack([pairwise_clearance(chain, row, world).distance for row in q[:40]])
+    torch.testing.assert_close(single, batch[:40], atol=1e-12, rtol=0)
+    torch.testing.assert_close(clearance(chain, q, world), batch.amin(-1), atol=0, rtol=0)
