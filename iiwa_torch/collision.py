@@ -228,15 +228,15 @@ class Capsules:
             isinstance(self.floor_height, (int, float)) and math.isfinite(self.floor_height)
         ):
             raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
-        object.__setattr__(self, "_tables", {})
+        object.__setattr__(self, "_cache", {})
 
-    def tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+    def _index_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
         """Index and geometry tensors of the queries in ``dtype`` on ``device``, built once
         (the model is frozen): ``frames (K,)``, ``local (K, 4, 2)`` homogeneous end points,
         ``first``/``second (P,)`` and ``pair_radius (P, 1)`` of the self pairs,
         ``floor (F,)`` and ``floor_radius (F, 1)``, ``world (W,)`` and ``world_radius (W, 1)``."""
         key = (dtype, device)
-        if key not in self._tables:
+        if key not in self._cache:
             options = {"device": device}
             index = {"dtype": torch.long, **options}
             radii = self.radii.to(dtype=dtype, **options)
@@ -245,7 +245,7 @@ class Capsules:
             )
             floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
             ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
-            self._tables[key] = {
+            self._cache[key] = {
                 "frames": torch.tensor(self.frames, **index),
                 "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
                 "first": first,
@@ -256,7 +256,7 @@ class Capsules:
                 "world": world,
                 "world_radius": radii[world, None],
             }
-        return self._tables[key]
+        return self._cache[key]
 
     @classmethod
     def build(
@@ -333,7 +333,7 @@ def _capsule_segments(chain: DHChain, capsules: Capsules, q: Tensor) -> tuple[Te
     ops: the capsule frames are gathered and one batched product places both end points. Up
     to ``SMALL_BATCH`` configurations the frames come from ``fk_all``'s 4x4 kernel, above from
     the batch-last elementwise kernel (15x ``fk_all`` at 65,536 configurations)."""
-    tables = capsules.tables(q.dtype, q.device)
+    tables = capsules._index_tables(q.dtype, q.device)
     flat = q.reshape(-1, chain.n_joints)
     geometry = chain.geometry(q.dtype)
     if flat.shape[0] <= kin.SMALL_BATCH:
@@ -562,7 +562,7 @@ def _distances(
     check_instance(capsules, Capsules, "capsules")
     check_instance(world, World, "world")
     _check_query(chain, q, world, capsules)
-    tables = capsules.tables(q.dtype, q.device)
+    tables = capsules._index_tables(q.dtype, q.device)
     names = capsules.names
     has_floor, has_obstacles = world.floor is not None, bool(world.tensors())
     floor_idx, idx = tables["floor"], tables["world"]
