@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from . import kinematics as kin
 from ._checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
 from .dh import DHChain
 from .so3 import check_rigid
@@ -39,19 +40,10 @@ __all__ = [
     "segment_box_distance",
 ]
 
-_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 _BLOCK = 4096  # configurations per block of the robot's own distances
-_BOX_ITERATIONS = 48  # golden-section steps: the bracket shrinks to 0.618**48 ~ 1e-10 of the segment
 
 
 # ---------------------------------------------------------------------------- distance kernels
-Vec = tuple[Tensor, Tensor, Tensor]  # x, y, z components, each (...): a vector field, component first
-
-
-def _dot(u: Vec, v: Vec) -> Tensor:
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-
-
 def _root(sq: Tensor) -> Tensor:
     """``sqrt(sq)`` with a zero (not NaN) gradient at ``sq = 0``."""
     positive = sq > 0
@@ -63,29 +55,29 @@ def _safe_norm(v: Tensor) -> Tensor:
     return _root((v * v).sum(-1))
 
 
-def _segment_gap(p1: Vec, d1: Vec, p2: Vec, d2: Vec) -> Tensor:
-    """Distance between segments ``p1 + s d1`` and ``p2 + t d2``, ``s, t`` in [0, 1] (components
-    broadcast). The closest-point parameters are found without gradients; parallel segments
-    take ``s0 = 0`` and a segment shorter than ~``eps`` metres is a point. The last step
-    (``s`` from the clamped ``t``) makes the result exact in every case of the clamped
-    quadratic (Ericson, Real-Time Collision Detection, 5.1.9). They are computed in float64
-    whatever the input: in float32 the cancellation in ``b f - c e`` cost up to 1.5 mm on
-    nearly parallel segments."""
+def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
+    """Distance between segments ``p1 + s d1`` and ``p2 + t d2``, ``s, t`` in [0, 1]: vectors
+    component first, ``(3, ...)`` each (broadcast) -> ``(...)``. The closest-point parameters
+    are found without gradients; parallel segments take ``s0 = 0`` and a segment shorter than
+    ~``eps`` metres is a point. The last step (``s`` from the clamped ``t``) makes the result
+    exact in every case of the clamped quadratic (Ericson, Real-Time Collision Detection,
+    5.1.9). They are computed in float64 whatever the input: in float32 the cancellation in
+    ``b f - c e`` cost up to 1.5 mm on nearly parallel segments. A fixed number of tensor ops,
+    whatever the number of pairs."""
     with torch.no_grad():
-        dtype = p1[0].dtype
-        x1, u1, x2, u2 = ([x.double() for x in v] for v in (p1, d1, p2, d2))
-        r = [a - b for a, b in zip(x1, x2)]
-        a, e, b, c, f = _dot(u1, u1), _dot(u2, u2), _dot(u1, u2), _dot(u1, r), _dot(u2, r)
+        u1, u2, r = (x.double() for x in (d1, d2, p1 - p2))
+        if not u1.shape == u2.shape == r.shape:
+            u1, u2, r = torch.broadcast_tensors(u1, u2, r)
+        a, e, b, c, f = ((x * y).sum(0) for x, y in ((u1, u1), (u2, u2), (u1, u2), (u1, r), (u2, r)))
         eps = torch.finfo(a.dtype).eps
-        point_a, point_e = a <= eps * eps, e <= eps * eps
-        denom = a * e - b * b
-        skew = denom > eps * a * e
-        s = torch.where(skew, ((b * f - c * e) / torch.where(skew, denom, 1.0)).clamp(0, 1), 0.0)
-        t = torch.where(point_e, 0.0, ((b * s + f) / torch.where(point_e, 1.0, e)).clamp(0, 1))
-        s = torch.where(point_a, 0.0, ((b * t - c) / torch.where(point_a, 1.0, a)).clamp(0, 1)).to(dtype)
-        t = t.to(dtype)
-    w = [x1 + s * u1 - x2 - t * u2 for x1, u1, x2, u2 in zip(p1, d1, p2, d2)]
-    return _root(_dot(w, w))
+        ae = a * e
+        denom = torch.addcmul(ae, b, b, value=-1)
+        s = torch.where(denom > eps * ae, torch.addcmul(b * f, c, e, value=-1) / denom, 0.0).clamp_(0, 1)
+        t = torch.where(e <= eps * eps, 0.0, torch.addcmul(f, b, s) / e).clamp_(0, 1)
+        s = torch.where(a <= eps * eps, 0.0, torch.addcmul(-c, b, t) / a).clamp_(0, 1).to(p1.dtype)
+        t = t.to(p1.dtype)
+    w = p1 + s * d1 - p2 - t * d2
+    return _root((w * w).sum(0))  # not linalg.vector_norm: over the first dim it is ~20x slower
 
 
 def segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
@@ -107,8 +99,8 @@ def _check_points(**points: Tensor) -> None:
 
 
 def _segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
-    p1, d1, p2, d2 = (v.unbind(-1) for v in (p1, q1 - p1, p2, q2 - p2))
-    return _segment_gap(p1, d1, p2, d2)
+    vectors = torch.broadcast_tensors(p1, q1 - p1, p2, q2 - p2)  # before moving the components first
+    return _segment_gap(*(v.movedim(-1, 0) for v in vectors))
 
 
 def _box_sdf(local: Tensor, half: Tensor) -> Tensor:
@@ -122,15 +114,55 @@ def segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Te
     ``(..., 4, 4)`` and half extents ``(..., 3)`` (all broadcast): ``min_t sdf(p + t (q - p))``,
     metres, negative inside.
 
-    The box's signed distance is convex, so along the segment it is a convex function of
-    ``t``, minimised here by golden-section search (48 steps: the minimiser is bracketed to
-    1e-10 of the segment's length, and the distance is 1-Lipschitz in the point). Outside the
-    box this is the exact segment-box distance; when the segment enters the box it is minus
-    the depth of the segment's deepest point (a lower bound on the penetration depth).
+    Exact (closed form, see :func:`_box_minimisers`): outside the box this is the segment-box
+    distance; when the segment enters the box it is minus the depth of the segment's deepest
+    point (a lower bound on the penetration depth).
     """
     _check_points(p=p, q=q, half=half)
     check_rigid(pose, "pose")
     return _segment_box_distance(p, q, pose, half)
+
+
+def _box_minimisers(p: Tensor, d: Tensor, half: Tensor) -> Tensor:
+    """The two candidate minimisers ``(..., 2)`` in [0, 1] of the box's signed distance along
+    ``p + t d`` (box frame, ``(..., 3)`` each): one of them is the exact minimiser.
+
+    Outside: ``f(t) = |max(|x(t)| - h, 0)|^2`` is convex and C1, its derivative
+    ``psi(t) = sum_i d_i (x_i - clamp(x_i, -h_i, h_i))`` is nondecreasing and linear between
+    the breakpoints ``x_i(t) = +-h_i``; the zero of ``psi`` lies between the last of
+    ``{0, 1, breakpoints}`` with ``psi <= 0`` and the first with ``psi > 0``, found by one
+    Newton step from that bracket's midpoint. Inside: ``g(t) = max_i(|x_i| - h_i)`` is the
+    larger of the increasing lines ``s_i x_i - h_i`` (``s_i = sign d_i``) and the decreasing
+    ones ``-s_j x_j - h_j``; it is smallest where the two envelopes cross, at
+    ``min_i max_j t_ij`` with ``t_ij`` the crossing of line ``i`` with line ``j``."""
+    with torch.no_grad():
+        p, d, h = (x.double() for x in (p, d, half))
+        p, d, h = torch.broadcast_tensors(p, d, h)
+        tiny = torch.finfo(p.dtype).tiny
+        # outside: bracket the zero of psi among t = 0, 1 and the six breakpoints
+        bounds = (
+            torch.cat(
+                [p.new_zeros(p.shape[:-1] + (1,)), p.new_ones(p.shape[:-1] + (1,)), ((h - p) / d), ((-h - p) / d)], -1
+            )
+            .nan_to_num(0.0)
+            .clamp(0, 1)
+        )  # (..., 8)
+        x = torch.addcmul(p[..., None, :], bounds[..., None], d[..., None, :])  # (..., 8, 3)
+        psi = (d[..., None, :] * (x - torch.maximum(torch.minimum(x, h[..., None, :]), -h[..., None, :]))).sum(-1)
+        below = psi <= 0
+        lo = torch.where(below, bounds, 0.0).amax(-1)
+        hi = torch.where(below, 1.0, bounds).amin(-1)
+        mid = (lo + hi) / 2
+        xm = torch.addcmul(p, mid[..., None], d)
+        excess = xm - torch.maximum(torch.minimum(xm, h), -h)
+        slope = (d * d * (excess != 0)).sum(-1)
+        outside = torch.minimum(torch.maximum(mid - (d * excess).sum(-1) / slope.clamp(min=tiny), lo), hi)
+        # inside: the crossing of the increasing and decreasing envelopes of g's six lines
+        u = torch.where(d < 0, -p, p)
+        a = d.abs()
+        cross = ((h - u)[..., :, None] - (h + u)[..., None, :]) / (a[..., :, None] + a[..., None, :])
+        inside = cross.nan_to_num(0.0).amax(-1).amin(-1).clamp(0, 1)
+        return torch.stack([outside, inside], -1).to(half.dtype)
 
 
 def _segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Tensor:
@@ -140,24 +172,9 @@ def _segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> T
         return ((x - centre)[..., None, :] @ rot)[..., 0, :]
 
     lp, lq = to_local(p), to_local(q)
-    with torch.no_grad():
-        dp, dq, hd = lp.detach(), lq.detach(), half.detach()
-
-        def sdf_at(t: Tensor) -> Tensor:
-            return _box_sdf(dp + t[..., None] * (dq - dp), hd)
-
-        shape = torch.broadcast_shapes(dp.shape[:-1], hd.shape[:-1])
-        lo, hi = dp.new_zeros(shape), dp.new_ones(shape)
-        x1, x2 = hi - _GOLDEN, lo + _GOLDEN
-        f1, f2 = sdf_at(x1), sdf_at(x2)
-        for _ in range(_BOX_ITERATIONS):
-            left = f1 <= f2  # the minimum lies in [lo, x2]
-            lo, hi = torch.where(left, lo, x1), torch.where(left, x2, hi)
-            x1, x2 = torch.where(left, hi - _GOLDEN * (hi - lo), x2), torch.where(left, x1, lo + _GOLDEN * (hi - lo))
-            fnew = sdf_at(torch.where(left, x1, x2))
-            f1, f2 = torch.where(left, fnew, f2), torch.where(left, f1, fnew)
-        t = (lo + hi) / 2
-    return _box_sdf(lp + t[..., None] * (lq - lp), half)
+    t = _box_minimisers(lp, lq - lp, half)
+    points = lp[..., None, :] + t[..., None] * (lq - lp)[..., None, :]  # (..., 2, 3)
+    return _box_sdf(points, half[..., None, :]).amin(-1)
 
 
 # ---------------------------------------------------------------------------- robot model
@@ -211,6 +228,35 @@ class Capsules:
             isinstance(self.floor_height, (int, float)) and math.isfinite(self.floor_height)
         ):
             raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
+        object.__setattr__(self, "_cache", {})
+
+    def _index_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+        """Index and geometry tensors of the queries in ``dtype`` on ``device``, built once
+        (the model is frozen): ``frames (K,)``, ``local (K, 4, 2)`` homogeneous end points,
+        ``first``/``second (P,)`` and ``pair_radius (P, 1)`` of the self pairs,
+        ``floor (F,)`` and ``floor_radius (F, 1)``, ``world (W,)`` and ``world_radius (W, 1)``."""
+        key = (dtype, device)
+        if key not in self._cache:
+            options = {"device": device}
+            index = {"dtype": torch.long, **options}
+            radii = self.radii.to(dtype=dtype, **options)
+            first, second = (
+                (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
+            )
+            floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
+            ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
+            self._cache[key] = {
+                "frames": torch.tensor(self.frames, **index),
+                "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
+                "first": first,
+                "second": second,
+                "pair_radius": (radii[first] + radii[second])[:, None],
+                "floor": floor,
+                "floor_radius": radii[floor, None],
+                "world": world,
+                "world_radius": radii[world, None],
+            }
+        return self._cache[key]
 
     @classmethod
     def build(
@@ -248,7 +294,7 @@ class Capsules:
             floor_height=floor_height,
         )
         chosen = self_collision_pairs(chain, model) if pairs is None else tuple(tuple(int(i) for i in p) for p in pairs)
-        return cls(**{**model.__dict__, "pairs": chosen})
+        return dataclasses.replace(model, pairs=chosen)
 
 
 def _describe(x) -> str:
@@ -273,32 +319,47 @@ def self_collision_pairs(
     candidates = [(i, j) for i in range(k) for j in range(i + 2, k)]
     if not candidates:
         return ()
-    gap = _pair_gaps(start, direction, capsules.radii, candidates)
+    first, second = (torch.tensor(c) for c in zip(*candidates))
+    radii = capsules.radii.to(start)
+    gap = _pair_gaps(start, direction, (radii[first] + radii[second])[:, None], first, second)
     keep = (gap > 0).any(1).tolist()
     return tuple(pair for pair, ok in zip(candidates, keep) if ok)
 
 
-def _capsule_segments(chain: DHChain, capsules: Capsules, q: Tensor) -> tuple[Vec, Vec]:
+def _capsule_segments(chain: DHChain, capsules: Capsules, q: Tensor) -> tuple[Tensor, Tensor]:
     """``q (..., n)`` -> each capsule's start point and start-to-end vector in the world frame,
-    component first: each component ``(K, B)`` over the ``B`` flattened configurations (this
-    layout keeps every elementwise op of the distance kernels contiguous). The frames come from
-    the batch-last kernel (elementwise, no 4x4 products: 15x ``fk_all`` at 65,536 configurations)."""
-    frames, _ = chain.frames_batch_last(q.reshape(-1, chain.n_joints).T.contiguous())  # (x, y, z, p), (3, B) each
-    ends = []
-    for e in (0, 1):
-        points = []
-        for frame, local in zip(capsules.frames, capsules.points[:, e].tolist()):
-            *axes, origin = frames[frame]
-            points.append(sum((c * axis for c, axis in zip(local, axes) if c), origin))  # skip zero coordinates
-        ends.append(torch.stack(points, 1).unbind(0))  # 3 components, (K, B) each
-    return ends[0], tuple(b - a for a, b in zip(*ends))
+    component first, ``(3, K, B)`` each over the ``B`` flattened configurations (this layout
+    keeps every elementwise op of the distance kernels contiguous). A fixed number of tensor
+    ops: the capsule frames are gathered and one batched product places both end points. Up
+    to ``SMALL_BATCH`` configurations the frames come from ``fk_all``'s 4x4 kernel, above from
+    the batch-last elementwise kernel (15x ``fk_all`` at 65,536 configurations)."""
+    tables = capsules._index_tables(q.dtype, q.device)
+    flat = q.reshape(-1, chain.n_joints)
+    geometry = chain.geometry(q.dtype)
+    if flat.shape[0] <= kin.SMALL_BATCH:
+        frames = kin.all_poses(geometry, flat)[:, tables["frames"], :3]  # (B, K, 3, 4)
+        ends = (frames @ tables["local"]).permute(3, 2, 1, 0)  # (2, 3, K, B)
+    else:  # large batches: per capsule, multiply-adds of the nonzero local coordinates only (fewer bytes moved)
+        frames, _ = kin.frames_batch_last(geometry, flat.T.contiguous())  # (x, y, z, p), (3, B) each
+        ends = torch.stack(
+            [
+                torch.stack(
+                    [
+                        sum((c * axis for c, axis in zip(local, frames[frame][:3]) if c), frames[frame][3])
+                        for frame, local in zip(capsules.frames, capsules.points[:, e].tolist())
+                    ],
+                    1,
+                )
+                for e in (0, 1)
+            ]
+        )  # (2, 3, K, B)
+    return ends[0], ends[1] - ends[0]
 
 
-def _pair_gaps(start: Vec, direction: Vec, radii: Tensor, pairs) -> Tensor:
-    """Signed distances ``(P, B)`` of the capsule ``pairs`` from :func:`_capsule_segments`'s output."""
-    i, j = (list(c) for c in zip(*pairs))
-    rows = [[v[i] for v in vec] for vec in (start, direction)] + [[v[j] for v in vec] for vec in (start, direction)]
-    return _segment_gap(*rows) - (radii[i] + radii[j]).to(start[0])[:, None]
+def _pair_gaps(start: Tensor, direction: Tensor, radii: Tensor, first: Tensor, second: Tensor) -> Tensor:
+    """Signed distances ``(P, B)`` of the capsule pairs ``(first, second)`` (indices ``(P,)``,
+    radius sums ``radii (P, 1)``) from :func:`_capsule_segments`'s output."""
+    return _segment_gap(start[:, first], direction[:, first], start[:, second], direction[:, second]) - radii
 
 
 def _z_capsule(frame: int, z0: float, z1: float):
@@ -501,31 +562,37 @@ def _distances(
     check_instance(capsules, Capsules, "capsules")
     check_instance(world, World, "world")
     _check_query(chain, q, world, capsules)
-    radii = capsules.radii.to(dtype=q.dtype, device=q.device)
+    tables = capsules._index_tables(q.dtype, q.device)
     names = capsules.names
-    floor_idx = capsules.floor.nonzero().flatten().tolist() if world.floor is not None else []
-    idx = capsules.world.nonzero().flatten().tolist() if world.tensors() else []
-    labels = [(names[x], names[y]) for x, y in capsules.pairs] + [(names[x], "floor") for x in floor_idx]
+    has_floor, has_obstacles = world.floor is not None, bool(world.tensors())
+    floor_idx, idx = tables["floor"], tables["world"]
+    labels = [(names[x], names[y]) for x, y in capsules.pairs]
+    if has_floor:
+        labels += [(names[x], "floor") for x in _where(capsules.floor)]
     flat = q.reshape(-1, chain.n_joints)
     own, segments = [], []
     for block in flat.split(_BLOCK):  # blocks small enough for the kernels' arrays to stay in the CPU cache
         start, direction = _capsule_segments(chain, capsules, block)
-        parts = [_pair_gaps(start, direction, capsules.radii, capsules.pairs)] if capsules.pairs else []
-        if floor_idx:
+        parts = (
+            [_pair_gaps(start, direction, tables["pair_radius"], tables["first"], tables["second"])]
+            if capsules.pairs
+            else []
+        )
+        if has_floor and floor_idx.numel():
             low = torch.minimum(start[2], start[2] + direction[2])[floor_idx]
-            parts.append(low - (radii[floor_idx, None] + world.floor))
+            parts.append(low - (tables["floor_radius"] + world.floor))
         if parts:
-            own.append(torch.cat(parts))
-        if idx:
+            own.append(torch.cat(parts) if len(parts) > 1 else parts[0])
+        if has_obstacles:
             segments.append((start, direction))
     others = []
-    if idx:
+    if has_obstacles and idx.numel():
         lead = q.shape[:-1]
-        start, direction = (tuple(torch.cat(c, -1) for c in zip(*part)) for part in zip(*segments))
-        a = torch.stack(start, -1)[idx]  # (K, B, 3)
-        b = a + torch.stack(direction, -1)[idx]
-        a, b = (x.transpose(0, 1).reshape(*lead, len(idx), 1, 3) for x in (a, b))  # against obstacles (..., M, ...)
-        r = radii[idx, None]
+        start, direction = (torch.cat(part, -1)[:, idx].permute(1, 2, 0) for part in zip(*segments))  # (K, B, 3)
+        n_world = idx.shape[0]
+        a, b = (x.transpose(0, 1).reshape(*lead, n_world, 1, 3) for x in (start, start + direction))
+        r = tables["world_radius"]
+        idx = _where(capsules.world)
         if world.walls is not None:
             normal, offset = world.walls
             n = normal[..., None, :, :]
@@ -551,6 +618,10 @@ def _distances(
     if not own and not others:
         raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
     return (torch.cat(own, 1) if own else None), others, labels
+
+
+def _where(mask: Tensor) -> list[int]:
+    return [i for i, m in enumerate(mask.tolist()) if m]
 
 
 def pairwise_clearance(

@@ -172,6 +172,67 @@ def test_segment_box_distance_matches_coal_outside_and_brute_force_inside():
         assert ours[k] <= sdf.min() - r + 1e-9 and sdf.min() - r - ours[k] < 1e-3
 
 
+def test_segment_box_distance_is_the_minimum_of_dense_samples_in_every_configuration():
+    rng = np.random.default_rng(9)
+    n = 4000
+    rot = np.stack([_random_rotation(rng) for _ in range(n)])
+    rot[::3] = np.eye(3)  # axis-aligned: the segments below become parallel to faces
+    half = rng.uniform(0.05, 0.4, size=(n, 3))
+    seg = rng.normal(size=(n, 2, 3)) * 0.5
+    seg[::3, 1, 2] = seg[::3, 0, 2]  # parallel to a pair of faces
+    seg[::6, 1, 1] = seg[::6, 0, 1]  # parallel to an edge
+    seg[1::6] *= 0.2  # mostly inside
+    touch = np.arange(n) % 6 == 2  # the start point on a face, the segment leaving it
+    seg[touch, 0] = rng.uniform(-1, 1, size=(touch.sum(), 3)) * half[touch]
+    seg[touch, 0, 0] = half[touch, 0]
+    seg[touch, 1, 0] = half[touch, 0] + np.abs(seg[touch, 1, 0])
+    seg[5::6, 1] = seg[5::6, 0]  # points
+    local = seg.copy()
+    seg = np.einsum("nij,nkj->nki", rot, local)  # world frame, box centred at the origin
+    pose = np.tile(np.eye(4), (n, 1, 1))
+    pose[:, :3, :3] = rot
+    t = torch.from_numpy
+    ours = segment_box_distance(t(seg[:, 0]), t(seg[:, 1]), t(pose), t(half)).numpy()
+    u = np.linspace(0, 1, 4001)[None, :, None]
+    x = local[:, :1] + u * (local[:, 1:] - local[:, :1])  # (n, 4001, 3)
+    excess = np.abs(x) - half[:, None]
+    sdf = np.linalg.norm(np.maximum(excess, 0), axis=-1) + np.minimum(excess.max(-1), 0)
+    step = np.linalg.norm(local[:, 1] - local[:, 0], axis=-1) / 4000
+    assert np.isfinite(ours).all()
+    assert (ours <= sdf.min(1) + 1e-12).all() and (sdf.min(1) - ours <= step + 1e-12).all()
+    assert (ours < 0).sum() > 500 and (ours > 0).sum() > 1000
+    np.testing.assert_allclose(ours[touch], 0.0, atol=1e-12)
+
+
+def test_segment_box_distance_gradient_matches_finite_differences():
+    rng = np.random.default_rng(10)
+    checked = 0
+    for case in range(40):
+        pose = torch.eye(4, dtype=torch.float64)
+        pose[:3, :3] = torch.from_numpy(_random_rotation(rng))
+        half = torch.from_numpy(rng.uniform(0.1, 0.4, 3))
+        seg = torch.from_numpy(rng.normal(size=(2, 3)) * (0.15 if case % 2 else 0.6)).requires_grad_()
+        d = segment_box_distance(seg[0], seg[1], pose, half)
+        (grad,) = torch.autograd.grad(d, seg)
+        assert torch.isfinite(grad).all()
+        if d.item() < 1e-3:
+            continue  # inside, the minimum sits at a kink of the box's sdf: a subgradient
+        checked += 1
+        h = 1e-6
+        fd = torch.zeros(2, 3, dtype=torch.float64)
+        for i in range(2):
+            for j in range(3):
+                e = torch.zeros(2, 3, dtype=torch.float64)
+                e[i, j] = h
+                plus, minus = seg.detach() + e, seg.detach() - e
+                fd[i, j] = (
+                    segment_box_distance(plus[0], plus[1], pose, half)
+                    - segment_box_distance(minus[0], minus[1], pose, half)
+                ) / (2 * h)
+        torch.testing.assert_close(grad, fd, atol=1e-5, rtol=0)
+    assert checked > 10
+
+
 def test_world_obstacles_match_coal_for_a_robot():
     chain = robots.iiwa14()
     caps = robot_capsules(chain)
@@ -427,3 +488,19 @@ def test_gradient_is_finite_when_an_obstacle_sits_on_a_capsule_axis():
     assert d.item() == pytest.approx(-0.13)  # forearm radius 0.08 + 0.05, centre distance 0
     grads = torch.autograd.grad(d, (q, centre, points))
     assert all(torch.isfinite(g).all() for g in grads)
+
+
+def test_one_configuration_equals_its_row_of_a_large_batch():
+    chain = robots.iiwa14()
+    q = chain.random_q(200, generator=torch.Generator().manual_seed(11))  # above the 4x4 kernel's batch sizes
+    pose = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    pose[:, :3, 3] = torch.tensor([[0.5, 0.0, 0.5], [0.0, -0.4, 0.8]], dtype=torch.float64)
+    world = World(
+        floor=0.0,
+        spheres=(torch.tensor([[0.3, 0.3, 0.9]], dtype=torch.float64), torch.tensor([0.1], dtype=torch.float64)),
+        boxes=(pose, torch.full((2, 3), 0.1, dtype=torch.float64)),
+    )
+    batch = pairwise_clearance(chain, q, world).distance
+    single = torch.stack([pairwise_clearance(chain, row, world).distance for row in q[:40]])
+    torch.testing.assert_close(single, batch[:40], atol=1e-12, rtol=0)
+    torch.testing.assert_close(clearance(chain, q, world), batch.amin(-1), atol=0, rtol=0)
