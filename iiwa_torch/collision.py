@@ -497,6 +497,18 @@ class World:
         shapes = [a.shape[: a.ndim - len(_OBSTACLE_DIMS[kind][0]) - 1] for kind, (a, _) in self._kinds()]
         return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
 
+    def check_batch(self, batch: torch.Size, what: str = "targets") -> None:
+        """Raise ``ValueError`` unless :attr:`batch_shape` broadcasts to ``batch`` (the batch
+        shape of the ``what`` it is used with) without enlarging it."""
+        try:
+            fits = torch.broadcast_shapes(self.batch_shape, batch) == batch
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"the world's batch shape {tuple(self.batch_shape)} must broadcast to the {what}' {tuple(batch)}"
+            )
+
     def map_batch(self, fn) -> World:
         """A world with ``fn(t, k)`` applied to every obstacle tensor ``t`` whose last ``k``
         dims are the obstacle dims (``M`` and each obstacle's own): the dims before them are

@@ -521,14 +521,7 @@ def _check_world(world, margin, target: Tensor, batch: torch.Size) -> None:
                 f"world obstacles are {t.dtype} on {t.device} but the target is {target.dtype} on {target.device}; "
                 "build the world in the target's dtype and device"
             )
-    try:
-        fits = torch.broadcast_shapes(world.batch_shape, batch) == batch
-    except RuntimeError:
-        fits = False
-    if not fits:
-        raise ValueError(
-            f"world's batch shape {tuple(world.batch_shape)} must broadcast to the targets' {tuple(batch)}"
-        )
+    world.check_batch(batch)
 
 
 def _obstacles(chain: DHChain, world: World, margin: float, batch: torch.Size, work: torch.dtype) -> _Obstacles:

@@ -401,14 +401,7 @@ class Obstacles:
         row per pose (kept as it is when it has no batch shape)."""
         if not world.batch_shape:
             return cls(world, margin, capsules, shared=True)
-        try:
-            fits = torch.broadcast_shapes(world.batch_shape, batch) == batch
-        except RuntimeError:
-            fits = False
-        if not fits:
-            raise ValueError(
-                f"the world's batch shape {tuple(world.batch_shape)} must broadcast to the targets' {tuple(batch)}"
-            )
+        world.check_batch(batch)
 
         def flatten(t: Tensor, k: int) -> Tensor:
             own = t.shape[t.ndim - k :]
