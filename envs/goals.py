@@ -14,7 +14,7 @@ from enum import Enum
 import numpy as np
 import torch
 
-from iiwa_torch._checks import check_finite
+from iiwa_torch.checks import check_finite
 
 __all__ = ["GoalKind", "RewardKind", "ReachGoals", "encode_pose_goal", "decode_pose_goal", "enum_option"]
 

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from iiwa_torch._checks import all_finite
+from iiwa_torch.checks import all_finite
 
 __all__ = ["Transition", "Transport"]
 

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from . import kinematics as kin
-from ._checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
+from .checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
 from .dh import DHChain
 from .so3 import check_rigid
 

@@ -28,7 +28,7 @@ from torch import nn
 
 from . import kinematics as kin
 from . import so3
-from ._checks import as_point, check_finite, check_float_tensor, check_nonnegative
+from .checks import as_point, check_finite, check_float_tensor, check_nonnegative
 from .kinematics import Frame, Geometry
 
 __all__ = ["Convention", "DHChain"]

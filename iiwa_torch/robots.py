@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from ._checks import check_nonnegative, check_positive
+from .checks import check_nonnegative, check_positive
 from .dh import Convention, DHChain
 
 __all__ = ["iiwa14", "iiwa7", "puma560", "lrmate200ic", "planar3r", "PRESETS", "IIWA_HOME"]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from ._checks import check_tensor
+from .checks import check_tensor
 
 __all__ = [
     "skew",

@@ -25,7 +25,7 @@ from typing import Literal, get_args
 import torch
 
 from . import so3
-from ._checks import check_choice, check_finite, check_float_tensor, check_instance, check_positive
+from .checks import check_choice, check_finite, check_float_tensor, check_instance, check_positive
 from .collision import Capsules, World, check_world, clearance
 from .dh import DHChain
 

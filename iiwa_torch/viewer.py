@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from . import collision, ik, so3
-from ._checks import check_float_tensor, check_positive
+from .checks import check_float_tensor, check_positive
 from .dh import Convention, DHChain
 from .ik import analytic
 

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import as_point, check_instance, check_positive
+from .checks import as_point, check_instance, check_positive
 from .dh import DHChain
 
 __all__ = [

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from .._checks import all_finite, check_finite, check_float_tensor, check_positive
+from ..checks import all_finite, check_finite, check_float_tensor, check_positive
 
 __all__ = ["dls_step", "dls_step_batch_last", "cholesky_solve_batch_last"]
 

@@ -24,7 +24,7 @@ from typing import Literal, NamedTuple, get_args
 import torch
 
 from .. import so3
-from .._checks import check_choice, check_finite, check_instance, check_positive
+from ..checks import check_choice, check_finite, check_instance, check_positive
 from ..collision import Capsules, World, check_world, clearance, pairwise_clearance, robot_capsules
 from ..dh import DHChain
 from .dls import dls_step_batch_last

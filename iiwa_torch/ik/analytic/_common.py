@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..._checks import check_finite, check_float_tensor, check_instance
+from ...checks import check_finite, check_float_tensor, check_instance
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import Convention, DHChain
 from ...so3 import check_rigid

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ..._checks import check_float_tensor
+from ...checks import check_float_tensor
 from ...collision import Capsules, World
 from ...dh import DHChain
 from ._common import (

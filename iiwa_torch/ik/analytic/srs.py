@@ -43,7 +43,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..._checks import check_positive
+from ...checks import check_positive
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
 from ...so3 import pose_error

@@ -1,4 +1,5 @@
-"""Input checks shared by the library: clear errors that name what was expected and what came."""
+"""Input checks shared by the library and the envs: clear errors that name what was expected
+and what came."""
 
 from __future__ import annotations
 
