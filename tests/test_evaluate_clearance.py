@@ -48,13 +48,15 @@ def test_a_step_below_the_floor_is_counted_for_the_path_not_the_final_configurat
 
 def test_report_collision_fields_agree_with_a_recomputation(tmp_path):
     out = tmp_path / "report"
-    assert ev.main(["--model", str(POLICY), "--goals", str(GOALS), "--seed", str(SEED), "--out", str(out)]) == 0
+    # collision=off: goals over the whole joint range, some below the floor (the default env draws none there)
+    assert ev.main(["--model", str(POLICY), "--goals", str(GOALS), "--seed", str(SEED), "--out", str(out),
+                    "--env-kwargs", "collision='off'"]) == 0  # quoted: YAML reads a bare off as False
     report = json.loads((out / "report.json").read_text())
+    assert report["env_kwargs"]["collision"] == "off"
     finals = np.load(out / "final_q.npz")
     chain = _chain()
     capsules = robot_capsules(chain)
-    # the env the policy was trained in (its config: no collision checks), as train.evaluate uses
-    goals = make_goal_set("IiwaReach-v0", GOALS, SEED, ev.load_policy(POLICY)[2]["hyperparams"]["env_kwargs"])
+    goals = make_goal_set("IiwaReach-v0", GOALS, SEED, report["env_kwargs"])  # the goals train.evaluate used
     below = (goals.pose[:, 2, 3] < 0).numpy()
     assert below.any(), "this goal set must hold a goal below the floor for the check to mean something"
     assert report["goals_below_floor"] == int(below.sum())

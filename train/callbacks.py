@@ -29,14 +29,25 @@ class TrainClock:
         return self.elapsed + time.perf_counter() - self.start
 
 
+def improves(entry: dict[str, Any], best: dict[str, Any] | None) -> bool:
+    """True if evaluation ``entry`` beats ``best`` (None: nothing yet): higher success, or the same
+    success and a lower median final distance."""
+    if best is None:
+        return True
+    return (entry["success"], -entry["median_distance"]) > (best["success"], -best["median_distance"])
+
+
 class EvalAndCheckpoint(BaseCallback):
-    """Every ``eval_freq`` env steps: success on a fixed goal set; every ``checkpoint_freq``: a checkpoint."""
+    """Every ``eval_freq`` env steps: success on a fixed goal set, and the model saved as the run's
+    best when it improves (``improves``); every ``checkpoint_freq``: a checkpoint."""
 
     def __init__(self, run: RunDir, hp: dict[str, Any], env_id: str, env_kwargs: dict[str, Any],
                  clock: TrainClock, verbose: int = 1):
         super().__init__(verbose=verbose)
         self.run, self.hp, self.env_id, self.env_kwargs, self.clock = run, hp, env_id, env_kwargs, clock
         self.evaluator, self.task = None, None
+        best = run.read_best()  # after --resume: the best so far, possibly from past the resumed checkpoint
+        self.best = None if best is None else best["evaluation"]
 
     def _on_training_start(self) -> None:
         import envs
@@ -82,12 +93,16 @@ class EvalAndCheckpoint(BaseCallback):
                  "eval_seconds": round(seconds, 3), "loadavg": os.getloadavg()[0]}
         self.clock.evaluations.append(entry)
         self.run.write_json("evaluations.json", self.clock.evaluations)
+        new_best = improves(entry, self.best)
+        if new_best:
+            self.run.save_best(self.model, entry)
+            self.best = entry
         for key in ("success", "median_distance", "p95_distance"):
             self.logger.record(f"eval/{key}", entry[key])
         if self.verbose:
             print(f"[eval] steps={entry['steps']} wall={entry['wall_time']:.0f}s success={entry['success']:.3f} "
-                  f"median={1000 * entry['median_distance']:.1f}mm p95={1000 * entry['p95_distance']:.1f}mm",
-                  flush=True)
+                  f"median={1000 * entry['median_distance']:.1f}mm p95={1000 * entry['p95_distance']:.1f}mm"
+                  f"{' (best so far: saved)' if new_best else ''}", flush=True)
         return entry
 
     def checkpoint(self) -> Path:

@@ -9,7 +9,9 @@ Guarantees (see docs/training.md, "Run-directory guarantees"):
   second process is refused (``RunLocked``); the kernel drops the lock when its holder dies, so
   a lock file left by a killed run does not block;
 - ``RunDir.checkpoints`` lists complete checkpoints newest first; the caller loads the newest
-  one whose files all load (``CheckpointError`` names a bad file).
+  one whose files all load (``CheckpointError`` names a bad file);
+- ``RunDir.save_best`` keeps the best model of the periodic evaluation in ``best/step_<N>`` and
+  ``best.json`` (its folder and evaluation), replaced atomically in that order.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import yaml
 ALGOS = ("ppo", "sac")
 CONFIG_KEYS = ("algo", "env_id", "seed", "hyperparams")
 LOCK_NAME = ".lock"
+BEST_NAME = "best.json"
 
 
 class RunLocked(RuntimeError):
@@ -185,19 +188,18 @@ class RunDir:
         found = self.checkpoints()
         return found[0] if found else None
 
-    def save_checkpoint(self, model, state: dict[str, Any], keep: int = 2) -> Path:
-        """Model, normaliser, replay buffer (off-policy) and ``state.json`` into ``checkpoints/step_<N>``,
-        filled under a temporary name and renamed; keeps the ``keep`` newest."""
-        final = self.checkpoint_root / f"step_{model.num_timesteps:012d}"
-        tmp = self.checkpoint_root / f".tmp_{final.name}"
-        for stale in self.checkpoint_root.glob(".tmp_step_*"):  # saves cut short; only the lock holder saves
+    def _save_folder(self, model, final: Path, state: dict[str, Any], replay_buffer: bool) -> None:
+        """Model, normaliser, replay buffer (if asked and off-policy) and ``state.json`` into the folder
+        ``final``, filled under a temporary name next to it and renamed."""
+        tmp = final.with_name(f".tmp_{final.name}")
+        for stale in final.parent.glob(".tmp_*"):  # saves cut short; only the lock holder saves
             shutil.rmtree(stale, ignore_errors=True)
         tmp.mkdir(parents=True)
         model.save(tmp / "model.zip")
         vec_normalize = model.get_vec_normalize_env()
         if vec_normalize is not None:
             vec_normalize.save(str(tmp / "vecnormalize.pkl"))
-        if getattr(model, "replay_buffer", None) is not None:
+        if replay_buffer and getattr(model, "replay_buffer", None) is not None:
             model.save_replay_buffer(tmp / "replay_buffer.pkl")
         (tmp / "state.json").write_text(json.dumps(state, indent=1))  # last: marks the folder complete
         for f in tmp.iterdir():
@@ -205,8 +207,49 @@ class RunDir:
                 os.fsync(fh.fileno())
         shutil.rmtree(final, ignore_errors=True)
         os.replace(tmp, final)
+
+    def save_checkpoint(self, model, state: dict[str, Any], keep: int = 2) -> Path:
+        """Model, normaliser, replay buffer (off-policy) and ``state.json`` into ``checkpoints/step_<N>``,
+        filled under a temporary name and renamed; keeps the ``keep`` newest."""
+        final = self.checkpoint_root / f"step_{model.num_timesteps:012d}"
+        self._save_folder(model, final, state, replay_buffer=True)
         for old in self.checkpoints()[keep:]:
             shutil.rmtree(old, ignore_errors=True)
+        return final
+
+    # -------------------------------------------------------------------- best model
+    @property
+    def best_root(self) -> Path:
+        return self.path / "best"
+
+    def read_best(self) -> dict[str, Any] | None:
+        """``{"checkpoint": folder relative to the run, "evaluation": the periodic evaluation that made
+        it best}`` from ``best.json``, or None before the first evaluation."""
+        path = self.path / BEST_NAME
+        if not path.exists():
+            return None
+        try:
+            best = json.loads(path.read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: not valid JSON ({err}); expected the record train.train writes") from None
+        if not isinstance(best, dict) or not {"checkpoint", "evaluation"} <= set(best):
+            raise ValueError(f"{path}: expected a mapping with keys checkpoint and evaluation, got {best!r}")
+        return best
+
+    def best_checkpoint(self) -> Path | None:
+        """The folder of the best model so far (``model.zip``, ``vecnormalize.pkl`` if any, ``state.json``)."""
+        best = self.read_best()
+        return None if best is None else self.path / best["checkpoint"]
+
+    def save_best(self, model, evaluation: dict[str, Any]) -> Path:
+        """The model and normaliser as ``best/step_<N>``, then ``best.json`` pointing at it (an atomic
+        replace: a kill at any moment leaves ``best.json`` naming a complete folder), then older folders go."""
+        final = self.best_root / f"step_{model.num_timesteps:012d}"
+        self._save_folder(model, final, {"evaluation": evaluation}, replay_buffer=False)
+        self.write_json(BEST_NAME, {"checkpoint": str(final.relative_to(self.path)), "evaluation": evaluation})
+        for old in self.best_root.glob("step_*"):
+            if old != final:
+                shutil.rmtree(old, ignore_errors=True)
         return final
 
     def save_final(self, model) -> None:

@@ -4,7 +4,9 @@
 
 Copies ``model.zip``, ``vecnormalize.pkl`` (removed if the run has none), ``config.yaml``,
 ``train_info.json`` and ``evaluations.json`` (the learning curve) and writes ``RECORD.md``: the command, seed,
-commit, training wall time, steps per second and load average. Then evaluate it:
+commit, training wall time, steps per second, load average and which checkpoint was shipped. By default
+the final model is shipped; ``--best`` ships the best one of the periodic evaluation instead (the run's
+``best.json``: highest success, ties to the lower median distance). Then evaluate it:
 ``python -m train.evaluate --model train/policies/NAME --goals 1000 --seed 0 --out train/policies/NAME/report``.
 
     python -m train.ship --run runs/panda --curve train/policies/panda.json --label "PandaReach-v3"
@@ -27,19 +29,34 @@ POLICIES = Path(__file__).resolve().parent / "policies"
 FILES = ("model.zip", "vecnormalize.pkl", "config.yaml", "train_info.json", "evaluations.json")
 
 
-def ship(run: Path, name: str) -> Path:
-    """Copy the run's final files to ``train/policies/<name>`` and write its ``RECORD.md``."""
+def ship(run: Path, name: str, best: bool = False, root: Path = POLICIES) -> Path:
+    """Copy the run's final files (with ``best``: its best model and normaliser instead of the final
+    ones) to ``root/<name>`` and write its ``RECORD.md``."""
+    from train.run_dir import RunDir
+
     if not (run / "train_info.json").exists():
         raise FileNotFoundError(f"{run} has no train_info.json: is it a finished train.train run?")
-    dest = POLICIES / name
+    info = json.loads((run / "train_info.json").read_text())
+    source = {f: run / f for f in FILES}
+    if best:
+        record = RunDir(run).read_best()
+        if record is None:
+            raise FileNotFoundError(f"{run} has no best.json: it was trained before train.train kept its best model")
+        for f in ("model.zip", "vecnormalize.pkl"):
+            source[f] = run / record["checkpoint"] / f
+        chosen = record["evaluation"]
+        which = f"the best periodic evaluation's model ({record['checkpoint']}, python -m train.ship --best)"
+    else:
+        chosen = info["final_evaluation"] or {"steps": info["num_timesteps"]}
+        which = "the final model"
+    dest = Path(root) / name
     dest.mkdir(parents=True, exist_ok=True)
-    for f in FILES:
-        if (run / f).exists():
-            shutil.copy2(run / f, dest / f)
+    for f, path in source.items():
+        if path.exists():
+            shutil.copy2(path, dest / f)
         else:  # e.g. no vecnormalize.pkl: a stale one from a previous policy would be loaded with the new model
             (dest / f).unlink(missing_ok=True)
     config = yaml.safe_load((run / "config.yaml").read_text())
-    info = json.loads((run / "train_info.json").read_text())
     last = info["final_evaluation"] or {}
     load = info["machine"]["loadavg"]
     lines = [
@@ -59,6 +76,9 @@ def ship(run: Path, name: str) -> Path:
         f"- last periodic evaluation (goal-set seed 10,000, {len(json.loads((run / 'evaluations.json').read_text()))}"
         f" evaluations in evaluations.json): success at 1 cm {100 * last.get('success', float('nan')):.1f}%, "
         f"median final distance {1000 * last.get('median_distance', float('nan')):.3g} mm",
+        f"- shipped checkpoint: {which}, env step {chosen['steps']:,}"
+        + (f": periodic success at 1 cm {100 * chosen['success']:.1f}%, median final distance "
+           f"{1000 * chosen['median_distance']:.3g} mm" if "success" in chosen else ""),
         "",
         "The held-out comparison with the IK solvers is in report/ (train.evaluate, 1,000 goals, seed 0).",
         "",
@@ -88,14 +108,18 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m train.ship", description=__doc__.split("\n\n")[0])
     p.add_argument("--run", required=True, type=Path, help="finished run directory")
     p.add_argument("--name", help="folder name under train/policies/")
+    p.add_argument("--best", action="store_true",
+                   help="ship the best model of the periodic evaluation, not the final one (with --name)")
     p.add_argument("--curve", type=Path, help="write only the learning curve to this JSON file")
     p.add_argument("--label", help="label of the curve (with --curve)")
     args = p.parse_args(argv)
     if (args.name is None) == (args.curve is None):
         p.error("give either --name (ship the policy) or --curve FILE --label TEXT (keep the learning curve)")
+    if args.best and args.name is None:
+        p.error("--best picks the model to ship: it goes with --name, not --curve")
     try:
         if args.name:
-            print(ship(args.run, args.name))
+            print(ship(args.run, args.name, best=args.best))
         else:
             print(export_curve(args.run, args.curve, args.label or args.run.name))
     except FileNotFoundError as err:
