@@ -50,7 +50,7 @@ def test_readme_comparison_row_is_what_the_shipped_command_prints(tmp_path):
         metrics, data = {}, {}
         metrics["policy"], data["policy"] = ev.run_policy(goals, model, vec_normalize, task.robot)
         for name in ("analytic_ik", "gradient_ik"):
-            metrics[name], _ = ev.run_ik(name, goals, task.robot, data["policy"]["home"], task.dt)
+            metrics[name], _ = ev.run_ik(name, goals, task.robot, data["policy"]["home"], task.dt, ev.ik_world(task))
     finally:
         torch.set_num_threads(threads)
     report = {"goals": 1000, "env_id": config["env_id"], "model": str(POLICY), "algo": "ppo", "seed": 0,

@@ -208,8 +208,20 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     return metrics, {"final_error": final, "path": path, "home": r.q[0, 0], "q": r.q[-1], "floor_hit": floor_hit}
 
 
-def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """One IK method on every goal from ``home``: batched once, then ``SINGLE_GOALS`` goals one by one."""
+def ik_world(task):
+    """The world the IK methods are given for ``task``: its floor when the env checks collisions
+    (the obstacle env's per-goal obstacles are not passed), else ``None``."""
+    from iiwa_torch.collision import World
+
+    return None if task.world is None else World(floor=task.world.floor)
+
+
+def run_ik(
+    name: str, goals, chain, home: np.ndarray, dt: float, world=None
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """One IK method on every goal from ``home``: batched once, then ``SINGLE_GOALS`` goals one by one.
+    ``world`` (an :class:`iiwa_torch.collision.World`, e.g. the env's floor) makes both solvers
+    collision-aware: the analytic one searches the arm angle, the gradient one adds clearance."""
     import torch
 
     home = torch.as_tensor(home, dtype=torch.float64)
@@ -218,14 +230,14 @@ def run_ik(name: str, goals, chain, home: np.ndarray, dt: float) -> tuple[dict[s
         from iiwa_torch.ik.analytic import iiwa_solve
 
         def solve(pose):
-            return iiwa_solve(chain, pose, home.expand(pose.shape[0], -1))
+            return iiwa_solve(chain, pose, home.expand(pose.shape[0], -1), world=world)
     else:
         from iiwa_torch.ik import solve as gradient_solve
 
         def solve(pose):
             target = pose[:, :3, 3] if position_only else pose
             return gradient_solve(chain, target, home.expand(pose.shape[0], -1), mode="position" if position_only
-                                  else "pose", generator=torch.Generator().manual_seed(0))
+                                  else "pose", generator=torch.Generator().manual_seed(0), world=world)
 
     result = solve(goals.pose)
     batched = _median_time(lambda i: solve(goals.pose), BATCHED_REPEATS) / goals.n
@@ -593,11 +605,12 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     goals = make_goal_set(env_id, n_goals, seed, env_kwargs)
     below_floor = int((goals.pose[:, 2, 3] < 0).sum())  # the preset's default floor is z = 0
 
+    world = ik_world(task)
     metrics, data = {}, {}
     metrics["policy"], data["policy"] = run_policy(goals, model, vec_normalize, chain)
     for name in ("analytic_ik", "gradient_ik"):
         try:
-            metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt)
+            metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt, world)
         except ImportError as err:  # a solver not installed in this checkout: say so, keep the rest
             metrics[name] = {"error": f"unavailable: {err}"}
             continue
