@@ -15,8 +15,11 @@ from train.rollout import make_goal_set
 
 ROOT = Path(__file__).resolve().parents[1]
 POLICY = ROOT / "train" / "policies" / "ppo_iiwa_reach"
-README_ROWS = {"policy": "policy (50 closed-loop steps)", "analytic_ik": "analytic IK (arm-angle sweep)",
-               "gradient_ik": "gradient IK"}
+README_ROWS = {
+    "policy": "policy (50 closed-loop steps)",
+    "analytic_ik": "analytic IK (arm-angle sweep, with the floor)",
+    "gradient_ik": "gradient IK (with the floor)",
+}
 
 
 def _cells(line: str) -> list[str]:
