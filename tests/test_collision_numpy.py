@@ -51,7 +51,11 @@ def _spheres_touching(chain, q: torch.Tensor) -> World:
     on_axis = frame[:, :3, 3] + frame[:, :3, :3] @ caps.points[-1, 0]
     b = q.shape[0]
     centres = torch.stack(
-        [on_axis, torch.tensor([0.5, 0.2, 0.1], dtype=q.dtype).expand(b, 3), q.new_tensor([2.0, 2.0, 2.0]).expand(b, 3)],
+        [
+            on_axis,
+            torch.tensor([0.5, 0.2, 0.1], dtype=q.dtype).expand(b, 3),
+            q.new_tensor([2.0, 2.0, 2.0]).expand(b, 3),
+        ],
         1,
     )
     radii = q.new_tensor([0.05, 0.1, 0.3]).expand(b, 3)
@@ -71,12 +75,10 @@ def test_numpy_path_equals_torch_path_floor_and_spheres(name, numpy_calls):
         want = _torch_path(chain, q, world)
         assert not numpy_calls
         got = []
-        for block in q.split(CLEARANCE_NUMPY_BATCH):
-            sub = world
-            if world is not None and world.batch_shape:
-                start = len(torch.cat(got)) if got else 0
-                sub = world.map_batch(lambda t, k, s=start, n=len(block): t[s : s + n])
-            got.append(clearance(chain, block, sub))
+        for start in range(0, len(q), CLEARANCE_NUMPY_BATCH):
+            rows = slice(start, start + CLEARANCE_NUMPY_BATCH)
+            sub = world.map_batch(lambda t, k, rows=rows: t[rows]) if world is not None and world.batch_shape else world
+            got.append(clearance(chain, q[rows], sub))
         got = torch.cat(got)
         assert len(numpy_calls) == len(got) // CLEARANCE_NUMPY_BATCH + (len(got) % CLEARANCE_NUMPY_BATCH > 0)
         numpy_calls.clear()
@@ -91,7 +93,9 @@ def test_numpy_path_equals_torch_path_floor_and_spheres(name, numpy_calls):
 def test_world_batch_broadcasts_like_the_torch_path(numpy_calls):
     chain = robots.iiwa14()
     q = _configurations(chain, 8, np.random.default_rng(1)).reshape(1, 8, 7)
-    world = World(spheres=(torch.rand(3, 1, 2, 3, dtype=torch.float64), torch.full((3, 1, 2), 0.1, dtype=torch.float64)))
+    world = World(
+        spheres=(torch.rand(3, 1, 2, 3, dtype=torch.float64), torch.full((3, 1, 2), 0.1, dtype=torch.float64))
+    )
     got = clearance(chain, q, world)
     assert numpy_calls and got.shape == (3, 8)
     assert torch.allclose(got, _torch_path(chain, q, world), rtol=0, atol=1e-12)
@@ -113,7 +117,9 @@ def test_the_torch_path_keeps_what_the_numpy_path_does_not_cover(numpy_calls):
     q = _configurations(chain, CLEARANCE_NUMPY_BATCH + 1, np.random.default_rng(3))
     clearance(chain, q)  # above the threshold
     box = World(boxes=(torch.eye(4, dtype=torch.float64)[None], torch.full((1, 3), 0.1, dtype=torch.float64)))
-    wall = World(walls=(torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64), torch.tensor([-1.0], dtype=torch.float64)))
+    wall = World(
+        walls=(torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64), torch.tensor([-1.0], dtype=torch.float64))
+    )
     for world in (box, wall):
         clearance(chain, q[:4], world)
     with torch.no_grad():  # grad mode off: nothing to differentiate, numpy
