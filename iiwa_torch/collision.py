@@ -19,6 +19,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -28,6 +29,7 @@ from .dh import DHChain
 from .so3 import check_rigid
 
 __all__ = [
+    "CLEARANCE_NUMPY_BATCH",
     "Capsules",
     "Clearances",
     "World",
@@ -41,6 +43,7 @@ __all__ = [
 ]
 
 _BLOCK = 4096  # configurations per block of the robot's own distances
+CLEARANCE_NUMPY_BATCH = 32  # clearance: numpy float64 up to this many CPU configurations without autograd
 
 
 # ---------------------------------------------------------------------------- distance kernels
@@ -78,6 +81,27 @@ def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
         t = t.to(p1.dtype)
     w = p1 + s * d1 - p2 - t * d2
     return _root((w * w).sum(0))  # not linalg.vector_norm: over the first dim it is ~20x slower
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    """``x`` clamped to [0, 1] (two ufuncs: ``np.clip``'s Python wrapper costs more on tiny arrays)."""
+    return np.minimum(np.maximum(x, 0.0), 1.0)
+
+
+def _segment_gap_numpy(p1: np.ndarray, d1: np.ndarray, p2: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """:func:`_segment_gap` in numpy float64, vectors component last: ``(..., 3)`` each
+    (broadcast) -> ``(...)``."""
+    r = p1 - p2
+    a, e, b, c, f = ((x * y).sum(-1) for x, y in ((d1, d1), (d2, d2), (d1, d2), (d1, r), (d2, r)))
+    eps = np.finfo(np.float64).eps
+    ae = a * e
+    denom = ae - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):  # the quotients np.where discards
+        s = _unit(np.where(denom > eps * ae, (b * f - c * e) / denom, 0.0))
+        t = _unit(np.where(e <= eps * eps, 0.0, (f + b * s) / e))
+        s = _unit(np.where(a <= eps * eps, 0.0, (b * t - c) / a))
+    w = r + s[..., None] * d1 - t[..., None] * d2
+    return np.sqrt((w * w).sum(-1))
 
 
 def segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
@@ -257,6 +281,13 @@ class Capsules:
                 "world_radius": radii[world, None],
             }
         return self._cache[key]
+
+    def _numpy_tables(self) -> dict[str, np.ndarray]:
+        """:meth:`_index_tables` in float64 on the CPU as numpy arrays, built once."""
+        if "numpy" not in self._cache:
+            tables = self._index_tables(torch.float64, torch.device("cpu"))
+            self._cache["numpy"] = {k: v.numpy() for k, v in tables.items()}
+        return self._cache["numpy"]
 
     @classmethod
     def build(
@@ -563,17 +594,23 @@ def _check_query(chain: DHChain, q: Tensor, world: World, capsules: Capsules) ->
             )
 
 
-def _distances(
-    chain: DHChain, q: Tensor, world: World | None, capsules: Capsules | None
-) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
-    """The robot's own distances (self pairs, then floor) ``(P, B)`` over the flattened batch,
-    the other obstacles' ``(..., M)`` blocks, and every pair's names in that order."""
+def _resolve(chain: DHChain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:
+    """The query's world and capsules (defaults filled in), all arguments checked."""
     check_instance(chain, DHChain, "chain")
     capsules = robot_capsules(chain) if capsules is None else capsules
     world = World(floor=capsules.floor_height) if world is None else world
     check_instance(capsules, Capsules, "capsules")
     check_instance(world, World, "world")
     _check_query(chain, q, world, capsules)
+    return world, capsules
+
+
+def _distances(
+    chain: DHChain, q: Tensor, world: World, capsules: Capsules
+) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
+    """The robot's own distances (self pairs, then floor) ``(P, B)`` over the flattened batch,
+    the other obstacles' ``(..., M)`` blocks, and every pair's names in that order, for
+    arguments :func:`_resolve` returned."""
     tables = capsules._index_tables(q.dtype, q.device)
     names = capsules.names
     has_floor, has_obstacles = world.floor is not None, bool(world.tensors())
@@ -642,7 +679,7 @@ def pairwise_clearance(
     """Every checked distance for ``q (..., n)``: the self pairs, then capsule-floor,
     -wall, -sphere, -box, -capsule (see :class:`Clearances`). ``world=None`` is the
     model's default floor; ``capsules=None`` is :func:`robot_capsules` of the chain."""
-    own, others, labels = _distances(chain, q, world, capsules)
+    own, others, labels = _distances(chain, q, *_resolve(chain, q, world, capsules))
     parts = ([] if own is None else [own.T.reshape(*q.shape[:-1], own.shape[0])]) + others
     shape = torch.broadcast_shapes(*(p.shape[:-1] for p in parts))
     distance = torch.cat([p.expand(*shape, p.shape[-1]) for p in parts], -1)
@@ -652,8 +689,56 @@ def pairwise_clearance(
 def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: Capsules | None = None) -> Tensor:
     """Smallest signed distance, metres: ``q (..., n) -> (...)``, over the checked self pairs and
     capsule-obstacle pairs (arguments as :func:`pairwise_clearance`). Differentiable in ``q``
-    and the obstacles' tensors."""
+    and the obstacles' tensors. Up to ``CLEARANCE_NUMPY_BATCH`` configurations on the CPU
+    with nothing to differentiate and no walls, boxes or obstacle capsules, the same formulas
+    run in numpy float64 (:func:`_clearance_numpy`)."""
+    world, capsules = _resolve(chain, q, world, capsules)
+    if _numpy_ok(chain, q, world, capsules):
+        return _clearance_numpy(chain, q, world, capsules)
     own, others, _ = _distances(chain, q, world, capsules)
     mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others]
     shape = torch.broadcast_shapes(*(m.shape for m in mins))
     return torch.stack([m.expand(shape) for m in mins]).amin(0)
+
+
+def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bool:
+    """Whether :func:`clearance` may take :func:`_clearance_numpy` (checked arguments)."""
+    if q.numel() > CLEARANCE_NUMPY_BATCH * chain.n_joints or world.walls or world.boxes or world.capsules:
+        return False
+    if not all(kin.floats_ok(t) for t in (q, *world.tensors())) or chain.geometry().link_numpy is None:
+        return False
+    tables = capsules._numpy_tables()
+    floor = world.floor is not None and tables["floor"].size > 0
+    return bool(capsules.pairs) or floor or (world.spheres is not None and tables["world"].size > 0)
+
+
+def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
+    """:func:`clearance` of a small CPU batch in numpy float64: a few dozen numpy ops, each a
+    fraction of a torch op's overhead. Self pairs, floor and spheres only; not differentiable."""
+    tables = capsules._numpy_tables()
+    lead = q.shape[:-1]
+    flat = q.detach().reshape(-1, chain.n_joints).numpy().astype(np.float64)
+    frames = kin.frames_numpy(chain.geometry(), flat)[tables["frames"], :, :3]  # (K, B, 3, 4)
+    ends = frames @ tables["local"][:, None]  # (K, B, 3, 2)
+    start, direction = ends[..., 0], ends[..., 1] - ends[..., 0]  # (K, B, 3)
+    mins = []
+    if capsules.pairs:
+        first, second = tables["first"], tables["second"]
+        gap = _segment_gap_numpy(start[first], direction[first], start[second], direction[second])
+        mins.append((gap - tables["pair_radius"]).min(0))
+    floor = tables["floor"]
+    if world.floor is not None and floor.size:
+        low = np.minimum(start[floor, :, 2], start[floor, :, 2] + direction[floor, :, 2])
+        mins.append((low - (tables["floor_radius"] + world.floor)).min(0))
+    mins = [m.reshape(lead) for m in mins]
+    idx = tables["world"]
+    if world.spheres is not None and idx.size:
+        centre, rad = (t.detach().numpy().astype(np.float64) for t in world.spheres)
+        a, b = (x.transpose(1, 0, 2).reshape(*lead, idx.size, 1, 3) for x in (start[idx], start[idx] + direction[idx]))
+        c = centre[..., None, :, :]
+        gap = _segment_gap_numpy(a, b - a, c, c - c) - tables["world_radius"] - rad[..., None, :]
+        mins.append(gap.min((-2, -1)))
+    out = mins[0]
+    for m in mins[1:]:
+        out = np.minimum(out, m)
+    return torch.from_numpy(np.array(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))

@@ -58,6 +58,7 @@ __all__ = [
     "end_pose_numpy",
     "floats_ok",
     "frames_batch_last",
+    "frames_numpy",
     "jacobian",
     "jacobian_floats",
     "jacobian_numpy",
@@ -528,9 +529,10 @@ def end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
     return reduce(np.matmul, (const + trig @ coeffs).reshape(g.n_joints, -1, 4, 4))
 
 
-def _frames_numpy(g: Geometry, q: np.ndarray) -> np.ndarray:
-    """``q (b, n)`` -> ``(n + 1, b, 4, 4)``: the base and every link frame (no tool), the
-    4x4-product kernel (:func:`_link_matrices`, :func:`_frames_matmul`) in numpy."""
+def frames_numpy(g: Geometry, q: np.ndarray) -> np.ndarray:
+    """``q (b, n)``, a numpy array in ``g``'s dtype (``g`` on the CPU) -> ``(n + 1, b, 4, 4)``:
+    the base and every link frame (no tool), the 4x4-product kernel (:func:`_link_matrices`,
+    :func:`_frames_matmul`) in numpy."""
     phase, coeffs, const, base, _ = g.link_numpy
     b, n = q.shape
     trig = np.sin(q.T[:, :, None] + phase)  # (n, b, 2): cos, sin
@@ -543,8 +545,8 @@ def _frames_numpy(g: Geometry, q: np.ndarray) -> np.ndarray:
 
 
 def _frames_batch_last_numpy(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
-    """:func:`frames_batch_last` from :func:`_frames_numpy`: the same frames, in its layout."""
-    frames = _frames_numpy(g, q.numpy().T)
+    """:func:`frames_batch_last` from :func:`frames_numpy`: the same frames, in its layout."""
+    frames = frames_numpy(g, q.numpy().T)
     if not keep:
         frames = frames[-1:]
     top = np.ascontiguousarray(frames[:, :, :3].transpose(0, 2, 3, 1))  # (F, 3, 4, b)
@@ -571,7 +573,7 @@ def pose_jacobian_numpy(g: Geometry, q: np.ndarray) -> tuple[np.ndarray, np.ndar
     ``(b, 4, 4)`` (tool included) and the Jacobians ``(b, 6, n)`` (as :func:`jacobian`), from one
     pass of the 4x4-product kernel's link frames in numpy."""
     b, n = q.shape
-    frames = _frames_numpy(g, q)
+    frames = frames_numpy(g, q)
     axes = frames[1:] if g.modified else frames[:-1]  # (n, b, 4, 4)
     end = frames[-1] @ g.link_numpy[4]  # (b, 4, 4)
     out = np.empty((b, 6, n), dtype=frames.dtype)

@@ -441,6 +441,7 @@ EXEMPT = {
     "envs.core:CollisionKind": "a Literal of choice strings (checked where taken)",
     "iiwa_torch.collision:Capsules": "a model type, built by robot_capsules",
     "iiwa_torch.collision:Clearances": "a result type",
+    "iiwa_torch.collision:CLEARANCE_NUMPY_BATCH": "a constant",
     "iiwa_torch.workspace:Section": "an Enum of choice strings (checked where taken)",
     "iiwa_torch.workspace:Occupancy": "a result type",
     "iiwa_torch.workspace:Volume": "a result type",

@@ -1,0 +1,138 @@
+"""The small-batch numpy path of clearance against its torch path (itself tested against coal in
+test_collision.py), which runs whenever something requires grad or the batch is large."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from iiwa_torch import kinematics, robots
+from iiwa_torch.collision import CLEARANCE_NUMPY_BATCH, World, clearance, robot_capsules
+
+PRESETS = sorted(robots.PRESETS)
+
+
+@pytest.fixture
+def numpy_calls(monkeypatch):
+    """Counts the numpy frame kernel's calls, to tell which path a query took."""
+    calls = []
+    real = kinematics.frames_numpy
+
+    def spy(g, q):
+        calls.append(q.shape[0])
+        return real(g, q)
+
+    monkeypatch.setattr(kinematics, "frames_numpy", spy)
+    return calls
+
+
+def _torch_path(chain, q, world=None):
+    return clearance(chain, q.clone().requires_grad_(), world).detach()
+
+
+def _configurations(chain, n: int, rng: np.random.Generator) -> torch.Tensor:
+    """n random configurations within the limits, a tenth of them at zero or multiples of
+    pi/2 (straight arms: parallel and collinear capsules)."""
+    low, high = chain.limits.double().numpy()
+    q = rng.uniform(low, high, size=(n, chain.n_joints))
+    straight = rng.random(n) < 0.1
+    q[straight] = np.clip(rng.integers(-1, 2, size=(straight.sum(), chain.n_joints)) * math.pi / 2, low, high)
+    return torch.from_numpy(q)
+
+
+def _spheres_touching(chain, q: torch.Tensor) -> World:
+    """Spheres per configuration: one centred on the wrist capsule's start, one tangent to the
+    floor, one far away (a degenerate point-on-segment case, a touching one and a generic one)."""
+    caps = robot_capsules(chain)
+    frame = chain.fk_all(q)[:, caps.frames[-1]]  # (B, 4, 4)
+    on_axis = frame[:, :3, 3] + frame[:, :3, :3] @ caps.points[-1, 0]
+    b = q.shape[0]
+    centres = torch.stack(
+        [
+            on_axis,
+            torch.tensor([0.5, 0.2, 0.1], dtype=q.dtype).expand(b, 3),
+            q.new_tensor([2.0, 2.0, 2.0]).expand(b, 3),
+        ],
+        1,
+    )
+    radii = q.new_tensor([0.05, 0.1, 0.3]).expand(b, 3)
+    return World(floor=0.0, spheres=(centres, radii))
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_numpy_path_equals_torch_path_floor_and_spheres(name, numpy_calls):
+    chain = robots.PRESETS[name]()
+    rng = np.random.default_rng(7)
+    q = _configurations(chain, 3000, rng)
+    shared = World(
+        floor=-0.05,
+        spheres=(torch.from_numpy(rng.uniform(-0.8, 0.8, (4, 3))), torch.from_numpy(rng.uniform(0.05, 0.2, 4))),
+    )
+    for world in (None, World(floor=0.4), shared, _spheres_touching(chain, q)):
+        want = _torch_path(chain, q, world)
+        assert not numpy_calls
+        got = []
+        for start in range(0, len(q), CLEARANCE_NUMPY_BATCH):
+            rows = slice(start, start + CLEARANCE_NUMPY_BATCH)
+            sub = world.map_batch(lambda t, k, rows=rows: t[rows]) if world is not None and world.batch_shape else world
+            got.append(clearance(chain, q[rows], sub))
+        got = torch.cat(got)
+        assert len(numpy_calls) == len(got) // CLEARANCE_NUMPY_BATCH + (len(got) % CLEARANCE_NUMPY_BATCH > 0)
+        numpy_calls.clear()
+        assert got.dtype == torch.float64 and got.shape == want.shape
+        assert torch.allclose(got, want, rtol=0, atol=1e-12), (got - want).abs().max()
+    # one configuration, and a batch shape: the shape of the torch path
+    for qq in (q[0], q[:6].reshape(2, 3, -1)):
+        assert torch.allclose(clearance(chain, qq, shared), _torch_path(chain, qq, shared), rtol=0, atol=1e-12)
+    assert clearance(chain, q[0], shared).shape == ()
+
+
+def test_world_batch_broadcasts_like_the_torch_path(numpy_calls):
+    chain = robots.iiwa14()
+    q = _configurations(chain, 8, np.random.default_rng(1)).reshape(1, 8, 7)
+    world = World(
+        spheres=(torch.rand(3, 1, 2, 3, dtype=torch.float64), torch.full((3, 1, 2), 0.1, dtype=torch.float64))
+    )
+    got = clearance(chain, q, world)
+    assert numpy_calls and got.shape == (3, 8)
+    assert torch.allclose(got, _torch_path(chain, q, world), rtol=0, atol=1e-12)
+
+
+def test_float32_query_returns_float32_close_to_float64(numpy_calls):
+    chain = robots.iiwa14().float()
+    q = _configurations(chain, 32, np.random.default_rng(2))
+    world = World(spheres=(torch.tensor([[0.5, 0.0, 0.6]]), torch.tensor([0.1])))
+    got = clearance(chain, q.float(), world)
+    assert numpy_calls and got.dtype == torch.float32
+    reference = _torch_path(robots.iiwa14(), q, World(spheres=tuple(t.double() for t in world.spheres)))
+    assert torch.allclose(got.double(), reference, rtol=0, atol=1e-6)
+    assert torch.allclose(got, _torch_path(chain, q.float(), world), rtol=0, atol=1e-4)
+
+
+def test_the_torch_path_keeps_what_the_numpy_path_does_not_cover(numpy_calls):
+    chain = robots.iiwa14()
+    q = _configurations(chain, CLEARANCE_NUMPY_BATCH + 1, np.random.default_rng(3))
+    clearance(chain, q)  # above the threshold
+    box = World(boxes=(torch.eye(4, dtype=torch.float64)[None], torch.full((1, 3), 0.1, dtype=torch.float64)))
+    wall = World(
+        walls=(torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64), torch.tensor([-1.0], dtype=torch.float64))
+    )
+    for world in (box, wall):
+        clearance(chain, q[:4], world)
+    with torch.no_grad():  # grad mode off: nothing to differentiate, numpy
+        clearance(chain, q[:4].clone().requires_grad_())
+    assert numpy_calls == [4]
+
+
+def test_gradients_take_the_torch_path():
+    chain = robots.iiwa14()
+    q = torch.tensor([0.1, 0.9, -0.2, -1.2, 0.3, 0.4, 0.0], dtype=torch.float64, requires_grad=True)
+    centre = torch.tensor([[0.45, 0.05, 0.55]], dtype=torch.float64, requires_grad=True)
+    radius = torch.tensor([0.1], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda x: clearance(chain, x), (q,))
+    assert torch.autograd.gradcheck(lambda c: clearance(chain, q.detach(), World(spheres=(c, radius))), (centre,))
+    d = clearance(chain, q.detach(), World(spheres=(centre, radius)))
+    assert d.requires_grad  # only the world's tensor requires grad
