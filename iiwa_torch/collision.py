@@ -58,6 +58,20 @@ def _safe_norm(v: Tensor) -> Tensor:
     return _root((v * v).sum(-1))
 
 
+def _closest_parameters(a, e, b, c, f, where, unit):
+    """The closest-point parameters ``s, t`` of two segments from the dot products ``a = d1.d1``,
+    ``e = d2.d2``, ``b = d1.d2``, ``c = d1.r``, ``f = d2.r`` (``r = p1 - p2``), float64 arrays of
+    torch or numpy: ``where`` and ``unit`` (clamp into [0, 1]) are that library's, so the torch
+    and the numpy kernels run this one formula."""
+    eps = np.finfo(np.float64).eps
+    ae = a * e
+    denom = ae - b * b
+    s = unit(where(denom > eps * ae, (b * f - c * e) / denom, 0.0))
+    t = unit(where(e <= eps * eps, 0.0, (f + b * s) / e))
+    s = unit(where(a <= eps * eps, 0.0, (b * t - c) / a))
+    return s, t
+
+
 def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
     """Distance between segments ``p1 + s d1`` and ``p2 + t d2``, ``s, t`` in [0, 1]: vectors
     component first, ``(3, ...)`` each (broadcast) -> ``(...)``. The closest-point parameters
@@ -71,14 +85,8 @@ def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
         u1, u2, r = (x.double() for x in (d1, d2, p1 - p2))
         if not u1.shape == u2.shape == r.shape:
             u1, u2, r = torch.broadcast_tensors(u1, u2, r)
-        a, e, b, c, f = ((x * y).sum(0) for x, y in ((u1, u1), (u2, u2), (u1, u2), (u1, r), (u2, r)))
-        eps = torch.finfo(a.dtype).eps
-        ae = a * e
-        denom = torch.addcmul(ae, b, b, value=-1)
-        s = torch.where(denom > eps * ae, torch.addcmul(b * f, c, e, value=-1) / denom, 0.0).clamp_(0, 1)
-        t = torch.where(e <= eps * eps, 0.0, torch.addcmul(f, b, s) / e).clamp_(0, 1)
-        s = torch.where(a <= eps * eps, 0.0, torch.addcmul(-c, b, t) / a).clamp_(0, 1).to(p1.dtype)
-        t = t.to(p1.dtype)
+        dots = ((x * y).sum(0) for x, y in ((u1, u1), (u2, u2), (u1, u2), (u1, r), (u2, r)))
+        s, t = (x.to(p1.dtype) for x in _closest_parameters(*dots, torch.where, lambda x: x.clamp_(0, 1)))
     w = p1 + s * d1 - p2 - t * d2
     return _root((w * w).sum(0))  # not linalg.vector_norm: over the first dim it is ~20x slower
 
@@ -92,14 +100,9 @@ def _segment_gap_numpy(p1: np.ndarray, d1: np.ndarray, p2: np.ndarray, d2: np.nd
     """:func:`_segment_gap` in numpy float64, vectors component last: ``(..., 3)`` each
     (broadcast) -> ``(...)``."""
     r = p1 - p2
-    a, e, b, c, f = ((x * y).sum(-1) for x, y in ((d1, d1), (d2, d2), (d1, d2), (d1, r), (d2, r)))
-    eps = np.finfo(np.float64).eps
-    ae = a * e
-    denom = ae - b * b
+    dots = ((x * y).sum(-1) for x, y in ((d1, d1), (d2, d2), (d1, d2), (d1, r), (d2, r)))
     with np.errstate(divide="ignore", invalid="ignore"):  # the quotients np.where discards
-        s = _unit(np.where(denom > eps * ae, (b * f - c * e) / denom, 0.0))
-        t = _unit(np.where(e <= eps * eps, 0.0, (f + b * s) / e))
-        s = _unit(np.where(a <= eps * eps, 0.0, (b * t - c) / a))
+        s, t = _closest_parameters(*dots, np.where, _unit)
     w = r + s[..., None] * d1 - t[..., None] * d2
     return np.sqrt((w * w).sum(-1))
 
