@@ -15,7 +15,7 @@ import gymnasium
 if TYPE_CHECKING:
     from .core import ReachTask
 
-__all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs", "make_task"]
+__all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs", "make_task", "registered_options"]
 
 #: Episode length of the registered ids: from the home posture, a straight full-speed joint
 #: move reaches any configuration within the limits in 48 steps (see ``docs/envs.md``).
@@ -46,15 +46,20 @@ def register_envs() -> None:
         )
 
 
+def registered_options(env_id: str) -> dict:
+    """The ``ReachTask`` options ``env_id`` (one of :data:`ENV_IDS`) is registered with."""
+    if env_id not in _VARIANTS:
+        raise ValueError(f"env_id must be one of {list(ENV_IDS)}, got {env_id!r}")
+    return dict(_VARIANTS[env_id])
+
+
 def make_task(env_id: str, **env_kwargs) -> ReachTask:
     """The :class:`envs.core.ReachTask` of ``env_id`` (one of :data:`ENV_IDS`): the id's
     registered options and ``max_episode_steps``, overridden by ``env_kwargs`` (any
     ``ReachTask`` option), without building an env."""
-    if env_id not in _VARIANTS:
-        raise ValueError(f"env_id must be one of {list(ENV_IDS)}, got {env_id!r}")
     from .core import ReachTask
 
-    return ReachTask(**{**_VARIANTS[env_id], "max_episode_steps": MAX_EPISODE_STEPS, **env_kwargs})
+    return ReachTask(**{**registered_options(env_id), "max_episode_steps": MAX_EPISODE_STEPS, **env_kwargs})
 
 
 register_envs()

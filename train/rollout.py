@@ -13,8 +13,9 @@ same dynamics and goals, so the whole path is there to be checked for collisions
 are read back from the observation's documented ``cos q``, ``sin q`` entries.
 
 For the IK solvers a goal set also carries full goal poses: for position goals, the
-orientation comes from ``IiwaReachPose-v0`` with the same seeds (the same configuration
-is drawn for the goal; this is checked position by position).
+orientation comes from ``IiwaReachPose-v0`` with the same seeds and the env's other options
+(its obstacles: the same configuration is drawn for the goal; this is checked position by
+position).
 """
 
 from __future__ import annotations
@@ -85,13 +86,17 @@ class Rollout:
 
 def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None = None) -> GoalSet:
     """``n`` held-out goals of ``env_id`` (one of ``envs.ENV_IDS``) for goal-set ``seed``."""
+    from envs import registered_options
     from envs.goals import decode_pose_goal
 
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive int, got {n!r}")
     env_kwargs = dict(env_kwargs or {})
     desired = _env(env_id, n, seed, env_kwargs).reset()["desired_goal"]
-    pose_goal = desired if env_id == POSE_ENV else _env(POSE_ENV, n, seed, env_kwargs).reset()["desired_goal"]
+    # the pose env with env_id's other options (its obstacles, say) draws the same goal configurations
+    same_world = {k: v for k, v in registered_options(env_id).items() if k not in ("goal", "reward")}
+    pose_goal = desired if env_id == POSE_ENV else \
+        _env(POSE_ENV, n, seed, {**same_world, **env_kwargs}).reset()["desired_goal"]
     if not np.allclose(pose_goal[:, :3], desired[:, :3], atol=1e-6):
         raise RuntimeError(f"{POSE_ENV} and {env_id} draw different goals for the same seeds: no goal poses")
     return GoalSet(env_id, seed, env_kwargs, desired, decode_pose_goal(pose_goal))
