@@ -204,6 +204,34 @@ def _segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> T
     return _box_sdf(points, half[..., None, :]).amin(-1)
 
 
+def _culled_box_distance(a: Tensor, b: Tensor, pose: Tensor, half: Tensor, radius: Tensor,
+                         found: list[Tensor]) -> Tensor:
+    """Capsule-box distances ``(..., K, M)`` (segments ``a b`` ``(..., K, 1, 3)``, boxes
+    ``(..., 1, M, ...)``, radii ``(K, 1)``) that are exact where they can be the minimum over
+    them and ``found`` (earlier distances, each broadcasting to the batch ``(...)``), and
+    lower bounds elsewhere: a query's minimum (value and gradient) is unchanged.
+
+    With ``m`` the segment's midpoint, ``l`` its half length and ``c`` the box centre, the
+    distance lies between ``|m - c| - l - |h| - r`` (every point of the box is within ``|h|``
+    of ``c``) and ``|m - c| - r`` (``c`` is inside the box); the exact closed form runs only on
+    pairs whose lower bound is below the smallest upper bound. Boxes far from the arm, such as
+    the parked stand-ins of an env's absent obstacles, cost a few ops instead of the search."""
+    centre = pose[..., :3, 3]
+    mid, span = (a + b) / 2, _safe_norm(b - a) / 2  # (..., K, 1, 3), (..., K, 1)
+    gap = _safe_norm(mid - centre)  # (..., K, M)
+    shape = gap.shape
+    lower = gap - span - _safe_norm(half) - radius
+    upper = (gap - radius).flatten(-2).amin(-1)
+    for f in found:
+        upper = torch.minimum(upper, f)
+    near = lower <= upper[..., None, None]
+    if bool(near.all()):
+        return _segment_box_distance(a, b, pose, half) - radius
+    pick = [x.expand(*shape, *x.shape[x.ndim - k:])[near] for x, k in ((a, 1), (b, 1), (pose, 2), (half, 1))]
+    exact = _segment_box_distance(*pick) - radius.expand(shape)[near]
+    return lower.masked_scatter(near, exact)
+
+
 # ---------------------------------------------------------------------------- robot model
 @dataclass(frozen=True)
 class Capsules:
@@ -609,11 +637,12 @@ def _resolve(chain: DHChain, q: Tensor, world: World | None, capsules: Capsules 
 
 
 def _distances(
-    chain: DHChain, q: Tensor, world: World, capsules: Capsules
+    chain: DHChain, q: Tensor, world: World, capsules: Capsules, cull: bool = False
 ) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
     """The robot's own distances (self pairs, then floor) ``(P, B)`` over the flattened batch,
     the other obstacles' ``(..., M)`` blocks, and every pair's names in that order, for
-    arguments :func:`_resolve` returned."""
+    arguments :func:`_resolve` returned. ``cull``: only the minimum matters (see
+    :func:`_culled_box_distance`)."""
     tables = capsules._index_tables(q.dtype, q.device)
     names = capsules.names
     has_floor, has_obstacles = world.floor is not None, bool(world.tensors())
@@ -658,8 +687,14 @@ def _distances(
             labels += [(names[x], f"sphere{m}") for x in idx for m in range(centre.shape[-2])]
         if world.boxes is not None:
             pose, half = world.boxes
-            dist = _segment_box_distance(a, b, pose[..., None, :, :, :], half[..., None, :, :])
-            others.append((dist - r).flatten(-2))
+            pose, half = pose[..., None, :, :, :], half[..., None, :, :]
+            if cull:
+                found = [] if own is None else [torch.cat(own, 1).amin(0).reshape(lead)]
+                found += [o.amin(-1) for o in others]
+                dist = _culled_box_distance(a, b, pose, half, r, found)
+            else:
+                dist = _segment_box_distance(a, b, pose, half) - r
+            others.append(dist.flatten(-2))
             labels += [(names[x], f"box{m}") for x in idx for m in range(pose.shape[-3])]
         if world.capsules is not None:
             pts, rad = world.capsules
@@ -698,7 +733,7 @@ def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: C
     world, capsules = _resolve(chain, q, world, capsules)
     if _numpy_ok(chain, q, world, capsules):
         return _clearance_numpy(chain, q, world, capsules)
-    own, others, _ = _distances(chain, q, world, capsules)
+    own, others, _ = _distances(chain, q, world, capsules, cull=True)
     mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others]
     shape = torch.broadcast_shapes(*(m.shape for m in mins))
     return torch.stack([m.expand(shape) for m in mins]).amin(0)

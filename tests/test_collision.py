@@ -504,3 +504,32 @@ def test_one_configuration_equals_its_row_of_a_large_batch():
     single = torch.stack([pairwise_clearance(chain, row, world).distance for row in q[:40]])
     torch.testing.assert_close(single, batch[:40], atol=1e-12, rtol=0)
     torch.testing.assert_close(clearance(chain, q, world), batch.amin(-1), atol=0, rtol=0)
+
+
+@pytest.mark.parametrize("world_batch", [(), (60,)])
+def test_clearance_skips_far_boxes_without_changing_the_minimum_or_its_gradient(world_batch):
+    # clearance runs the exact segment-box search only on pairs that can be the minimum; the
+    # reference is every pair's exact distance (pairwise_clearance, checked against coal above)
+    chain = robots.iiwa14()
+    rng = np.random.default_rng(11)
+    q = chain.random_q(60, generator=torch.Generator().manual_seed(11)).requires_grad_()
+    m = 5
+    rot = torch.from_numpy(np.stack([_random_rotation(rng) for _ in range(int(np.prod(world_batch, dtype=int)) * m)]))
+    pose = torch.eye(4, dtype=torch.float64).repeat(rot.shape[0], 1, 1)
+    pose[:, :3, :3] = rot
+    # centres from touching the arm's workspace to far outside it (and one parked 100 m up)
+    radius = rng.uniform(0.5, 3.0, rot.shape[0])
+    direction = rng.normal(size=(rot.shape[0], 3))
+    pose[:, :3, 3] = torch.from_numpy(direction / np.linalg.norm(direction, axis=-1, keepdims=True) * radius[:, None])
+    pose[0, :3, 3] = torch.tensor([0.0, 0.0, 100.0])
+    pose = pose.reshape(*world_batch, m, 4, 4).requires_grad_()
+    half = torch.from_numpy(rng.uniform(0.02, 0.3, (*world_batch, m, 3)))
+    world = World(floor=-0.2, boxes=(pose, half))
+    got = clearance(chain, q, world)
+    ref = pairwise_clearance(chain, q, world).distance.amin(-1)
+    assert torch.equal(got, ref)
+    assert (got < 0).any() and (got > 0).any()
+    g_got = torch.autograd.grad(got.sum(), (q, pose))
+    g_ref = torch.autograd.grad(ref.sum(), (q, pose))
+    for a, b in zip(g_got, g_ref):
+        assert torch.allclose(a, b, atol=1e-12)
