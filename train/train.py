@@ -51,6 +51,7 @@ CONFIG_DIR = Path(__file__).resolve().parent / "config"
 _TRAINER_KEYS = {
     "n_envs", "n_timesteps", "policy", "normalize", "env_kwargs", "features_extractor_kwargs",
     "eval_freq", "eval_goals", "checkpoint_freq", "her", "log_distance_bonus", "features_extractor",
+    "clearance_penalty",
 }
 _EXTRACTORS = ("goal_delta", "joint")
 _ACTIVATIONS = ("tanh", "relu", "elu")
@@ -161,8 +162,9 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
     if hp.get("her") is not None:
         if algo != "sac":
             raise ValueError("her (a replay-buffer option) needs an off-policy algo (sac)")
-        if hp.get("log_distance_bonus") is not None:
-            raise ValueError("log_distance_bonus cannot be combined with her: relabelled rewards would not include it")
+        for key in ("log_distance_bonus", "clearance_penalty"):
+            if hp.get(key) is not None:
+                raise ValueError(f"{key} cannot be combined with her: relabelled rewards would not include it")
         kwargs["replay_buffer_class"] = HerReplayBuffer
         kwargs["replay_buffer_kwargs"] = dict(hp["her"])
     return kwargs
@@ -238,14 +240,17 @@ def make_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any] | N
 
 def build_venv(env_id: str, hp: dict[str, Any], seed: int):
     """``make_env`` plus ``VecMonitor`` (episode return, length and success in the logs) and, if the
-    hyper-parameters ask, the ``LogDistanceBonus`` reward term (before any normalisation)."""
+    hyper-parameters ask, the ``LogDistanceBonus`` and ``ClearancePenalty`` reward terms (before any
+    normalisation)."""
     from stable_baselines3.common.vec_env import VecMonitor
 
-    from train.wrappers import LogDistanceBonus
+    from train.wrappers import ClearancePenalty, LogDistanceBonus
 
     venv = VecMonitor(make_env(env_id, hp["n_envs"], seed, hp.get("env_kwargs")))
     if hp.get("log_distance_bonus") is not None:
         venv = LogDistanceBonus(venv, **hp["log_distance_bonus"])
+    if hp.get("clearance_penalty") is not None:
+        venv = ClearancePenalty(venv, **hp["clearance_penalty"])
     return venv
 
 

@@ -7,14 +7,26 @@ slope ``weight / (eps + d)``: negligible far away, several times ``-d``'s slope 
 centimetre, and it is scale-free in between (halving the error is worth the same at any
 distance much larger than ``eps``).
 
+``ClearancePenalty`` gives the rare collisions a signal on many more steps than the
+collisions themselves: ``-weight * (1 - clearance / margin)`` on every step whose clearance
+(floor, the arm itself, the episode's obstacles) is below ``margin``, rising to ``-weight`` at
+contact; the env's own collision penalty still applies below zero.
+
 Only for on-policy training: HER relabels goals through the env's ``compute_reward``,
-which this wrapper does not change.
+which these wrappers do not change.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
+
+
+def _positive(**values) -> None:
+    for name, value in values.items():
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
 
 
 class LogDistanceBonus(VecEnvWrapper):
@@ -27,9 +39,7 @@ class LogDistanceBonus(VecEnvWrapper):
     """
 
     def __init__(self, venv: VecEnv, weight: float = 0.01, eps: float = 0.001):
-        for name, value in (("weight", weight), ("eps", eps)):
-            if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
-                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        _positive(weight=weight, eps=eps)
         super().__init__(venv)
         self.weight, self.eps = float(weight), float(eps)
 
@@ -41,3 +51,43 @@ class LogDistanceBonus(VecEnvWrapper):
         distance = np.array([info["distance"] for info in infos], dtype=np.float64)
         bonus = -self.weight * np.log1p(distance / self.eps)
         return obs, (reward + bonus).astype(np.float32), done, infos
+
+
+class ClearancePenalty(VecEnvWrapper):
+    """``reward - weight * clip(1 - clearance / margin, 0, 1)``, the clearance (m) of the
+    configuration each step ended in (for a finished episode, its last one), recomputed from
+    the observation (``cos q``, ``sin q`` and the obstacle block) in one batched call.
+
+    Args:
+        venv: an ``envs.sb3.IiwaReachVecEnv`` (possibly wrapped) with collision checks on.
+        margin: the clearance (m) below which the penalty starts (> 0).
+        weight: the penalty at contact, in reward units (> 0).
+    """
+
+    def __init__(self, venv: VecEnv, margin: float = 0.02, weight: float = 0.1):
+        _positive(margin=margin, weight=weight)
+        super().__init__(venv)
+        self.task = venv.unwrapped.task
+        if self.task.world is None:
+            raise ValueError("ClearancePenalty needs an env with collision checks (collision='off' has no world)")
+        self.margin, self.weight = float(margin), float(weight)
+
+    def reset(self):
+        return self.venv.reset()
+
+    def clearance(self, observation: np.ndarray) -> np.ndarray:
+        """Observations ``(n, D)`` -> clearance ``(n,)``, m."""
+        nj, world = self.task.arm.n_joints, self.task.world
+        obs = torch.as_tensor(observation, dtype=self.task.dtype)
+        q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
+        block = obs[:, 3 * nj : 3 * nj + world.block_size].T if world.slots else None
+        with torch.no_grad():
+            return world.clearance(q, block).double().numpy()
+
+    def step_wait(self):
+        obs, reward, done, infos = self.venv.step_wait()
+        last = obs["observation"].copy()
+        for i in np.flatnonzero(done):
+            last[i] = infos[i]["terminal_observation"]["observation"]
+        shortfall = np.clip(1.0 - self.clearance(last) / self.margin, 0.0, 1.0)
+        return obs, (reward - self.weight * shortfall).astype(np.float32), done, infos
