@@ -19,7 +19,7 @@ import torch
 
 import envs
 from envs.world import SLOT_SIZE
-from iiwa_torch.collision import World, pairwise_clearance, robot_capsules
+from iiwa_torch.collision import World, clearance, pairwise_clearance, robot_capsules
 from iiwa_torch.robots import IIWA_HOME
 from train import callbacks
 from train import evaluate as ev
@@ -88,11 +88,12 @@ def hand_goals() -> GoalSet:
                    collision_checked=True)
 
 
-def test_goal_set_clearance_against_hand_placed_obstacles():
+def test_goal_set_world_against_hand_placed_obstacles():
     goals = hand_goals()
-    q = np.broadcast_to(UPRIGHT, (2, goals.n, 7))  # (T + 1, n, nj)
+    q = torch.zeros(2, goals.n, 7, dtype=F)  # (T + 1, n, nj): upright throughout
     assert goals.world().batch_shape == (goals.n,)
-    np.testing.assert_allclose(goals.clearance(q), np.broadcast_to(UPRIGHT_CLEARANCE, (2, goals.n)), atol=1e-6)
+    got = clearance(goals.robot, q, goals.world()).numpy()
+    np.testing.assert_allclose(got, np.broadcast_to(UPRIGHT_CLEARANCE, (2, goals.n)), atol=1e-6)
     # each goal drawn alone: only its active obstacles
     for i in range(goals.n):
         w = goals.goal_world(i)
@@ -137,19 +138,46 @@ def test_collision_counts_match_a_configuration_by_configuration_recount():
 
 def test_periodic_summary_counts_collisions_on_the_way():
     goals = hand_goals()
-    # goal 2 dips into the floor mid-way, goal 3 sits in its sphere throughout; goal 1 misses (2 cm)
-    q = np.broadcast_to(UPRIGHT, (3, goals.n, 7)).copy()
-    q[1, 2] = DOWN
+    # goal 2 collides mid-way only, goal 3 at the end only; goal 1 misses (2 cm)
+    collision = np.zeros((3, goals.n), bool)
+    collision[1, 2] = collision[2, 3] = True
     distance = np.array([[0.3] * 4, [0.1] * 4, [0.001, 0.02, 0.005, 0.0]])
-    r = Rollout(distance, np.zeros_like(distance), q, 0.0, 0.0)
-    s = PolicyEvaluator(goals, 0.01).summary(r)
+    q = np.zeros((3, goals.n, 7))
+    s = PolicyEvaluator(goals, 0.01).summary(Rollout(distance, np.zeros_like(distance), q, 0.0, 0.0, collision))
     assert s["success"] == 0.75  # goals 0, 2, 3
     assert s["collisions"] == 0.5  # goals 2, 3
     assert s["success_collision_free"] == 0.25  # goal 0 alone
+    # pose goals: success needs the angle too (goal 0 is 0.2 rad off)
+    angle = np.zeros_like(distance)
+    angle[-1, 0] = 0.2
+    pose = PolicyEvaluator(goals, 0.01, 0.1).summary(Rollout(distance, angle, q, 0.0, 0.0, collision))
+    assert (pose["success"], pose["success_collision_free"]) == (0.5, 0.0)
+    # an env without collision checks: no flags, no keys
+    assert "collisions" not in PolicyEvaluator(goals, 0.01).summary(Rollout(distance, angle, q, 0.0, 0.0))
+
+
+def test_rollout_flags_are_the_envs_collisions_recounted(step0_model):
+    """The rollout's flags (the env's own, float32) against every configuration's clearance recomputed in
+    float64 in each goal's world, goal by goal; and none for collision="off"."""
+    goals = make_goal_set(ENV, 32, 5, {"collision_penalty": 10.0})
+    model, vec_normalize, _ = ev.load_policy(step0_model)
+    r = PolicyEvaluator(goals, 0.01).rollout(model, vec_normalize)
+    assert r.collision.shape == r.distance.shape and not r.collision[0].any()
+    recount = np.stack([clearance(goals.robot, torch.as_tensor(r.q[:, i]), goals.goal_world(i)).numpy() < 0
+                        for i in range(goals.n)], 1)
+    assert recount.any(), "the untrained policy runs into some obstacle on these goals"
+    np.testing.assert_array_equal(r.collision, recount)
     off = make_goal_set("IiwaReach-v0", 4, 0, {"collision": "off"})
-    assert off.world() is None
-    r_off = Rollout(distance, np.zeros_like(distance), q, 0.0, 0.0)
-    assert "collisions" not in PolicyEvaluator(off, 0.01).summary(r_off)
+    assert off.world() is None and off.goal_world(0) is None
+    assert PolicyEvaluator(off, 0.01).rollout(model_for("IiwaReach-v0"), None).collision is None
+
+
+def model_for(env_id: str):
+    from stable_baselines3 import PPO
+
+    from train.train import make_env
+
+    return PPO("MultiInputPolicy", make_env(env_id, 1, 0, {"collision": "off"}), device="cpu", seed=0)
 
 
 def test_best_model_prefers_collision_free_success():

@@ -598,6 +598,7 @@ def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: d
     from matplotlib.figure import Figure
 
     from envs.world import SLOT_SIZE
+    from iiwa_torch.collision import clearance
     from iiwa_torch.viz import draw_chain, plot_world, side_view
 
     chain = goals.robot
@@ -607,7 +608,6 @@ def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: d
     chosen = picture_goals(p["collided"], failed, count)
     why = [w for w, mask in (("the first colliding rollout", p["collided"]),
                              ("the first miss", failed & ~p["collided"])) if mask.any()]
-    path_clearance = goals.clearance(p["q_path"]).min(0)  # (n,) m
     fig = Figure(figsize=(12, 11.5), dpi=100)
     cols = 2
     rows = math.ceil(len(chosen) / cols)
@@ -616,6 +616,7 @@ def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: d
         q = torch.as_tensor(p["q_path"][:, i], dtype=torch.float64)
         ee = chain.fk(q)[:, :3, 3].double().numpy()  # (T + 1, 3)
         world = goals.goal_world(i)
+        path_clearance = clearance(chain, q, world).min().item()  # m
         with torch.no_grad():
             joints = chain.fk_all(q[[0, -1]])[..., :3, 3].double().numpy().reshape(-1, 3)
         goal = goals.desired_goal[i, :3].astype(np.float64)
@@ -642,7 +643,7 @@ def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: d
         hit = "collided on the way" if p["collided"][i] else "no collision"
         ax.set_title(f"goal {i} ({count[i]} obstacle{'s' if count[i] != 1 else ''}): {reached}, final error "
                      f"{1e3 * p['final_error'][i]:.2g} mm;\n{hit}, min clearance along the path "
-                     f"{1e3 * path_clearance[i]:.0f} mm", fontsize=9)
+                     f"{1e3 * path_clearance:.0f} mm", fontsize=9)
     handles = [mlines.Line2D([], [], color="tab:purple", ls="--", lw=2, label="end-effector path (50 steps)"),
                mlines.Line2D([], [], color="0.6", lw=3, label="arm at home (start)"),
                mlines.Line2D([], [], color="tab:orange", lw=3, label="arm at the end, capsules blue"),

@@ -17,7 +17,8 @@ orientation comes from ``IiwaReachPose-v0`` with the same seeds and the env's ot
 (its obstacles: the same configuration is drawn for the goal; this is checked position by
 position, and obstacle by obstacle). It carries the env's world too, so that every method is
 checked in the same one: the floor, the arm's own capsules and, for ``IiwaReachObstacles-v0``,
-each goal's obstacles as its env observed them at reset (``GoalSet.world``, ``GoalSet.clearance``).
+each goal's obstacles as its env observed them at reset (``GoalSet.world``). A rollout also keeps
+the env's own collision flag of every configuration.
 """
 
 from __future__ import annotations
@@ -99,16 +100,6 @@ class GoalSet:
             return World(floor=self.floor)
         return active_obstacles(torch.as_tensor(self.obstacles[i], dtype=torch.float64), self.floor)
 
-    def clearance(self, q: np.ndarray) -> np.ndarray:
-        """Joint angles ``(..., n, nj)`` (rad; goal ``i`` in column ``i``) -> ``(..., n)`` float64
-        clearance (m) in :meth:`world` (self, floor, that goal's obstacles): one batched
-        :func:`iiwa_torch.collision.clearance` call. Only for a set whose env checks collisions."""
-        from iiwa_torch.collision import clearance
-
-        if not self.collision_checked:
-            raise ValueError(f"{self.env_id} with collision='off' checks no collisions")
-        return clearance(self.robot, torch.tensor(np.asarray(q), dtype=torch.float64), self.world()).numpy()
-
 
 @dataclass(frozen=True)
 class Rollout:
@@ -119,6 +110,9 @@ class Rollout:
     q: ``(T + 1, n, nj)`` joint angles (rad) along the way.
     seconds: wall time of the whole rollout (policy and env), s.
     act_seconds: the part of it spent in ``act`` (the policy alone), s.
+    collision: ``(T + 1, n)`` bool, the env's own ``info["collision"]`` at each configuration (its
+    clearance in float32 below 0; the reset configuration is collision-free by construction), or
+    None for an env that checks no collisions.
     """
 
     distance: np.ndarray
@@ -126,6 +120,7 @@ class Rollout:
     q: np.ndarray
     seconds: float
     act_seconds: float
+    collision: np.ndarray | None = None
 
 
 def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None = None) -> GoalSet:
@@ -176,6 +171,8 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
     dist = [np.linalg.norm(obs["achieved_goal"][:, :3] - obs["desired_goal"][:, :3], axis=-1)]
     angle = [np.zeros(goals.n)]
     q = [joints(obs["observation"])]
+    checked = env.task.world is not None
+    collision = [np.array([i["collision"] for i in env.reset_infos])] if checked else None
     act_seconds = 0.0
     for t in range(steps):
         tic = time.perf_counter()
@@ -184,6 +181,8 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
         obs, _, done, infos = env.step(action)
         dist.append(np.array([i["distance"] for i in infos]))
         angle.append(np.array([i.get("orientation_error", 0.0) for i in infos]))
+        if checked:
+            collision.append(np.array([i["collision"] for i in infos]))
         last = np.stack([i["terminal_observation"]["observation"] for i in infos]) if t == steps - 1 \
             else obs["observation"]
         q.append(joints(last))
@@ -191,7 +190,8 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
     if not all(i.get("TimeLimit.truncated", False) for i in infos):
         raise RuntimeError(f"expected every episode to end by time limit after {steps} steps")
     return Rollout(np.array(dist, dtype=np.float64), np.array(angle, dtype=np.float64),
-                   np.array(q, dtype=np.float64), seconds, act_seconds)
+                   np.array(q, dtype=np.float64), seconds, act_seconds,
+                   None if collision is None else np.array(collision, dtype=bool))
 
 
 def policy_actor(model, vec_normalize=None) -> Actor:
@@ -263,12 +263,13 @@ class PolicyEvaluator:
 
     def summary(self, r: Rollout) -> dict[str, float]:
         """:func:`summarise_finals` of the final errors; for an env that checks collisions also
-        ``collisions`` (share of rollouts with a configuration, of the ``T + 1``, whose clearance in
-        :meth:`GoalSet.world` is negative) and ``success_collision_free`` (success and no collision)."""
+        ``collisions`` (share of rollouts with a colliding configuration, of the ``T + 1``: the env's
+        own flags, :attr:`Rollout.collision`, computed by its step anyway) and
+        ``success_collision_free`` (success and no collision)."""
         angle = r.angle[-1] if self.orientation_threshold is not None else None
         out = summarise_finals(r.distance[-1], self.distance_threshold, angle, self.orientation_threshold)
-        if self.goals.collision_checked:
-            collided = (self.goals.clearance(r.q) < 0).any(0)  # one call over the (T + 1, n) configurations
+        if r.collision is not None:
+            collided = r.collision.any(0)
             ok = reached(r.distance[-1], self.distance_threshold, angle, self.orientation_threshold)
             out["collisions"] = float(np.mean(collided))
             out["success_collision_free"] = float(np.mean(ok & ~collided))
