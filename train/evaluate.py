@@ -22,11 +22,13 @@ Methods, each on every goal:
 
 The IK answers are end configurations, not motions: their "steps to reach" is the number
 of env steps a straight full-speed joint move from home needs, and their path length the
-straight-line joint distance. Collisions: the capsule model and the floor at z = 0 of
-``iiwa_torch.collision`` (the preset's default world); the policy is checked at every step of
-its rollout (and at its final configuration alone), the IK at its solution. Outputs in
-``--out``: ``report.json`` (keys in docs/training.md), ``report.md``, ``final_q.npz`` (each
-method's final joint angles, rad) and PNG plots.
+straight-line joint distance. Collisions: the capsule model of ``iiwa_torch.collision`` in the
+env's world (``GoalSet.world()``: its floor and, for ``IiwaReachObstacles-v0``, each goal's own
+obstacles, which both IK solvers are given too; with ``collision="off"``, the preset's floor at
+z = 0); the policy is checked at every step of its rollout (and at its final configuration
+alone), the IK at its solution. Outputs in ``--out``: ``report.json`` (keys in
+docs/training.md), ``report.md``, ``final_q.npz`` (each method's final joint angles, rad) and
+PNG plots (``rollouts_obstacles.png`` for an env with obstacles).
 """
 
 from __future__ import annotations
@@ -642,7 +644,7 @@ def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: d
         reached = "reached" if not failed[i] else "missed"
         hit = "collided on the way" if p["collided"][i] else "no collision"
         ax.set_title(f"goal {i} ({count[i]} obstacle{'s' if count[i] != 1 else ''}): {reached}, final error "
-                     f"{1e3 * p['final_error'][i]:.2g} mm;\n{hit}, min clearance along the path "
+                     f"{1e3 * p['final_error'][i]:.3g} mm;\n{hit}, min clearance along the path "
                      f"{1e3 * path_clearance:.0f} mm", fontsize=9)
     handles = [mlines.Line2D([], [], color="tab:purple", ls="--", lw=2, label="end-effector path (50 steps)"),
                mlines.Line2D([], [], color="0.6", lw=3, label="arm at home (start)"),
