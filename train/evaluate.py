@@ -634,10 +634,13 @@ def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: d
                zlim=(max(centre[2] - half, (goals.floor or 0.0) - 0.05), centre[2] + half))
         ax.set_box_aspect((1, 1, 1), zoom=0.9)
         ax.view_init(elev=22, azim=side_view(ee))
-        draw_chain(ax, chain, q[0], color="0.6", alpha=0.5)
+        # drawn in order, not depth-sorted: the path and the goal stay visible in front of arm and obstacles
+        ax.computed_zorder = False
         plot_world(chain, q[-1], world, ax=ax, title="end")
+        draw_chain(ax, chain, q[0], color="0.6", alpha=0.5)
         ax.plot(*ee.T, "--", color="tab:purple", lw=2)
-        ax.scatter(*goal[:, None], color="tab:red", marker="*", s=220, depthshade=False, zorder=10)
+        ax.scatter(*ee[0, :, None], color="tab:purple", marker="o", s=30, depthshade=False)
+        ax.scatter(*goal[:, None], color="tab:red", marker="*", s=220, depthshade=False)
         for name in "xyz":
             getattr(ax, f"set_{name}label")(f"{name} (m)", fontsize=8)
         ax.tick_params(labelsize=7)
@@ -646,7 +649,7 @@ def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: d
         ax.set_title(f"goal {i} ({count[i]} obstacle{'s' if count[i] != 1 else ''}): {reached}, final error "
                      f"{1e3 * p['final_error'][i]:.3g} mm;\n{hit}, min clearance along the path "
                      f"{1e3 * path_clearance:.0f} mm", fontsize=9)
-    handles = [mlines.Line2D([], [], color="tab:purple", ls="--", lw=2, label="end-effector path (50 steps)"),
+    handles = [mlines.Line2D([], [], color="tab:purple", ls="--", lw=2, label="end-effector path from home (dot)"),
                mlines.Line2D([], [], color="0.6", lw=3, label="arm at home (start)"),
                mlines.Line2D([], [], color="tab:orange", lw=3, label="arm at the end, capsules blue"),
                mlines.Line2D([], [], color="tab:red", marker="*", ls="", ms=14, label="goal"),
