@@ -108,6 +108,12 @@ class Transport:
             "desired_goal": packed[..., o : o + g],
         }
 
+    def obstacles_of(self, observation: np.ndarray) -> np.ndarray:
+        """The obstacle block of observations ``(..., observation_size)`` -> ``(..., obstacle_size)``
+        (a view; the slot layout is :mod:`envs.world`'s; ``(..., 0)`` without obstacles)."""
+        start = 3 * self.n_joints
+        return observation[..., start : start + self.obstacle_size]
+
     @staticmethod
     def obs_per_env(obs: dict[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
         """An observation dict of ``(m, ...)`` arrays -> ``m`` per-environment dicts of row views

@@ -23,7 +23,7 @@ from iiwa_torch.dh import DHChain
 
 from .seeding import uniform
 
-__all__ = ["SLOT_SIZE", "PARK", "ObstacleWorld", "obstacle_world"]
+__all__ = ["SLOT_SIZE", "PARK", "ObstacleWorld", "obstacle_world", "active_obstacles"]
 
 Tensor = torch.Tensor
 
@@ -66,6 +66,19 @@ def obstacle_world(block: Tensor | None, floor: float | None, extra: int = 0) ->
     sphere_centre, sphere_radius, pose, half = (t.reshape(*lead, *t.shape[1:]) for t in (sphere_centre, sphere_radius,
                                                                                            pose, half))
     return World(floor=floor, spheres=(sphere_centre, sphere_radius), boxes=(pose, half))
+
+
+def active_obstacles(block: Tensor, floor: float | None) -> World:
+    """One env's obstacle block ``(SLOT_SIZE * M,)`` -> an unbatched :class:`World` with the floor at
+    ``floor`` and only the active slots (no stand-ins), e.g. to draw it."""
+    full = obstacle_world(block[:, None], floor)
+    if full.spheres is None:
+        return full
+    b = block.reshape(-1, SLOT_SIZE)
+    active, is_box = b[:, 0] > 0.5, b[:, 1] > 0.5
+    sphere, box = active & ~is_box, active & is_box
+    (centre, radius), (pose, half) = full.spheres, full.boxes
+    return World(floor=floor, spheres=(centre[0, sphere], radius[0, sphere]), boxes=(pose[0, box], half[0, box]))
 
 
 class ObstacleWorld:

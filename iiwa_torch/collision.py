@@ -688,9 +688,9 @@ def _distances(
         if world.boxes is not None:
             pose, half = world.boxes
             pose, half = pose[..., None, :, :, :], half[..., None, :, :]
-            if cull:
+            if cull and pose.shape[-3]:
                 found = [] if own is None else [torch.cat(own, 1).amin(0).reshape(lead)]
-                found += [o.amin(-1) for o in others]
+                found += [o.amin(-1) for o in others if o.shape[-1]]
                 dist = _culled_box_distance(a, b, pose, half, r, found)
             else:
                 dist = _segment_box_distance(a, b, pose, half) - r
@@ -734,7 +734,10 @@ def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: C
     if _numpy_ok(chain, q, world, capsules):
         return _clearance_numpy(chain, q, world, capsules)
     own, others, _ = _distances(chain, q, world, capsules, cull=True)
-    mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others]
+    # a kind given with no obstacle (M = 0) adds no distance
+    mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others if o.shape[-1]]
+    if not mins:
+        raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
     shape = torch.broadcast_shapes(*(m.shape for m in mins))
     return torch.stack([m.expand(shape) for m in mins]).amin(0)
 
@@ -747,7 +750,8 @@ def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bo
         return False
     tables = capsules._numpy_tables()
     floor = world.floor is not None and tables["floor"].size > 0
-    return bool(capsules.pairs) or floor or (world.spheres is not None and tables["world"].size > 0)
+    spheres = world.spheres is not None and world.spheres[1].shape[-1] > 0
+    return bool(capsules.pairs) or floor or (spheres and tables["world"].size > 0)
 
 
 def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
@@ -770,7 +774,7 @@ def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules
         mins.append((low - (tables["floor_radius"] + world.floor)).min(0))
     mins = [m.reshape(lead) for m in mins]
     idx = tables["world"]
-    if world.spheres is not None and idx.size:
+    if world.spheres is not None and idx.size and world.spheres[1].shape[-1]:
         centre, rad = (t.detach().numpy().astype(np.float64) for t in world.spheres)
         a, b = (x.transpose(1, 0, 2).reshape(*lead, idx.size, 1, 3) for x in (start[idx], start[idx] + direction[idx]))
         c = centre[..., None, :, :]

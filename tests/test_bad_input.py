@@ -367,6 +367,11 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"env_id": "IiwaReach-v0"},
         bad=(("env_id", "IiwaReach-v9"), ("env_id", 3)),
     ),
+    "envs:registered_options": Entry(
+        envs.registered_options,
+        lambda: {"env_id": "IiwaReachObstacles-v0"},
+        bad=(("env_id", "IiwaReach-v9"), ("env_id", 3)),
+    ),
     "envs.core:ReachTask": Entry(ReachTask, lambda: {}, bad=_TASK_OPTIONS),
     "envs.reach:IiwaReachEnv": Entry(IiwaReachEnv, lambda: {}, bad=_TASK_OPTIONS + (("render_mode", "video"),)),
     "IiwaReachEnv.step": Entry(

@@ -331,6 +331,22 @@ def test_batched_shapes_dtypes_and_per_environment_worlds():
     torch.testing.assert_close(clearance(chain, q64.float(), w32), d.float(), atol=1e-5, rtol=0)
 
 
+@pytest.mark.parametrize("n", [3, 100])  # the numpy path for a few configurations, torch beyond
+def test_a_kind_with_no_obstacle_adds_nothing(n):
+    """Spheres and boxes given with M = 0 (e.g. an env whose obstacles are all of the other kind) are no
+    obstacles: the same clearance as the floor alone, and no pair columns for them."""
+    chain = robots.iiwa14()
+    q = chain.random_q(n, generator=torch.Generator().manual_seed(2))
+    empty = World(spheres=(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, dtype=torch.float64)),
+                  boxes=(torch.zeros(0, 4, 4, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64)))
+    torch.testing.assert_close(clearance(chain, q, empty), clearance(chain, q, World()), rtol=0, atol=1e-12)
+    assert pairwise_clearance(chain, q, empty).pairs == pairwise_clearance(chain, q, World()).pairs
+    box = (torch.eye(4, dtype=torch.float64)[None].clone(), torch.full((1, 3), 0.05, dtype=torch.float64))
+    box[0][0, :3, 3] = torch.tensor([0.5, 0.0, 0.5])
+    only_boxes = World(spheres=empty.spheres, boxes=box)
+    torch.testing.assert_close(clearance(chain, q, only_boxes), clearance(chain, q, World(boxes=box)))
+
+
 def test_clearance_gradient_in_q_and_obstacles():
     chain = robots.iiwa14()
     q = chain.random_q(3, generator=torch.Generator().manual_seed(6)).requires_grad_()

@@ -146,12 +146,14 @@ def test_ship_best_needs_a_best_record(scripted_run, tmp_path, capsys):
 
 
 def test_real_best_matches_evaluations_and_reevaluates_the_same(tmp_path):
-    """Without a script: the best record is the max of evaluations.json by (success, -median), found
-    here by sorting, and its model re-evaluated on the periodic goal set gives the recorded metrics."""
+    """Without a script: the best record is the max of evaluations.json by (collision-free success, -median)
+    (the default env checks collisions), found here by sorting, and its model re-evaluated on the periodic goal
+    set gives the recorded metrics."""
     run = tmp_path / "sac"
     assert tr.main(sac_run(run, 400, 100)) == 0
     evaluations = json.loads((run / "evaluations.json").read_text())
-    ranked = sorted(evaluations, key=lambda e: (-e["success"], e["median_distance"], e["steps"]))
+    assert all({"collisions", "success_collision_free"} <= set(e) for e in evaluations)
+    ranked = sorted(evaluations, key=lambda e: (-e["success_collision_free"], e["median_distance"], e["steps"]))
     best = RunDir(run).read_best()
     assert best["evaluation"] == ranked[0]
     env_kwargs = RunDir(run).read_config()["hyperparams"].get("env_kwargs") or {}
@@ -166,4 +168,5 @@ def test_real_best_matches_evaluations_and_reevaluates_the_same(tmp_path):
     threshold = envs.make_task("IiwaReach-v0", **env_kwargs).distance_threshold
     metrics, _ = PolicyEvaluator(goals, threshold)(model, vec_normalize)
     assert metrics["success"] == best["evaluation"]["success"]
+    assert metrics["success_collision_free"] == best["evaluation"]["success_collision_free"]
     assert metrics["median_distance"] == pytest.approx(best["evaluation"]["median_distance"], rel=1e-9)

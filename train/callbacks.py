@@ -31,10 +31,13 @@ class TrainClock:
 
 def improves(entry: dict[str, Any], best: dict[str, Any] | None) -> bool:
     """True if evaluation ``entry`` beats ``best`` (None: nothing yet): higher success, or the same
-    success and a lower median final distance."""
+    success and a lower median final distance. Success is ``success_collision_free`` when the entry
+    has it (an env that checks collisions); a best recorded without it (a run resumed across this
+    change) is compared by its ``success``, an upper bound of its collision-free success."""
     if best is None:
         return True
-    return (entry["success"], -entry["median_distance"]) > (best["success"], -best["median_distance"])
+    key = "success_collision_free" if "success_collision_free" in entry else "success"
+    return (entry[key], -entry["median_distance"]) > (best.get(key, best["success"]), -best["median_distance"])
 
 
 class EvalAndCheckpoint(BaseCallback):
@@ -97,12 +100,15 @@ class EvalAndCheckpoint(BaseCallback):
         if new_best:
             self.run.save_best(self.model, entry)
             self.best = entry
-        for key in ("success", "median_distance", "p95_distance"):
-            self.logger.record(f"eval/{key}", entry[key])
+        for key in ("success", "median_distance", "p95_distance", "collisions", "success_collision_free"):
+            if key in entry:
+                self.logger.record(f"eval/{key}", entry[key])
         if self.verbose:
+            collisions = f" collisions={entry['collisions']:.3f} collision-free success=" \
+                f"{entry['success_collision_free']:.3f}" if "collisions" in entry else ""
             print(f"[eval] steps={entry['steps']} wall={entry['wall_time']:.0f}s success={entry['success']:.3f} "
                   f"median={1000 * entry['median_distance']:.1f}mm p95={1000 * entry['p95_distance']:.1f}mm"
-                  f"{' (best so far: saved)' if new_best else ''}", flush=True)
+                  f"{collisions}{' (best so far: saved)' if new_best else ''}", flush=True)
         return entry
 
     def checkpoint(self) -> Path:

@@ -22,11 +22,13 @@ Methods, each on every goal:
 
 The IK answers are end configurations, not motions: their "steps to reach" is the number
 of env steps a straight full-speed joint move from home needs, and their path length the
-straight-line joint distance. Collisions: the capsule model and the floor at z = 0 of
-``iiwa_torch.collision`` (the preset's default world); the policy is checked at every step of
-its rollout (and at its final configuration alone), the IK at its solution. Outputs in
-``--out``: ``report.json`` (keys in docs/training.md), ``report.md``, ``final_q.npz`` (each
-method's final joint angles, rad) and PNG plots.
+straight-line joint distance. Collisions: the capsule model of ``iiwa_torch.collision`` in the
+env's world (``GoalSet.world()``: its floor and, for ``IiwaReachObstacles-v0``, each goal's own
+obstacles, which both IK solvers are given too; with ``collision="off"``, the preset's floor at
+z = 0); the policy is checked at every step of its rollout (and at its final configuration
+alone), the IK at its solution. Outputs in ``--out``: ``report.json`` (keys in
+docs/training.md), ``report.md``, ``final_q.npz`` (each method's final joint angles, rad) and
+PNG plots (``rollouts_obstacles.png`` for an env with obstacles).
 """
 
 from __future__ import annotations
@@ -129,26 +131,32 @@ def _limit_violations(chain, q) -> int:
     return int((~chain.within_limits(torch.as_tensor(q, dtype=torch.float64), tol=1e-9)).sum())
 
 
-def collision_metrics(chain, q_path: np.ndarray) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+def collision_metrics(chain, q_path: np.ndarray, world=None) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     """Collisions along ``q_path (T + 1, n, nj)`` (rad; ``T = 0`` for an end configuration alone) with the
-    preset's capsules and default world (floor at z = 0): a goal collides if any of its configurations has
-    a signed distance below 0. ``(metrics, floor_hit (n,) bool)``: counts over goals, clearances (m) of the
-    per-goal minimum over the path. ``(metrics, floor_hit (n,) bool, collided (n,) bool)``: which goals
-    touch the floor, which collide at all."""
+    preset's capsules in ``world`` (an :class:`iiwa_torch.collision.World`, batch ``()`` or ``(n,)``: goal
+    ``i``'s obstacles; None: the preset's default world, the floor at z = 0): a goal collides if any of
+    its configurations has a signed distance below 0. Counts over goals, clearances (m) of the per-goal
+    minimum over the path; with obstacles in the world also ``obstacle_collisions``.
+    ``(metrics, floor_hit (n,) bool, collided (n,) bool)``: which goals touch the floor, which collide at all."""
     import torch
 
     from iiwa_torch.collision import pairwise_clearance, robot_capsules
 
     capsules = robot_capsules(chain)
     q = torch.as_tensor(q_path, dtype=torch.float64)
-    pairs = pairwise_clearance(chain, q, capsules=capsules)  # one batched call over (T + 1, n)
-    floor = torch.tensor([b == "floor" for _, b in pairs.pairs])
+    pairs = pairwise_clearance(chain, q, world, capsules=capsules)  # one batched call over (T + 1, n)
+    kind = ["self" if k < len(capsules.pairs) else "floor" if b == "floor" else "obstacle"
+            for k, (_, b) in enumerate(pairs.pairs)]
     per_goal = pairs.distance.amin(0)  # (n, P): the worst moment of each pair
     lowest = per_goal.amin(-1).numpy()
-    floor_min = per_goal[:, floor].amin(-1).numpy() if floor.any() else np.full(len(lowest), np.inf)
-    self_min = per_goal[:, ~floor].amin(-1).numpy() if (~floor).any() else np.full(len(lowest), np.inf)
+
+    def lowest_of(name: str) -> np.ndarray:
+        mask = torch.tensor([k == name for k in kind])
+        return per_goal[:, mask].amin(-1).numpy() if mask.any() else np.full(len(lowest), np.inf)
+
+    floor_min, self_min = lowest_of("floor"), lowest_of("self")
     final = pairs.distance[-1].amin(-1).numpy()
-    return {
+    metrics = {
         "collisions": int((lowest < 0).sum()),
         "collision_share": float(np.mean(lowest < 0)),
         "floor_collisions": int((floor_min < 0).sum()),
@@ -156,7 +164,10 @@ def collision_metrics(chain, q_path: np.ndarray) -> tuple[dict[str, Any], np.nda
         "final_collisions": int((final < 0).sum()),
         "min_clearance_median_m": float(np.median(lowest)),
         "min_clearance_worst_m": float(lowest.min()),
-    }, floor_min < 0, lowest < 0
+    }
+    if "obstacle" in kind:
+        metrics["obstacle_collisions"] = int((lowest_of("obstacle") < 0).sum())
+    return metrics, floor_min < 0, lowest < 0
 
 
 def _median_time(fn, reps: int) -> float:
@@ -169,7 +180,9 @@ def _median_time(fn, reps: int) -> float:
 
 
 def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """The deterministic policy on every goal (one batched rollout), then ``SINGLE_GOALS`` single-goal rollouts."""
+    """The deterministic policy on every goal (one batched rollout), then ``SINGLE_GOALS`` single-goal rollouts.
+    Collisions are counted at every configuration of the rollout in ``goals.world()`` (the preset's default
+    floor if the env checks none)."""
     from train.rollout import PolicyEvaluator, make_goal_set, policy_actor, rollout
 
     pose = goals.env_id == POSE_ENV
@@ -188,7 +201,7 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     # the policy network alone, all steps
     metrics["network_time_per_goal_batched_s"] = float(np.median([x.act_seconds for x in runs])) / goals.n
     lo, hi = chain.limits.numpy()
-    collisions, floor_hit, collided = collision_metrics(chain, r.q)
+    collisions, floor_hit, collided = collision_metrics(chain, r.q, goals.world())
     metrics.update(collisions)
     # what the default env (collision="terminate") counts: reached, and never a collision on the way
     metrics["success@1cm_collision_free"] = float(np.mean((final < TOLERANCES["1cm"]) & ~collided))
@@ -205,23 +218,33 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
             "median_goal_radius_m": float(np.median(radius[failed])),
             "median_goal_radius_all_m": float(np.median(radius)),
         }
-    return metrics, {"final_error": final, "path": path, "home": r.q[0, 0], "q": r.q[-1], "floor_hit": floor_hit}
+    return metrics, {"final_error": final, "path": path, "home": r.q[0, 0], "q": r.q[-1], "floor_hit": floor_hit,
+                     "q_path": r.q, "collided": collided}
 
 
-def ik_world(task):
-    """The world the IK methods are given for ``task``: its floor when the env checks collisions
-    (the obstacle env's per-goal obstacles are not passed), else ``None``."""
+def ik_world(task, goals=None):
+    """The world the IK methods are given for ``task``: when the env checks collisions, its floor and,
+    with ``goals`` (a :class:`train.rollout.GoalSet`), each goal's obstacles (``goals.world()``, batch
+    ``(n,)`` for the obstacle env); else ``None``."""
     from iiwa_torch.collision import World
 
-    return None if task.world is None else World(floor=task.world.floor)
+    if task.world is None:
+        return None
+    return World(floor=task.world.floor) if goals is None else goals.world()
+
+
+def _goal_rows(world, rows: slice):
+    """``world`` for the goals ``rows`` of its batch (itself when unbatched or None)."""
+    return world if world is None or not world.batch_shape else world.map_batch(lambda t, _: t[rows])
 
 
 def run_ik(
     name: str, goals, chain, home: np.ndarray, dt: float, world=None
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """One IK method on every goal from ``home``: batched once, then ``SINGLE_GOALS`` goals one by one.
-    ``world`` (an :class:`iiwa_torch.collision.World`, e.g. the env's floor) makes both solvers
-    collision-aware: the analytic one searches the arm angle, the gradient one adds clearance."""
+    ``world`` (an :class:`iiwa_torch.collision.World`, e.g. the env's floor, or a batch ``(n,)`` of one
+    world per goal) makes both solvers collision-aware: the analytic one searches the arm angle, the
+    gradient one adds clearance; the answers' collisions are counted in it too."""
     import torch
 
     home = torch.as_tensor(home, dtype=torch.float64)
@@ -229,19 +252,19 @@ def run_ik(
     if name == "analytic_ik":
         from iiwa_torch.ik.analytic import iiwa_solve
 
-        def solve(pose):
+        def solve(pose, world):
             return iiwa_solve(chain, pose, home.expand(pose.shape[0], -1), world=world)
     else:
         from iiwa_torch.ik import solve as gradient_solve
 
-        def solve(pose):
+        def solve(pose, world):
             target = pose[:, :3, 3] if position_only else pose
             return gradient_solve(chain, target, home.expand(pose.shape[0], -1), mode="position" if position_only
                                   else "pose", generator=torch.Generator().manual_seed(0), world=world)
 
-    result = solve(goals.pose)
-    batched = _median_time(lambda i: solve(goals.pose), BATCHED_REPEATS) / goals.n
-    single = _median_time(lambda i: solve(goals.pose[i : i + 1]), SINGLE_GOALS)
+    result = solve(goals.pose, world)
+    batched = _median_time(lambda i: solve(goals.pose, world), BATCHED_REPEATS) / goals.n
+    single = _median_time(lambda i: solve(goals.pose[i : i + 1], _goal_rows(world, slice(i, i + 1))), SINGLE_GOALS)
     q = result.q.double()
     pose = chain.fk(q)
     final = (pose[:, :3, 3] - goals.pose[:, :3, 3]).norm(dim=-1).numpy()
@@ -251,7 +274,7 @@ def run_ik(
     steps = np.ceil(np.max(np.abs(delta) / max_step, axis=-1))  # a straight full-speed joint move
     steps[final >= TOLERANCES["1cm"]] = np.nan
     metrics = summarise(final, steps, path, _limit_violations(chain, q), batched, single, goals.n)
-    collisions, floor_hit, collided = collision_metrics(chain, q.numpy()[None])
+    collisions, floor_hit, collided = collision_metrics(chain, q.numpy()[None], goals.world())
     metrics.update(collisions)
     metrics["success@1cm_collision_free"] = float(np.mean((final < TOLERANCES["1cm"]) & ~collided))
     metrics["solver_success"] = float(result.success.double().mean())
@@ -276,7 +299,9 @@ def _design_note(config: dict[str, Any], trained_in) -> list[str]:
         lines = ["The policy was trained without a floor or a self-collision term (collision='off'): nothing in "
                  "its reward keeps it clear."]
     else:
-        lines = [f"The policy was trained with the floor and self-collision checked (collision="
+        what = f"the floor, self-collision and 1-{trained_in.world.slots} obstacles" if trained_in.world.slots \
+            else "the floor and self-collision"
+        lines = [f"The policy was trained with {what} checked (collision="
                  f"'{trained_in.collision.value}', a colliding step costs {trained_in.collision_penalty:g})."]
     if config["hyperparams"].get("policy") == "ResidualDLSPolicy":
         lines.append("How the policy is built: its action is a damped-least-squares joint step (the library's "
@@ -383,15 +408,19 @@ def _collision_verdict(p: dict[str, Any], ik: dict[str, dict[str, Any]], below_f
         return (f"minimum clearance {1e3 * m['min_clearance_median_m']:.0f} mm at the median goal, "
                 f"{1e3 * m['min_clearance_worst_m']:.0f} mm at the worst")
 
-    lines = [f"Collisions (capsule model, floor at z = 0): the policy's rollout collides on {p['collisions']} goals "
-             f"({100 * p['collision_share']:.1f}%; floor {p['floor_collisions']}, self {p['self_collisions']}), its "
-             f"final configuration on {p['final_collisions']}; {clear(p)}."
+    def obstacle(m):
+        return f", obstacles {m['obstacle_collisions']}" if "obstacle_collisions" in m else ""
+
+    world = "floor at z = 0, each goal's obstacles" if "obstacle_collisions" in p else "floor at z = 0"
+    lines = [f"Collisions (capsule model, {world}): the policy's rollout collides on {p['collisions']} goals "
+             f"({100 * p['collision_share']:.1f}%; floor {p['floor_collisions']}, self {p['self_collisions']}"
+             f"{obstacle(p)}), its final configuration on {p['final_collisions']}; {clear(p)}."
              + (f" {below_floor} of the goals lie below the floor (z < 0): every exact answer to them collides."
                 if below_floor else "")]
     for name, v in ik.items():
         lines.append(f"Collisions of {name}: its solution collides on {v['collisions']} goals "
                      f"({100 * v['collision_share']:.1f}%; floor {v['floor_collisions']}, self "
-                     f"{v['self_collisions']}); {clear(v)}.")
+                     f"{v['self_collisions']}{obstacle(v)}); {clear(v)}.")
         lines.append(f"Goal by goal against {name}: the policy's rollout touches the floor where {name}'s "
                      f"solution does not on {v['floor_policy_only']} goals; {name}'s solution touches it where the "
                      f"policy does not on {v['floor_ik_only']}.")
@@ -405,10 +434,12 @@ def _fmt(value, scale=1.0, digits=2, unit="") -> str:
 
 
 def write_markdown(report: dict[str, Any], path: Path) -> str:
+    obstacles = any("obstacle_collisions" in m for m in report["methods"].values())
+    split = "floor / self / obstacle" if obstacles else "floor / self"
     rows = [
         "| method | success @1 cm | @5 mm | @1 mm | median error | p95 error | steps to 1 cm (median) "
         "| limit violations | path (rad, median) | time/goal batched | time/goal single "
-        "| collisions: all (floor / self; final) | min clearance median / worst |",
+        f"| collisions: all ({split}; final) | min clearance median / worst |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in report["methods"].items():
@@ -422,7 +453,8 @@ def write_markdown(report: dict[str, Any], path: Path) -> str:
             f"| {_fmt(m['median_steps_to_reach'], 1, 0)} | {m['joint_limit_violations']} "
             f"| {_fmt(m['median_path_length_rad'])} | {m['time_per_goal_batched_s'] * 1e6:.1f} us "
             f"| {m['time_per_goal_single_s'] * 1e3:.2f} ms "
-            f"| {m['collisions']} ({m['floor_collisions']} / {m['self_collisions']}; {m['final_collisions']}) "
+            f"| {m['collisions']} ({m['floor_collisions']} / {m['self_collisions']}"
+            f"{' / ' + str(m['obstacle_collisions']) if obstacles else ''}; {m['final_collisions']}) "
             f"| {m['min_clearance_median_m'] * 1e3:.0f} / {m['min_clearance_worst_m'] * 1e3:.0f} mm |")
     table = "\n".join(rows)
     text = [
@@ -448,8 +480,9 @@ def write_markdown(report: dict[str, Any], path: Path) -> str:
 
 
 def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[str, Any],
-               evaluations: list[dict], compare: dict[str, list[dict]]) -> list[str]:
-    """Write the report's PNGs into ``out``; returns their file names."""
+               evaluations: list[dict], compare: dict[str, list[dict]], goals=None) -> list[str]:
+    """Write the report's PNGs into ``out``; returns their file names. With ``goals`` (the
+    :class:`train.rollout.GoalSet`) of an env with obstacles, also ``rollouts_obstacles.png``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -532,7 +565,103 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
 
     if evaluations:
         save(_learning_curves(plt, report, evaluations, compare), "learning_curve.png")
+    if goals is not None and goals.obstacles is not None and "q_path" in data.get("policy", {}):
+        fig = _rollouts_obstacles(goals, data, report)
+        fig.savefig(out / "rollouts_obstacles.png", dpi=100)
+        written.append("rollouts_obstacles.png")
     return written
+
+
+PICTURE_GOALS = 4  # rollouts drawn in rollouts_obstacles.png
+
+
+def picture_goals(collided: np.ndarray, failed: np.ndarray, obstacle_count: np.ndarray, k: int = PICTURE_GOALS
+                  ) -> list[int]:
+    """Up to ``k`` goal indices to draw: the first goal whose rollout collided, the first that failed
+    (if any), then the successful collision-free goals with the most obstacles (lowest index first)."""
+    chosen = []
+    for mask in (collided, failed & ~collided):
+        hits = np.flatnonzero(mask)
+        if hits.size and len(chosen) < k:
+            chosen.append(int(hits[0]))
+    clean = np.flatnonzero(~collided & ~failed)
+    for i in clean[np.argsort(-obstacle_count[clean], kind="stable")]:
+        if len(chosen) == k:
+            break
+        chosen.append(int(i))
+    return chosen
+
+
+def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: dict[str, Any]):
+    """The figure of a few policy rollouts among their goals' obstacles: per goal, the end effector's path
+    from home, the arm at home (faint) and at the end with its capsules, the obstacles, the goal."""
+    import matplotlib.lines as mlines
+    import torch
+    from matplotlib.figure import Figure
+
+    from envs.world import SLOT_SIZE
+    from iiwa_torch.collision import clearance
+    from iiwa_torch.viz import draw_chain, plot_world, side_view
+
+    chain = goals.robot
+    p = data["policy"]
+    count = goals.obstacles.reshape(goals.n, -1, SLOT_SIZE)[..., 0].round().sum(-1).astype(int)
+    failed = p["final_error"] >= TOLERANCES["1cm"]
+    chosen = picture_goals(p["collided"], failed, count)
+    why = [w for w, mask in (("the first colliding rollout", p["collided"]),
+                             ("the first miss", failed & ~p["collided"])) if mask.any()]
+    fig = Figure(figsize=(12, 11.5), dpi=100)
+    cols = 2
+    rows = math.ceil(len(chosen) / cols)
+    for k, i in enumerate(chosen):
+        ax = fig.add_subplot(rows, cols, k + 1, projection="3d")
+        q = torch.as_tensor(p["q_path"][:, i], dtype=torch.float64)
+        ee = chain.fk(q)[:, :3, 3].double().numpy()  # (T + 1, 3)
+        world = goals.goal_world(i)
+        path_clearance = clearance(chain, q, world).min().item()  # m
+        with torch.no_grad():
+            joints = chain.fk_all(q[[0, -1]])[..., :3, 3].double().numpy().reshape(-1, 3)
+        goal = goals.desired_goal[i, :3].astype(np.float64)
+        points = [ee, joints, goal[None], np.zeros((1, 3))]
+        for centre, size in ((world.spheres[0], world.spheres[1][:, None]), (world.boxes[0][:, :3, 3], world.boxes[1])):
+            pad = size.numpy().max(-1, keepdims=True) * math.sqrt(3) if size.numel() else size.numpy()
+            points += [centre.numpy() - pad, centre.numpy() + pad]
+        pts = np.concatenate([x.reshape(-1, 3) for x in points])
+        lo, hi = pts.min(0), pts.max(0)
+        lo[2] = min(lo[2], goals.floor if goals.floor is not None else lo[2])
+        centre, half = (lo + hi) / 2, 0.55 * (hi - lo).max()
+        ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
+               zlim=(max(centre[2] - half, (goals.floor or 0.0) - 0.05), centre[2] + half))
+        ax.set_box_aspect((1, 1, 1), zoom=0.9)
+        ax.view_init(elev=22, azim=side_view(ee))
+        # drawn in order, not depth-sorted: the path and the goal stay visible in front of arm and obstacles
+        ax.computed_zorder = False
+        plot_world(chain, q[-1], world, ax=ax, title="end")
+        draw_chain(ax, chain, q[0], color="0.6", alpha=0.5)
+        ax.plot(*ee.T, "--", color="tab:purple", lw=2)
+        ax.scatter(*ee[0, :, None], color="tab:purple", marker="o", s=30, depthshade=False)
+        ax.scatter(*goal[:, None], color="tab:red", marker="*", s=220, depthshade=False)
+        for name in "xyz":
+            getattr(ax, f"set_{name}label")(f"{name} (m)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        reached = "reached" if not failed[i] else "missed"
+        hit = "collided on the way" if p["collided"][i] else "no collision"
+        ax.set_title(f"goal {i} ({count[i]} obstacle{'s' if count[i] != 1 else ''}): {reached}, final error "
+                     f"{1e3 * p['final_error'][i]:.3g} mm;\n{hit}, min clearance along the path "
+                     f"{1e3 * path_clearance:.0f} mm", fontsize=9)
+    handles = [mlines.Line2D([], [], color="tab:purple", ls="--", lw=2, label="end-effector path from home (dot)"),
+               mlines.Line2D([], [], color="0.6", lw=3, label="arm at home (start)"),
+               mlines.Line2D([], [], color="tab:orange", lw=3, label="arm at the end, capsules blue"),
+               mlines.Line2D([], [], color="tab:red", marker="*", ls="", ms=14, label="goal"),
+               mlines.Line2D([], [], color="0.55", marker="s", ls="", ms=10, label="obstacles (spheres, boxes)"),
+               mlines.Line2D([], [], color="tab:red", marker="s", ls="", ms=10, alpha=0.6,
+                             label="in collision at the end")]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=9, frameon=False)
+    fig.suptitle(f"Policy rollouts among the obstacles ({report['env_id']}, {report['algo'].upper()}; "
+                 f"{len(chosen)} of {report['goals']} goals: {', '.join(why + ['the most crowded successes'])})",
+                 fontsize=11)
+    fig.subplots_adjust(left=0.02, right=0.98, bottom=0.07, top=0.93, wspace=0.05, hspace=0.12)
+    return fig
 
 
 def _floor_bands(ax, spacing: dict[str, float] | None, lo: float) -> None:
@@ -605,7 +734,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     goals = make_goal_set(env_id, n_goals, seed, env_kwargs)
     below_floor = int((goals.pose[:, 2, 3] < 0).sum())  # the preset's default floor is z = 0
 
-    world = ik_world(task)
+    world = ik_world(task, goals)
     metrics, data = {}, {}
     metrics["policy"], data["policy"] = run_policy(goals, model, vec_normalize, chain)
     for name in ("analytic_ik", "gradient_ik"):
@@ -649,7 +778,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         if (model_dir / "train_info.json").exists() else None,
         "machine": machine_info(),
     }
-    report["plots"] = make_plots(out, data, report, evaluations, compare)
+    report["plots"] = make_plots(out, data, report, evaluations, compare, goals)
     np.savez_compressed(out / "final_q.npz", **{name: d["q"] for name, d in data.items()})
     (out / "report.json").write_text(json.dumps(report, indent=1))
     table = write_markdown(report, out / "report.md")

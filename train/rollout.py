@@ -15,7 +15,10 @@ are read back from the observation's documented ``cos q``, ``sin q`` entries.
 For the IK solvers a goal set also carries full goal poses: for position goals, the
 orientation comes from ``IiwaReachPose-v0`` with the same seeds and the env's other options
 (its obstacles: the same configuration is drawn for the goal; this is checked position by
-position).
+position, and obstacle by obstacle). It carries the env's world too, so that every method is
+checked in the same one: the floor, the arm's own capsules and, for ``IiwaReachObstacles-v0``,
+each goal's obstacles as its env observed them at reset (``GoalSet.world``). A rollout also keeps
+the env's own collision flag of every configuration.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import numpy as np
 import torch
 
 __all__ = ["GoalSet", "Rollout", "PolicyEvaluator", "make_goal_set", "rollout", "policy_actor", "held_out_seed",
-           "summarise_finals"]
+           "reached", "summarise_finals"]
 
 POSE_ENV = "IiwaReachPose-v0"
 
@@ -53,17 +56,49 @@ def _env(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None):
 @dataclass(frozen=True)
 class GoalSet:
     """``n`` goals of ``env_id``: ``desired_goal (n, g)`` float32 as the env observes them and
-    ``pose (n, 4, 4)`` float64 goal poses (for the IK solvers), start ``q_home (nj,)``."""
+    ``pose (n, 4, 4)`` float64 goal poses (for the IK solvers).
+
+    The world every method is checked in: ``robot`` (the env's chain), ``floor`` (m, or None),
+    ``obstacles (n, SLOT_SIZE * M)`` float32, each goal's obstacle block as its env observes it
+    at reset (:mod:`envs.world`; None for an env without obstacles) and ``collision_checked``
+    (False for ``collision="off"``: then :meth:`world` is None).
+    """
 
     env_id: str
     seed: int
     env_kwargs: dict[str, Any] = field(repr=False)
     desired_goal: np.ndarray = field(repr=False)
     pose: torch.Tensor = field(repr=False)
+    robot: Any = field(repr=False)
+    floor: float | None
+    obstacles: np.ndarray | None = field(repr=False)
+    collision_checked: bool
 
     @property
     def n(self) -> int:
         return self.desired_goal.shape[0]
+
+    def world(self, dtype: torch.dtype = torch.float64):
+        """The env's world of every goal: an :class:`iiwa_torch.collision.World` with the floor and,
+        with obstacles, a leading batch dim ``(n,)`` (goal ``i``'s obstacles); None when the env
+        checks no collisions."""
+        from envs.world import obstacle_world
+
+        if not self.collision_checked:
+            return None
+        block = None if self.obstacles is None else torch.as_tensor(self.obstacles.T, dtype=dtype)
+        return obstacle_world(block, self.floor)
+
+    def goal_world(self, i: int):
+        """Goal ``i``'s world, unbatched, with its active obstacles only (to draw it); None as :meth:`world`."""
+        from envs.world import active_obstacles
+        from iiwa_torch.collision import World
+
+        if not self.collision_checked:
+            return None
+        if self.obstacles is None:
+            return World(floor=self.floor)
+        return active_obstacles(torch.as_tensor(self.obstacles[i], dtype=torch.float64), self.floor)
 
 
 @dataclass(frozen=True)
@@ -75,6 +110,9 @@ class Rollout:
     q: ``(T + 1, n, nj)`` joint angles (rad) along the way.
     seconds: wall time of the whole rollout (policy and env), s.
     act_seconds: the part of it spent in ``act`` (the policy alone), s.
+    collision: ``(T + 1, n)`` bool, the env's own ``info["collision"]`` at each configuration (its
+    clearance in float32 below 0; the reset configuration is collision-free by construction), or
+    None for an env that checks no collisions.
     """
 
     distance: np.ndarray
@@ -82,6 +120,7 @@ class Rollout:
     q: np.ndarray
     seconds: float
     act_seconds: float
+    collision: np.ndarray | None = None
 
 
 def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None = None) -> GoalSet:
@@ -92,14 +131,25 @@ def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | N
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n must be a positive int, got {n!r}")
     env_kwargs = dict(env_kwargs or {})
-    desired = _env(env_id, n, seed, env_kwargs).reset()["desired_goal"]
+    env = _env(env_id, n, seed, env_kwargs)
+    obs = env.reset()
+    desired, task = obs["desired_goal"], env.task
+    obstacles = task.transport.obstacles_of(obs["observation"]).copy() if task.transport.obstacle_size else None
     # the pose env with env_id's other options (its obstacles, say) draws the same goal configurations
     same_world = {k: v for k, v in registered_options(env_id).items() if k not in ("goal", "reward")}
-    pose_goal = desired if env_id == POSE_ENV else \
-        _env(POSE_ENV, n, seed, {**same_world, **env_kwargs}).reset()["desired_goal"]
-    if not np.allclose(pose_goal[:, :3], desired[:, :3], atol=1e-6):
-        raise RuntimeError(f"{POSE_ENV} and {env_id} draw different goals for the same seeds: no goal poses")
-    return GoalSet(env_id, seed, env_kwargs, desired, decode_pose_goal(pose_goal))
+    if env_id == POSE_ENV:
+        pose_goal = desired
+    else:
+        pose_env = _env(POSE_ENV, n, seed, {**same_world, **env_kwargs})
+        pose_obs = pose_env.reset()
+        pose_goal = pose_obs["desired_goal"]
+        same = obstacles is None or np.array_equal(pose_env.task.transport.obstacles_of(pose_obs["observation"]),
+                                                   obstacles)
+        if not same or not np.allclose(pose_goal[:, :3], desired[:, :3], atol=1e-6):
+            raise RuntimeError(f"{POSE_ENV} and {env_id} draw different goals for the same seeds: no goal poses")
+    checked = task.world is not None
+    return GoalSet(env_id, seed, env_kwargs, desired, decode_pose_goal(pose_goal), robot=task.robot,
+                   floor=task.world.floor if checked else None, obstacles=obstacles, collision_checked=checked)
 
 
 Actor = Callable[[dict[str, np.ndarray]], np.ndarray]
@@ -121,6 +171,8 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
     dist = [np.linalg.norm(obs["achieved_goal"][:, :3] - obs["desired_goal"][:, :3], axis=-1)]
     angle = [np.zeros(goals.n)]
     q = [joints(obs["observation"])]
+    checked = env.task.world is not None
+    collision = [np.array([i["collision"] for i in env.reset_infos])] if checked else None
     act_seconds = 0.0
     for t in range(steps):
         tic = time.perf_counter()
@@ -129,6 +181,8 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
         obs, _, done, infos = env.step(action)
         dist.append(np.array([i["distance"] for i in infos]))
         angle.append(np.array([i.get("orientation_error", 0.0) for i in infos]))
+        if checked:
+            collision.append(np.array([i["collision"] for i in infos]))
         last = np.stack([i["terminal_observation"]["observation"] for i in infos]) if t == steps - 1 \
             else obs["observation"]
         q.append(joints(last))
@@ -136,7 +190,8 @@ def rollout(goals: GoalSet, act: Actor) -> Rollout:
     if not all(i.get("TimeLimit.truncated", False) for i in infos):
         raise RuntimeError(f"expected every episode to end by time limit after {steps} steps")
     return Rollout(np.array(dist, dtype=np.float64), np.array(angle, dtype=np.float64),
-                   np.array(q, dtype=np.float64), seconds, act_seconds)
+                   np.array(q, dtype=np.float64), seconds, act_seconds,
+                   None if collision is None else np.array(collision, dtype=bool))
 
 
 def policy_actor(model, vec_normalize=None) -> Actor:
@@ -167,18 +222,26 @@ def policy_actor(model, vec_normalize=None) -> Actor:
     return act
 
 
+def reached(final: np.ndarray, threshold: float, angle: np.ndarray | None = None,
+            orientation_threshold: float | None = None) -> np.ndarray:
+    """``(n,)`` bool: final distance (m) below ``threshold`` and, with final angles (rad), angle below
+    ``orientation_threshold``."""
+    ok = final < threshold
+    return ok if angle is None else ok & (angle < orientation_threshold)
+
+
 def summarise_finals(final: np.ndarray, threshold: float, angle: np.ndarray | None = None,
                      orientation_threshold: float | None = None) -> dict[str, float]:
     """Success rate, median and 95th percentile of final distances ``(n,)`` (m); with final angles
     ``(n,)`` (rad) ``success`` needs both thresholds and ``success_position``, ``median_angle`` are added."""
     out = {
-        "success": float(np.mean(final < threshold)),
+        "success": float(np.mean(reached(final, threshold))),
         "median_distance": float(np.median(final)),
         "p95_distance": float(np.percentile(final, 95)),
     }
     if angle is not None:
         out["success_position"] = out["success"]
-        out["success"] = float(np.mean((final < threshold) & (angle < orientation_threshold)))
+        out["success"] = float(np.mean(reached(final, threshold, angle, orientation_threshold)))
         out["median_angle"] = float(np.median(angle))
     return out
 
@@ -199,8 +262,18 @@ class PolicyEvaluator:
         return rollout(self.goals, policy_actor(model, vec_normalize))
 
     def summary(self, r: Rollout) -> dict[str, float]:
+        """:func:`summarise_finals` of the final errors; for an env that checks collisions also
+        ``collisions`` (share of rollouts with a colliding configuration, of the ``T + 1``: the env's
+        own flags, :attr:`Rollout.collision`, computed by its step anyway) and
+        ``success_collision_free`` (success and no collision)."""
         angle = r.angle[-1] if self.orientation_threshold is not None else None
-        return summarise_finals(r.distance[-1], self.distance_threshold, angle, self.orientation_threshold)
+        out = summarise_finals(r.distance[-1], self.distance_threshold, angle, self.orientation_threshold)
+        if r.collision is not None:
+            collided = r.collision.any(0)
+            ok = reached(r.distance[-1], self.distance_threshold, angle, self.orientation_threshold)
+            out["collisions"] = float(np.mean(collided))
+            out["success_collision_free"] = float(np.mean(ok & ~collided))
+        return out
 
     def __call__(self, model, vec_normalize=None) -> tuple[dict[str, float], float]:
         """``(summary, seconds of the rollout)``."""

@@ -6,7 +6,8 @@ Copies ``model.zip``, ``vecnormalize.pkl`` (removed if the run has none), ``conf
 ``train_info.json`` and ``evaluations.json`` (the learning curve) and writes ``RECORD.md``: the command, seed,
 commit, training wall time, steps per second, load average and which checkpoint was shipped. By default
 the final model is shipped; ``--best`` ships the best one of the periodic evaluation instead (the run's
-``best.json``: highest success, ties to the lower median distance). Then evaluate it:
+``best.json``: highest success, collision-free where the env checks collisions, ties to the lower median
+distance). Then evaluate it:
 ``python -m train.evaluate --model train/policies/NAME --goals 1000 --seed 0 --out train/policies/NAME/report``.
 
     python -m train.ship --run runs/panda --curve train/policies/panda.json --label "PandaReach-v3"
