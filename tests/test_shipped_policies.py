@@ -19,7 +19,7 @@ GOALS = 8
 
 
 def test_there_are_shipped_policies():
-    assert {p.name for p in SHIPPED} >= {"ppo_iiwa_reach", "ppo_iiwa_reach_pose"}
+    assert {p.name for p in SHIPPED} >= {"ppo_iiwa_reach", "ppo_iiwa_reach_pose", "ppo_iiwa_reach_obstacles"}
 
 
 @pytest.mark.parametrize("policy_dir", SHIPPED, ids=lambda p: p.name)
