@@ -295,9 +295,8 @@ def track(
             method then takes, at each step, the nearest solution whose clearance is at least
             ``margin`` (for the iiwa: any arm angle, searching the whole circle when none near
             the last one clears); where none exists it keeps the nearest in-limit solution,
-            colliding, and says so in ``collision_free``. The gradient method passes ``world``
-            and ``margin`` to :func:`iiwa_torch.ik.solve` at each step (the preset's capsule
-            model: ``capsules`` is for the analytic method).
+            colliding, and says so in ``collision_free``. The gradient method passes ``world``,
+            ``margin`` and ``capsules`` to :func:`iiwa_torch.ik.solve` at each step.
 
     Returns:
         :class:`TrackResult`: joint path, per-step errors and success, and the largest joint step;
@@ -324,9 +323,7 @@ def track(
             "do not broadcast"
         ) from None
     if method == "gradient":
-        if capsules is not None:
-            raise ValueError("capsules= applies to method='analytic'; ik.solve uses the preset's capsule model")
-        step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain, world, margin)
+        step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain, world, margin, capsules)
     else:
         step = _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules)
     q_prev = q0.to(poses.dtype)
@@ -358,7 +355,8 @@ def track(
 
 
 def _gradient_stepper(
-    chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float, world: World | None, margin: float
+    chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float, world: World | None, margin: float,
+    capsules: Capsules | None,
 ):
     from .ik import solve
 
@@ -375,6 +373,7 @@ def _gradient_stepper(
             rest_gain=rest_gain,
             world=world,
             margin=margin,
+            capsules=capsules,
         )
         return result.q
 

@@ -2,6 +2,7 @@
 successor), FK of every answer, poses reachable only through a collision (by geometry),
 world=None unchanged, bad input."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -263,8 +264,12 @@ def test_track_gradient_steers_round_a_sphere_on_the_elbow_path(line):
     ref = np.array([_coal_clearance(ARM, x, centres, radii) for x in res.q])
     assert ref.min() >= 0.01 - 1e-9
     assert bool(res.success.all()) and float(res.pos_err.max()) < 1e-7
-    with pytest.raises(ValueError, match="capsules= applies to method='analytic'"):
-        track(ARM, path, q0, method="gradient", world=World(), capsules=robot_capsules(ARM))
+    # a fatter capsule model of one's own: 1 cm fatter capsules clear by 1 cm, so the preset's clear by 2 cm
+    fat = dataclasses.replace(robot_capsules(ARM), radii=robot_capsules(ARM).radii + 0.01)
+    res = track(ARM, path, q0, method="gradient", world=World(floor=0.0, spheres=(centres, radii)), margin=0.01,
+                capsules=fat)  # fmt: skip
+    ref = np.array([_coal_clearance(ARM, x, centres, radii) for x in res.q])
+    assert ref.min() >= 0.02 - 1e-9 and bool(res.success.all())
 
 
 def test_track_gradient_and_jtraj_report_the_clearance_along_the_path(line):

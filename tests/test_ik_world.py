@@ -203,3 +203,28 @@ def test_bad_world_or_margin(kwargs, error, words):
     q0 = ARM.random_q(5, generator=torch.Generator().manual_seed(1))
     with pytest.raises(error, match=words):
         minimize(ARM, lambda q, pose: q.square().sum(-1), q0, target=target, **kwargs)
+
+
+def test_a_capsule_model_of_ones_own_is_used_by_solve_and_minimize():
+    # capsules 3 cm fatter than the preset's: every successful answer clears the floor and the
+    # spheres by 3 cm with the preset's capsules (brute force), which the default model does not ensure
+    fat = dataclasses.replace(CAPS, radii=CAPS.radii + 0.03)
+    q, target, centres, radii = problems(60, 7)
+    world = World(floor=0.0, spheres=(centres, radii))
+    res = solve(ARM, target, world=world, capsules=fat)
+    # the fat model also brings self pairs 6 cm closer, so fewer targets can be met at all
+    assert res.success.double().mean() >= 0.3
+    brute = brute_world_clearance(res.q, centres, radii)
+    assert (brute[res.success] >= 0.03 - 1.5e-3).all()
+    torch.testing.assert_close(res.clearance, clearance(ARM, res.q, world, fat))
+    plain = solve(ARM, target, world=world)
+    assert (brute_world_clearance(plain.q, centres, radii)[plain.success] < 0.03 - 1.5e-3).any()
+    # minimize: the clearance term and the reported clearance use the given model
+    def reach(x, pose):
+        return (pose[..., :3, 3] - target[:5, :3, 3]).square().sum(-1)
+
+    out = minimize(ARM, reach, res.q[:5], target=target[:5, :3, 3], mode="position", world=World(floor=0.0),
+                   capsules=fat, steps=5)  # fmt: skip
+    torch.testing.assert_close(out.clearance, clearance(ARM, out.q, World(floor=0.0), fat))
+    with pytest.raises(ValueError, match="margin and capsules apply to a world"):
+        solve(ARM, target, capsules=fat)

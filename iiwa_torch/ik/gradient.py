@@ -396,6 +396,7 @@ def solve(
     generator: torch.Generator | None = None,
     world: World | None = None,
     margin: float = 0.0,
+    capsules: Capsules | None = None,
 ) -> IKResult:
     """Inverse kinematics for a batch of targets by damped least squares (Levenberg-Marquardt).
 
@@ -431,6 +432,9 @@ def solve(
             answer that is not clear is solved again from itself and further seeds with a
             clearance residual in the LM system. ``None``: no collision check.
         margin: the clearance required with a world, metres (>= 0).
+        capsules: the robot's capsule model with a world (default
+            :func:`~iiwa_torch.collision.robot_capsules` of the chain; a custom ``DHChain``
+            needs its own).
 
     Returns:
         :class:`IKResult` with ``q (..., n)`` always within the joint limits; the errors and
@@ -450,7 +454,7 @@ def solve(
     batch = _check_target(target, mode, None, None)
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
-    _check_world(world, margin, target, batch)
+    _check_world(world, margin, target, batch, capsules)
     dtype, device, n = target.dtype, target.device, chain.n_joints
     loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
     work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
@@ -471,7 +475,7 @@ def solve(
         flat = flat.to(work)
         lo, hi = (x[:, None] for x in inner_limits(chain, work))  # (n, 1) each
         first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", work).T, lo, hi).T
-        obstacles = None if world is None else _obstacles(chain, world, margin, batch, work)
+        obstacles = None if world is None else _obstacles(chain, world, margin, batch, work, capsules)
         # Seeds: q0, then pool configurations ranked by pose distance to each target.
         pool = distance = None  # not needed when q0 is the only seed (tracking)
         if seeds > (first is not None):
@@ -494,7 +498,7 @@ def solve(
             _clear_answers(settings, tgt, rest_flat, pool, distance, answers)
         q_out = answers.q.T.to(dtype).reshape(*batch, n)
         result = ik_result(chain, q_out, target, mode, pos_tol, rot_tol, answers.used.reshape(batch))
-        return result if world is None else _with_clearance(chain, result, world, margin)
+        return result if world is None else _with_clearance(chain, result, world, margin, capsules)
 
 
 def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
@@ -508,11 +512,11 @@ def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_e
     check_choice(precision, get_args(Precision), "precision")
 
 
-def _check_world(world, margin, target: Tensor, batch: torch.Size) -> None:
-    """Validate :func:`solve`'s (or :func:`minimize`'s) ``world`` and ``margin`` for ``target``:
-    :func:`~iiwa_torch.collision.check_world`, then the target's dtype and device and a batch
-    shape that broadcasts to the targets'."""
-    check_world(world, margin)
+def _check_world(world, margin, target: Tensor, batch: torch.Size, capsules) -> None:
+    """Validate :func:`solve`'s (or :func:`minimize`'s) ``world``, ``margin`` and ``capsules`` for
+    ``target``: :func:`~iiwa_torch.collision.check_world`, then the target's dtype and device and
+    a batch shape that broadcasts to the targets'."""
+    check_world(world, margin, capsules)
     if world is None:
         return
     for t in world.tensors():
@@ -524,7 +528,8 @@ def _check_world(world, margin, target: Tensor, batch: torch.Size) -> None:
     world.check_batch(batch)
 
 
-def _obstacles(chain: DHChain, world: World, margin: float, batch: torch.Size, work: torch.dtype) -> _Obstacles:
+def _obstacles(chain: DHChain, world: World, margin: float, batch: torch.Size, work: torch.dtype,
+               capsules: Capsules | None) -> _Obstacles:
     """``world`` in the loop's dtype, a batch shape (if any) expanded and flattened to the problems'."""
     batched = len(world.batch_shape) > 0
 
@@ -534,7 +539,8 @@ def _obstacles(chain: DHChain, world: World, margin: float, batch: torch.Size, w
             t = t.expand(*batch, *event_shape).reshape(-1, *event_shape)
         return t.to(work)
 
-    return _Obstacles(chain, world.map_batch(cast), batched, robot_capsules(chain), float(margin))
+    capsules = robot_capsules(chain) if capsules is None else capsules
+    return _Obstacles(chain, world.map_batch(cast), batched, capsules, float(margin))
 
 
 def _clear_answers(settings: _Settings, tgt: _Target, rest, pool, distance, answers: _Answers) -> None:
@@ -552,9 +558,10 @@ def _clear_answers(settings: _Settings, tgt: _Target, rest, pool, distance, answ
     answers.used[redo] += again.used
 
 
-def _with_clearance(chain: DHChain, result: IKResult, world: World, margin: float) -> IKResult:
+def _with_clearance(chain: DHChain, result: IKResult, world: World, margin: float,
+                    capsules: Capsules | None) -> IKResult:
     """``result`` with the clearance of its ``q`` (in the target's dtype); success needs ``>= margin``."""
-    d = clearance(chain, result.q, world)
+    d = clearance(chain, result.q, world, capsules)
     return replace(result, success=result.success & (d >= margin), clearance=d)
 
 
@@ -701,6 +708,7 @@ def minimize(
     world: World | None = None,
     margin: float = 0.0,
     clearance_weight: float = 1.0,
+    capsules: Capsules | None = None,
 ) -> IKResult:
     """IK by gradient descent on any differentiable loss, for a batch of problems.
 
@@ -726,6 +734,7 @@ def minimize(
             a weight (1/m^2 of loss per m^2): the loss gets the term ``clearance_weight *``
             :func:`clearance_shortfall`, success needs a clearance >= ``margin``, and the
             result carries ``clearance``.
+        capsules: the capsule model with a world (default: the chain's preset model).
 
     Joint limits are kept by projection: the loss sees the parameters clamped into the limits,
     and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
@@ -742,9 +751,10 @@ def minimize(
     chain.check_q(q0, "q0")
     batch = q0.shape[:-1]
     _check_target(target, mode, q0.dtype, batch)
-    _check_world(world, margin, target, batch)
+    _check_world(world, margin, target, batch, capsules)
     check_positive(clearance_weight, "clearance_weight")
-    capsules = None if world is None else robot_capsules(chain)
+    if world is not None and capsules is None:
+        capsules = robot_capsules(chain)
 
     def objective(q: Tensor) -> Tensor:
         value = loss(q, chain.fk(q))
@@ -788,7 +798,7 @@ def minimize(
         q = clamp(u)
         best_q = torch.where((objective(q) < best_loss)[..., None], q, best_q)
         result = _minimize_result(chain, best_q, target, mode, pos_tol, rot_tol, steps, success_fn)
-        return result if world is None else _with_clearance(chain, result, world, margin)
+        return result if world is None else _with_clearance(chain, result, world, margin, capsules)
 
 
 def _optimizer(u: Tensor, optimizer: str, steps: int, lr: float | None):
