@@ -14,7 +14,7 @@ from iiwa_torch.ik import analytic
 from iiwa_torch.ik.analytic import srs
 from iiwa_torch.so3 import exp
 
-BATCH = srs.SOLVE_NUMPY_BATCH
+BATCH = min(64, srs.SOLVE_NUMPY_BATCH)  # poses per call, all on the numpy path
 
 
 def _gen(seed: int) -> torch.Generator:

@@ -106,7 +106,7 @@ NUMPY = SimpleNamespace(
     cat=np.concatenate,
     swap=lambda x: np.swapaxes(x, -1, -2),
     front=lambda m: np.moveaxis(m, (-2, -1), (0, 1)),
-    signs=lambda like: np.array([1.0, -1.0]),
+    signs=lambda like: _SIGNS,
     arange=lambda n, like: np.arange(n, dtype=np.float64),
     linspace=lambda a, b, n, like: np.linspace(a, b, n),
     rows=lambda n, like: np.arange(n),
@@ -118,6 +118,10 @@ NUMPY = SimpleNamespace(
     as_float=lambda mask, like: mask,  # bool times float is float64
     rounded=lambda x, dtype: x.astype(np.float32) if dtype == torch.float32 else x,  # as torch would hold it
 )
+
+
+_SIGNS = np.array([1.0, -1.0])
+_SIGNS.flags.writeable = False
 
 
 def _put(x: np.ndarray, index, values) -> np.ndarray:
@@ -344,7 +348,7 @@ def wrap_joints(thetas: list, offsets: list, lows: list, highs: list, ops=TORCH)
     arrays of ``ops``."""
     qs, inside = [], []
     for theta, off, lo, hi in zip(thetas, offsets, lows, highs):
-        q = theta - off
+        q = theta - off if off else theta
         q = q - _TWO_PI * ops.rint(q * (1 / _TWO_PI))  # [-pi, pi]; 3x faster than remainder
         if hi > math.pi or lo < -math.pi:  # only then may a turn get q in [-pi, pi] inside
             q, fits = shift_into_limits(q, lo, hi)

@@ -84,7 +84,7 @@ __all__ = ["SOLVE_NUMPY_BATCH", "iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3
 
 Tensor = torch.Tensor
 
-SOLVE_NUMPY_BATCH = 64  # up to this many poses per call (CPU, no world, no gradient), iiwa_solve runs in numpy
+SOLVE_NUMPY_BATCH = 256  # up to this many poses per call (CPU, no world, no gradient), iiwa_solve runs in numpy
 
 _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
@@ -118,10 +118,12 @@ def _frames(chain: DHChain, target: Tensor) -> tuple[Tensor, Tensor]:
     return frame6[..., :3, :3], sw
 
 
-def _elbow(geo: _Geometry, sw: Tensor, tol: float, ops=TORCH) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _elbow(geo: _Geometry, sw: Tensor, tol: float, ops=TORCH, dist=None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Both elbow branches from ``W - S``: ``theta_4 (..., 2)``, ``cos theta_4 (...)``,
-    ``sin theta_4 (..., 2)`` and whether ``W`` is in reach ``(...)`` (arrays of ``ops``, ``_common``)."""
-    dist = safe_norm2(safe_norm2(sw[..., 0], sw[..., 1], ops), sw[..., 2], ops)
+    ``sin theta_4 (..., 2)`` and whether ``W`` is in reach ``(...)`` (arrays of ``ops``, ``_common``;
+    ``dist``: ``|W - S|`` if known)."""
+    if dist is None:
+        dist = safe_norm2(safe_norm2(sw[..., 0], sw[..., 1], ops), sw[..., 2], ops)
     c4, s4_abs, ok = triangle(dist, geo.d3, geo.d5, tol, ops)
     c4 = -geo.sig[2] * geo.sig[3] * c4  # the triangle's angle is between z2 and z4, up to sign
     s4 = s4_abs[..., None] * ops.signs(sw)
@@ -191,11 +193,10 @@ def _closed_form(geo: _Geometry, rot, sw, psi, tol: float, ops=TORCH) -> tuple[l
     """:func:`_iiwa_thetas` from the rotation ``R (..., 3, 3)`` and ``W - S (..., 3)`` of
     :func:`_frames` and the arm angles ``psi``, broadcasting with ``(...)``, in the arrays of
     ``ops`` (``_common``: torch, or numpy for :func:`iiwa_solve`'s small batches)."""
-    theta4, c4, s4, reachable = _elbow(geo, sw, tol, ops)
-
     # Vectors as 3 separate component tensors: every step below is elementwise over the batch.
     sx, sy, sz = sw[..., 0], sw[..., 1], sw[..., 2]
     dist = safe_norm2(safe_norm2(sx, sy, ops), sz, ops)
+    theta4, c4, s4, reachable = _elbow(geo, sw, tol, ops, dist)
     u = (sx / dist, sy / dist, sz / dist)
     v_ref, w_ref = _reference(u, ops)
     cp, sp = ops.cos(psi), ops.sin(psi)
