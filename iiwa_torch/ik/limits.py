@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 __all__ = ["shift_into_limits"]
@@ -15,8 +16,10 @@ def shift_into_limits(q: torch.Tensor, lo, hi) -> tuple[torch.Tensor, torch.Tens
     gets them there. ``lo, hi``: numbers or tensors broadcasting with ``q`` (rad).
 
     Returns ``(shifted, fits)``: ``shifted`` is ``q`` where ``q`` is inside or no turn fits, else the
-    turn inside; ``fits`` (bool) is True where ``shifted`` lies in ``[lo, hi]``."""
-    turned = lo + torch.remainder(q - lo, 2 * math.pi)  # in [lo, lo + 2 pi)
+    turn inside; ``fits`` (bool) is True where ``shifted`` lies in ``[lo, hi]``. A numpy ``q``
+    (with numbers or arrays ``lo, hi``) gives numpy arrays, by the same formula."""
+    xp = np if isinstance(q, np.ndarray) else torch
+    turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in [lo, lo + 2 pi)
     inside = (q >= lo) & (q <= hi)
     fits = turned <= hi
-    return torch.where(inside, q, torch.where(fits, turned, q)), inside | fits
+    return xp.where(inside, q, xp.where(fits, turned, q)), inside | fits

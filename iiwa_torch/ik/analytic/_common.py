@@ -16,7 +16,9 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 
+import numpy as np
 import torch
 
 from ...checks import check_finite, check_float_tensor, check_instance
@@ -57,16 +59,87 @@ class AnalyticSolutions:
     collision_free: Tensor | None = None
 
 
+# ---------------------------------------------------------------- array libraries
+# The closed forms are written once over the few functions they take from their array library:
+# ``TORCH`` (batched, differentiable, any device) or ``NUMPY`` (float64 arrays on the CPU: the
+# low-overhead path of ``iiwa_solve`` for a few poses, where a torch op's overhead dominates).
+# Operators (+, *, /, abs, &, ~, comparisons, indexing) are the arrays' own.
+TORCH = SimpleNamespace(
+    atan2=torch.atan2,
+    cos=torch.cos,
+    sin=torch.sin,
+    sqrt=torch.sqrt,
+    where=torch.where,
+    rint=torch.round,  # half to even, as np.rint
+    clamp_min=torch.clamp_min,
+    clamp=torch.clamp,
+    maximum=torch.maximum,
+    logical_and=torch.logical_and,
+    stack=torch.stack,
+    cat=torch.cat,
+    swap=lambda x: x.transpose(-1, -2),
+    front=lambda m: m.movedim((-2, -1), (0, 1)).contiguous(),  # (..., r, c) -> (r, c, ...)
+    signs=lambda like: torch.tensor([1.0, -1.0], dtype=like.dtype, device=like.device),
+    arange=lambda n, like: torch.arange(n, dtype=like.dtype, device=like.device),
+    linspace=lambda a, b, n, like: torch.linspace(a, b, n, dtype=like.dtype, device=like.device),
+    rows=lambda n, like: torch.arange(n, device=like.device),
+    expand=lambda x, shape: x.expand(shape),
+    unravel=torch.unravel_index,
+    take=lambda x, index: x.gather(-1, index[:, None]).squeeze(-1),  # x[i, index[i]]
+    nonzero=lambda mask: mask.nonzero().squeeze(-1),  # of a 1-D mask
+    put=lambda x, index, values: x.index_put((index,), values),  # x with x[index] = values
+    as_float=lambda mask, like: mask.to(like.dtype),
+    rounded=lambda x, dtype: x,  # already computed in dtype
+)
+NUMPY = SimpleNamespace(
+    atan2=np.arctan2,
+    cos=np.cos,
+    sin=np.sin,
+    sqrt=np.sqrt,
+    where=np.where,
+    rint=np.rint,
+    clamp_min=np.maximum,
+    clamp=lambda x, lo, hi: np.minimum(np.maximum(x, lo), hi),  # np.clip's wrapper costs more on tiny arrays
+    maximum=np.maximum,
+    logical_and=np.logical_and,
+    stack=np.stack,
+    cat=np.concatenate,
+    swap=lambda x: np.swapaxes(x, -1, -2),
+    front=lambda m: np.moveaxis(m, (-2, -1), (0, 1)),
+    signs=lambda like: _SIGNS,
+    arange=lambda n, like: np.arange(n, dtype=np.float64),
+    linspace=lambda a, b, n, like: np.linspace(a, b, n),
+    rows=lambda n, like: np.arange(n),
+    expand=np.broadcast_to,
+    unravel=np.unravel_index,
+    take=lambda x, index: np.take_along_axis(x, index[:, None], -1)[:, 0],
+    nonzero=np.flatnonzero,
+    put=lambda x, index, values: _put(x.copy(), index, values),
+    as_float=lambda mask, like: mask,  # bool times float is float64
+    rounded=lambda x, dtype: x.astype(np.float32) if dtype == torch.float32 else x,  # as torch would hold it
+)
+
+
+_SIGNS = np.array([1.0, -1.0])
+_SIGNS.flags.writeable = False
+
+
+def _put(x: np.ndarray, index, values) -> np.ndarray:
+    x[index] = values
+    return x
+
+
 # ---------------------------------------------------------------- guarded trigonometry
-def safe_atan2(y: Tensor, x: Tensor) -> Tensor:
-    """``atan2(y, x)``, 0 with a finite gradient where ``x`` and ``y`` both vanish."""
+def safe_atan2(y: Tensor, x: Tensor, ops=TORCH) -> Tensor:
+    """``atan2(y, x)``, 0 with a finite gradient where ``x`` and ``y`` both vanish (``ops``:
+    :data:`TORCH` or :data:`NUMPY`, the arrays' library)."""
     degenerate = x * x + y * y < _TINY
-    return torch.atan2(y, torch.where(degenerate, torch.ones_like(x), x))
+    return ops.atan2(y, ops.where(degenerate, 1.0, x))
 
 
-def safe_norm2(x: Tensor, y: Tensor) -> Tensor:
+def safe_norm2(x: Tensor, y: Tensor, ops=TORCH) -> Tensor:
     """``sqrt(x^2 + y^2)``, at least ``1e-15``, so its gradient stays finite at 0."""
-    return (x * x + y * y).clamp_min(_TINY).sqrt()
+    return ops.sqrt(ops.clamp_min(x * x + y * y, _TINY))
 
 
 def acos_pair(c: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -80,7 +153,7 @@ def acos_pair(c: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
     return cc, (1 - cc * cc).clamp_min(_TINY).sqrt(), ok
 
 
-def triangle(dist: Tensor, l1: float, l2: float, tol: float) -> tuple[Tensor, Tensor, Tensor]:
+def triangle(dist: Tensor, l1: float, l2: float, tol: float, ops=TORCH) -> tuple[Tensor, Tensor, Tensor]:
     """The angle between two links ``l1, l2`` whose free ends are ``dist`` apart (law of
     cosines): ``(cos, |sin|, ok)``, ``cos = (dist^2 - l1^2 - l2^2) / (2 l1 l2)`` clamped.
 
@@ -89,10 +162,10 @@ def triangle(dist: Tensor, l1: float, l2: float, tol: float) -> tuple[Tensor, Te
     its relative accuracy (``sqrt(1 - cos^2)`` loses half the digits, 3e-4 m in float32).
     """
     c = (dist * dist - (l1 * l1 + l2 * l2)) / (2 * l1 * l2)
-    ok = c.abs() <= 1 + tol
+    ok = abs(c) <= 1 + tol
     outer, inner = l1 + l2, abs(l1 - l2)
     s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
-    return c.clamp(-1.0, 1.0), s2.clamp_min(_TINY).sqrt() / (2 * l1 * l2), ok
+    return ops.clamp(c, -1.0, 1.0), ops.sqrt(ops.clamp_min(s2, _TINY)) / (2 * l1 * l2), ok
 
 
 def reach_tol(dtype: torch.dtype) -> float:
@@ -129,13 +202,13 @@ def transpose_times(a: list[list], b: list[list]) -> list[list]:
     return out
 
 
-def entries(m: Tensor) -> list[list]:
-    """``m (..., 3, c)`` -> its entries ``(3 x c)``, each a contiguous ``(...)`` tensor."""
-    r = m.movedim((-2, -1), (0, 1)).contiguous()
+def entries(m: Tensor, ops=TORCH) -> list[list]:
+    """``m (..., 3, c)`` -> its entries ``(3 x c)``, each a ``(...)`` array (contiguous tensors)."""
+    r = ops.front(m)
     return [[r[k, j] for j in range(r.shape[1])] for k in range(3)]
 
 
-def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float) -> tuple[Tensor, Tensor, Tensor]:
+def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float, ops=TORCH) -> tuple[Tensor, Tensor, Tensor]:
     """All angles of ``M = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b) Rz(c)`` for twists with
     ``sin(alpha) = sig_a, sig_b = +-1``: a spherical joint triple (shoulder or wrist).
 
@@ -147,16 +220,16 @@ def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float) -> tuple[Tensor, 
     singularity, where only ``a +- c`` is determined and ``a`` is set to 0, or pi in the flip).
     """
     (m00, m02), (m10, m12), (m20, m22) = m
-    sb = safe_norm2(m02, m12)  # sin b >= 0
+    sb = safe_norm2(m02, m12, ops)  # sin b >= 0
     cb = -sig_a * sig_b * m22
-    b = torch.atan2(sb, cb)
-    a = safe_atan2(sig_b * m12, sig_b * m02)
-    ca, sa = torch.cos(a), torch.sin(a)
+    b = ops.atan2(sb, cb)
+    a = safe_atan2(sig_b * m12, sig_b * m02, ops)
+    ca, sa = ops.cos(a), ops.sin(a)
     # First column of Rz(c) = (Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b))^T M e_x.
     cos_c = cb * (ca * m00 + sa * m10) + sig_a * sb * m20
     sin_c = sig_a * sig_b * (sa * m00 - ca * m10)
-    c = safe_atan2(sin_c, cos_c)
-    return torch.stack([a, a + math.pi], -1), torch.stack([b, -b], -1), torch.stack([c, c + math.pi], -1)
+    c = safe_atan2(sin_c, cos_c, ops)
+    return ops.stack([a, a + math.pi], -1), ops.stack([b, -b], -1), ops.stack([c, c + math.pi], -1)
 
 
 # ---------------------------------------------------------------- chain structure
@@ -238,13 +311,23 @@ def last_frame_target(chain: DHChain, target: Tensor) -> Tensor:
     from ``target``; its origin is then the origin of frame ``n - 1`` (the wrist centre of
     a spherical wrist), its rotation ``R_0,n-1 Rz(theta_n)``.
     """
+    flange_inv, base_inv = strip_transforms(chain)
+    if base_inv is not None:
+        target = base_inv.to(target.dtype) @ target
+    return target @ flange_inv.to(target.dtype)
+
+
+def strip_transforms(chain: DHChain) -> tuple[Tensor, Tensor | None]:
+    """What :func:`last_frame_target` multiplies a target by, in the chain's dtype: ``(F, B)``,
+    ``F (4, 4)`` the inverse of the last row's constant part times the tool (on the right),
+    ``B (4, 4)`` the inverse of the base (on the left; None for the identity)."""
     a, alpha, d, _ = chain.dh[-1].tolist()
     ca, sa = math.cos(alpha), math.sin(alpha)
     last = torch.tensor([[1.0, 0, 0, a], [0, ca, -sa, 0], [0, sa, ca, d], [0, 0, 0, 1]], dtype=torch.float64)
-    flange_inv = torch.linalg.inv(last.to(chain.tool) @ chain.tool).to(target.dtype)
-    if not torch.equal(chain.base, torch.eye(4, dtype=chain.base.dtype, device=chain.base.device)):
-        target = torch.linalg.inv(chain.base).to(target.dtype) @ target
-    return target @ flange_inv
+    flange_inv = torch.linalg.inv(last.to(chain.tool) @ chain.tool)
+    if torch.equal(chain.base, torch.eye(4, dtype=chain.base.dtype, device=chain.base.device)):
+        return flange_inv, None
+    return flange_inv, torch.linalg.inv(chain.base)
 
 
 # ---------------------------------------------------------------- joint limits
@@ -257,28 +340,32 @@ def joint_angles(chain: DHChain, thetas: list[Tensor]) -> tuple[list[Tensor], Te
     then shifted by 2 pi if that brings it within its limits. Returns the joint angles (same
     shapes) and the broadcast ``within`` mask.
     """
-    offsets = chain.dh[:, 3].tolist()
-    lows, highs = chain.limits.tolist()
+    return wrap_joints(thetas, chain.dh[:, 3].tolist(), *chain.limits.tolist())
+
+
+def wrap_joints(thetas: list, offsets: list, lows: list, highs: list, ops=TORCH) -> tuple[list, Tensor]:
+    """:func:`joint_angles` for the chain's offsets and limits as lists of floats (rad), over the
+    arrays of ``ops``."""
     qs, inside = [], []
     for theta, off, lo, hi in zip(thetas, offsets, lows, highs):
-        q = theta - off
-        q = q - _TWO_PI * torch.round(q * (1 / _TWO_PI))  # [-pi, pi]; 3x faster than remainder
+        q = theta - off if off else theta
+        q = q - _TWO_PI * ops.rint(q * (1 / _TWO_PI))  # [-pi, pi]; 3x faster than remainder
         if hi > math.pi or lo < -math.pi:  # only then may a turn get q in [-pi, pi] inside
             q, fits = shift_into_limits(q, lo, hi)
         else:
             fits = (q >= lo) & (q <= hi)
         qs.append(q)
         inside.append(fits)
-    return qs, reduce_grouped(torch.logical_and, inside)
+    return qs, reduce_grouped(ops.logical_and, inside)
 
 
 def reduce_grouped(op, tensors: list[Tensor]) -> Tensor:
-    """``op``-reduce broadcastable tensors, those of equal shape first: branch-independent
+    """``op``-reduce broadcastable arrays, those of equal shape first: branch-independent
     joints are small, and broadcasting ops are the slow ones, so this saves full-size work."""
-    groups: dict[torch.Size, Tensor] = {}
+    groups: dict[tuple, Tensor] = {}
     for t in tensors:
         groups[t.shape] = op(groups[t.shape], t) if t.shape in groups else t
-    return functools.reduce(op, sorted(groups.values(), key=lambda t: t.numel()))
+    return functools.reduce(op, sorted(groups.values(), key=lambda t: math.prod(t.shape)))
 
 
 def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int) -> AnalyticSolutions:

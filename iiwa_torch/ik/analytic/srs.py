@@ -38,17 +38,26 @@ pose is still reproduced exactly).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import operator
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ...checks import check_positive
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
+from ...kinematics import end_pose_matmul, floats_ok, frames_numpy
 from ...so3 import pose_error
 from ..result import IKResult
+from ..small import pose_errors
 from ._common import (
+    NUMPY,
+    TORCH,
     AnalyticSolutions,
     acos_pair,
     as_values,
@@ -57,22 +66,25 @@ from ._common import (
     decompose_zxzxz,
     entries,
     finish,
-    joint_angles,
     last_frame_target,
     reach_tol,
     reduce_grouped,
     safe_atan2,
     safe_norm2,
     sigma,
+    strip_transforms,
     transpose_times,
     triangle,
     with_clearance,
+    wrap_joints,
     zxzx,
 )
 
-__all__ = ["iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
+__all__ = ["SOLVE_NUMPY_BATCH", "iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
 
 Tensor = torch.Tensor
+
+SOLVE_NUMPY_BATCH = 256  # up to this many poses per call (CPU, no world, no gradient), iiwa_solve runs in numpy
 
 _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
@@ -106,21 +118,24 @@ def _frames(chain: DHChain, target: Tensor) -> tuple[Tensor, Tensor]:
     return frame6[..., :3, :3], sw
 
 
-def _elbow(geo: _Geometry, sw: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _elbow(geo: _Geometry, sw: Tensor, tol: float, ops=TORCH, dist=None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Both elbow branches from ``W - S``: ``theta_4 (..., 2)``, ``cos theta_4 (...)``,
-    ``sin theta_4 (..., 2)`` and whether ``W`` is in reach ``(...)``."""
-    c4, s4_abs, ok = triangle(safe_norm2(safe_norm2(sw[..., 0], sw[..., 1]), sw[..., 2]), geo.d3, geo.d5, tol)
+    ``sin theta_4 (..., 2)`` and whether ``W`` is in reach ``(...)`` (arrays of ``ops``, ``_common``;
+    ``dist``: ``|W - S|`` if known)."""
+    if dist is None:
+        dist = safe_norm2(safe_norm2(sw[..., 0], sw[..., 1], ops), sw[..., 2], ops)
+    c4, s4_abs, ok = triangle(dist, geo.d3, geo.d5, tol, ops)
     c4 = -geo.sig[2] * geo.sig[3] * c4  # the triangle's angle is between z2 and z4, up to sign
-    s4 = s4_abs[..., None] * torch.tensor([1.0, -1.0], dtype=sw.dtype, device=sw.device)
-    return torch.atan2(s4, c4[..., None].expand_as(s4)), c4, s4, ok
+    s4 = s4_abs[..., None] * ops.signs(sw)
+    return ops.atan2(s4, c4[..., None]), c4, s4, ok
 
 
-def _reference(u: tuple) -> tuple[tuple, tuple]:
+def _reference(u: tuple, ops=TORCH) -> tuple[tuple, tuple]:
     """Unit ``u`` along ``SW`` (3 components) -> ``(v_ref, w_ref)``, 3 components each (module doc)."""
     ux, uy, uz = u
-    b = safe_atan2(uy, ux)
-    cb, sb = torch.cos(b), torch.sin(b)
-    return (-uz * cb, -uz * sb, safe_norm2(ux, uy)), (sb, -cb, 0.0)
+    b = safe_atan2(uy, ux, ops)
+    cb, sb = ops.cos(b), ops.sin(b)
+    return (-uz * cb, -uz * sb, safe_norm2(ux, uy, ops)), (sb, -cb, 0.0)
 
 
 def _dot(a: tuple, b: tuple) -> Tensor:
@@ -171,32 +186,37 @@ def _iiwa_thetas(chain: DHChain, target: Tensor, psi) -> tuple[list[Tensor], Ten
             f"got {tuple(psi.shape)}"
         )
     as_values(psi[..., 0] if psi.ndim == batch_dims + 1 else psi, "psi", target.dtype, target.device, target.shape[:-2])
-    tol = reach_tol(target.dtype)
-    theta4, c4, s4, reachable = _elbow(geo, sw, tol)
+    return _closed_form(geo, rot, sw, psi, reach_tol(target.dtype))
 
+
+def _closed_form(geo: _Geometry, rot, sw, psi, tol: float, ops=TORCH) -> tuple[list, Tensor]:
+    """:func:`_iiwa_thetas` from the rotation ``R (..., 3, 3)`` and ``W - S (..., 3)`` of
+    :func:`_frames` and the arm angles ``psi``, broadcasting with ``(...)``, in the arrays of
+    ``ops`` (``_common``: torch, or numpy for :func:`iiwa_solve`'s small batches)."""
     # Vectors as 3 separate component tensors: every step below is elementwise over the batch.
-    sx, sy, sz = sw.unbind(-1)
-    dist = safe_norm2(safe_norm2(sx, sy), sz)
+    sx, sy, sz = sw[..., 0], sw[..., 1], sw[..., 2]
+    dist = safe_norm2(safe_norm2(sx, sy, ops), sz, ops)
+    theta4, c4, s4, reachable = _elbow(geo, sw, tol, ops, dist)
     u = (sx / dist, sy / dist, sz / dist)
-    v_ref, w_ref = _reference(u)
-    cp, sp = torch.cos(psi), torch.sin(psi)
+    v_ref, w_ref = _reference(u, ops)
+    cp, sp = ops.cos(psi), ops.sin(psi)
     v = tuple(cp * p + sp * q for p, q in zip(v_ref, w_ref))  # elbow direction off the SW line
     n = tuple(cp * q - sp * p for p, q in zip(v_ref, w_ref))  # u x v: normal of the S, E, W plane
     # Angle alpha at S between u and the upper arm e, from theta4 itself (so that E and
     # theta4 agree exactly): dist u = d3 e + d5 f with e.f = -s3 s4 cos(theta4), |e x f| = |sin theta4|.
     sig = geo.sig
     cos_a = (geo.d3 - sig[2] * sig[3] * geo.d5 * c4) / dist
-    sin_a = geo.d5 * s4[..., 0].abs() / dist
+    sin_a = geo.d5 * abs(s4[..., 0]) / dist
     e = tuple(cos_a * p + sin_a * q for p, q in zip(u, v))  # upper arm, z_2
     x_dir = tuple(sin_a * p - cos_a * q for p, q in zip(u, v))  # e x n
     # Columns of R_03, per elbow branch (last dim): x3 = s3 kappa (e x n), y3 = s3 e, z3 = kappa n
     # with kappa = s3 s4 sign(sin theta4).
-    kappa = sig[2] * sig[3] * torch.tensor([1.0, -1.0], dtype=u[0].dtype, device=u[0].device)
+    kappa = sig[2] * sig[3] * ops.signs(sw)
     x3 = tuple(sig[2] * kappa * p[..., None] for p in x_dir)  # (..., 2)
     y3 = tuple(sig[2] * p[..., None] for p in e)  # (..., 1)
     z3 = tuple(kappa * p[..., None] for p in n)  # (..., 2)
     # Shoulder: R_03 Rx(alpha3)^T = Rz(theta1) Rx(alpha1) Rz(theta2) Rx(alpha2) Rz(theta3), columns x3, s3 y3.
-    t1, t2, t3 = decompose_zxzxz([[x3[k], sig[2] * y3[k]] for k in range(3)], sig[0], sig[1])  # (..., 1|2, 2)
+    t1, t2, t3 = decompose_zxzxz([[x3[k], sig[2] * y3[k]] for k in range(3)], sig[0], sig[1], ops)  # (..., 1|2, 2)
     # Wrist: R_04 = R_03 Rz(theta4) Rx(alpha4), then columns 0, 2 of R_04^T R.
     c4 = c4[..., None]
     r04 = (
@@ -204,11 +224,11 @@ def _iiwa_thetas(chain: DHChain, target: Tensor, psi) -> tuple[list[Tensor], Ten
         tuple(sig[3] * p for p in z3),
         tuple(sig[3] * (s4 * p - c4 * q) for p, q in zip(x3, y3)),
     )
-    cols = entries(rot[..., :, 0:3:2])  # 3 x 2, per pose
+    cols = entries(rot[..., :, 0:3:2], ops)  # 3 x 2, per pose
     cols = [tuple(cols[k][j][..., None] for k in range(3)) for j in range(2)]
     m = [[_dot(r04[i], cols[j]) for j in range(2)] for i in range(3)]
-    t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5])  # (..., 2, 2)
-    shoulder = [t.transpose(-1, -2)[..., None] for t in (t1, t2, t3)]
+    t5, t6, t7 = decompose_zxzxz(m, sig[4], sig[5], ops)  # (..., 2, 2)
+    shoulder = [ops.swap(t)[..., None] for t in (t1, t2, t3)]
     thetas = [*shoulder, theta4[..., None, :, None], *(t[..., None, :, :] for t in (t5, t6, t7))]
     return thetas, reachable[..., None, None, None]
 
@@ -221,12 +241,17 @@ def iiwa_arm_angle(chain: DHChain, q: Tensor) -> Tensor:
     frames = chain.fk_all(q)  # world frame; bring S, E, W back into frame 0
     base_rot = chain.base[:3, :3].to(q.dtype)
     points = (frames[..., [1, 3, 5], :3, 3] - chain.base[:3, 3].to(q.dtype)) @ base_rot
-    s, e, w = points.unbind(-2)
-    sx, sy, sz = (w - s).unbind(-1)
-    dist = safe_norm2(safe_norm2(sx, sy), sz)
-    v_ref, w_ref = _reference((sx / dist, sy / dist, sz / dist))
-    se = (e - s).unbind(-1)
-    return safe_atan2(_dot(se, w_ref), _dot(se, v_ref))
+    return _arm_angle(*points.unbind(-2))
+
+
+def _arm_angle(s, e, w, ops=TORCH):
+    """The arm angle from the points ``S, E, W (..., 3)`` in frame 0 (arrays of ``ops``)."""
+    sw, se = w - s, e - s
+    sx, sy, sz = sw[..., 0], sw[..., 1], sw[..., 2]
+    dist = safe_norm2(safe_norm2(sx, sy, ops), sz, ops)
+    v_ref, w_ref = _reference((sx / dist, sy / dist, sz / dist), ops)
+    se = (se[..., 0], se[..., 1], se[..., 2])
+    return safe_atan2(_dot(se, w_ref), _dot(se, v_ref), ops)
 
 
 def iiwa_q3_locked(
@@ -345,27 +370,23 @@ def iiwa_solve(
     check_target(chain, target)
     batch = target.shape[:-2]
     flat = target.reshape(-1, 4, 4)
+    given_q0 = q0
     if q0 is not None:
         chain.check_q(q0, "q0")
         try:
             q0 = torch.broadcast_to(q0.to(target.dtype), (*batch, 7)).reshape(-1, 7)
         except RuntimeError:
             raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
+    if _numpy_applies(chain, flat, given_q0, world, num_psi):
+        return _solve_numpy(chain, flat, q0, num_psi, pos_tol, rot_tol, batch)
     obstacles = None if world is None else Obstacles.for_batch(world, margin, capsules, batch)
     if flat.shape[0] == 0:  # no poses
-        q_best, found = flat.new_zeros(0, 7), torch.zeros(0, dtype=torch.bool, device=flat.device)
+        q_best = flat.new_zeros(0, 7)
     else:
-        q_best, found = _sweep(chain, flat, q0, num_psi, obstacles)
-    missed = (~found).nonzero().squeeze(-1)
-    if missed.numel():  # narrow feasible arm-angle intervals: once more, 16 times finer
-        q_fine, found_fine = _sweep(
-            chain,
-            flat[missed],
-            None if q0 is None else q0[missed],
-            16 * num_psi,
-            None if obstacles is None else obstacles.take(missed),
-        )
-        q_best, found = q_best.index_put((missed,), q_fine), found.index_put((missed,), found_fine)
+        setup = _Setup.build(chain, TORCH, chain.clamp, with_chain=chain)
+        rot, sw = _frames(chain, flat)
+        psi0 = None if q0 is None else iiwa_arm_angle(chain, q0)
+        q_best, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, flat.dtype, obstacles)
     pos_vec, rot_vec = pose_error(chain.fk(q_best), flat)
     pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
     success = (pos_err <= pos_tol) & (rot_err <= rot_tol)  # q is within the limits: the FK error decides
@@ -383,6 +404,99 @@ def iiwa_solve(
         iterations=iterations,
         clearance=clear,
     )
+
+
+def _numpy_applies(chain: DHChain, flat: Tensor, q0: Tensor | None, world: World | None, num_psi: int) -> bool:
+    """Whether :func:`iiwa_solve` runs in numpy (:func:`_solve_numpy`): ``1..SOLVE_NUMPY_BATCH``
+    poses ``flat (B, 4, 4)`` that fit in one chunk, no world, and the target, ``q0``, the chain's
+    base and tool on the CPU with nothing to differentiate (:func:`~iiwa_torch.kinematics.floats_ok`)."""
+    size = flat.shape[0]
+    if world is not None or not 1 <= size <= SOLVE_NUMPY_BATCH or size * 8 * (16 * num_psi + 1) > _CANDIDATES:
+        return False
+    return all(floats_ok(t) for t in (flat, chain.base, chain.tool) + (() if q0 is None else (q0,)))
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """What a sweep takes from the chain, for the arrays of ``ops`` (``_common``): the closed
+    form's constants ``geo``, the joint offsets and limits (floats, rad) and their mid-points and
+    half-widths, and ``clamp``, ``q (B, 7)`` -> ``q`` clamped into the limits. For torch also the
+    chain (for a world), for numpy the float64 arrays ``flange_inv``, ``base_inv``
+    (:func:`~._common.strip_transforms`) and ``base``."""
+
+    geo: _Geometry
+    ops: object
+    offsets: list
+    lows: list
+    highs: list
+    mids: list
+    halves: list
+    clamp: Callable
+    chain: DHChain | None = None
+    flange_inv: np.ndarray | None = None
+    base_inv: np.ndarray | None = None
+    base: np.ndarray | None = None
+
+    def bounds(self, dtype: torch.dtype) -> tuple[list, list]:
+        """The limits (rad) against which candidates for targets of ``dtype`` are checked: in numpy,
+        those of float32 targets rounded to float32, as torch compares a float32 tensor with a number."""
+        if self.ops is TORCH or dtype == torch.float64:
+            return self.lows, self.highs
+        return tuple(np.array(b, dtype=np.float32).tolist() for b in (self.lows, self.highs))
+
+    @classmethod
+    def build(cls, chain: DHChain, ops, clamp: Callable, with_chain: DHChain | None = None, **extra) -> _Setup:
+        lows, highs = chain.limits.tolist()
+        mids = chain.limits.mean(0).tolist()
+        halves = ((chain.limits[1] - chain.limits[0]) / 2).tolist()
+        offsets = chain.dh[:, 3].tolist()
+        return cls(_Geometry(chain), ops, offsets, lows, highs, mids, halves, clamp, with_chain, **extra)
+
+
+_NUMPY_SETUPS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # chain.geometry(float64) -> _Setup
+
+
+def _numpy_setup(chain: DHChain) -> _Setup:
+    """The numpy :class:`_Setup` of ``chain``, cached on its float64 geometry (which the chain
+    rebuilds when its buffers change; the entry holds no reference to the chain or geometry)."""
+    key = chain.geometry(torch.float64)
+    setup = _NUMPY_SETUPS.get(key)
+    if setup is None:
+        flange_inv, base_inv = (None if t is None else t.double().numpy() for t in strip_transforms(chain))
+        lo, hi = chain.limits.double().numpy()
+        setup = _Setup.build(
+            chain, NUMPY, functools.partial(NUMPY.clamp, lo=lo, hi=hi),
+            flange_inv=flange_inv, base_inv=base_inv, base=chain.base.double().numpy(),
+        )
+        _NUMPY_SETUPS[key] = setup
+    return setup
+
+
+def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, pos_tol: float, rot_tol: float,
+                 batch: torch.Size) -> IKResult:
+    """:func:`iiwa_solve` in numpy float64 for ``flat (B, 4, 4)`` and ``q0 (B, 7)`` (or None), checked
+    and flattened: the same sweep (:func:`_solve_all`, with the reach tolerance of ``flat``'s
+    dtype), then ``q`` in that dtype and its errors from the chain's FK, as the batched path."""
+    dtype = flat.dtype
+    setup = _numpy_setup(chain)
+    target = flat.double().numpy()
+    frame6 = (target if setup.base_inv is None else setup.base_inv @ target) @ setup.flange_inv
+    rot, sw = frame6[:, :3, :3], frame6[:, :3, 3] - np.array([0.0, 0.0, setup.geo.d1])
+    psi0 = None
+    if q0 is not None:
+        q0 = q0.double().numpy()
+        frames = frames_numpy(chain.geometry(torch.float64), q0)  # world frame; S, E, W back into frame 0
+        base = setup.base
+        psi0 = _arm_angle(*((frames[[1, 3, 5], :, :3, 3] - base[:3, 3]) @ base[:3, :3]), ops=NUMPY)
+    q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
+    q = torch.from_numpy(q).to(dtype)
+    pose = end_pose_matmul(chain.geometry(dtype), q).double().numpy()  # chain.fk's kernel for these
+    eps = torch.finfo(dtype).eps
+    _, pos_err, _, rot_err = pose_errors(pose, target[:, :3, 3], target[:, :3, :3], eps)
+    success = torch.from_numpy((pos_err <= pos_tol) & (rot_err <= rot_tol)).reshape(batch)
+    pos_err, rot_err = (torch.from_numpy(x).to(dtype).reshape(batch) for x in (pos_err, rot_err))
+    iterations = torch.zeros(batch, dtype=torch.int64)
+    return IKResult(q=q.reshape(*batch, 7), success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
 
 
 @dataclass(frozen=True)
@@ -422,76 +536,101 @@ class Obstacles:
         return clearance(chain, q, world, self.capsules)
 
 
-def _sweep(
-    chain: DHChain, target: Tensor, q0: Tensor | None, num_psi: int, obstacles: Obstacles | None
-) -> tuple[Tensor, Tensor]:
-    """Best candidate of each pose ``target (B, 4, 4)`` over ``num_psi`` evenly spaced arm
-    angles (plus the arm angle of ``q0 (B, 7)`` when given), then over finer grids of
-    ``_LOCAL`` angles spanning one step either side of the best so far (their centre)."""
+def _solve_all(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtype, obstacles: Obstacles | None):
+    """Every pose's answer, ``rot (B, 3, 3)``, ``sw (B, 3)`` (:func:`_frames`), ``q0 (B, 7)`` and its
+    arm angle ``psi0 (B,)`` (or None), for targets of ``dtype``, -> ``q (B, 7)`` and ``found (B,)``:
+    :func:`_sweep`, then poses with no valid candidate once more with 16 times as many arm angles
+    (narrow feasible intervals)."""
+    ops = setup.ops
+    q_best, found = _sweep(setup, rot, sw, q0, psi0, num_psi, dtype, obstacles)
+    missed = ops.nonzero(~found)
+    if len(missed):
+        q_fine, found_fine = _sweep(
+            setup,
+            rot[missed],
+            sw[missed],
+            None if q0 is None else q0[missed],
+            None,
+            16 * num_psi,
+            dtype,
+            None if obstacles is None else obstacles.take(missed),
+        )
+        q_best, found = ops.put(q_best, missed, q_fine), ops.put(found, missed, found_fine)
+    return q_best, found
+
+
+def _sweep(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtype, obstacles: Obstacles | None):
+    """Best candidate of each pose over ``num_psi`` evenly spaced arm angles (plus ``psi0``, the arm
+    angle of ``q0``, when given), then over finer grids of ``_LOCAL`` angles spanning one step
+    either side of the best so far (their centre). Arguments as for :func:`_solve_all`."""
+    ops = setup.ops
+    pick = _pick_chunked if ops is TORCH else _pick
     step = 2 * math.pi / num_psi
-    psi = (torch.arange(num_psi, dtype=target.dtype, device=target.device) * step - math.pi).expand(target.shape[0], -1)
-    if q0 is not None:
-        psi = torch.cat([iiwa_arm_angle(chain, q0)[:, None], psi], -1)  # (B, K + 1)
-    q, found, psi_best = _pick_chunked(chain, target, psi, q0, obstacles)
+    psi = ops.expand(ops.arange(num_psi, rot) * step - math.pi, (rot.shape[0], num_psi))
+    if psi0 is not None:
+        psi = ops.cat([psi0[:, None], psi], -1)  # (B, K + 1)
+    q, found, psi_best = pick(setup, rot, sw, psi, q0, dtype, obstacles)
     for _ in range(_REFINE if q0 is not None else 1):  # a margin is flat near its best: one pass
-        local = torch.linspace(-step, step, _LOCAL, dtype=target.dtype, device=target.device)
-        q, found, psi_best = _pick_chunked(chain, target, psi_best[:, None] + local, q0, obstacles)
+        local = ops.linspace(-step, step, _LOCAL, rot)
+        q, found, psi_best = pick(setup, rot, sw, psi_best[:, None] + local, q0, dtype, obstacles)
         step = 2 * step / (_LOCAL - 1)  # the next window spans the neighbours of the best
     return q, found
 
 
-def _pick_chunked(
-    chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None, obstacles: Obstacles | None
-) -> tuple[Tensor, Tensor, Tensor]:
+def _pick_chunked(setup: _Setup, rot: Tensor, sw: Tensor, psi: Tensor, q0: Tensor | None, dtype: torch.dtype,
+                  obstacles: Obstacles | None) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`_pick` over chunks of poses, so that memory stays bounded."""
     chunk = max(1, _CANDIDATES // (8 * psi.shape[-1]))
     picks = [
         _pick(
-            chain,
-            target[i : i + chunk],
+            setup,
+            rot[i : i + chunk],
+            sw[i : i + chunk],
             psi[i : i + chunk],
             None if q0 is None else q0[i : i + chunk],
+            dtype,
             None if obstacles is None else obstacles.take(slice(i, i + chunk)),
         )
-        for i in range(0, target.shape[0], chunk)
+        for i in range(0, rot.shape[0], chunk)
     ]
     return tuple(torch.cat(parts) for parts in zip(*picks))
 
 
-def _pick(
-    chain: DHChain, target: Tensor, psi: Tensor, q0: Tensor | None, obstacles: Obstacles | None
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Best of the ``K * 8`` candidates of each pose: ``target (B, 4, 4)``, ``psi (B, K)``,
+def _pick(setup: _Setup, rot, sw, psi, q0, dtype: torch.dtype, obstacles: Obstacles | None):
+    """Best of the ``K * 8`` candidates of each pose: ``rot (B, 3, 3)``, ``sw (B, 3)``, ``psi (B, K)``,
     ``q0 (B, 7)`` or None -> ``q (B, 7)`` clamped into the limits, ``found (B,)`` bool (the
-    candidate is valid) and its arm angle ``(B,)``."""
-    thetas, reachable = _iiwa_thetas(chain, target, psi)
-    qs, within = joint_angles(chain, thetas)  # per joint, only as large as its branches need
-    batch = target.shape[0]
-    mids = chain.limits.mean(0).tolist()
-    halves = ((chain.limits[1] - chain.limits[0]) / 2).tolist()
+    candidate is valid) and its arm angle ``(B,)``; arrays of ``setup.ops``, for targets of
+    ``dtype`` (its reach tolerance and precision of the ranking)."""
+    ops = setup.ops
+    thetas, reachable = _closed_form(setup.geo, rot[:, None], sw[:, None], psi, reach_tol(dtype), ops)
+    lows, highs = setup.bounds(dtype)
+    qs, within = wrap_joints(thetas, setup.offsets, lows, highs, ops)  # each as large as its branches need
+    batch = rot.shape[0]
     if q0 is None:  # minus the margin to the nearest limit (negative outside)
-        cost = reduce_grouped(torch.maximum, [(qj - mid).abs() - half for qj, mid, half in zip(qs, mids, halves)])
+        margins = [abs(qj - mid) - half for qj, mid, half in zip(qs, setup.mids, setup.halves)]
+        cost = reduce_grouped(ops.maximum, margins)
     else:  # squared distance to q0; no wrapping: a joint cannot turn through its limits
-        diffs = [qj - q0[:, j].view(batch, 1, 1, 1, 1) for j, qj in enumerate(qs)]
-        cost = reduce_grouped(torch.add, [d * d for d in diffs])
+        diffs = [qj - q0[:, j].reshape(batch, 1, 1, 1, 1) for j, qj in enumerate(qs)]
+        cost = reduce_grouped(operator.add, [d * d for d in diffs])
     shape = cost.shape  # (B, K, 2, 2, 2)
-    valid = (reachable & within).expand(shape)
+    valid = ops.expand(reachable & within, shape)
     # Valid candidates first, then those outside the limits, then the geometrically unreachable
     # ones (their cosines clamped: a target a rounding error out of reach is met to that error).
     big = 1e6
-    key = cost + big * (~within).to(cost.dtype) + 2 * big * (~reachable).to(cost.dtype)
+    key = cost + big * ops.as_float(~within, cost) + 2 * big * ops.as_float(~reachable, cost)
+    key = ops.rounded(key, dtype)  # the target's precision, in which the batched path ranks
     if obstacles is None:
         best = key.reshape(batch, -1).argmin(-1)  # (B,)
-        found = valid.reshape(batch, -1).gather(-1, best[:, None]).squeeze(-1)
+        found = ops.take(valid.reshape(batch, -1), best)
     else:
-        best, found = _free_pick(chain, key.reshape(batch, -1), valid.reshape(batch, -1), qs, obstacles)
-    index = torch.unravel_index(best, shape[1:])  # arm angle, shoulder, elbow, wrist
-    rows = torch.arange(batch, device=best.device)
-    zero = torch.zeros_like(best)
-    q_best = torch.stack(
+        best, found = _free_pick(setup.chain, key.reshape(batch, -1), valid.reshape(batch, -1), qs, obstacles)
+    index = ops.unravel(best, shape[1:])  # arm angle, shoulder, elbow, wrist
+    rows = ops.rows(batch, best)
+    zero = index[0] * 0
+    q_best = ops.stack(
         [qj[(rows,) + tuple(ix if n > 1 else zero for ix, n in zip(index, qj.shape[1:]))] for qj in qs], -1
     )
-    return chain.clamp(q_best), found, psi.gather(-1, index[0][:, None]).squeeze(-1)
+    return setup.clamp(q_best), found, ops.take(psi, index[0])
 
 
 def _free_pick(
