@@ -6,8 +6,9 @@ The step's formulas (:meth:`envs.robot.JointVelocityArm.integrate`,
 :data:`NUMPY` for one environment on the CPU, whose per-op cost is a fraction of torch's
 (about 1 us against 3-5 us here). Operators (``+ - * / < |``) are the arrays' own. The
 functions whose names differ between the libraries are the only ones here; the ``_`` ones
-write into their first argument, which must be a temporary of the formula. The cosine, sine,
-multiply-add (fused), square root, arcsine and cross product of :data:`NUMPY` are torch's, run on views of the
+write into their first argument, which must be a temporary of the formula. The multiply-add
+(fused), square root, arcsine and cross product of :data:`NUMPY` are torch's (as are the
+step's cosine and sine of q), run on views of the
 arrays: torch's float32 results differ from numpy's in the last bit for 1 in 5 inputs or more
 (measured), and one env's observations must equal a batch's, and its rewards
 ``compute_reward``'s (torch), bit for bit.
@@ -70,8 +71,7 @@ class ArrayOps:
     def at_most(x, high: float):
         return torch.clamp(x, max=high)
 
-    where, cos, sin = staticmethod(torch.where), staticmethod(torch.cos), staticmethod(torch.sin)
-    asin, zeros_like = staticmethod(torch.asin), staticmethod(torch.zeros_like)
+    where, asin, zeros_like = staticmethod(torch.where), staticmethod(torch.asin), staticmethod(torch.zeros_like)
 
     @staticmethod
     def cross(u, v):
@@ -126,13 +126,6 @@ class _NumpyOps(ArrayOps):
 
     where, zeros_like = staticmethod(np.where), staticmethod(np.zeros_like)
 
-    @staticmethod
-    def cos(x):  # torch's, as for sqrt_: the observations of one env and of a batch are equal
-        return torch.cos(torch.from_numpy(x)).numpy()
-
-    @staticmethod
-    def sin(x):
-        return torch.sin(torch.from_numpy(x)).numpy()
 
     @staticmethod
     def asin(x):

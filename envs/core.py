@@ -330,8 +330,8 @@ class ReachTask:
         """
         xp = NUMPY if state.q.shape[1] == 1 and self.device.type == "cpu" else TORCH
         q, velocity = self.arm.integrate(xp.of(state.q), xp.of(action), xp)
-        cos_q, sin_q = xp.cos(q), xp.sin(q)
-        q_t, cos_t, sin_t = xp.tensor(q), xp.tensor(cos_q), xp.tensor(sin_q)
+        q_t = xp.tensor(q)
+        cos_t, sin_t = torch.cos(q_t), torch.sin(q_t)  # torch's on both paths: one env's equal a batch's
         achieved = self.goal_of(q_t, (cos_t, sin_t))
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         # the reward of the goals as observed, in float32
