@@ -779,7 +779,7 @@ def _own_clearance_floats(
     chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
 ) -> tuple[float | None, np.ndarray, np.ndarray]:
     """One configuration's self and floor clearance in Python floats (``None``: neither is
-    checked), and its capsules' start points and start-to-end vectors ``(K, 1, 3)`` float64, as
+    checked), and its capsules' start points and start-to-end vectors (K 3-tuples each), as
     :func:`_clearance_numpy` computes them for a batch: the frames by the float recursion, the
     segments by :func:`_closest_parameters`."""
     table = capsules._float_table()
@@ -795,8 +795,7 @@ def _own_clearance_floats(
             for (i, j), r in zip(capsules.pairs, table["pair_radius"])]
     if floor is not None:
         gaps += [min(start[k][2], start[k][2] + direction[k][2]) - (r + floor) for k, r in table["floor"]]
-    ends = np.array([start, direction])[:, :, None]  # (2, K, 1, 3)
-    return (min(gaps) if gaps else None), ends[0], ends[1]
+    return (min(gaps) if gaps else None), start, direction
 
 
 def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
@@ -824,6 +823,8 @@ def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules
         mins = [m.reshape(lead) for m in mins]
     idx = tables["world"]
     if (world.spheres is not None or world.boxes is not None) and idx.size:
+        if isinstance(start, list):  # one configuration's, from the float path: (K, 1, 3) arrays
+            start, direction = np.array([start, direction])[:, :, None]
         a, b = (x.transpose(1, 0, 2).reshape(*lead, idx.size, 1, 3) for x in (start[idx], start[idx] + direction[idx]))
     if world.spheres is not None and idx.size:
         centre, rad = (t.detach().numpy().astype(np.float64) for t in world.spheres)
