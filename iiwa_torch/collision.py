@@ -298,26 +298,31 @@ class Capsules:
         ``floor (F,)`` and ``floor_radius (F, 1)``, ``world (W,)`` and ``world_radius (W, 1)``."""
         key = (dtype, device)
         if key not in self._cache:
-            options = {"device": device}
-            index = {"dtype": torch.long, **options}
-            radii = self.radii.to(dtype=dtype, **options)
-            first, second = (
-                (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
-            )
-            floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
-            ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
-            self._cache[key] = {
-                "frames": torch.tensor(self.frames, **index),
-                "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
-                "first": first,
-                "second": second,
-                "pair_radius": (radii[first] + radii[second])[:, None],
-                "floor": floor,
-                "floor_radius": radii[floor, None],
-                "world": world,
-                "world_radius": radii[world, None],
-            }
+            with torch.inference_mode(False):  # the model is shared (robot_capsules): no inference tensors in it
+                self._cache[key] = self._build_tables(dtype, device)
         return self._cache[key]
+
+    def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+        """:meth:`_index_tables`, built."""
+        options = {"device": device}
+        index = {"dtype": torch.long, **options}
+        radii = self.radii.to(dtype=dtype, **options)
+        first, second = (
+            (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
+        )
+        floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
+        ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
+        return {
+            "frames": torch.tensor(self.frames, **index),
+            "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
+            "first": first,
+            "second": second,
+            "pair_radius": (radii[first] + radii[second])[:, None],
+            "floor": floor,
+            "floor_radius": radii[floor, None],
+            "world": world,
+            "world_radius": radii[world, None],
+        }
 
     def _float_table(self) -> dict[str, list]:
         """The model as Python floats, built once: ``points`` K ``(frame, start, end)``, the end
@@ -458,7 +463,8 @@ def robot_capsules(chain: DHChain) -> Capsules:
     dh = chain.dh.tolist()
     key = (chain.name, tuple(map(tuple, dh)))  # all the model depends on; it is frozen, so shared
     if key not in _MODELS:
-        _MODELS[key] = _preset_capsules(chain, dh)
+        with torch.inference_mode(False):  # shared: no inference tensors in it, whoever asks first
+            _MODELS[key] = _preset_capsules(chain, dh)
     return _MODELS[key]
 
 

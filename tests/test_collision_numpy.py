@@ -190,3 +190,19 @@ def test_gradients_take_the_torch_path():
     assert torch.autograd.gradcheck(lambda c: clearance(chain, q.detach(), World(spheres=(c, radius))), (centre,))
     d = clearance(chain, q.detach(), World(spheres=(centre, radius)))
     assert d.requires_grad  # only the world's tensor requires grad
+
+
+def test_the_shared_model_first_used_in_inference_mode_still_differentiates():
+    """robot_capsules returns one shared model per chain: tables it first builds under
+    torch.inference_mode (as the envs' steps do) must not leak inference tensors into autograd."""
+    chain = robots.puma560().float()
+    q = _configurations(chain, 40, np.random.default_rng(4)).float()
+    with torch.inference_mode():
+        caps = robot_capsules(chain)
+        first = clearance(chain, q, World(), caps)  # builds the float32 tables (torch path: 40 > 32)
+    other = robots.puma560().float()  # another chain object (its own FK caches), the same model
+    assert robot_capsules(other) is caps
+    x = q.clone().requires_grad_()
+    d = clearance(other, x, World(), robot_capsules(other))
+    d.sum().backward()
+    assert torch.isfinite(x.grad).all() and torch.allclose(d.detach(), first)
