@@ -29,6 +29,7 @@ import torch
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
 
+from .arrays import NUMPY, TORCH, ArrayOps
 from .goals import GoalKind, ReachGoals, RewardKind, enum_option
 from .robot import JointVelocityArm
 from .seeding import keys_from_seeds, uniform
@@ -324,27 +325,34 @@ class ReachTask:
 
         The actions must be finite, in the state's layout, dtype and device:
         ``task.transport.check_action`` makes them so from the envs' ``(n, nj)`` batches.
+        One environment on the CPU runs the same formulas on numpy views of its tensors
+        (:data:`envs.arrays.NUMPY`: each op a fraction of a torch op's cost); more, on torch.
         """
-        q, velocity = self.arm.integrate(state.q, action)
-        cos_q, sin_q = torch.cos(q), torch.sin(q)
-        achieved = self.goal_of(q, (cos_q, sin_q))
+        xp = NUMPY if state.q.shape[1] == 1 and self.device.type == "cpu" else TORCH
+        q, velocity = self.arm.integrate(xp.of(state.q), xp.of(action), xp)
+        q_t = xp.tensor(q)
+        cos_t, sin_t = torch.cos(q_t), torch.sin(q_t)  # torch's on both paths: one env's equal a batch's
+        achieved = self.goal_of(q_t, (cos_t, sin_t))
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
-        dist, angle, success = self.goals.errors(*observed)  # the reward of the goals as observed, in float32
+        # the reward of the goals as observed, in float32
+        dist, angle, success = self.goals.errors(*map(xp.of, observed), xp)
         collision = None
         if self.world is not None:  # one clearance call for the batch
-            collision = self.world.clearance(q.T, state.obstacles if self.world.slots else None) < 0
-        reward = self.penalised(self.goals.reward_of(dist, angle, success), collision)
-        t = state.t + 1
-        terminated = success if self.terminate_on_success else torch.zeros_like(success)
+            collision = xp.of(self.world.clearance(q_t.T, state.obstacles if self.world.slots else None)) < 0
+        reward = self.penalised(self.goals.reward_of(dist, angle, success, xp), collision, xp)
+        t = xp.of(state.t) + 1
+        terminated = success if self.terminate_on_success else xp.zeros_like(success)
         if self.collision is CollisionKind.TERMINATE:
             terminated = terminated | collision
-        truncated = torch.zeros_like(success) if self.max_episode_steps is None else t >= self.max_episode_steps
-        new = ReachState(q, cos_q, sin_q, velocity, state.goal, achieved, t, state.key, state.episode, state.obstacles)
-        return new, StepResult(reward, terminated, truncated, success, dist, angle, collision)
+        truncated = xp.zeros_like(success) if self.max_episode_steps is None else t >= self.max_episode_steps
+        new = ReachState(q_t, cos_t, sin_t, xp.tensor(velocity), state.goal, achieved, xp.tensor(t), state.key,
+                         state.episode, state.obstacles)
+        result = (reward, terminated, truncated, success, dist, angle, collision)
+        return new, StepResult(*(None if x is None else xp.tensor(x) for x in result))
 
-    def penalised(self, reward: Tensor, collision: Tensor | None) -> Tensor:
+    def penalised(self, reward, collision, xp: ArrayOps = TORCH):
         """``reward - collision_penalty`` where ``collision`` (``None``: no collision checked)."""
-        return reward if collision is None else torch.where(collision, reward - self.collision_penalty, reward)
+        return reward if collision is None else xp.where(collision, reward - self.collision_penalty, reward)
 
     def compute_reward(self, achieved_goal, desired_goal, info=None) -> np.ndarray:
         """The envs' ``compute_reward``: goals ``(..., g)``, numpy or torch -> ``(...)`` float32 numpy,

@@ -16,6 +16,8 @@ import torch
 
 from iiwa_torch.checks import check_finite
 
+from .arrays import NUMPY, TORCH, ArrayOps
+
 __all__ = ["GoalKind", "RewardKind", "ReachGoals", "encode_pose_goal", "decode_pose_goal", "enum_option"]
 
 Tensor = torch.Tensor
@@ -74,13 +76,12 @@ def decode_pose_goal(goal) -> Tensor:
     return pose
 
 
-def _distance_sq(u: Tensor, w: Tensor) -> Tensor:
+def _distance_sq(u, w, xp: ArrayOps = TORCH):
     """``(3, ...)`` twice -> ``(...)``: the squared distance, summed over the 3 components in the
     order 0, 1, 2 whatever the layout (3 terms are fewer than a SIMD vector, so torch's
     reduction is a plain sequential loop both for one environment and for a batch:
-    bit-identical results). The difference is squared in place: one pass less."""
-    d = u - w
-    return d.mul_(d).sum(0)
+    bit-identical results; numpy's too). The difference is squared in place: one pass less."""
+    return xp.square_(u - w).sum(0)
 
 
 class ReachGoals:
@@ -103,10 +104,11 @@ class ReachGoals:
         self.size = 3 if goal is GoalKind.POSITION else 9
         # The thresholds as 0-dim float32 tensors (the errors are float32): comparing with a
         # Python float wraps it in a new tensor at every call, more than doubling the op's cost.
-        self._distance_threshold = torch.tensor(distance_threshold, dtype=torch.float32)
         # Chordal threshold: ||R1 - R2||_F = 2 sqrt(2) sin(angle / 2), monotone in the angle.
-        self._chord_sq_threshold = torch.tensor(8.0 * math.sin(min(orientation_threshold, math.pi) / 2) ** 2,
-                                                dtype=torch.float32)
+        chord = 8.0 * math.sin(min(orientation_threshold, math.pi) / 2) ** 2
+        limits = (distance_threshold, chord)
+        self._thresholds = {TORCH.name: tuple(torch.tensor(t, dtype=torch.float32) for t in limits),
+                            NUMPY.name: tuple(map(np.float32, limits))}
 
     def goal_of(self, chain, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """Joint angles ``(nj, b)``, batch last -> goal vectors ``(g, b)``: the end-effector
@@ -116,30 +118,33 @@ class ReachGoals:
             return chain.position_batch_last(q, trig)
         return encode_pose_goal(chain.fk(q.T)).T.contiguous()
 
-    def errors(self, achieved: Tensor, desired: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
+    def errors(self, achieved, desired, xp: ArrayOps = TORCH) -> tuple:
         """Goals ``(g, ...)``, components first -> position distance (m), orientation angle
-        (rad; ``None`` for position goals) and success, each ``(...)``.
+        (rad; ``None`` for position goals) and success, each ``(...)``. Tensors, or numpy
+        arrays with ``xp=NUMPY`` (:mod:`envs.arrays`).
 
         Each environment's numbers are reduced on their own (over the few components), so
         batched and single calls agree bit for bit (tested): what SB3's checker and HER's
         relabelled rewards rely on.
         """
         position = self.kind is GoalKind.POSITION
-        dist = (_distance_sq(achieved, desired) if position else _distance_sq(achieved[:3], desired[:3])).sqrt_()
-        ok = dist < self._distance_threshold
+        distance_threshold, chord_sq_threshold = self._thresholds[xp.name]
+        dist = xp.sqrt_(_distance_sq(achieved, desired, xp) if position else
+                        _distance_sq(achieved[:3], desired[:3], xp))
+        ok = dist < distance_threshold
         if position:
             return dist, None, ok
         xa, ya, xd, yd = achieved[3:6], achieved[6:9], desired[3:6], desired[6:9]
         # ||Ra - Rd||_F^2 over the three columns (z = x cross y) = 8 sin^2(angle / 2)
-        za, zd = torch.linalg.cross(xa, ya, dim=0), torch.linalg.cross(xd, yd, dim=0)
-        chord_sq = _distance_sq(xa, xd) + _distance_sq(ya, yd) + _distance_sq(za, zd)
-        angle = 2 * torch.asin(torch.clamp(torch.sqrt(chord_sq / 8), max=1.0))
-        return dist, angle, ok & (chord_sq < self._chord_sq_threshold)
+        za, zd = xp.cross(xa, ya), xp.cross(xd, yd)
+        chord_sq = _distance_sq(xa, xd, xp) + _distance_sq(ya, yd, xp) + _distance_sq(za, zd, xp)
+        angle = 2 * xp.asin(xp.at_most(xp.sqrt_(chord_sq / 8), 1.0))
+        return dist, angle, ok & (chord_sq < chord_sq_threshold)
 
-    def reward_of(self, dist: Tensor, angle: Tensor | None, ok: Tensor) -> Tensor:
+    def reward_of(self, dist, angle, ok, xp: ArrayOps = TORCH):
         """The reward of :meth:`errors`' outputs, ``(...)`` in their dtype."""
         if self.reward_kind is RewardKind.SPARSE:
-            return ok.to(dist.dtype) - 1
+            return xp.like(ok, dist) - 1
         return -dist if angle is None else -(dist + self.orientation_weight * angle)
 
     def reward(self, achieved: Tensor, desired: Tensor) -> Tensor:

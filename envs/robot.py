@@ -9,6 +9,8 @@ import torch
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import IIWA_HOME
 
+from .arrays import NUMPY, TORCH, ArrayOps
+
 __all__ = ["JointVelocityArm"]
 
 Tensor = torch.Tensor
@@ -44,8 +46,10 @@ class JointVelocityArm:
         self.lower, self.upper = self.chain.limits.to(dtype)
         self.max_step = (self.chain.velocity_limits * dt).to(dtype)  # (nj,) rad per step at |a| = 1
         # the same as columns (nj, 1), to broadcast along the state's rows
-        self._lower_c, self._upper_c = self.lower[:, None], self.upper[:, None]
-        self._max_step_c = self.max_step[:, None]
+        columns = (self.lower[:, None], self.upper[:, None], self.max_step[:, None])
+        self._columns = {TORCH.name: columns}
+        if self.lower.device.type == "cpu":  # the same as numpy arrays, for NUMPY
+            self._columns[NUMPY.name] = tuple(c.numpy() for c in columns)
         #: bound on any end-effector coordinate, m
         self.position_bound = self.chain.reach_bound()
 
@@ -53,15 +57,16 @@ class JointVelocityArm:
         """Uniform numbers ``(..., nj)`` in ``[0, 1)`` -> joint angles ``(..., nj)`` within the limits."""
         return self.lower + u * (self.upper - self.lower)
 
-    def integrate(self, q: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
+    def integrate(self, q, action, xp: ArrayOps = TORCH):
         """Joint angles and finite actions ``(nj, n)`` -> the new angles (the actions clipped to
-        ``[-1, 1]``, the result clamped to the limits) and the motion made over the speed limits."""
-        a = torch.clamp(action, -1.0, 1.0)  # not in place: the action may share the caller's memory
-        # in place on the new tensors: a third faster at n = 65,536 than new ones per op; and
-        # clamp_max_/clamp_min_, as clamp with tensor bounds was measured 2-3x slower
-        new = torch.addcmul(q, a, self._max_step_c).clamp_max_(self._upper_c).clamp_min_(self._lower_c)
-        # this clamp only removes float rounding (1e-6)
-        return new, (new - q).div_(self._max_step_c).clamp_(-1.0, 1.0)
+        ``[-1, 1]``, the result clamped to the limits) and the motion made over the speed limits.
+        Tensors, or numpy arrays with ``xp=NUMPY`` (:mod:`envs.arrays`)."""
+        lower, upper, max_step = self._columns[xp.name]
+        a = xp.clip(action, -1.0, 1.0)  # not in place: the action may share the caller's memory
+        # in place on the new arrays: a third faster at n = 65,536 than new ones per op
+        new = xp.clip_(xp.multiply_add(q, a, max_step), lower, upper)
+        # this clip only removes float rounding (1e-6)
+        return new, xp.clip_(xp.divide_(new - q, max_step), -1.0, 1.0)
 
     def steps_to_reach_bound(self) -> int:
         """Steps a full-speed straight joint move needs, in the worst case, from ``home`` to any

@@ -89,11 +89,25 @@ class ObstacleWorld:
         self.chain, self.floor, self.slots = chain, floor, slots
         self.capsules = robot_capsules(chain)
         self.block_size = SLOT_SIZE * slots
+        self._floor_world = World(floor=floor)
+        self._last: tuple = (None, None, None)  # (block, extra, its World): the last one built
+
+    def world_of(self, block: Tensor | None, extra: int = 0) -> World:
+        """:func:`obstacle_world` of ``block``, kept for the next call with the same block
+        tensor (an episode's obstacles are fixed: every step of it passes the same block, which
+        the task never writes in place; the one world is rebuilt only when the block changes)."""
+        if block is None or not block.shape[0]:
+            return self._floor_world
+        last, last_extra, world = self._last
+        if last is not block or last_extra != extra:
+            world = obstacle_world(block, self.floor, extra)
+            self._last = (block, extra, world)
+        return world
 
     def clearance(self, q: Tensor, block: Tensor | None = None, extra: int = 0) -> Tensor:
         """Smallest signed distance (m) of ``q (m, *extra, nj)`` to itself, the floor and the
         obstacles of ``block`` (one batched :func:`~iiwa_torch.collision.clearance` call)."""
-        return clearance(self.chain, q, obstacle_world(block, self.floor, extra), self.capsules)
+        return clearance(self.chain, q, self.world_of(block, extra), self.capsules)
 
     def draw(self, key: Tensor, episode: Tensor, start: Tensor, offset: int, rounds: int) -> Tensor:
         """Obstacle blocks ``(SLOT_SIZE * slots, n)`` for ``n`` envs starting at ``start (n, nj)``:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,18 +59,45 @@ def _safe_norm(v: Tensor) -> Tensor:
     return _root((v * v).sum(-1))
 
 
-def _closest_parameters(a, e, b, c, f, where, unit):
+def _closest_parameters(a, e, b, c, f, where, unit, div=operator.truediv):
     """The closest-point parameters ``s, t`` of two segments from the dot products ``a = d1.d1``,
     ``e = d2.d2``, ``b = d1.d2``, ``c = d1.r``, ``f = d2.r`` (``r = p1 - p2``), float64 arrays of
-    torch or numpy: ``where`` and ``unit`` (clamp into [0, 1]) are that library's, so the torch
-    and the numpy kernels run this one formula."""
+    torch or numpy, or Python floats: ``where``, ``unit`` (clamp into [0, 1]) and ``div`` (a
+    quotient ``where`` may discard) are that library's, so the torch, numpy and float kernels
+    run this one formula."""
     eps = np.finfo(np.float64).eps
     ae = a * e
     denom = ae - b * b
-    s = unit(where(denom > eps * ae, (b * f - c * e) / denom, 0.0))
-    t = unit(where(e <= eps * eps, 0.0, (f + b * s) / e))
-    s = unit(where(a <= eps * eps, 0.0, (b * t - c) / a))
+    s = unit(where(denom > eps * ae, div(b * f - c * e, denom), 0.0))
+    t = unit(where(e <= eps * eps, 0.0, div(f + b * s, e)))
+    s = unit(where(a <= eps * eps, 0.0, div(b * t - c, a)))
     return s, t
+
+
+def _choose(condition: bool, x: float, y: float) -> float:
+    return x if condition else y
+
+
+def _unit_float(x: float) -> float:
+    return min(max(x, 0.0), 1.0)
+
+
+def _quotient(x: float, y: float) -> float:
+    """``x / y``, and 0 for ``y = 0`` (a quotient :func:`_closest_parameters` then discards)."""
+    return x / y if y else 0.0
+
+
+def _dot(u, v) -> float:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _segment_gap_floats(p1, d1, p2, d2) -> float:
+    """:func:`_segment_gap` of one pair of segments, 3-tuples of Python floats."""
+    r = (p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2])
+    s, t = _closest_parameters(_dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r),
+                               _choose, _unit_float, _quotient)
+    w0, w1, w2 = r[0] + s * d1[0] - t * d2[0], r[1] + s * d1[1] - t * d2[1], r[2] + s * d1[2] - t * d2[2]
+    return math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
 
 
 def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
@@ -130,10 +158,16 @@ def _segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
     return _segment_gap(*(v.movedim(-1, 0) for v in vectors))
 
 
-def _box_sdf(local: Tensor, half: Tensor) -> Tensor:
-    """Signed distance of points ``local (..., 3)`` (box frame) to the box ``|x_i| <= half_i``."""
-    excess = local.abs() - half
-    return _safe_norm(excess.clamp(min=0)) + excess.amax(-1).clamp(max=0)
+def _norm_numpy(v: np.ndarray) -> np.ndarray:
+    return np.sqrt((v * v).sum(-1))
+
+
+def _box_sdf(local, half, xp=torch):
+    """Signed distance of points ``local (..., 3)`` (box frame) to the box ``|x_i| <= half_i``;
+    ``xp``: torch (tensors) or numpy (arrays)."""
+    excess = xp.abs(local) - half
+    norm = _safe_norm if xp is torch else _norm_numpy
+    return norm(xp.clip(excess, 0, None)) + xp.clip(xp.amax(excess, -1), None, 0)
 
 
 def segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Tensor:
@@ -141,7 +175,7 @@ def segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Te
     ``(..., 4, 4)`` and half extents ``(..., 3)`` (all broadcast): ``min_t sdf(p + t (q - p))``,
     metres, negative inside.
 
-    Exact (closed form, see :func:`_box_minimisers`): outside the box this is the segment-box
+    Exact (closed form, see :func:`_box_parameters`): outside the box this is the segment-box
     distance; when the segment enters the box it is minus the depth of the segment's deepest
     point (a lower bound on the penetration depth).
     """
@@ -150,9 +184,10 @@ def segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Te
     return _segment_box_distance(p, q, pose, half)
 
 
-def _box_minimisers(p: Tensor, d: Tensor, half: Tensor) -> Tensor:
+def _box_parameters(p, d, h, xp):
     """The two candidate minimisers ``(..., 2)`` in [0, 1] of the box's signed distance along
-    ``p + t d`` (box frame, ``(..., 3)`` each): one of them is the exact minimiser.
+    ``p + t d`` (box frame, ``(..., 3)`` float64 each, of one shape): one of them is the exact
+    minimiser. ``xp`` is torch or numpy (tensors or arrays): one formula for both.
 
     Outside: ``f(t) = |max(|x(t)| - h, 0)|^2`` is convex and C1, its derivative
     ``psi(t) = sum_i d_i (x_i - clamp(x_i, -h_i, h_i))`` is nondecreasing and linear between
@@ -162,46 +197,45 @@ def _box_minimisers(p: Tensor, d: Tensor, half: Tensor) -> Tensor:
     larger of the increasing lines ``s_i x_i - h_i`` (``s_i = sign d_i``) and the decreasing
     ones ``-s_j x_j - h_j``; it is smallest where the two envelopes cross, at
     ``min_i max_j t_ij`` with ``t_ij`` the crossing of line ``i`` with line ``j``."""
-    with torch.no_grad():
-        p, d, h = (x.double() for x in (p, d, half))
-        p, d, h = torch.broadcast_tensors(p, d, h)
-        tiny = torch.finfo(p.dtype).tiny
-        # outside: bracket the zero of psi among t = 0, 1 and the six breakpoints
-        bounds = (
-            torch.cat(
-                [p.new_zeros(p.shape[:-1] + (1,)), p.new_ones(p.shape[:-1] + (1,)), ((h - p) / d), ((-h - p) / d)], -1
-            )
-            .nan_to_num(0.0)
-            .clamp(0, 1)
-        )  # (..., 8)
-        x = torch.addcmul(p[..., None, :], bounds[..., None], d[..., None, :])  # (..., 8, 3)
-        psi = (d[..., None, :] * (x - torch.maximum(torch.minimum(x, h[..., None, :]), -h[..., None, :]))).sum(-1)
-        below = psi <= 0
-        lo = torch.where(below, bounds, 0.0).amax(-1)
-        hi = torch.where(below, 1.0, bounds).amin(-1)
-        mid = (lo + hi) / 2
-        xm = torch.addcmul(p, mid[..., None], d)
-        excess = xm - torch.maximum(torch.minimum(xm, h), -h)
-        slope = (d * d * (excess != 0)).sum(-1)
-        outside = torch.minimum(torch.maximum(mid - (d * excess).sum(-1) / slope.clamp(min=tiny), lo), hi)
-        # inside: the crossing of the increasing and decreasing envelopes of g's six lines
-        u = torch.where(d < 0, -p, p)
-        a = d.abs()
-        cross = ((h - u)[..., :, None] - (h + u)[..., None, :]) / (a[..., :, None] + a[..., None, :])
-        inside = cross.nan_to_num(0.0).amax(-1).amin(-1).clamp(0, 1)
-        return torch.stack([outside, inside], -1).to(half.dtype)
+    tiny = np.finfo(np.float64).tiny
+    # outside: bracket the zero of psi among t = 0, 1 and the six breakpoints
+    ends = [xp.zeros_like(p[..., :1]), xp.ones_like(p[..., :1])]
+    bounds = xp.clip(xp.nan_to_num(xp.concatenate([*ends, (h - p) / d, (-h - p) / d], axis=-1), nan=0.0), 0, 1)
+    x = p[..., None, :] + bounds[..., None] * d[..., None, :]  # (..., 8, 3)
+    psi = (d[..., None, :] * (x - xp.maximum(xp.minimum(x, h[..., None, :]), -h[..., None, :]))).sum(-1)
+    below = psi <= 0
+    lo = xp.amax(xp.where(below, bounds, 0.0), -1)
+    hi = xp.amin(xp.where(below, 1.0, bounds), -1)
+    mid = (lo + hi) / 2
+    xm = p + mid[..., None] * d
+    excess = xm - xp.maximum(xp.minimum(xm, h), -h)
+    slope = (d * d * (excess != 0)).sum(-1)
+    outside = xp.minimum(xp.maximum(mid - (d * excess).sum(-1) / xp.clip(slope, tiny, None), lo), hi)
+    # inside: the crossing of the increasing and decreasing envelopes of g's six lines
+    u = xp.where(d < 0, -p, p)
+    a = xp.abs(d)
+    cross = ((h - u)[..., :, None] - (h + u)[..., None, :]) / (a[..., :, None] + a[..., None, :])
+    inside = xp.clip(xp.amin(xp.amax(xp.nan_to_num(cross, nan=0.0), -1), -1), 0, 1)
+    return xp.stack([outside, inside], -1)
 
 
-def _segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Tensor:
+def _box_minimisers(p, d, half, xp=torch):
+    """:func:`_box_parameters` of ``p, d, half (..., 3)`` (broadcast), computed in float64
+    without gradients, in ``half``'s dtype; ``xp``: torch or numpy (float64 arrays)."""
+    if xp is torch:
+        with torch.no_grad():
+            wide = torch.broadcast_tensors(p.double(), d.double(), half.double())
+            return _box_parameters(*wide, torch).to(half.dtype)
+    with np.errstate(divide="ignore", invalid="ignore"):  # the quotients nan_to_num and clip discard
+        return _box_parameters(*np.broadcast_arrays(p, d, half), np)
+
+
+def _segment_box_distance(p, q, pose, half, xp=torch):
     rot, centre = pose[..., :3, :3], pose[..., :3, 3]
-
-    def to_local(x: Tensor) -> Tensor:
-        return ((x - centre)[..., None, :] @ rot)[..., 0, :]
-
-    lp, lq = to_local(p), to_local(q)
-    t = _box_minimisers(lp, lq - lp, half)
+    lp, lq = (((x - centre)[..., None, :] @ rot)[..., 0, :] for x in (p, q))
+    t = _box_minimisers(lp, lq - lp, half, xp)
     points = lp[..., None, :] + t[..., None] * (lq - lp)[..., None, :]  # (..., 2, 3)
-    return _box_sdf(points, half[..., None, :]).amin(-1)
+    return xp.amin(_box_sdf(points, half[..., None, :], xp), -1)
 
 
 def _culled_box_distance(a: Tensor, b: Tensor, pose: Tensor, half: Tensor, radius: Tensor,
@@ -292,26 +326,44 @@ class Capsules:
         ``floor (F,)`` and ``floor_radius (F, 1)``, ``world (W,)`` and ``world_radius (W, 1)``."""
         key = (dtype, device)
         if key not in self._cache:
-            options = {"device": device}
-            index = {"dtype": torch.long, **options}
-            radii = self.radii.to(dtype=dtype, **options)
-            first, second = (
-                (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
-            )
-            floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
-            ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
-            self._cache[key] = {
-                "frames": torch.tensor(self.frames, **index),
-                "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
-                "first": first,
-                "second": second,
-                "pair_radius": (radii[first] + radii[second])[:, None],
-                "floor": floor,
-                "floor_radius": radii[floor, None],
-                "world": world,
-                "world_radius": radii[world, None],
-            }
+            with torch.inference_mode(False):  # the model is shared (robot_capsules): no inference tensors in it
+                self._cache[key] = self._build_tables(dtype, device)
         return self._cache[key]
+
+    def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+        """:meth:`_index_tables`, built."""
+        options = {"device": device}
+        index = {"dtype": torch.long, **options}
+        radii = self.radii.to(dtype=dtype, **options)
+        first, second = (
+            (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
+        )
+        floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
+        ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
+        return {
+            "frames": torch.tensor(self.frames, **index),
+            "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
+            "first": first,
+            "second": second,
+            "pair_radius": (radii[first] + radii[second])[:, None],
+            "floor": floor,
+            "floor_radius": radii[floor, None],
+            "world": world,
+            "world_radius": radii[world, None],
+        }
+
+    def _float_table(self) -> dict[str, list]:
+        """The model as Python floats, built once: ``points`` K ``(frame, start, end)``, the end
+        points 3-tuples in that frame, ``pair_radius`` P radius sums, ``floor`` ``(k, radius)``
+        of the capsules checked against the floor."""
+        if "floats" not in self._cache:
+            radii = self.radii.tolist()
+            self._cache["floats"] = {
+                "points": [(f, *map(tuple, ends)) for f, ends in zip(self.frames, self.points.tolist())],
+                "pair_radius": [radii[i] + radii[j] for i, j in self.pairs],
+                "floor": [(k, radii[k]) for k in _where(self.floor)],
+            }
+        return self._cache["floats"]
 
     def _numpy_tables(self) -> dict[str, np.ndarray]:
         """:meth:`_index_tables` in float64 on the CPU as numpy arrays, built once."""
@@ -433,9 +485,22 @@ def robot_capsules(chain: DHChain) -> Capsules:
     lrmate200ic, planar3r), sized from the chain's own DH lengths; radii and their sources
     are in docs/collision.md. The base capsule is not checked against the floor it stands on;
     the planar arm lies in the z = 0 plane, so its default world has no floor. Self pairs:
-    every pair but neighbours in the list (no other pair overlaps in every posture)."""
+    every pair but neighbours in the list (no other pair overlaps in every posture). Built
+    once per chain name and DH table, then shared (the model is frozen)."""
     check_instance(chain, DHChain, "chain")
     dh = chain.dh.tolist()
+    key = (chain.name, tuple(map(tuple, dh)))  # all the model depends on; it is frozen, so shared
+    if key not in _MODELS:
+        with torch.inference_mode(False):  # shared: no inference tensors in it, whoever asks first
+            _MODELS[key] = _preset_capsules(chain, dh)
+    return _MODELS[key]
+
+
+_MODELS: dict[tuple, Capsules] = {}  # robot_capsules' models, by chain name and DH table
+
+
+def _preset_capsules(chain: DHChain, dh: list[list[float]]) -> Capsules:
+    """:func:`robot_capsules`, built (validated by :meth:`Capsules.build`)."""
     floor_height: float | None = 0.0
     if chain.name in ("iiwa14", "iiwa7"):
         l_bs, l_se, l_ew, l_wf = dh[0][2], dh[2][2], dh[4][2], dh[6][2]
@@ -728,7 +793,7 @@ def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: C
     """Smallest signed distance, metres: ``q (..., n) -> (...)``, over the checked self pairs and
     capsule-obstacle pairs (arguments as :func:`pairwise_clearance`). Differentiable in ``q``
     and the obstacles' tensors. Up to ``CLEARANCE_NUMPY_BATCH`` configurations on the CPU
-    with nothing to differentiate and no walls, boxes or obstacle capsules, the same formulas
+    with nothing to differentiate and no walls or obstacle capsules, the same formulas
     run in numpy float64 (:func:`_clearance_numpy`)."""
     world, capsules = _resolve(chain, q, world, capsules)
     if _numpy_ok(chain, q, world, capsules):
@@ -744,41 +809,82 @@ def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: C
 
 def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bool:
     """Whether :func:`clearance` may take :func:`_clearance_numpy` (checked arguments)."""
-    if q.numel() > CLEARANCE_NUMPY_BATCH * chain.n_joints or world.walls or world.boxes or world.capsules:
+    if q.numel() > CLEARANCE_NUMPY_BATCH * chain.n_joints or world.walls or world.capsules:
         return False
     if not all(kin.floats_ok(t) for t in (q, *world.tensors())) or chain.geometry().link_numpy is None:
         return False
     tables = capsules._numpy_tables()
     floor = world.floor is not None and tables["floor"].size > 0
-    spheres = world.spheres is not None and world.spheres[1].shape[-1] > 0
-    return bool(capsules.pairs) or floor or (spheres and tables["world"].size > 0)
+    solids = _present(world.spheres, -1) or _present(world.boxes, -2)
+    solids = solids and tables["world"].size > 0
+    return bool(capsules.pairs) or floor or solids
+
+
+def _own_clearance_floats(
+    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
+) -> tuple[float | None, np.ndarray, np.ndarray]:
+    """One configuration's self and floor clearance in Python floats (``None``: neither is
+    checked), and its capsules' start points and start-to-end vectors (K 3-tuples each), as
+    :func:`_clearance_numpy` computes them for a batch: the frames by the float recursion, the
+    segments by :func:`_closest_parameters`."""
+    table = capsules._float_table()
+    frames = kin.frames_floats(chain.geometry(), q)
+    start, direction = [], []
+    for f, (u0, v0, w0), (u1, v1, w1) in table["points"]:  # each end point: p + u x + v y + w z
+        (x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2) = frames[f]
+        a = (p0 + u0 * x0 + v0 * y0 + w0 * z0, p1 + u0 * x1 + v0 * y1 + w0 * z1, p2 + u0 * x2 + v0 * y2 + w0 * z2)
+        start.append(a)
+        direction.append((p0 + u1 * x0 + v1 * y0 + w1 * z0 - a[0], p1 + u1 * x1 + v1 * y1 + w1 * z1 - a[1],
+                          p2 + u1 * x2 + v1 * y2 + w1 * z2 - a[2]))
+    gaps = [_segment_gap_floats(start[i], direction[i], start[j], direction[j]) - r
+            for (i, j), r in zip(capsules.pairs, table["pair_radius"])]
+    if floor is not None:
+        gaps += [min(start[k][2], start[k][2] + direction[k][2]) - (r + floor) for k, r in table["floor"]]
+    return (min(gaps) if gaps else None), start, direction
+
+
+def _present(kind: tuple[Tensor, Tensor] | None, axis: int) -> bool:
+    """Whether a world's spheres or boxes (``axis``: where their count M is) hold any obstacle."""
+    return kind is not None and kind[1].shape[axis] > 0
 
 
 def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """:func:`clearance` of a small CPU batch in numpy float64: a few dozen numpy ops, each a
-    fraction of a torch op's overhead. Self pairs, floor and spheres only; not differentiable."""
+    fraction of a torch op's overhead. Self pairs, floor, spheres and boxes; not differentiable."""
     tables = capsules._numpy_tables()
     lead = q.shape[:-1]
-    flat = q.detach().reshape(-1, chain.n_joints).numpy().astype(np.float64)
-    frames = kin.frames_numpy(chain.geometry(), flat)[tables["frames"], :, :3]  # (K, B, 3, 4)
-    ends = frames @ tables["local"][:, None]  # (K, B, 3, 2)
-    start, direction = ends[..., 0], ends[..., 1] - ends[..., 0]  # (K, B, 3)
-    mins = []
-    if capsules.pairs:
-        first, second = tables["first"], tables["second"]
-        gap = _segment_gap_numpy(start[first], direction[first], start[second], direction[second])
-        mins.append((gap - tables["pair_radius"]).min(0))
     floor = tables["floor"]
-    if world.floor is not None and floor.size:
-        low = np.minimum(start[floor, :, 2], start[floor, :, 2] + direction[floor, :, 2])
-        mins.append((low - (tables["floor_radius"] + world.floor)).min(0))
-    mins = [m.reshape(lead) for m in mins]
+    if q.numel() == chain.n_joints:  # one configuration: its own distances in Python floats
+        own, start, direction = _own_clearance_floats(chain, q, world.floor, capsules)
+        mins = [] if own is None else [np.array(own).reshape(lead)]
+    else:
+        flat = q.detach().reshape(-1, chain.n_joints).numpy().astype(np.float64)
+        frames = kin.frames_numpy(chain.geometry(), flat)[tables["frames"], :, :3]  # (K, B, 3, 4)
+        ends = frames @ tables["local"][:, None]  # (K, B, 3, 2)
+        start, direction = ends[..., 0], ends[..., 1] - ends[..., 0]  # (K, B, 3)
+        mins = []
+        if capsules.pairs:
+            first, second = tables["first"], tables["second"]
+            gap = _segment_gap_numpy(start[first], direction[first], start[second], direction[second])
+            mins.append((gap - tables["pair_radius"]).min(0))
+        if world.floor is not None and floor.size:
+            low = np.minimum(start[floor, :, 2], start[floor, :, 2] + direction[floor, :, 2])
+            mins.append((low - (tables["floor_radius"] + world.floor)).min(0))
+        mins = [m.reshape(lead) for m in mins]
     idx = tables["world"]
-    if world.spheres is not None and idx.size and world.spheres[1].shape[-1]:
-        centre, rad = (t.detach().numpy().astype(np.float64) for t in world.spheres)
+    spheres, boxes = _present(world.spheres, -1), _present(world.boxes, -2)  # a kind with M = 0 adds nothing
+    if (spheres or boxes) and idx.size:
+        if isinstance(start, list):  # one configuration's, from the float path: (K, 1, 3) arrays
+            start, direction = np.array([start, direction])[:, :, None]
         a, b = (x.transpose(1, 0, 2).reshape(*lead, idx.size, 1, 3) for x in (start[idx], start[idx] + direction[idx]))
+    if spheres and idx.size:
+        centre, rad = (t.detach().numpy().astype(np.float64) for t in world.spheres)
         c = centre[..., None, :, :]
         gap = _segment_gap_numpy(a, b - a, c, c - c) - tables["world_radius"] - rad[..., None, :]
+        mins.append(gap.min((-2, -1)))
+    if boxes and idx.size:
+        pose, half = (t.detach().numpy().astype(np.float64) for t in world.boxes)
+        gap = _segment_box_distance(a, b, pose[..., None, :, :, :], half[..., None, :, :], np) - tables["world_radius"]
         mins.append(gap.min((-2, -1)))
     out = mins[0]
     for m in mins[1:]:

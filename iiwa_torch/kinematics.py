@@ -58,6 +58,7 @@ __all__ = [
     "end_pose_numpy",
     "floats_ok",
     "frames_batch_last",
+    "frames_floats",
     "frames_numpy",
     "jacobian",
     "jacobian_floats",
@@ -435,13 +436,16 @@ def _turn_x_floats(y0, y1, y2, z0, z1, z2, ca: float, sa: float) -> tuple[float,
             ca * z0 - sa * y0, ca * z1 - sa * y1, ca * z2 - sa * y2)  # fmt: skip
 
 
-def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool) -> tuple[tuple, list[tuple]]:
+def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool, frames: list | None = None) -> tuple[tuple, list[tuple]]:
     """One configuration, ``q`` with ``n`` elements, in Python floats (double precision): the same
     frame recursion as :func:`frames_batch_last` and the tool of :func:`tool_frame_batch_last`.
     Returns the end frame ``(x, y, z, p)`` (tool applied), each a 3-tuple, and, if
-    ``keep_axes``, the joint axes ``[(z_i, p_i)]``. Scalars throughout: no array op at all."""
+    ``keep_axes``, the joint axes ``[(z_i, p_i)]``; appends the base and every link frame (no
+    tool), ``(x, y, z, p)`` each, to ``frames`` if given. Scalars throughout: no array op at all."""
     (x0, y0, z0, p0), (x1, y1, z1, p1), (x2, y2, z2, p2) = g.base_rows
     axes, modified, cos, sin = [], g.modified, math.cos, math.sin
+    if frames is not None:
+        frames.append(((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)))
     for t, offset, (a, ca, sa, d) in zip(q.reshape(-1).tolist(), g.offset_list, g.steps):
         if modified:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
             y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
@@ -458,6 +462,8 @@ def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool) -> tuple[tuple, list
             if a:
                 p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
             y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
+        if frames is not None:
+            frames.append(((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)))
     if not g.has_tool:
         return ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)), axes
     end = [  # column k of the tool, (u, v, w), in the world: u x + v y + w z (plus p for the origin)
@@ -466,6 +472,15 @@ def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool) -> tuple[tuple, list
     ]
     o0, o1, o2 = end[3]
     return (end[0], end[1], end[2], (p0 + o0, p1 + o1, p2 + o2)), axes
+
+
+def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:
+    """One configuration ``q`` (``n`` elements, CPU, not checked) -> the base and every link frame
+    (no tool), ``n + 1`` tuples ``(x, y, z, p)`` of 3 Python floats each (axis columns and
+    origin): :func:`frames_numpy`'s frames for one configuration, by the float recursion."""
+    frames: list[tuple] = []
+    _frames_floats(g, q, False, frames)
+    return frames
 
 
 def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:

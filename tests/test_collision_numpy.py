@@ -17,15 +17,21 @@ PRESETS = sorted(robots.PRESETS)
 
 @pytest.fixture
 def numpy_calls(monkeypatch):
-    """Counts the numpy frame kernel's calls, to tell which path a query took."""
+    """Counts the calls of the numpy frame kernel (the batch size) and of the float one (1), to
+    tell which path a query took."""
     calls = []
-    real = kinematics.frames_numpy
+    real, real_floats = kinematics.frames_numpy, kinematics.frames_floats
 
     def spy(g, q):
         calls.append(q.shape[0])
         return real(g, q)
 
+    def spy_floats(g, q):
+        calls.append(1)
+        return real_floats(g, q)
+
     monkeypatch.setattr(kinematics, "frames_numpy", spy)
+    monkeypatch.setattr(kinematics, "frames_floats", spy_floats)
     return calls
 
 
@@ -116,15 +122,63 @@ def test_the_torch_path_keeps_what_the_numpy_path_does_not_cover(numpy_calls):
     chain = robots.iiwa14()
     q = _configurations(chain, CLEARANCE_NUMPY_BATCH + 1, np.random.default_rng(3))
     clearance(chain, q)  # above the threshold
-    box = World(boxes=(torch.eye(4, dtype=torch.float64)[None], torch.full((1, 3), 0.1, dtype=torch.float64)))
     wall = World(
         walls=(torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64), torch.tensor([-1.0], dtype=torch.float64))
     )
-    for world in (box, wall):
+    pipe = World(capsules=(torch.tensor([[[0.5, 0.0, 0.0], [0.5, 0.0, 1.0]]], dtype=torch.float64),
+                           torch.tensor([0.05], dtype=torch.float64)))
+    for world in (wall, pipe):
         clearance(chain, q[:4], world)
+        clearance(chain, q[0], world)
     with torch.no_grad():  # grad mode off: nothing to differentiate, numpy
         clearance(chain, q[:4].clone().requires_grad_())
-    assert numpy_calls == [4]
+        clearance(chain, q[0].clone().requires_grad_())
+    assert numpy_calls == [4, 1]
+
+
+def _boxes_around(chain, q: torch.Tensor, rng: np.random.Generator) -> World:
+    """Per configuration, three yawed and tilted boxes: one centred on the elbow capsule's start
+    (the segment inside: the penetration case) in a quarter of them, else 0.3 m off it in a
+    random direction; one beside the wrist; one far away."""
+    caps = robot_capsules(chain)
+    b = q.shape[0]
+    frames = chain.fk_all(q)[:, list(caps.frames)]  # (B, K, 4, 4)
+    on_axis = frames[:, 2, :3, 3] + frames[:, 2, :3, :3] @ caps.points[2, 0]
+    off = torch.from_numpy(rng.normal(size=(b, 3)))
+    off = 0.3 * off / off.norm(dim=-1, keepdim=True) * torch.from_numpy(rng.random((b, 1)) > 0.25)
+    on_axis = on_axis + off
+    beside = frames[:, 3, :3, 3] + q.new_tensor([0.22, 0.0, 0.0])
+    centres = torch.stack([on_axis, beside, q.new_tensor([1.5, -1.5, 0.5]).expand(b, 3)], 1)  # (B, 3, 3)
+    yaw = torch.from_numpy(rng.uniform(-math.pi, math.pi, (b, 3)))
+    tilt = torch.from_numpy(rng.uniform(-0.5, 0.5, (b, 3)))
+    rz, rx = torch.zeros(b, 3, 3, 3, dtype=q.dtype), torch.zeros(b, 3, 3, 3, dtype=q.dtype)
+    rz[..., 0, 0], rz[..., 0, 1], rz[..., 1, 0], rz[..., 1, 1], rz[..., 2, 2] = yaw.cos(), -yaw.sin(), yaw.sin(), \
+        yaw.cos(), 1.0
+    rx[..., 0, 0], rx[..., 1, 1], rx[..., 1, 2], rx[..., 2, 1], rx[..., 2, 2] = 1.0, tilt.cos(), -tilt.sin(), \
+        tilt.sin(), tilt.cos()
+    pose = torch.zeros(b, 3, 4, 4, dtype=q.dtype)
+    pose[..., :3, :3], pose[..., :3, 3], pose[..., 3, 3] = rz @ rx, centres, 1.0
+    half = torch.from_numpy(rng.uniform(0.02, 0.12, (b, 3, 3)))
+    return World(floor=0.0, boxes=(pose, half), spheres=(centres[:, 1:] + 0.1, q.new_full((b, 2), 0.05)))
+
+
+@pytest.mark.parametrize("name", ["iiwa14", "puma560"])
+def test_numpy_path_equals_torch_path_with_boxes(name, numpy_calls):
+    """Boxes (with spheres and the floor) per configuration, in batches and one by one (the
+    float path for a configuration's own distances): the torch path's values to 1e-12 m."""
+    chain = robots.PRESETS[name]()
+    rng = np.random.default_rng(5)
+    q = _configurations(chain, 640, rng)
+    world = _boxes_around(chain, q, rng)
+    want = _torch_path(chain, q, world)
+    assert not numpy_calls and (want < 0).any() and (want > 0).any()
+    got = torch.cat([clearance(chain, q[i : i + CLEARANCE_NUMPY_BATCH], world.map_batch(
+        lambda t, k, i=i: t[i : i + CLEARANCE_NUMPY_BATCH])) for i in range(0, len(q), CLEARANCE_NUMPY_BATCH)])
+    one = torch.stack([clearance(chain, q[i], world.map_batch(lambda t, k, i=i: t[i])) for i in range(len(q))])
+    assert numpy_calls == [CLEARANCE_NUMPY_BATCH] * (len(q) // CLEARANCE_NUMPY_BATCH) + [1] * len(q)
+    for values in (got, one):
+        assert values.dtype == torch.float64 and values.shape == want.shape
+        assert torch.allclose(values, want, rtol=0, atol=1e-12), (values - want).abs().max()
 
 
 def test_gradients_take_the_torch_path():
@@ -136,3 +190,19 @@ def test_gradients_take_the_torch_path():
     assert torch.autograd.gradcheck(lambda c: clearance(chain, q.detach(), World(spheres=(c, radius))), (centre,))
     d = clearance(chain, q.detach(), World(spheres=(centre, radius)))
     assert d.requires_grad  # only the world's tensor requires grad
+
+
+def test_the_shared_model_first_used_in_inference_mode_still_differentiates():
+    """robot_capsules returns one shared model per chain: tables it first builds under
+    torch.inference_mode (as the envs' steps do) must not leak inference tensors into autograd."""
+    chain = robots.puma560().float()
+    q = _configurations(chain, 40, np.random.default_rng(4)).float()
+    with torch.inference_mode():
+        caps = robot_capsules(chain)
+        first = clearance(chain, q, World(), caps)  # builds the float32 tables (torch path: 40 > 32)
+    other = robots.puma560().float()  # another chain object (its own FK caches), the same model
+    assert robot_capsules(other) is caps
+    x = q.clone().requires_grad_()
+    d = clearance(other, x, World(), robot_capsules(other))
+    d.sum().backward()
+    assert torch.isfinite(x.grad).all() and torch.allclose(d.detach(), first)

@@ -1,0 +1,101 @@
+"""One environment's step (numpy, :data:`envs.arrays.NUMPY`, and the float clearance) against the
+batched torch step of the same states: 140 environments, above every small-batch threshold
+(clearance's numpy path, the 4x4-product FK kernels), so the batch runs the torch kernels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import envs
+from envs import arrays
+from envs.core import ReachState
+
+N = 140  # > SMALL_BATCH (128) and > CLEARANCE_NUMPY_BATCH (32): the batch takes torch's kernels
+STEPS = 20
+
+
+def _column(state: ReachState, i: int) -> ReachState:
+    return ReachState(*(x[..., i : i + 1].contiguous() for x in state))
+
+
+@pytest.fixture
+def numpy_ops(monkeypatch):
+    """Counts NUMPY.clip calls (one per single-env step), to show the path taken."""
+    calls = []
+    real = arrays.NUMPY.clip
+
+    def spy(x, low, high):
+        calls.append(x.shape)
+        return real(x, low, high)
+
+    monkeypatch.setattr(arrays.NUMPY, "clip", spy)
+    return calls
+
+
+@pytest.mark.parametrize(("env_id", "collision"), [("IiwaReach-v0", "terminate"), ("IiwaReachPose-v0", "penalize"),
+                                                   ("IiwaReachObstacles-v0", "terminate")])
+def test_single_env_step_equals_the_batched_torch_step(env_id, collision, numpy_ops):
+    task = envs.make_task(env_id, collision=collision, start="random", max_episode_steps=10,
+                           floor=0.2)  # a raised floor: more collisions
+    rng = np.random.default_rng(3)
+    with torch.inference_mode():
+        state = task.reset_all(None, list(range(N)), rng)
+        hits = restarts = 0
+        for _ in range(STEPS):
+            action = rng.uniform(-1.3, 1.3, size=(N, 7)).astype(np.float32)
+            action[: N // 4, 1] = 1.0  # a quarter swing the shoulder down: into the floor or an obstacle
+            a = task.transport.check_action(action, N)
+            want_state, want = task.step(state, a)
+            assert not numpy_ops  # the batch: torch
+            clear = task.world.clearance(want_state.q.T, state.obstacles if task.world.slots else None)
+            for i in range(N):
+                got_state, got = task.step(_column(state, i), a[:, i : i + 1].contiguous())
+                # integration, trigonometry, step count: the same ops, bit for bit
+                for name in ("q", "cos_q", "sin_q", "velocity", "t"):
+                    assert torch.equal(getattr(got_state, name)[..., 0], getattr(want_state, name)[..., i]), name
+                # FK by another kernel (float recursion against Horner's): float32 rounding
+                torch.testing.assert_close(got_state.achieved[:, 0], want_state.achieved[:, i], rtol=0, atol=2e-6)
+                torch.testing.assert_close(got.distance[0], want.distance[i], rtol=0, atol=3e-6)
+                if want.angle is None:
+                    torch.testing.assert_close(got.reward[0], want.reward[i], rtol=0, atol=3e-6)
+                else:  # near a half turn the arcsine amplifies the goals' rounding (1e-4 rad at 3.1 rad):
+                    # compare the chord 8 sin^2(angle / 2) it comes from, and the reward without its angle term
+                    w = task.goals.orientation_weight
+                    torch.testing.assert_close(8 * torch.sin(got.angle[0] / 2) ** 2,
+                                               8 * torch.sin(want.angle[i] / 2) ** 2, rtol=0, atol=3e-5)
+                    torch.testing.assert_close(got.reward[0] + w * got.angle[0], want.reward[i] + w * want.angle[i],
+                                               rtol=0, atol=3e-6)
+                near = abs(float(clear[i])) < 1e-5  # a collision flag on the boundary may go either way
+                if not near:
+                    assert bool(got.collision[0]) == bool(want.collision[i])
+                    assert bool(got.terminated[0]) == bool(want.terminated[i]) or bool(want.success[i])
+                assert bool(got.truncated[0]) == bool(want.truncated[i])
+            assert len(numpy_ops) == N and numpy_ops[0] == (7, 1)
+            numpy_ops.clear()
+            hits += int(want.collision.sum())
+            done = want.terminated | want.truncated
+            restarts += int(done.sum())
+            state, _ = task.step_autoreset(state, a)  # new episodes (goals, obstacles) where done
+    assert hits > 20 and restarts > N  # collisions, and many new episodes
+
+
+def test_single_env_reward_is_compute_reward_bit_for_bit():
+    """Through gymnasium.make (the numpy step): the step's reward is compute_reward's (torch) exactly."""
+    import gymnasium as gym
+
+    rng = np.random.default_rng(0)
+    for env_id in ("IiwaReach-v0", "IiwaReachPose-v0", "IiwaReachObstacles-v0", "IiwaReachSparse-v0"):
+        env = gym.make(env_id, collision="penalize").unwrapped
+        env.reset(seed=1)
+        collided = 0
+        for _ in range(300):
+            action = rng.uniform(-1, 1, 7).astype(np.float32)
+            action[1] = 1.0
+            obs, reward, terminated, truncated, info = env.step(action)
+            assert reward == env.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+            collided += info["collision"]
+            if terminated or truncated:
+                env.reset()
+        assert collided > 10
