@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from iiwa_torch.collision import capsule_clearance
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
 
@@ -34,7 +35,7 @@ from .goals import GoalKind, ReachGoals, RewardKind, enum_option
 from .robot import JointVelocityArm
 from .seeding import keys_from_seeds, uniform
 from .transport import Transition, Transport
-from .world import ObstacleWorld
+from .world import ObstacleWorld, obstacle_world
 
 __all__ = ["StartKind", "CollisionKind", "ReachState", "StepResult", "ReachTask"]
 
@@ -42,6 +43,7 @@ Tensor = torch.Tensor
 
 _GOAL_CANDIDATES = 8  # goals drawn per reset when a minimum goal distance is asked for
 _FREE_CANDIDATES = 2  # goals drawn per round when they must be collision-free (the floor rules out ~11%)
+CLEARANCE_RANGE = 1.0  # m: the observed clearance of a capsule saturates here (its gradient reads 0)
 _ROUNDS = 32  # rounds of draws for a collision-free start, goal or obstacle before the fallback
 # Where in each (key, episode) counter stream the redraws of later rounds and the obstacles start
 _START_REDRAWS, _GOAL_REDRAWS, _OBSTACLE_DRAWS = 1 << 24, 2 << 24, 3 << 24
@@ -135,6 +137,9 @@ class ReachTask:
         collision_penalty: subtracted from the reward of a colliding step (>= 0).
         obstacles: at most this many random spheres or boxes per episode (1 to ``obstacles``
             drawn, 0: none), in the observation's obstacle block (:mod:`envs.world`).
+        observe_clearance: append each capsule's clearance and its joint gradient to the observation
+            (after the obstacle block: K distances, m, then K x nj gradients, m/rad; see
+            :meth:`_clearance_rows`), computed once per step, for controllers that keep every link clear.
         home: start posture for ``start="home"`` (default :data:`iiwa_torch.robots.IIWA_HOME` for 7 joints,
             else zeros; it must lie within the limits).
         dtype: float dtype of the state (observations are always float32).
@@ -159,6 +164,7 @@ class ReachTask:
         collision: CollisionKind | str = CollisionKind.TERMINATE,
         collision_penalty: float = 1.0,
         obstacles: int = 0,
+        observe_clearance: bool = False,
         home=None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
@@ -190,6 +196,11 @@ class ReachTask:
             raise ValueError(f"obstacles must be an int in [0, 8], got {obstacles!r}")
         if obstacles and self.collision is CollisionKind.OFF:
             raise ValueError("obstacles need collision checks: use collision='terminate' or 'penalize', not 'off'")
+        if not isinstance(observe_clearance, bool):
+            raise ValueError(f"observe_clearance must be True or False, got {observe_clearance!r}")
+        if observe_clearance and self.collision is CollisionKind.OFF:
+            raise ValueError("observe_clearance needs collision checks: use collision='terminate' or 'penalize'")
+        self.observe_clearance = observe_clearance
         self.collision_penalty = float(collision_penalty)
         self.dt = float(dt)
         self.goal_min_distance = float(goal_min_distance)
@@ -209,10 +220,25 @@ class ReachTask:
             if not bool(self.world.clearance(self.arm.home[None]) > 0):
                 raise ValueError(f"home {self.arm.home.tolist()} collides with the floor or the arm itself")
         block = 0 if self.world is None else self.world.block_size
-        self.transport = Transport(self.arm.n_joints, self.goals.size, dtype, self.device, block)
+        sensed = self._clearance_rows if observe_clearance else None
+        self.transport = Transport(self.arm.n_joints, self.goals.size, dtype, self.device, block, sensed,
+                                   len(self.world.capsules.names) * (1 + self.arm.n_joints) if sensed else 0)
         #: ``(nj,)`` rad per step at ``|a| = 1``
         self.max_step = self.arm.max_step
         self._home_goal = self.goal_of(self.arm.home[:, None])  # (g, 1): every episode from home starts there
+
+    def _clearance_rows(self, state: ReachState) -> Tensor:
+        """The observation's clearance rows of a state, ``(K (1 + nj), n)``: each capsule's clearance
+        (m, :func:`iiwa_torch.collision.capsule_clearance`), then its gradient ``(K, nj)`` (m/rad),
+        both read as ``CLEARANCE_RANGE`` and zeros where the capsule is farther than that."""
+        world = self.world
+        # the envs step in inference mode, whose tensors autograd cannot record: copies made outside it
+        with torch.inference_mode(False):
+            q, block = state.q.T.clone(), state.obstacles.clone() if world.slots else None
+            distance, gradient = capsule_clearance(self.robot, q, obstacle_world(block, world.floor), world.capsules)
+        near = distance < CLEARANCE_RANGE
+        gradient = torch.where(near[..., None], gradient, 0.0)
+        return torch.cat([torch.where(near, distance, CLEARANCE_RANGE).T, gradient.reshape(q.shape[0], -1).T], 0)
 
     # ------------------------------------------------------------------ what the callers read
     @property

@@ -32,7 +32,9 @@ def goal_env_spaces(task: ReachTask) -> tuple[spaces.Dict, spaces.Box]:
     goal_high[:3] = task.arm.position_bound
     # the obstacle block: flags, cos and sin in [0, 1] or [-1, 1], positions and sizes within reach
     block_high = np.full(task.transport.obstacle_size, max(1.0, task.arm.position_bound), dtype=np.float32)
-    obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), block_high, goal_high])
+    # the clearance rows (m, then m/rad): below CLEARANCE_RANGE, and a point's speed per joint speed
+    sensed_high = np.full(task.transport.clearance_size, max(1.0, task.arm.position_bound), dtype=np.float32)
+    obs_high = np.concatenate([np.ones(3 * nj, dtype=np.float32), block_high, sensed_high, goal_high])
     observation = spaces.Dict(
         {
             "observation": spaces.Box(-obs_high, obs_high, dtype=np.float32),

@@ -34,6 +34,7 @@ __all__ = [
     "Capsules",
     "Clearances",
     "World",
+    "capsule_clearance",
     "check_world",
     "clearance",
     "pairwise_clearance",
@@ -805,6 +806,33 @@ def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: C
         raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
     shape = torch.broadcast_shapes(*(m.shape for m in mins))
     return torch.stack([m.expand(shape) for m in mins]).amin(0)
+
+
+def capsule_clearance(
+    chain: DHChain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
+) -> tuple[Tensor, Tensor]:
+    """Each capsule's smallest signed distance and its gradient: ``q (..., n)`` ->
+    ``distance (..., K)`` (m) and ``gradient (..., K, n)`` (m/rad), for the K capsules in
+    ``capsules.names`` order (arguments as :func:`pairwise_clearance`). A capsule's distance is
+    the minimum over every checked pair it is in (a self pair counts for both of its capsules);
+    one in no pair gets ``inf`` and a zero gradient. For controllers that keep each link clear
+    (e.g. a velocity damper: ``gradient[k] . dq >= -xi (distance[k] - d_safe)``). Neither output
+    is differentiable further."""
+    world, capsules = _resolve(chain, q, world, capsules)
+    with torch.enable_grad():
+        x = q.detach().requires_grad_(True)
+        d = pairwise_clearance(chain, x, world, capsules)
+        inf = d.distance.new_tensor(math.inf)
+        columns = []
+        for name in capsules.names:
+            member = torch.tensor([name in pair for pair in d.pairs], device=q.device)
+            columns.append(torch.where(member, d.distance, inf).amin(-1) if d.pairs else inf.expand(q.shape[:-1]))
+        distance = torch.stack(columns, -1)  # (..., K)
+        k = len(capsules.names)
+        one_hot = torch.eye(k, dtype=q.dtype, device=q.device).reshape(k, *(1,) * (q.ndim - 1), k)
+        (gradient,) = torch.autograd.grad(distance, x, one_hot.expand(k, *distance.shape), is_grads_batched=True,
+                                          allow_unused=True, materialize_grads=True)
+    return distance.detach(), gradient.movedim(0, -2)
 
 
 def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bool:

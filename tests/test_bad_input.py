@@ -301,6 +301,12 @@ ENTRIES: dict[str, Entry] = {
         tensors=("q",),
         bad=(("world", 0.0), ("capsules", "capsules")),
     ),
+    "iiwa_torch.collision:capsule_clearance": Entry(
+        collision.capsule_clearance,
+        lambda: {"chain": CHAIN, "q": Q, "world": collision.World()},
+        tensors=("q",),
+        bad=(("world", 0.0), ("capsules", "capsules")),
+    ),
     "iiwa_torch.collision:pairwise_clearance": Entry(
         collision.pairwise_clearance,
         lambda: {"chain": CHAIN, "q": Q, "world": collision.World()},

@@ -12,6 +12,7 @@ from iiwa_torch import robots
 from iiwa_torch.collision import (
     Capsules,
     World,
+    capsule_clearance,
     clearance,
     pairwise_clearance,
     robot_capsules,
@@ -549,3 +550,38 @@ def test_clearance_skips_far_boxes_without_changing_the_minimum_or_its_gradient(
     g_ref = torch.autograd.grad(ref.sum(), (q, pose))
     for a, b in zip(g_got, g_ref):
         assert torch.allclose(a, b, atol=1e-12)
+
+
+def test_capsule_clearance_minimum_is_clearance_and_gradient_matches_finite_differences():
+    chain = robots.iiwa14()
+    rng = np.random.default_rng(4)
+    lo, hi = chain.limits.numpy()
+    q = torch.as_tensor(rng.uniform(lo, hi, (2, 3, 7)))
+    world = World(floor=0.0, spheres=(torch.tensor([[0.4, 0.1, 0.6]], dtype=torch.float64),
+                                      torch.tensor([0.1], dtype=torch.float64)),
+                  boxes=(torch.tensor([[[1.0, 0, 0, -0.3], [0, 1, 0, 0.2], [0, 0, 1, 0.7], [0, 0, 0, 1]]],
+                                      dtype=torch.float64), torch.tensor([[0.1, 0.05, 0.2]], dtype=torch.float64)))
+    distance, gradient = capsule_clearance(chain, q, world)
+    k = len(robot_capsules(chain).names)
+    assert distance.shape == (2, 3, k) and gradient.shape == (2, 3, k, 7)
+    torch.testing.assert_close(distance.amin(-1), clearance(chain, q, world))
+    h = 1e-6
+    for i in range(7):
+        step = torch.zeros(7, dtype=torch.float64)
+        step[i] = h
+        fd = (capsule_clearance(chain, q + step, world)[0] - capsule_clearance(chain, q - step, world)[0]) / (2 * h)
+        # where a capsule is clear (inside a box the signed distance has kinks where faces meet)
+        clear = distance > 0
+        torch.testing.assert_close(gradient[..., i][clear], fd[clear], atol=1e-6, rtol=0)
+    assert clear.sum() >= 18
+
+
+def test_a_capsule_in_no_pair_reads_inf_with_a_zero_gradient():
+    chain = robots.planar3r().__class__([(1.0, 0, 0, 0), (1.0, 0, 0, 0), (1.0, 0, 0, 0)], name="custom")
+    caps = Capsules.build(chain, ["l1", "l2", "l3"], [1, 2, 3], [[[-1.0, 0, 0], [0, 0, 0]]] * 3, [0.1] * 3,
+                          floor_height=None)
+    q = torch.tensor([0.0, 0.3, -0.2], dtype=torch.float64)
+    no_floor = World(floor=None)
+    distance, gradient = capsule_clearance(chain, q, no_floor, caps)
+    assert math.isinf(distance[1]) and not gradient[1].any()
+    assert distance[0] == distance[2] == clearance(chain, q, no_floor, caps)

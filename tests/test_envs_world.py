@@ -202,3 +202,72 @@ def test_sb3_checker_on_the_obstacle_id():
 def test_bad_world_options(options, message):
     with pytest.raises(ValueError, match=message):
         ReachTask(**options)
+
+
+def test_observed_clearances_match_brute_force_and_finite_differences():
+    """``observe_clearance``: each capsule's clearance row against sampled points (floor and self
+    pairs, no obstacles), its gradient rows against central differences of those distances."""
+    env = IiwaReachVecEnv(6, "IiwaReach-v0", seed=3, start="random", observe_clearance=True)
+    obs = env.reset()["observation"]
+    nj, k = 7, len(CAPS.names)
+    start = 3 * nj
+    assert env.observation_space["observation"].shape == (3 * nj + k * (1 + nj) + 3,)
+    q = np.arctan2(obs[:, nj : 2 * nj], obs[:, :nj]).astype(np.float64)
+
+    def per_capsule(q: np.ndarray) -> np.ndarray:  # (b, K) by sampling, saturating at 1 m as observed
+        pts, r = capsule_points(q), CAPS.radii.numpy()
+        out = np.full((q.shape[0], k), np.inf)
+        for c in range(k):
+            if CAPS.floor[c]:
+                out[:, c] = pts[:, c, :, 2].min(-1) - r[c]
+        for i, j in CAPS.pairs:
+            gap = np.linalg.norm(pts[:, i, :, None] - pts[:, j, None], axis=-1).min((-1, -2)) - r[i] - r[j]
+            out[:, i], out[:, j] = np.minimum(out[:, i], gap), np.minimum(out[:, j], gap)
+        return np.minimum(out, 1.0)
+
+    observed = obs[:, start : start + k]
+    np.testing.assert_allclose(observed, per_capsule(q), atol=2e-3)  # 41 samples per segment: ~1 mm apart
+    gradient = obs[:, start + k : start + k * (1 + nj)].reshape(-1, k, nj)
+    from iiwa_torch.collision import capsule_clearance
+
+    h = 1e-5
+    for i in range(nj):
+        step = np.zeros(nj)
+        step[i] = h
+        plus, minus = (capsule_clearance(CHAIN, torch.as_tensor(q + s))[0].numpy() for s in (step, -step))
+        fd = np.where(observed < 1.0, (plus - minus) / (2 * h), 0.0)
+        np.testing.assert_allclose(gradient[:, :, i], fd, atol=2e-4)
+
+
+def test_observed_clearances_with_obstacles_single_and_vector_env_alike():
+    single = gym.make("IiwaReachObstacles-v0", observe_clearance=True)
+    vector = IiwaReachVecEnv(1, "IiwaReachObstacles-v0", seed=5, observe_clearance=True)
+    o1, _ = single.reset(seed=5)
+    o2 = vector.reset()
+    np.testing.assert_array_equal(o1["observation"], o2["observation"][0])
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        a = rng.uniform(-1, 1, 7).astype(np.float32)
+        o1, *_ = single.step(a)
+        o2, *_ = vector.step(a[None])
+        assert single.observation_space.contains(o1)
+        np.testing.assert_allclose(o1["observation"], o2["observation"][0], atol=1e-6)
+    # the smallest observed clearance is the env's clearance (the one collisions are flagged by)
+    task = vector.task
+    nj = 7
+    obs = o2["observation"][0]
+    q = torch.as_tensor(np.arctan2(obs[nj : 2 * nj], obs[:nj]), dtype=torch.float64)
+    block = torch.as_tensor(obs[3 * nj : 3 * nj + task.world.block_size], dtype=torch.float64)[:, None]
+    from envs.world import obstacle_world
+    from iiwa_torch.collision import clearance
+
+    expected = float(clearance(CHAIN, q[None], obstacle_world(block, 0.0)))
+    start = 3 * nj + task.world.block_size
+    assert obs[start : start + len(CAPS.names)].min() == pytest.approx(min(expected, 1.0), abs=1e-5)
+
+
+def test_observe_clearance_needs_a_world():
+    with pytest.raises(ValueError, match="observe_clearance needs collision checks"):
+        ReachTask(observe_clearance=True, collision="off")
+    with pytest.raises(ValueError, match="observe_clearance must be True or False"):
+        ReachTask(observe_clearance=1)

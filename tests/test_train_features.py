@@ -139,3 +139,44 @@ def test_pose_goal_features_match_least_squares_with_scipy_rotation_errors():
         np.testing.assert_allclose(joint[b, 7:14], jw.T @ e / np.linalg.norm(e), atol=1e-4)
         np.testing.assert_allclose(joint[b, 21], np.linalg.norm(e), rtol=1e-4, atol=1e-6)
     assert joint[3, 21] < 1e-6 and np.abs(joint[3, :7]).max() < 1e-3  # float32 goals: not exactly zero
+
+
+def test_velocity_damper_is_the_qp_solution():
+    """Against scipy's SLSQP on ``min (x - x0)^T H (x - x0)`` subject to the damper's constraints."""
+    from scipy.optimize import minimize
+
+    from train.features import velocity_damper
+
+    rng = np.random.default_rng(2)
+    chain = iiwa14()
+    lo, hi = chain.limits.numpy()
+    b, k, n = 6, 3, 7
+    q = torch.as_tensor(rng.uniform(lo, hi, (b, n)))
+    jac = chain.jacobian(q)[:, :3]
+    damping = torch.tensor([0.01], dtype=torch.float64)
+    dq0 = torch.as_tensor(rng.normal(scale=0.05, size=(b, 1, n)))
+    distance = torch.as_tensor(rng.uniform(0.0, 0.2, (b, k)))
+    gradient = torch.as_tensor(rng.normal(scale=0.5, size=(b, k, n)))
+    xi, safe, influence = 0.3, 0.02, 0.15
+    out = velocity_damper(dq0, jac, damping, distance, gradient, xi, safe, influence, sweeps=300)
+    for i in range(b):
+        H = (jac[i].T @ jac[i] + 0.01 * torch.eye(n)).numpy()
+        x0 = dq0[i, 0].numpy()
+        active = distance[i].numpy() < influence
+        cons = [{"type": "ineq", "fun": lambda x, g=g, d=d: g @ x + xi * (d - safe)}
+                for g, d, a in zip(gradient[i].numpy(), distance[i].numpy(), active) if a]
+        ref = minimize(lambda x, H=H, x0=x0: (x - x0) @ H @ (x - x0), x0,
+                       jac=lambda x, H=H, x0=x0: 2 * H @ (x - x0), constraints=cons,
+                       method="SLSQP", options={"ftol": 1e-14, "maxiter": 500}).x
+        np.testing.assert_allclose(out[i, 0].numpy(), ref, atol=1e-6)
+    # nothing within reach: unchanged
+    far = velocity_damper(dq0, jac, damping, distance + influence, gradient, xi, safe, influence)
+    torch.testing.assert_close(far, dq0)
+
+
+def test_avoidance_needs_the_clearance_rows():
+    with pytest.raises(ValueError, match="observe_clearance=True"):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, avoidance={"xi": 0.3, "safe": 0.02, "influence": 0.15})
+    with pytest.raises(ValueError, match="avoidance must be"):
+        JointGoalExtractor(_space(60), max_step=MAX_STEP, clearance_rows=[21, 4],
+                           avoidance={"xi": 2.0, "safe": 0.02, "influence": 0.15})

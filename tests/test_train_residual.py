@@ -19,9 +19,12 @@ HP = {"features_extractor": "joint", "normalize": False, "policy": "ResidualDLSP
 
 
 def _model():
+    """The residual policy without the velocity damper (no clearance observed)."""
     from stable_baselines3 import PPO
 
-    hp = tr.load_hyperparams("ppo", "IiwaReach-v0", HP)
+    plain = {"env_kwargs": {"terminate_on_success": False},
+             "features_extractor_kwargs": {"scales": [0.3, 0.03, 0.003], "dampings": [0.1, 0.01]}}
+    hp = tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, **plain})
     kwargs = tr.algo_kwargs("ppo", hp)
     policy = kwargs.pop("policy")
     return PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)
@@ -84,3 +87,34 @@ def test_residual_policy_needs_the_joint_extractor_and_a_positive_gate():
 def test_joint_features_need_raw_observations():
     with pytest.raises(ValueError, match="set normalize: false"):
         tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, "normalize": True})
+
+
+def test_with_avoidance_the_whole_mean_keeps_the_damper_constraints():
+    """A large learned correction cannot push the mean through the velocity damper: for every
+    capsule near something, ``normal . mean >= bound`` (the constraints in actions the extractor
+    computed from the env's observed clearances), and the mean stays in [-1, 1]."""
+    from stable_baselines3 import PPO
+
+    hp = tr.load_hyperparams("ppo", "IiwaReachObstacles-v0", {**HP, "n_envs": 64, "n_steps": 4, "batch_size": 256})
+    kwargs = tr.algo_kwargs("ppo", hp)
+    policy = kwargs.pop("policy")
+    venv = tr.build_venv("IiwaReachObstacles-v0", hp, 0)
+    model = PPO(policy, venv, device="cpu", seed=0, **kwargs)
+    ext = model.policy.features_extractor
+    assert ext.damper_columns is not None
+    rng = np.random.default_rng(0)
+    obs = venv.reset()
+    for _ in range(20):  # random motion: some arms come near their obstacles
+        obs, *_ = venv.step(rng.uniform(-1, 1, (64, 7)).astype(np.float32))
+    with torch.no_grad():
+        model.policy.action_net.linear.bias.copy_(torch.from_numpy(rng.uniform(-3, 3, 7).astype(np.float32)))
+        x = {k: torch.as_tensor(v) for k, v in obs.items()}
+        f = ext(x).double()
+        mean = model.policy.get_distribution(model.policy.obs_to_tensor(obs)[0]).distribution.mean.double()
+    start, k = ext.damper_columns
+    normal, bound = f[:, start : start + 7 * k].view(-1, k, 7), f[:, start + 7 * k : start + 8 * k]
+    near = bound > -1.0
+    assert near.any()
+    slack = (normal * mean[:, None]).sum(-1) - bound
+    assert (slack[near] >= -1e-4).all()
+    assert (mean.abs() <= 1.0 + 1e-6).all()

@@ -13,7 +13,7 @@ Because the difference is computed inside the network, it stays correct when HER
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from gymnasium import spaces
@@ -53,6 +53,48 @@ class GoalDeltaExtractor(BaseFeaturesExtractor):
         return torch.cat([observations["observation"], achieved, desired, scaled], dim=-1)
 
 
+def hildreth(x: torch.Tensor, normal: torch.Tensor, scaled: torch.Tensor, bound: torch.Tensor,
+             sweeps: int = 5) -> torch.Tensor:
+    """``x (..., n)`` moved as little as possible in a metric ``M`` so that ``normal_k . x >= bound_k``
+    for each of K constraints: ``normal (..., K, n)``, ``scaled = M^-1 normal`` (the same for the
+    Euclidean metric), ``bound (..., K)``. Hildreth's method: coordinate ascent on the dual, one
+    constraint at a time, ``sweeps`` times over (exact after one sweep for one constraint; a zero
+    ``normal`` with a negative bound is a constraint that never acts). Differentiable."""
+    curvature = (normal * scaled).sum(-1).clamp(min=1e-12)  # (..., K)
+    multipliers = [torch.zeros_like(curvature[..., 0])] * normal.shape[-2]  # Lagrange's, >= 0
+    for _ in range(sweeps):
+        for k, m in enumerate(multipliers):
+            change = (bound[..., k] - (normal[..., k, :] * x).sum(-1)) / curvature[..., k]
+            change = torch.maximum(change, -m)  # a constraint can let go, never pull
+            multipliers[k] = m + change
+            x = x + scaled[..., k, :] * change[..., None]
+    return x
+
+
+def damper_constraints(distance: torch.Tensor, gradient: torch.Tensor, xi: float, safe: float,
+                       influence: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The velocity damper of Faverjon and Tournassoud, linearised, as :func:`hildreth`'s constraints
+    on a joint step ``dq`` (rad): each capsule within ``influence`` (m) of something may close at most
+    the share ``xi`` of its gap above ``safe`` (m) in one step, ``gradient_k . dq >= -xi (distance_k -
+    safe)``. ``distance (B, K)`` (m), ``gradient (B, K, n)`` (m/rad) -> ``normal (B, K, n)`` (zero for
+    capsules out of reach) and ``bound (B, K)`` (m)."""
+    near = distance < influence
+    return torch.where(near[..., None], gradient, 0.0), torch.where(near, -xi * (distance - safe), -1.0)
+
+
+def velocity_damper(dq: torch.Tensor, jac: torch.Tensor, damping_sq: torch.Tensor, distance: torch.Tensor,
+                    gradient: torch.Tensor, xi: float, safe: float, influence: float, sweeps: int = 5) -> torch.Tensor:
+    """Joint steps ``dq (B, L, n)`` (rad), one per damping ``damping_sq (L,)``, changed as little as
+    possible in the metric ``H = J^T J + damping I`` of the DLS step (``jac (B, m, n)``) to meet
+    :func:`damper_constraints` (``distance (B, K)``, ``gradient (B, K, n)``, ``xi``, ``safe``,
+    ``influence``), by :func:`hildreth`."""
+    n = jac.shape[-1]
+    H = (jac.mT @ jac)[:, None] + damping_sq[:, None, None] * torch.eye(n, dtype=jac.dtype, device=jac.device)
+    normal, bound = damper_constraints(distance, gradient, xi, safe, influence)
+    normal = normal[:, None].expand(-1, dq.shape[1], -1, -1)  # (B, L, K, n)
+    return hildreth(dq, normal, torch.linalg.solve(H, normal.mT).mT, bound[:, None], sweeps)
+
+
 class JointGoalExtractor(GoalDeltaExtractor):
     """:class:`GoalDeltaExtractor` plus joint-space features of the position error, from the robot's Jacobian.
 
@@ -79,6 +121,13 @@ class JointGoalExtractor(GoalDeltaExtractor):
     ``cos q``, ``sin q`` (``q = atan2(sin q, cos q)``), so train without ``VecNormalize`` (the
     observation entries are all O(1): cosines, sines, velocities in ``[-1, 1]``, metres).
 
+    With ``avoidance`` (``{"xi", "safe", "influence"}``, see :func:`damper_constraints`) and an env
+    that observes its clearances (``observe_clearance=True``; ``clearance_rows = (first column, K)``
+    of them in ``observation``), every DLS step is first changed by :func:`velocity_damper` to keep
+    each capsule clear, then shrunk; and the damper's constraints in actions (``normal * max_step``,
+    m, then ``bound``, m) are appended, ``K (nj + 1)`` columns from ``damper_columns[0]``, for a
+    policy head that keeps its whole action clear (:class:`train.residual.ResidualDLSPolicy`).
+
     Args:
         observation_space: a ``Dict`` with ``observation`` (starting with ``cos q, sin q``),
             ``achieved_goal`` and ``desired_goal`` (3 numbers, a position in m, or 9, a pose).
@@ -87,13 +136,17 @@ class JointGoalExtractor(GoalDeltaExtractor):
         scales: goal-delta scales, m (see :class:`GoalDeltaExtractor`).
         dampings: the ``lambda`` values, m, all > 0.
         orientation_weight: ``w``, m/rad (> 0), for pose goals only.
+        clearance_rows: where the capsules' clearances and gradients start in ``observation`` and
+            the number K of capsules (filled in from the env by ``train.train``); None: not observed.
+        avoidance: the velocity damper's ``xi`` (in (0, 1]), ``safe`` and ``influence`` (m), or None.
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
 
     def __init__(self, observation_space: spaces.Dict, robot: str = "iiwa14",
                  max_step: Sequence[float] | None = None, scales: Sequence[float] = (0.3, 0.03, 0.003),
-                 dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5):
+                 dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5,
+                 clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None):
         from iiwa_torch.robots import PRESETS
 
         super().__init__(observation_space, scales)
@@ -113,6 +166,18 @@ class JointGoalExtractor(GoalDeltaExtractor):
             raise ValueError(f"robot {robot!r} has {nj} joints: the observation needs >= {2 * nj} entries "
                              f"(cos q, sin q) and the goal 3 (a position) or 9 (a pose) numbers; got {obs_dim} "
                              f"and {goal_dim}")
+        if avoidance is not None:
+            if clearance_rows is None:
+                raise ValueError("avoidance needs the env's clearances: make the env with observe_clearance=True")
+            if set(avoidance) != {"xi", "safe", "influence"} or not 0 < float(avoidance["xi"]) <= 1 \
+                    or not 0 <= float(avoidance["safe"]) < float(avoidance["influence"]):
+                raise ValueError("avoidance must be {xi: in (0, 1], safe: >= 0, influence: > safe} (m), "
+                                 f"got {dict(avoidance)!r}")
+            start, k = (int(c) for c in clearance_rows)
+            if start < 3 * nj or start + k * (1 + nj) > obs_dim:
+                raise ValueError(f"clearance_rows {list(clearance_rows)} lie outside the observation ({obs_dim})")
+        self.avoidance = None if avoidance is None else {key: float(v) for key, v in avoidance.items()}
+        self.clearance_rows = None if clearance_rows is None else tuple(int(c) for c in clearance_rows)
         self.pose = goal_dim == 9
         self.orientation_weight = float(orientation_weight)
         self.chain = chain  # float64 buffers; the joint features are computed in float64
@@ -122,14 +187,22 @@ class JointGoalExtractor(GoalDeltaExtractor):
         self._features_dim += (len(dampings) + 2) * nj + 1
         #: the column of the distance |e| (m)
         self.distance_column = self._features_dim - 1
+        #: ``(first column, K)`` of the damper's constraints in actions, or None without avoidance
+        self.damper_columns = None
+        if avoidance is not None:
+            self.damper_columns = (self._features_dim, self.clearance_rows[1])
+            self._features_dim += self.clearance_rows[1] * (nj + 1)
         self.register_buffer("max_step", torch.tensor([float(s) for s in max_step], dtype=torch.float64))
         self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in dampings], dtype=torch.float64))
 
-    def joint_features(self, q: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
+    def joint_features(self, q: torch.Tensor, error: torch.Tensor,
+                       clearance: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
         DLS steps in actions per damping, ``J^T e / |e|`` (m), the place within the limits, ``|e|`` (m).
 
-        ``k = 3``: a position error (m), ``J = J_p``; ``k = 6``: ``[e_p; w e_r]`` (m), ``J = [J_p; w J_r]``."""
+        ``k = 3``: a position error (m), ``J = J_p``; ``k = 6``: ``[e_p; w e_r]`` (m), ``J = [J_p; w J_r]``.
+        ``clearance``: the capsules' distances ``(B, K)`` (m) and gradients ``(B, K, nj)`` (m/rad), for
+        ``avoidance``."""
         q, e = q.double(), error.double()
         k = e.shape[-1]
         jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
@@ -137,6 +210,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
         dq = dls_step(jp.unsqueeze(1), e.unsqueeze(1), self.damping_sq)  # (B, L, nj) rad
         u = dq / self.max_step
         u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
+        if self.avoidance is not None:
+            u = velocity_damper(u * self.max_step, jp, self.damping_sq, *clearance, **self.avoidance) / self.max_step
+            u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
         distance = e.norm(dim=-1, keepdim=True)  # (B, 1)
         grad = (jp.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1) / distance.clamp(min=1e-6)
         lower, upper = self.chain.limits.to(q.dtype)
@@ -153,6 +229,12 @@ class JointGoalExtractor(GoalDeltaExtractor):
             if self.pose:
                 rot = decode_pose_goal(desired)[:, :3, :3] @ decode_pose_goal(achieved)[:, :3, :3].transpose(-1, -2)
                 error = torch.cat([error.double(), self.orientation_weight * so3.log(rot)], -1)
-            joint = self.joint_features(q, error)
-        return torch.cat([base, joint.to(base.dtype)], dim=-1)
-
+            clearance, damper = None, []
+            if self.avoidance is not None:
+                start, k = self.clearance_rows
+                rows = obs[:, start : start + k * (1 + nj)].double()
+                clearance = rows[:, :k], rows[:, k:].reshape(-1, k, nj)
+                normal, bound = damper_constraints(*clearance, **self.avoidance)
+                damper = [(normal * self.max_step).flatten(1), bound]
+            joint = self.joint_features(q, error, clearance)
+        return torch.cat([base, joint.to(base.dtype), *(d.to(base.dtype) for d in damper)], dim=-1)

@@ -10,7 +10,11 @@ distance ``d`` to the goal: the network only learns the correction, and at initi
 matters: an ungated correction is never exactly zero at the goal, and a bias ``b`` in the
 action holds the arm where the DLS step cancels it (measured: median final error from
 0.5 mm to 7-8 mm within 2 million steps). With the gate the correction fades below ``s``
-and the DLS step settles the arm. The Gaussian exploration noise, the value network and PPO itself are
+and the DLS step settles the arm. With the extractor's ``avoidance`` (an env that observes its
+clearances) the DLS step is kept clear of obstacles by a velocity damper, and so is the whole
+mean: ``step + g(d) Linear(latent)`` is moved, as little as possible, back within the damper's
+constraints (:func:`train.features.hildreth`, in actions) and shrunk into ``[-1, 1]``: a safety
+layer that the correction cannot push through. The Gaussian exploration noise, the value network and PPO itself are
 unchanged; the DLS step is computed from the observation inside the network, so
 ``model.predict`` on the env's raw observation is the whole controller.
 """
@@ -21,22 +25,22 @@ import torch
 from stable_baselines3.common.policies import MultiInputActorCriticPolicy
 from torch import nn
 
-from train.features import JointGoalExtractor
+from train.features import JointGoalExtractor, hildreth
 
 
 class _LatentWithBase(nn.Module):
-    """``features -> (cat(latent_pi, step, distance), latent_vf)``: SB3's MLP extractor that also
-    carries the DLS step (``(B, nj)``, in actions) and the distance (``(B, 1)``, m) to the action head."""
+    """``features -> (cat(latent_pi, base), latent_vf)``: SB3's MLP extractor that also carries the
+    DLS step (``(B, nj)``, in actions), the distance (``(B, 1)``, m) and, with avoidance, the damper's
+    constraints (``(B, K (nj + 1))``) to the action head."""
 
-    def __init__(self, inner: nn.Module, step_columns: tuple[int, int], distance_column: int):
+    def __init__(self, inner: nn.Module, columns: list[tuple[int, int]]):
         super().__init__()
-        self.inner, self.step_columns, self.distance_column = inner, step_columns, distance_column
-        self.latent_dim_pi = inner.latent_dim_pi + step_columns[1] - step_columns[0] + 1
+        self.inner, self.columns = inner, columns
+        self.latent_dim_pi = inner.latent_dim_pi + sum(b - a for a, b in columns)
         self.latent_dim_vf = inner.latent_dim_vf
 
     def _base(self, features: torch.Tensor) -> torch.Tensor:
-        c = self.distance_column
-        return torch.cat([features[:, self.step_columns[0] : self.step_columns[1]], features[:, c : c + 1]], -1)
+        return torch.cat([features[:, a:b] for a, b in self.columns], -1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         latent_pi, latent_vf = self.inner(features)
@@ -50,16 +54,22 @@ class _LatentWithBase(nn.Module):
 
 
 class _ResidualHead(nn.Module):
-    """``cat(latent (B, L), step (B, nj), d (B, 1)) -> step + d / (d + s) * linear(latent)``: the action mean."""
+    """``cat(latent (B, L), step (B, nj), d (B, 1)[, normal (B, K nj), bound (B, K)])`` -> the action
+    mean ``step + d / (d + s) * linear(latent)``, kept within the K constraints if given."""
 
-    def __init__(self, linear: nn.Linear, gate_distance: float):
+    def __init__(self, linear: nn.Linear, gate_distance: float, constraints: int = 0):
         super().__init__()
-        self.linear, self.gate_distance = linear, gate_distance
+        self.linear, self.gate_distance, self.constraints = linear, gate_distance, constraints
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
-        n = self.linear.in_features
-        step, distance = latent[:, n:-1], latent[:, -1:]
-        return step + distance / (distance + self.gate_distance) * self.linear(latent[:, :n])
+        n, nj, k = self.linear.in_features, self.linear.out_features, self.constraints
+        step, distance = latent[:, n : n + nj], latent[:, n + nj : n + nj + 1]
+        mean = step + distance / (distance + self.gate_distance) * self.linear(latent[:, :n])
+        if not k:
+            return mean
+        normal, bound = latent[:, n + nj + 1 : n + nj + 1 + k * nj].view(-1, k, nj), latent[:, -k:]
+        mean = hildreth(mean, normal, normal, bound)
+        return mean / mean.abs().amax(-1, keepdim=True).clamp(min=1.0)
 
 
 class ResidualDLSPolicy(MultiInputActorCriticPolicy):
@@ -90,5 +100,10 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
                              f"share_features_extractor={self.share_features_extractor}")
         # wrap the modules already built (same parameters, so the optimizer built above still holds them)
         ext = self.features_extractor
-        self.mlp_extractor = _LatentWithBase(self.mlp_extractor, ext.step_columns, ext.distance_column)
-        self.action_net = _ResidualHead(self.action_net, self.gate_distance)
+        columns = [ext.step_columns, (ext.distance_column, ext.distance_column + 1)]
+        k = 0
+        if ext.damper_columns is not None:
+            start, k = ext.damper_columns
+            columns.append((start, start + k * (ext.nj + 1)))
+        self.mlp_extractor = _LatentWithBase(self.mlp_extractor, columns)
+        self.action_net = _ResidualHead(self.action_net, self.gate_distance, k)

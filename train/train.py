@@ -101,13 +101,18 @@ def check_hyperparams(hp: dict[str, Any], env_id: str) -> dict[str, Any]:
 
 
 def joint_feature_defaults(env_id: str, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The env's robot (``PRESETS`` name) and ``max_step`` (rad per step) for ``JointGoalExtractor``."""
+    """The env's robot (``PRESETS`` name), ``max_step`` (rad per step) and, if it observes them, where its
+    clearances are (``clearance_rows``), for ``JointGoalExtractor``."""
     import envs
 
     if env_id not in envs.ENV_IDS:
         raise ValueError(f"features_extractor 'joint' needs one of our envs {list(envs.ENV_IDS)}, got {env_id!r}")
     task = envs.make_task(env_id, **(env_kwargs or {}))
-    return {"robot": task.robot.name, "max_step": [round(float(s), 7) for s in task.max_step]}
+    defaults = {"robot": task.robot.name, "max_step": [round(float(s), 7) for s in task.max_step]}
+    if task.transport.clearance_size:
+        defaults["clearance_rows"] = [3 * task.arm.n_joints + task.transport.obstacle_size,
+                                      len(task.world.capsules.names)]
+    return defaults
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
