@@ -307,6 +307,11 @@ def _design_note(config: dict[str, Any], trained_in) -> list[str]:
         lines.append("How the policy is built: its action is a damped-least-squares joint step (the library's "
                      "Jacobian, inside the network) plus a learned correction that fades near the goal. What the DLS "
                      "step achieves alone, without the network, is measured in docs/training.md.")
+        avoidance = (config["hyperparams"].get("features_extractor_kwargs") or {}).get("avoidance")
+        if avoidance:
+            lines.append("A velocity damper (Faverjon and Tournassoud) keeps that step and the whole action from "
+                         "closing any link's clearance by more than {xi:g} of its excess over {safe:g} m per step, "
+                         "from the clearances and gradients the env observes (observe_clearance).".format(**avoidance))
     return lines
 
 
