@@ -180,3 +180,44 @@ def test_avoidance_needs_the_clearance_rows():
     with pytest.raises(ValueError, match="avoidance must be"):
         JointGoalExtractor(_space(60), max_step=MAX_STEP, clearance_rows=[21, 4],
                            avoidance={"xi": 2.0, "safe": 0.02, "influence": 0.15})
+
+
+def test_limit_rounds_hold_the_joints_a_step_would_push_past_a_limit():
+    """Each arm starts 1 mrad inside a random joint's upper limit, with an error whose plain DLS step
+    pushes that joint out; with ``limit_rounds`` the step keeps every joint within its limits and is the
+    damped least-squares step (numpy's ``lstsq``, finite-difference Jacobian) over the other joints."""
+    chain = iiwa14()
+    rng = np.random.default_rng(5)
+    lower, upper = chain.limits.numpy()
+    ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,), limit_rounds=3)
+    plain = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,))
+    checked = 0
+    for _ in range(30):
+        q = rng.uniform(lower, upper)
+        i = rng.integers(7)
+        q[i] = upper[i] - 1e-3
+        jp = _fd_position_jacobian(q)
+        if np.linalg.norm(jp[:, i]) < 1e-2:  # a joint that hardly moves the point (joint 7 never does)
+            continue
+        error = jp[:, i] * 0.05 / np.linalg.norm(jp[:, i])  # along joint i's own motion: pushes it up
+        qt, et, jt = torch.as_tensor(q)[None], torch.as_tensor(error)[None], torch.as_tensor(jp)[None]
+        before = plain.shrunk_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
+        if not q[i] + before[i] > upper[i]:
+            continue
+        checked += 1
+        step = ext.shrunk_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
+        assert np.all(q + step <= upper + 1e-12) and np.all(q + step >= lower - 1e-12)
+        free = np.abs(step) > 0
+        assert not free[i]
+        stacked = np.vstack([jp[:, free], 0.1 * np.eye(free.sum())])
+        dq = np.linalg.lstsq(stacked, np.concatenate([error, np.zeros(free.sum())]), rcond=None)[0]
+        expected = np.zeros(7)
+        expected[free] = dq
+        expected /= max(1.0, np.abs(expected / MAX_STEP).max())
+        np.testing.assert_allclose(step, expected, atol=1e-9)
+    assert checked >= 10
+
+
+def test_limit_rounds_must_be_a_count():
+    with pytest.raises(ValueError, match="limit_rounds must be an int >= 0"):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, limit_rounds=-1)

@@ -21,7 +21,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from envs.goals import decode_pose_goal
 from iiwa_torch import so3
-from iiwa_torch.ik.dls import dls_step
+from iiwa_torch.ik.dls import dls_step, dls_step_batch_last
 
 
 class GoalDeltaExtractor(BaseFeaturesExtractor):
@@ -139,6 +139,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         clearance_rows: where the capsules' clearances and gradients start in ``observation`` and
             the number K of capsules (filled in from the env by ``train.train``); None: not observed.
         avoidance: the velocity damper's ``xi`` (in (0, 1]), ``safe`` and ``influence`` (m), or None.
+        limit_rounds: how many times a DLS step is solved again without the joints it would push
+            past their limits (:meth:`shrunk_step`; 0: never).
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
@@ -146,7 +148,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
     def __init__(self, observation_space: spaces.Dict, robot: str = "iiwa14",
                  max_step: Sequence[float] | None = None, scales: Sequence[float] = (0.3, 0.03, 0.003),
                  dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5,
-                 clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None):
+                 clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None,
+                 limit_rounds: int = 0):
         from iiwa_torch.robots import PRESETS
 
         super().__init__(observation_space, scales)
@@ -176,6 +179,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
             start, k = (int(c) for c in clearance_rows)
             if start < 3 * nj or start + k * (1 + nj) > obs_dim:
                 raise ValueError(f"clearance_rows {list(clearance_rows)} lie outside the observation ({obs_dim})")
+        if isinstance(limit_rounds, bool) or not isinstance(limit_rounds, int) or limit_rounds < 0:
+            raise ValueError(f"limit_rounds must be an int >= 0, got {limit_rounds!r}")
+        self.limit_rounds = limit_rounds
         self.avoidance = None if avoidance is None else {key: float(v) for key, v in avoidance.items()}
         self.clearance_rows = None if clearance_rows is None else tuple(int(c) for c in clearance_rows)
         self.pose = goal_dim == 9
@@ -195,6 +201,32 @@ class JointGoalExtractor(GoalDeltaExtractor):
         self.register_buffer("max_step", torch.tensor([float(s) for s in max_step], dtype=torch.float64))
         self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in dampings], dtype=torch.float64))
 
+    def shrunk_step(self, q: torch.Tensor, jac: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
+        """The DLS step per damping in actions, shrunk into ``[-1, 1]``: ``q (B, nj)`` rad, ``jac (B, k, nj)``,
+        ``error (B, k)`` -> ``(B, L, nj)``. With ``limit_rounds``, a joint that the step would push past its
+        limit is held still and the step solved again without it, up to that many times (the arm's
+        other joints then carry the motion, instead of the step being clamped at the limit)."""
+        dq = dls_step(jac.unsqueeze(1), error.unsqueeze(1), self.damping_sq)  # (B, L, nj) rad
+        if self.limit_rounds:
+            b, n, m = q.shape[0], self.nj, jac.shape[-2]
+            size = len(self.damping_sq)
+            J = jac.unsqueeze(1).expand(b, size, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, nj, B L)
+            rhs = error.unsqueeze(1).expand(b, size, m).reshape(-1, m).T[:, None]  # (m, 1, B L)
+            damping = self.damping_sq.repeat(b)
+            lower, upper = self.chain.limits.to(q.dtype)
+            free = torch.ones_like(dq)
+            for _ in range(self.limit_rounds):
+                step = dq / (dq / self.max_step).abs().amax(-1, keepdim=True).clamp(min=1.0)
+                end = q.unsqueeze(1) + step
+                blocked = ((end > upper) & (step > 0)) | ((end < lower) & (step < 0))
+                if not bool((blocked & (free > 0)).any()):
+                    break
+                free = free * ~blocked
+                dq = dls_step_batch_last(J, rhs, damping, torch.finfo(q.dtype).tiny,
+                                         free.reshape(-1, n).T)[:, 0].T.reshape(b, size, n)
+        u = dq / self.max_step
+        return u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
+
     def joint_features(self, q: torch.Tensor, error: torch.Tensor,
                        clearance: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
@@ -207,9 +239,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         k = e.shape[-1]
         jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
         jp = jac[..., :3, :] if k == 3 else torch.cat([jac[..., :3, :], self.orientation_weight * jac[..., 3:, :]], -2)
-        dq = dls_step(jp.unsqueeze(1), e.unsqueeze(1), self.damping_sq)  # (B, L, nj) rad
-        u = dq / self.max_step
-        u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
+        u = self.shrunk_step(q, jp, e)  # (B, L, nj) in actions
         if self.avoidance is not None:
             u = velocity_damper(u * self.max_step, jp, self.damping_sq, *clearance, **self.avoidance) / self.max_step
             u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
