@@ -163,7 +163,8 @@ def test_exact_answer_is_finite():
         warnings.simplefilter("error")
         result = solve(chain, target, q, seeds=1)
     assert bool(result.success.all()) and bool((result.rot_err < 1e-7).all())
-    assert torch.equal(result.q, q)
+    # a step may be kept on rounding alone (the compiled kernels' FK differs from chain.fk's in the last bits)
+    assert (result.q - q).abs().max() < 1e-12
 
 
 def test_bad_q0_and_rest_raise_as_before():

@@ -13,9 +13,12 @@ The layout is batch first: ``(slots, ...)``, a slot being one seed of one proble
 
 from __future__ import annotations
 
+from weakref import WeakKeyDictionary
+
 import numpy as np
 import torch
 
+from .. import compiled
 from ..dh import DHChain
 from ..kinematics import floats_ok, pose_jacobian_numpy
 from .gradient import (
@@ -28,6 +31,7 @@ from .gradient import (
     inner_limits,
     into_limits,
     pool_distance,
+    pool_features,
     round_width,
     seed_ranks,
 )
@@ -150,7 +154,11 @@ class _Problems:
         return (~done & (number < first_done[problem])).nonzero()[0]
 
     def run_round(self, q, problem, number) -> None:
-        """The LM iterations of one round of seeds ``q (s, n)``."""
+        """The LM iterations of one round of seeds ``q (s, n)``; compiled
+        (:func:`iiwa_torch.compiled.lm_round`) when enabled."""
+        if compiled.ENABLED:
+            self.run_compiled(q, problem, number)
+            return
         pos, rot = self.pos[problem], None if self.rot is None else self.rot[problem]
         rest = None if self.rest is None else self.rest[problem]
         J, e, E, pos_err, rot_err = self.evaluate(q, pos, rot)
@@ -176,6 +184,39 @@ class _Problems:
                 break
 
 
+    def run_compiled(self, q, problem, number) -> None:
+        """:meth:`run_round` by :func:`iiwa_torch.compiled.lm_round` (contiguous float64 arrays)."""
+        rot = np.empty((0, 3, 3)) if self.rot is None else np.ascontiguousarray(self.rot)
+        rest = np.empty((0, q.shape[1])) if self.rest is None else np.ascontiguousarray(self.rest)
+        opts = np.array([self.weight, self.rest_gain, self.eps, self.lam_min, LAMBDA0, DAMP_DOWN, DAMP_UP,
+                         self.pos_tol, self.rot_tol])  # fmt: skip
+        counts = np.array([self.iterations, self.check_every, self.free_steps, self.seeds])
+        compiled.lm_round(*self.g.float_arrays, q, problem, number, np.ascontiguousarray(self.pos), rot, rest,
+                          self.lo, self.hi, opts, counts, self.q, self.E, self.used)  # fmt: skip
+
+
+_NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
+_CACHE: WeakKeyDictionary = WeakKeyDictionary()  # Geometry -> {key: value}
+
+
+def _cached(chain: DHChain, dtype: torch.dtype, key, make):
+    """``make()``, computed once per ``key`` and chain geometry in ``dtype``: the geometry is
+    rebuilt whenever the chain's buffers change, so the value is computed again then."""
+    entries = _CACHE.setdefault(chain.geometry(dtype), {})
+    if key not in entries:
+        entries[key] = make()
+    return entries[key]
+
+
+def _pool(chain: DHChain, size: int, generator, work: torch.dtype, mode: str):
+    """The seed pool as :func:`~iiwa_torch.ik.solve` draws it (``generator`` None: a fresh one
+    seeded with 0) -> the pool ``(size, n)`` in ``work``, its :func:`pool_features` and the
+    pool in float64 numpy."""
+    generator = torch.Generator().manual_seed(0) if generator is None else generator
+    pool = chain.random_q(size, generator=generator, dtype=work)
+    return pool, pool_features(chain, pool, mode), pool.double().numpy()
+
+
 def solve_small(
     chain: DHChain, target: torch.Tensor, q0, rest, *, mode: str, work: torch.dtype, generator, **options
 ) -> IKResult:
@@ -187,14 +228,18 @@ def solve_small(
     batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
     flat = target.reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
-    lo, hi = (x.double() for x in inner_limits(chain, dtype))  # within the limits in dtype too
+    lo, hi = _cached(chain, dtype, "limits", lambda: tuple(x.double() for x in inner_limits(chain, dtype)))
     first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64), lo, hi).numpy()
     shift = 0 if first is None else 1
     pool = order = None
     if seeds > shift:
-        pool_t = chain.random_q(max(POOL, seeds), generator=generator, dtype=work)
-        order = seed_ranks(pool_distance(chain, pool_t, flat.to(work), mode), seeds - shift).numpy()  # (ranks, b)
-        pool = pool_t.double().numpy()
+        size = max(POOL, seeds)
+        if generator is None:  # a fresh generator seeded with 0 draws the same pool every time
+            pool_t, features, pool = _cached(chain, work, (size, mode), lambda: _pool(chain, size, None, work, mode))
+        else:
+            pool_t, features, pool = _pool(chain, size, generator, work, mode)
+        distance = pool_distance(chain, pool_t, flat.to(work), mode, features)
+        order = seed_ranks(distance, seeds - shift).numpy()  # (ranks, b)
     flat = flat.double().numpy()
     pos, rot = (flat, None) if mode == "position" else (flat[:, :3, 3], flat[:, :3, :3])
     rest = None if rest is None else rest.double().numpy()
@@ -214,8 +259,14 @@ def solve_small(
         remaining = remaining[problems.E[remaining] >= 0]
     q_out = torch.from_numpy(problems.q).to(dtype).reshape(*batch, n)
     # errors and success from the public chain.fk of the answer, as the batched path's
-    _, pos_err, _, rot_err = pose_errors(chain.fk(q_out).reshape(b, 4, 4).double().numpy(), pos, rot, problems.eps)
+    pose = chain.fk(q_out).reshape(b, 4, 4).numpy().astype(np.float64, copy=False)
+    if compiled.ENABLED:
+        rot_in = np.empty((0, 3, 3)) if rot is None else np.ascontiguousarray(rot)
+        pos_err, rot_err = compiled.pose_errors(pose, np.ascontiguousarray(pos), rot_in, problems.eps)
+    else:
+        _, pos_err, _, rot_err = pose_errors(pose, pos, rot, problems.eps)
     success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
-    out = (torch.from_numpy(x).reshape(batch) for x in (success, pos_err, rot_err, problems.used))
-    success, pos_err, rot_err, used = out
-    return IKResult(q_out, success, pos_err.to(dtype), rot_err.to(dtype), used)
+    errors = np.stack([pos_err, rot_err]).astype(_NUMPY[dtype], copy=False)
+    pos_err, rot_err = torch.from_numpy(errors).reshape(2, *batch).unbind(0)
+    return IKResult(q_out, torch.from_numpy(success).reshape(batch), pos_err, rot_err,
+                    torch.from_numpy(problems.used).reshape(batch))  # fmt: skip
