@@ -140,6 +140,7 @@ def test_fallback_without_the_kernels(monkeypatch):
     result = solve(chain, target)
     with monkeypatch.context() as m:
         m.setattr(small, "SMALL_BATCH", 0)
+        m.setattr(small, "COMPILED_BATCH", 0)
         batched = solve(chain, target)
     assert int((result.success != batched.success).sum()) <= 1 and result.success.float().mean() > 0.8
     with torch.enable_grad():  # the torch kernels, through autograd

@@ -24,8 +24,8 @@ def targets(chain, count, seed, dtype, mode):
 
 
 def in_chunks(chain, target, q0=None, **options):
-    """solve on ``target`` in calls of at most SMALL_BATCH targets, concatenated."""
-    size, rest = small.SMALL_BATCH, options.pop("rest", None)
+    """solve on ``target`` in calls of at most small.batch_limit() targets, concatenated."""
+    size, rest = small.batch_limit(), options.pop("rest", None)
     parts = [
         solve(chain, target[i : i + size], *(None if x is None else x[i : i + size] for x in (q0,)), **options,
               rest=None if rest is None else rest[i : i + size])
@@ -37,6 +37,7 @@ def in_chunks(chain, target, q0=None, **options):
 def batched(monkeypatch, chain, target, q0=None, **options):
     with monkeypatch.context() as m:
         m.setattr(small, "SMALL_BATCH", 0)
+        m.setattr(small, "COMPILED_BATCH", 0)
         return solve(chain, target, q0, **options)
 
 
@@ -142,7 +143,7 @@ def calls(monkeypatch):
 
 def test_which_path(calls):
     chain = CHAINS["iiwa14"]
-    target, q = targets(chain, small.SMALL_BATCH + 1, 6, torch.float64, "pose")
+    target, q = targets(chain, small.batch_limit() + 1, 6, torch.float64, "pose")
     solve(chain, target[:3])
     assert len(calls) == 1
     solve(chain, target)  # above the threshold

@@ -2,7 +2,8 @@
 
 For a batch of ``SMALL_BATCH`` targets or fewer, on the CPU, with no world and nothing to
 differentiate (:func:`applies`), :func:`~iiwa_torch.ik.solve` runs its Levenberg-Marquardt
-iteration here in numpy (float64) instead of torch: the same seeds (the same pool, drawn from
+iteration here in numpy (float64) instead of torch, or up to ``COMPILED_BATCH`` targets in
+compiled code (:func:`iiwa_torch.compiled.lm_round`, when enabled): the same seeds (the same pool, drawn from
 the same generator, in the same order), the same rounds of seeds side by side, damping
 schedule, free steps and projection into the limits, convergence checks and choice of
 answer, with the end pose and Jacobian of
@@ -37,18 +38,25 @@ from .gradient import (
 )
 from .result import IKResult
 
-__all__ = ["SMALL_BATCH", "applies", "pose_errors", "solve_small"]
+__all__ = ["COMPILED_BATCH", "SMALL_BATCH", "applies", "batch_limit", "pose_errors", "solve_small"]
 
 SMALL_BATCH = 64  # up to this many targets per call, solve iterates in numpy
+COMPILED_BATCH = 1024  # with the compiled kernels, up to this many (measured: 1.5x the torch loop at 1,000)
+
+
+def batch_limit() -> int:
+    """The most targets per call this path takes: ``COMPILED_BATCH`` with the compiled kernels
+    (:data:`iiwa_torch.compiled.ENABLED`), else ``SMALL_BATCH``."""
+    return COMPILED_BATCH if compiled.ENABLED else SMALL_BATCH
 
 
 def applies(target: torch.Tensor, q0, rest, world, size: int) -> bool:
     """Whether :func:`~iiwa_torch.ik.solve` takes this path for ``size`` targets: at most
-    ``SMALL_BATCH``, no world, and ``target``, ``q0`` and ``rest`` on the CPU with nothing to
+    :func:`batch_limit`, no world, and ``target``, ``q0`` and ``rest`` on the CPU with nothing to
     differentiate (:func:`~iiwa_torch.kinematics.floats_ok`)."""
     given = [t for t in (target, q0, rest) if t is not None]
     # anything but a tensor goes the batched way, to the same error message as before
-    return world is None and size <= SMALL_BATCH and all(isinstance(t, torch.Tensor) and floats_ok(t) for t in given)
+    return world is None and size <= batch_limit() and all(isinstance(t, torch.Tensor) and floats_ok(t) for t in given)
 
 
 _SKEW = np.array([5, 6, 1]), np.array([7, 2, 3])  # (1, 2), (2, 0), (0, 1) and their mirrors in a flat 3x3
