@@ -521,12 +521,17 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
 
 
+_KERNELS: list = []  # iiwa_torch.compiled, once imported
+
+
 def _compiled():
     """:mod:`iiwa_torch.compiled` if its kernels are enabled, else None. Imported on first use,
     not with this module: importing numba alone takes a quarter of a second."""
-    from . import compiled
+    if not _KERNELS:
+        from . import compiled
 
-    return compiled if compiled.ENABLED else None
+        _KERNELS.append(compiled)
+    return _KERNELS[0] if _KERNELS[0].ENABLED else None
 
 
 def _float64(q: Tensor) -> np.ndarray:
@@ -537,7 +542,7 @@ def _float64(q: Tensor) -> np.ndarray:
 def floats_ok(q: Tensor) -> bool:
     """Whether one configuration ``q`` may take :func:`end_pose_floats` and :func:`jacobian_floats`:
     on the CPU with nothing to differentiate (no ``requires_grad`` under grad mode)."""
-    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
+    return q.is_cpu and not (q.requires_grad and torch.is_grad_enabled())
 
 
 # ---------------------------------------------------------------------- batch first, small batches

@@ -85,7 +85,8 @@ class _Problems:
     """What every round shares: targets ``pos (b, 3)`` and ``rot (b, 3, 3)`` (or None) in
     float64, the rest posture ``rest (b, n)`` or None, limits ``lo, hi (n,)``, the options of
     :func:`~iiwa_torch.ik.solve`, and the answers so far: ``q (b, n)``, key ``E (b,)``
-    (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``."""
+    (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``; the
+    options again as :func:`iiwa_torch.compiled.lm_round` takes them (``kernel_options``, ``kernel_counts``)."""
 
     def __init__(self, chain: DHChain, pos, rot, rest, lo, hi, options: dict, lam_min: float, eps: float):
         self.g = chain.geometry(torch.float64)
@@ -98,6 +99,9 @@ class _Problems:
         self.lam_min, self.eps = lam_min, eps
         b, n = pos.shape[0], chain.n_joints
         self.q, self.E, self.used = np.empty((b, n)), np.full(b, np.inf), np.zeros(b, dtype=np.int64)
+        self.kernel_options = np.array([self.weight, self.rest_gain, eps, lam_min, LAMBDA0, DAMP_DOWN, DAMP_UP,
+                                 self.pos_tol, self.rot_tol])  # fmt: skip
+        self.kernel_counts = np.array([self.iterations, self.check_every, self.free_steps, self.seeds])
 
     def evaluate(self, q, pos, rot):
         """``q (s, n)`` and the slots' targets -> weighted Jacobian ``J (s, m, n)``, weighted error
@@ -196,11 +200,8 @@ class _Problems:
         """:meth:`run_round` by :func:`iiwa_torch.compiled.lm_round` (contiguous float64 arrays)."""
         rot = np.empty((0, 3, 3)) if self.rot is None else np.ascontiguousarray(self.rot)
         rest = np.empty((0, q.shape[1])) if self.rest is None else np.ascontiguousarray(self.rest)
-        opts = np.array([self.weight, self.rest_gain, self.eps, self.lam_min, LAMBDA0, DAMP_DOWN, DAMP_UP,
-                         self.pos_tol, self.rot_tol])  # fmt: skip
-        counts = np.array([self.iterations, self.check_every, self.free_steps, self.seeds])
         compiled.lm_round(*self.g.float_arrays, q, problem, number, np.ascontiguousarray(self.pos), rot, rest,
-                          self.lo, self.hi, opts, counts, self.q, self.E, self.used)  # fmt: skip
+                          self.lo, self.hi, self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
 
 
 _NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
@@ -258,23 +259,26 @@ def solve_small(
         width = round_width(seeds, next_seed, remaining.size)
         problem = np.tile(remaining, width)  # slot -> problem
         number = np.repeat(np.arange(next_seed, next_seed + width), remaining.size)
-        numbers = range(next_seed, next_seed + width)
-        q = np.concatenate([first[remaining] if k < shift else pool[order[k - shift, remaining]] for k in numbers])
+        ranks = order[max(next_seed, shift) - shift : next_seed + width - shift] if seeds > shift else order
+        q = pool[ranks[:, remaining].reshape(-1)] if ranks is not None else None  # pool seeds, seed-major
+        if next_seed < shift:  # q0 first
+            q = first[remaining] if q is None else np.concatenate([first[remaining], q])
         if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
             problems.q[:] = q[:b]
         problems.run_round(q, problem, number)
         next_seed += width
         remaining = remaining[problems.E[remaining] >= 0]
-    q_out = torch.from_numpy(problems.q).to(dtype).reshape(*batch, n)
+    out_dtype = _NUMPY[dtype]
+    q_out = torch.from_numpy(problems.q.astype(out_dtype, copy=False).reshape(*batch, n))
     # errors and success from the public chain.fk of the answer, as the batched path's
-    pose = chain.fk(q_out).reshape(b, 4, 4).numpy().astype(np.float64, copy=False)
+    pose = chain.fk(q_out).numpy().reshape(b, 4, 4).astype(np.float64, copy=False)
     if compiled.ENABLED:
         rot_in = np.empty((0, 3, 3)) if rot is None else np.ascontiguousarray(rot)
         pos_err, rot_err = compiled.pose_errors(pose, np.ascontiguousarray(pos), rot_in, problems.eps)
     else:
         _, pos_err, _, rot_err = pose_errors(pose, pos, rot, problems.eps)
     success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
-    errors = np.stack([pos_err, rot_err]).astype(_NUMPY[dtype], copy=False)
-    pos_err, rot_err = torch.from_numpy(errors).reshape(2, *batch).unbind(0)
-    return IKResult(q_out, torch.from_numpy(success).reshape(batch), pos_err, rot_err,
-                    torch.from_numpy(problems.used).reshape(batch))  # fmt: skip
+    pos_err, rot_err = (x.astype(out_dtype, copy=False) for x in (pos_err, rot_err))
+    success, pos_err, rot_err, used = (torch.from_numpy(x.reshape(batch)) for x in (success, pos_err, rot_err,
+                                                                                    problems.used))  # fmt: skip
+    return IKResult(q_out, success, pos_err, rot_err, used)
