@@ -41,6 +41,8 @@ from itertools import accumulate
 import numpy as np
 import torch
 
+from . import compiled
+
 __all__ = [
     "BLOCK",
     "POSITION_BLOCK",
@@ -136,7 +138,7 @@ class Geometry:
     ``trig_phase, end_trig, end_const`` on the CPU (else ``None``), ``link_numpy`` those of
     ``trig_phase, link_trig, link_const``, the base and the tool ``(4, 4)``; ``float_arrays`` the
     float64 numpy table ``(n, 5)`` of ``(a, cos alpha, sin alpha, d, offset)``, base and tool
-    ``(4, 4)``, and whether the convention is modified: the arguments of :mod:`iiwa_torch.compiled`.
+    ``(4, 4)``, and whether the convention is modified: the arguments of :mod:`iiwa_torch.compiled.numba_kernels`.
     """
 
     modified: bool
@@ -492,7 +494,7 @@ def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:
 def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (a single one: ``q.numel() == n``) -> its end pose
     ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), or by the
-    same recursion compiled (:func:`iiwa_torch.compiled.end_pose`) when enabled; not checked.
+    same recursion compiled (:func:`iiwa_torch.compiled.numba_kernels.end_pose`) when enabled; not checked.
     For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
     tensor outside autograd. Its latency is a fraction of any torch kernel's."""
     kernels = _compiled()
@@ -506,7 +508,7 @@ def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
 
 def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
-    :func:`jacobian`, computed in Python floats (or compiled: :func:`iiwa_torch.compiled.jacobian`),
+    :func:`jacobian`, computed in Python floats (or compiled: :func:`iiwa_torch.compiled.numba_kernels.jacobian`),
     not checked; for :func:`floats_ok` inputs. Column i is ``[z_i x (p_e - p_i); z_i]``."""
     kernels = _compiled()
     if kernels is not None:
@@ -521,17 +523,9 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
 
 
-_KERNELS: list = []  # iiwa_torch.compiled, once imported
-
-
 def _compiled():
-    """:mod:`iiwa_torch.compiled` if its kernels are enabled, else None. Imported on first use,
-    not with this module: importing numba alone takes a quarter of a second."""
-    if not _KERNELS:
-        from . import compiled
-
-        _KERNELS.append(compiled)
-    return _KERNELS[0] if _KERNELS[0].ENABLED else None
+    """The compiled kernels (:func:`iiwa_torch.compiled.kernels`) if enabled, else None."""
+    return compiled.kernels() if compiled.ENABLED else None
 
 
 def _float64(q: Tensor) -> np.ndarray:

@@ -20,6 +20,7 @@ from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import gradient, small, solve
 
 needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
+kernels = compiled.kernels() if compiled.ENABLED else None
 
 
 def _tilted(angle: float, shift) -> torch.Tensor:
@@ -72,16 +73,16 @@ def test_pose_errors_and_into_limits():
     target[3, :3, :3] = pose[3, :3, :3] @ np.diag([-1.0, -1.0, 1.0])  # a half turn
     pos, rot = np.ascontiguousarray(target[:, :3, 3]), np.ascontiguousarray(target[:, :3, :3])
     _, pos_ref, _, rot_ref = small.pose_errors(pose, pos, rot, 1e-7)
-    pos_err, rot_err = compiled.pose_errors(pose, pos, rot, 1e-7)
+    pos_err, rot_err = kernels.pose_errors(pose, pos, rot, 1e-7)
     assert np.allclose(pos_err, pos_ref, atol=1e-15) and np.allclose(rot_err, rot_ref, atol=1e-13)
     assert abs(rot_err[3] - math.pi) < 1e-7
     _, pos_ref, _, rot_ref = small.pose_errors(pose, pos, None, 1e-7)
-    pos_err, rot_err = compiled.pose_errors(pose, pos, np.empty((0, 3, 3)), 1e-7)
+    pos_err, rot_err = kernels.pose_errors(pose, pos, np.empty((0, 3, 3)), 1e-7)
     assert np.allclose(pos_err, pos_ref, atol=1e-15) and not rot_err.any() and not rot_ref.any()
     lo, hi = chain.limits.numpy()
     q = rng.uniform(-12.0, 12.0, (400, 7))  # mostly outside the limits, by up to two turns
     expected = gradient.into_limits(torch.from_numpy(q), chain.limits[0], chain.limits[1]).numpy()
-    got = np.array([[compiled._into_limits(x, lo[i], hi[i]) for i, x in enumerate(row)] for row in q])
+    got = np.array([[kernels.into_limits(x, lo[i], hi[i]) for i, x in enumerate(row)] for row in q])
     assert np.allclose(got, expected, atol=1e-14, rtol=0)
 
 
@@ -150,14 +151,22 @@ def test_fallback_without_the_kernels(monkeypatch):
     assert torch.allclose(chain.jacobian(q[:1]), reference[1], atol=1e-14)
 
 
+def _run(code: str, **env) -> list[str]:
+    environ = {k: v for k, v in os.environ.items() if k != "IIWA_TORCH_NUMBA"} | env
+    return subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True,
+                          check=True).stdout.split()  # fmt: skip
+
+
 def test_nothing_compiled_or_imported_at_import():
-    """``import iiwa_torch`` loads no numba; IIWA_TORCH_NUMBA=0 keeps it out even on first use."""
+    """``import iiwa_torch`` (and its subpackages) loads no numba; the first small-batch call does,
+    if enabled; IIWA_TORCH_NUMBA=0 keeps it out even then."""
     code = (
-        "import sys, torch; import iiwa_torch; from iiwa_torch import robots; from iiwa_torch.ik import solve\n"
-        "assert 'numba' not in sys.modules\n"
+        "import sys, torch, iiwa_torch, iiwa_torch.ik, iiwa_torch.ik.analytic, iiwa_torch.trajectory\n"
+        "from iiwa_torch import robots; from iiwa_torch.ik import solve\n"
+        "print('numba' in sys.modules)\n"
         "arm = robots.iiwa14(); solve(arm, arm.fk(arm.random_q(1)))\n"
         "from iiwa_torch import compiled; print(compiled.ENABLED, 'numba' in sys.modules)\n"
     )
-    env = {**os.environ, "IIWA_TORCH_NUMBA": "0"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == ["False", "False"]
+    assert _run(code, IIWA_TORCH_NUMBA="0") == ["False", "False", "False"]
+    enabled = str(compiled.ENABLED)
+    assert _run(code) == ["False", enabled, enabled]

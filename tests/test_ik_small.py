@@ -176,3 +176,17 @@ def test_bad_q0_and_rest_raise_as_before():
     with pytest.raises(TypeError, match="rest"):
         solve(chain, target, rest=q.tolist(), rest_gain=0.1)
     assert bool(solve(chain, target, rest="ignored without a gain").success.all())
+
+
+def test_default_pool_is_cached_per_geometry():
+    """No generator: the pool of a fresh generator seeded with 0, computed once per chain geometry;
+    an explicit such generator (never cached) gives the same answers, also after the limits change."""
+    chain = robots.iiwa14()
+    target, _ = targets(chain, 5, 12, torch.float64, "pose")
+    for _ in range(2):
+        cached = solve(chain, target)
+        fresh = solve(chain, target, generator=torch.Generator().manual_seed(0))
+        assert torch.equal(cached.q, fresh.q) and torch.equal(cached.iterations, fresh.iterations)
+        with torch.no_grad():
+            chain.limits.mul_(0.9)  # a new geometry: the pool is drawn again within the new limits
+    assert bool(chain.within_limits(solve(chain, target).q).all())

@@ -3,10 +3,10 @@
 For a batch of ``SMALL_BATCH`` targets or fewer, on the CPU, with no world and nothing to
 differentiate (:func:`applies`), :func:`~iiwa_torch.ik.solve` runs its Levenberg-Marquardt
 iteration here in numpy (float64) instead of torch, or up to ``COMPILED_BATCH`` targets in
-compiled code (:func:`iiwa_torch.compiled.lm_round`, when enabled): the same seeds (the same pool, drawn from
-the same generator, in the same order), the same rounds of seeds side by side, damping
-schedule, free steps and projection into the limits, convergence checks and choice of
-answer, with the end pose and Jacobian of
+compiled code (:func:`iiwa_torch.compiled.numba_kernels.lm_round`, when enabled): the same
+seeds (the same pool, drawn from the same generator, in the same order), the same rounds of
+seeds side by side, damping schedule, free steps and projection into the limits,
+convergence checks and choice of answer, with the end pose and Jacobian of
 :func:`~iiwa_torch.kinematics.pose_jacobian_numpy`. A torch op costs several microseconds
 however small its tensors, a numpy op about one, and an iteration takes a few dozen ops.
 The layout is batch first: ``(slots, ...)``, a slot being one seed of one problem.
@@ -86,7 +86,8 @@ class _Problems:
     float64, the rest posture ``rest (b, n)`` or None, limits ``lo, hi (n,)``, the options of
     :func:`~iiwa_torch.ik.solve`, and the answers so far: ``q (b, n)``, key ``E (b,)``
     (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``; the
-    options again as :func:`iiwa_torch.compiled.lm_round` takes them (``kernel_options``, ``kernel_counts``)."""
+    options again as :func:`iiwa_torch.compiled.numba_kernels.lm_round` takes them
+    (``kernel_options``, ``kernel_counts``)."""
 
     def __init__(self, chain: DHChain, pos, rot, rest, lo, hi, options: dict, lam_min: float, eps: float):
         self.g = chain.geometry(torch.float64)
@@ -167,7 +168,7 @@ class _Problems:
 
     def run_round(self, q, problem, number) -> None:
         """The LM iterations of one round of seeds ``q (s, n)``; compiled
-        (:func:`iiwa_torch.compiled.lm_round`) when enabled."""
+        (:func:`iiwa_torch.compiled.numba_kernels.lm_round`) when enabled."""
         if compiled.ENABLED:
             self.run_compiled(q, problem, number)
             return
@@ -197,10 +198,10 @@ class _Problems:
 
 
     def run_compiled(self, q, problem, number) -> None:
-        """:meth:`run_round` by :func:`iiwa_torch.compiled.lm_round` (contiguous float64 arrays)."""
+        """:meth:`run_round` by :func:`iiwa_torch.compiled.numba_kernels.lm_round` (contiguous float64 arrays)."""
         rot = np.empty((0, 3, 3)) if self.rot is None else np.ascontiguousarray(self.rot)
         rest = np.empty((0, q.shape[1])) if self.rest is None else np.ascontiguousarray(self.rest)
-        compiled.lm_round(*self.g.float_arrays, q, problem, number, np.ascontiguousarray(self.pos), rot, rest,
+        compiled.kernels().lm_round(*self.g.float_arrays, q, problem, number, np.ascontiguousarray(self.pos), rot, rest,
                           self.lo, self.hi, self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
 
 
@@ -274,7 +275,7 @@ def solve_small(
     pose = chain.fk(q_out).numpy().reshape(b, 4, 4).astype(np.float64, copy=False)
     if compiled.ENABLED:
         rot_in = np.empty((0, 3, 3)) if rot is None else np.ascontiguousarray(rot)
-        pos_err, rot_err = compiled.pose_errors(pose, np.ascontiguousarray(pos), rot_in, problems.eps)
+        pos_err, rot_err = compiled.kernels().pose_errors(pose, np.ascontiguousarray(pos), rot_in, problems.eps)
     else:
         _, pos_err, _, rot_err = pose_errors(pose, pos, rot, problems.eps)
     success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])

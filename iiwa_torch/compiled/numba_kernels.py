@@ -1,37 +1,22 @@
-"""Optional compiled kernels (numba) for the small-batch CPU paths: one configuration's end pose
-and Jacobian, and the Levenberg-Marquardt rounds of :func:`~iiwa_torch.ik.solve`.
+"""The numba kernels of :mod:`iiwa_torch.compiled` (importing this module imports numba).
 
-numba is an optional extra (``pip install iiwa-torch[fast]``). The callers import this module
-on first use of a small-batch path, never at ``import iiwa_torch``, and each kernel compiles
-on its first call (``cache=True``: numba's on-disk cache serves later processes). Without
-numba, or with the environment variable ``IIWA_TORCH_NUMBA=0``, :data:`ENABLED` is False and
-the callers run their numpy / Python-float code instead: the same method, which each kernel
-here restates (its docstring names the function it mirrors; ``tests/test_compiled.py`` holds
-them together). Everything is float64 and unchecked: the callers check. A chain enters as the four
+Each kernel restates a formula of the numpy / Python-float paths, and its docstring names the
+function it mirrors (``tests/test_compiled.py`` holds them together). Everything is float64
+and unchecked: the callers check. A chain enters as the four
 :attr:`~iiwa_torch.kinematics.Geometry.float_arrays` ``table, base, tool, modified``.
 """
 
 from __future__ import annotations
 
 import math
-import os
 
+import numba
 import numpy as np
 
-__all__ = ["ENABLED", "end_pose", "jacobian", "lm_round", "pose_errors"]
+__all__ = ["end_pose", "into_limits", "jacobian", "lm_round", "pose_errors"]
 
-numba = None
-if os.environ.get("IIWA_TORCH_NUMBA", "1") != "0":  # switched off: not even imported
-    try:
-        import numba
-    except ImportError:  # the optional extra is not installed: the callers' numpy paths run
-        pass
-
-#: Whether the kernels run: numba is installed and ``IIWA_TORCH_NUMBA`` is not ``"0"``.
-ENABLED = numba is not None
-
-_jit = numba.njit(cache=True, error_model="numpy") if numba is not None else (lambda fn: fn)
-_inline = numba.njit(cache=True, error_model="numpy", inline="always") if numba is not None else (lambda fn: fn)
+_jit = numba.njit(cache=True, error_model="numpy")
+_inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
 
 
 # ---------------------------------------------------------------------- kinematics
@@ -156,7 +141,7 @@ def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
 
 
 @_jit
-def _into_limits(x, lo, hi):
+def into_limits(x, lo, hi):
     """One angle into ``[lo, hi]``: shifted by a multiple of 2 pi if that fits, else the nearer
     limit around the circle. Mirrors :func:`iiwa_torch.ik.gradient.into_limits`."""
     turn = 2 * math.pi
@@ -280,7 +265,7 @@ def lm_round(table, base, tool, modified, q, problem, number, pos, rot, rest, lo
             tp, tr, tq = target(k)
             if step == free_steps and step:  # the unconstrained start ends: into the limits
                 for i in range(n):
-                    q[k, i] = _into_limits(q[k, i], lo[i], hi[i])
+                    q[k, i] = into_limits(q[k, i], lo[i], hi[i])
                 E[k], pos_err[k], rot_err[k] = _evaluate(arrays, q[k], tp, tr, has_rot, weight, eps, scratch, J[k],
                                                          e[k])  # fmt: skip
             E[k], pos_err[k], rot_err[k], lam[k] = _lm_step(arrays, q[k], J[k], e[k], E[k], pos_err[k], rot_err[k],
