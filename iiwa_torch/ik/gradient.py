@@ -309,18 +309,18 @@ def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str, featu
     squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
     less terms that are the same for every pool entry. ``features``: the pool's
     :func:`pool_features`, if computed already."""
-    sq, feat_pool = pool_features(chain, pool, mode) if features is None else features
+    sq, twice_feat = pool_features(chain, pool, mode) if features is None else features
     feat_target = torch.cat([target[:, :3, 3], 0.3 * target[:, :3, :3].flatten(1)], 1) if mode == "pose" else target
-    return sq - 2 * feat_pool @ feat_target.T
+    return sq - twice_feat @ feat_target.T
 
 
 def pool_features(chain: DHChain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
-    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and the
-    features ``(pool, 12)`` (position, 0.3 times the rotation; position only: ``(pool, 3)``)."""
+    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and twice
+    the features ``(pool, 12)`` (position, 0.3 times the rotation; position only: ``(pool, 3)``)."""
     pose = chain.fk(pool)
     position = pose[:, :3, 3]
     feat = torch.cat([position, 0.3 * pose[:, :3, :3].flatten(1)], 1) if mode == "pose" else position
-    return position.square().sum(1, keepdim=True), feat
+    return position.square().sum(1, keepdim=True), 2 * feat
 
 
 def seed_ranks(distance: Tensor, count: int) -> Tensor:

@@ -198,10 +198,10 @@ class _Problems:
 
 
     def run_compiled(self, q, problem, number) -> None:
-        """:meth:`run_round` by :func:`iiwa_torch.compiled.numba_kernels.lm_round` (contiguous float64 arrays)."""
-        rot = np.empty((0, 3, 3)) if self.rot is None else np.ascontiguousarray(self.rot)
+        """:meth:`run_round` by :func:`iiwa_torch.compiled.numba_kernels.lm_round`."""
+        rot = np.empty((0, 3, 3)) if self.rot is None else self.rot
         rest = np.empty((0, q.shape[1])) if self.rest is None else np.ascontiguousarray(self.rest)
-        compiled.kernels().lm_round(*self.g.float_arrays, q, problem, number, np.ascontiguousarray(self.pos), rot, rest,
+        compiled.kernels().lm_round(*self.g.float_arrays, q, problem, number, self.pos, rot, rest,
                           self.lo, self.hi, self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
 
 
@@ -251,7 +251,9 @@ def solve_small(
         distance = pool_distance(chain, pool_t, flat.to(work), mode, features)
         order = seed_ranks(distance, seeds - shift).numpy()  # (ranks, b)
     flat = flat.double().numpy()
-    pos, rot = (flat, None) if mode == "position" else (flat[:, :3, 3], flat[:, :3, :3])
+    # contiguous copies: the compiled kernels are typed (and compiled) for C-ordered arrays
+    pos, rot = (np.ascontiguousarray(flat), None) if mode == "position" else (flat[:, :3, 3].copy(),
+                                                                            flat[:, :3, :3].copy())
     rest = None if rest is None else rest.double().numpy()
     lam_min = 1e-12 if work == torch.float64 else 1e-6
     problems = _Problems(chain, pos, rot, rest, lo.numpy(), hi.numpy(), options, lam_min, torch.finfo(work).eps)
@@ -274,8 +276,8 @@ def solve_small(
     # errors and success from the public chain.fk of the answer, as the batched path's
     pose = chain.fk(q_out).numpy().reshape(b, 4, 4).astype(np.float64, copy=False)
     if compiled.ENABLED:
-        rot_in = np.empty((0, 3, 3)) if rot is None else np.ascontiguousarray(rot)
-        pos_err, rot_err = compiled.kernels().pose_errors(pose, np.ascontiguousarray(pos), rot_in, problems.eps)
+        rot_in = np.empty((0, 3, 3)) if rot is None else rot
+        pos_err, rot_err = compiled.kernels().pose_errors(pose, pos, rot_in, problems.eps)
     else:
         _, pos_err, _, rot_err = pose_errors(pose, pos, rot, problems.eps)
     success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
