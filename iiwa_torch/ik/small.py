@@ -260,7 +260,7 @@ def solve_small(
     remaining, next_seed = np.arange(b), 0
     while remaining.size and next_seed < seeds:
         width = round_width(seeds, next_seed, remaining.size)
-        problem = np.tile(remaining, width)  # slot -> problem
+        problem = np.concatenate([remaining] * width)  # slot -> problem (np.tile: the same, slower)
         number = np.repeat(np.arange(next_seed, next_seed + width), remaining.size)
         ranks = order[max(next_seed, shift) - shift : next_seed + width - shift] if seeds > shift else order
         q = pool[ranks[:, remaining].reshape(-1)] if ranks is not None else None  # pool seeds, seed-major
