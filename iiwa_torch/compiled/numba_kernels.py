@@ -24,7 +24,8 @@ _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no cal
 def _frames(table, base, tool, modified, q, pose, Z, P):
     """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)`` and, if ``Z`` has ``n``
     rows, joint i's axis into ``Z[i]`` and a point on it into ``P[i]`` (both ``(n, 3)``).
-    Mirrors :func:`iiwa_torch.kinematics._frames_floats` (the frame recursion in Python floats)."""
+    Mirrors :func:`iiwa_torch.kinematics._frames_floats` (the frame recursion in Python floats),
+    which skips zero lengths and an identity tool: adding those zero terms changes no value."""
     x0, x1, x2, y0, y1, y2 = base[0, 0], base[1, 0], base[2, 0], base[0, 1], base[1, 1], base[2, 1]
     z0, z1, z2, p0, p1, p2 = base[0, 2], base[1, 2], base[2, 2], base[0, 3], base[1, 3], base[2, 3]
     keep = Z.shape[0] > 0
@@ -95,6 +96,7 @@ def _pose_error(pose, pos, rot, has_rot, eps, e):
     pos_err = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     if not has_rot:
         return pos_err, 0.0
+
     def w(i, j):  # (R rot^T)[i, j]
         return pose[i, 0] * rot[j, 0] + pose[i, 1] * rot[j, 1] + pose[i, 2] * rot[j, 2]
 
@@ -114,7 +116,8 @@ def pose_errors(pose, pos, rot, eps):
     b, has_rot = pose.shape[0], rot.shape[0] > 0
     pos_err, rot_err, e = np.empty(b), np.empty(b), np.empty(6)
     for k in range(b):
-        pos_err[k], rot_err[k] = _pose_error(pose[k], pos[k], rot[k] if has_rot else pose[k, :3, :3], has_rot, eps, e)
+        target_rot = rot[k] if has_rot else pose[k, :3, :3]  # a placeholder without rotations
+        pos_err[k], rot_err[k] = _pose_error(pose[k], pos[k], target_rot, has_rot, eps, e)
     return pos_err, rot_err
 
 
