@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple, get_args
 
+import numpy as np
 import torch
 
 from .. import so3
@@ -286,11 +287,12 @@ def inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
 def into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Joint angles into ``[lo, hi]``: an angle outside is first shifted by a multiple of 2 pi
     (the same pose for a revolute joint), then clamped to the nearer limit (around the circle)
-    if still outside."""
+    if still outside. Numpy arrays in give a numpy array, by the same formula."""
+    xp = np if isinstance(q, np.ndarray) else torch
     shifted, fits = shift_into_limits(q, lo, hi)
-    turned = lo + torch.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
-    nearer = torch.where(turned - hi <= lo + 2 * math.pi - turned, hi, lo)
-    return torch.where(fits, shifted, nearer)
+    turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
+    nearer = xp.where(turned - hi <= lo + 2 * math.pi - turned, hi, lo)
+    return xp.where(fits, shifted, nearer)
 
 
 def broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:

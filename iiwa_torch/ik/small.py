@@ -179,8 +179,7 @@ class _Problems:
         checked = 0
         for step in range(self.iterations):
             if step == self.free_steps and step:  # the unconstrained start ends: into the limits
-                q = into_limits(torch.from_numpy(state[0]), torch.from_numpy(self.lo), torch.from_numpy(self.hi))
-                q = q.numpy()
+                q = into_limits(state[0], self.lo, self.hi)
                 state = [q, *self.evaluate(q, pos, rot), state[6]]
             state = self.step(state, pos, rot, rest, step >= self.free_steps)
             if (step + 1) % self.check_every and step + 1 < self.iterations:
@@ -238,8 +237,8 @@ def solve_small(
     batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
     flat = target.reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
-    lo, hi = _cached(chain, dtype, "limits", lambda: tuple(x.double() for x in inner_limits(chain, dtype)))
-    first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64), lo, hi).numpy()
+    lo, hi = _cached(chain, dtype, "limits", lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
+    first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64).numpy(), lo, hi)
     shift = 0 if first is None else 1
     pool = order = None
     if seeds > shift:
@@ -256,7 +255,7 @@ def solve_small(
                                                                             flat[:, :3, :3].copy())
     rest = None if rest is None else rest.double().numpy()
     lam_min = 1e-12 if work == torch.float64 else 1e-6
-    problems = _Problems(chain, pos, rot, rest, lo.numpy(), hi.numpy(), options, lam_min, torch.finfo(work).eps)
+    problems = _Problems(chain, pos, rot, rest, lo, hi, options, lam_min, torch.finfo(work).eps)
     remaining, next_seed = np.arange(b), 0
     while remaining.size and next_seed < seeds:
         width = round_width(seeds, next_seed, remaining.size)
