@@ -27,7 +27,8 @@ Every answer is scored by the same code, one ``chain.fk`` of its joint angles: s
 (0.1 mm / 1 mrad unless stated) and the share within the joint limits; FK and Jacobians by
 their largest difference from ours. Then the crossover: the smallest batch size measured at
 which one call of ours takes less than the peer's loop. First-call costs (a fresh process,
-imports done, the call timed once, cold) are measured separately, in child processes.
+imports done, the call timed once, cold) are measured separately, in child processes; with the
+compiled kernels (numba installed) also with an empty numba cache, where they compile.
 Writes results/small.json and results/small.md (``small_quick`` with ``--quick``).
 """
 
@@ -38,6 +39,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -47,7 +49,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from common import markdown_table, save, timeit  # noqa: E402
 
-from iiwa_torch import robots, so3  # noqa: E402
+from iiwa_torch import compiled, robots, so3  # noqa: E402
 from iiwa_torch.ik import analytic, solve  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
 from iiwa_torch.trajectory import ctraj, track  # noqa: E402
@@ -300,11 +302,16 @@ def _once(fn) -> float:
     return time.perf_counter() - start
 
 
-def first_calls() -> dict:
+def first_calls(cache_dir: str | None = None) -> dict:
+    """Each call's first-call seconds in a fresh process; with ``cache_dir``, numba's on-disk cache
+    is that (empty) directory, so the compiled kernels compile instead of loading."""
     out = {}
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    if cache_dir is not None:
+        env["NUMBA_CACHE_DIR"] = cache_dir
     for name in list(ROWS)[:-1]:  # the policy's first call is its model loading, not measured here
         child = subprocess.run([sys.executable, __file__, "--first-call", name], capture_output=True, text=True,
-                               check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+                               check=True, env=env)
         out[name] = float(child.stdout.strip().splitlines()[-1])
     return out
 
@@ -332,7 +339,8 @@ def markdown(results: dict, quick: bool) -> str:
     m = results["machine"]
     md = ["# Small batches\n\n", f"`python benchmarks/bench_small.py{' --quick' if quick else ''}`; ",
           f"{m['cpu']}, torch {m['torch']}, 1 thread, float64, load {m['loadavg']} at the start and "
-          f"{m['loadavg_at_end']} at the end. Milliseconds per call (the peers: a loop over the batch).\n\n"]
+          f"{m['loadavg_at_end']} at the end. Milliseconds per call (the peers: a loop over the batch). "
+          f"Compiled kernels (numba, `iiwa_torch.compiled`): {'on' if results['compiled'] else 'off'}.\n\n"]
     table = []
     for name, by_batch in results["rows"].items():
         for batch, row in by_batch.items():
@@ -357,8 +365,14 @@ def markdown(results: dict, quick: bool) -> str:
             rows.append([name, peer, at if at is not None else f"> {max(by_batch)} (not within the batches measured)"])
     md.append(markdown_table(["call", "peer", "crossover batch"], rows))
     md.append("\n## First call at batch 1 (a fresh process, inputs prepared, one cold call)\n\n")
-    md.append(markdown_table(["call", "first call ms", "warm ms"],
-                             [[k, fmt_ms(v), fmt_ms(results["rows"][k][1]["ours"])]
+    cold = results.get("first call, compiling")
+    if cold:
+        md.append("With the compiled kernels: the first call in a process loads them from numba's on-disk cache; "
+                  "the first ever (an empty cache) compiles them.\n\n")
+    md.append(markdown_table(["call", "first call ms", *(["first call, empty numba cache ms"] if cold else []),
+                              "warm ms"],
+                             [[k, fmt_ms(v), *([fmt_ms(cold[k])] if cold else []),
+                               fmt_ms(results["rows"][k][1]["ours"])]
                               for k, v in results["first call"].items()]))
     return "".join(md)
 
@@ -376,7 +390,11 @@ def main() -> None:
         return
     TIMING.update({"min_time": 0.02, "repeats": 3} if args.quick else {"min_time": 0.2, "repeats": 7})
     batches = BATCHES[:3] if args.quick else BATCHES
-    results = {"machine": machine_info(), "batches": batches, "rows": {}}
+    results = {"machine": machine_info(), "batches": batches, "rows": {}, "compiled": compiled.ENABLED}
+    if compiled.ENABLED:
+        with tempfile.TemporaryDirectory() as empty:
+            results["first call, compiling"] = first_calls(empty)
+        print("first call, compiling", results["first call, compiling"], flush=True)
     results["first call"] = first_calls()
     print("first call", results["first call"], flush=True)
     for name, fn in ROWS.items():

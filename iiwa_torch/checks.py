@@ -43,7 +43,7 @@ def check_tensor(x, name: str, shape: tuple[int, ...]) -> None:
 def check_finite(x: torch.Tensor, name: str) -> None:
     """Raise ``ValueError`` naming the first NaN/inf element of ``x``, if any, or if ``x`` is a
     ``meta`` tensor (no values); ``TypeError`` inside ``torch.func.vmap`` (values cannot be read)."""
-    if isinstance(x, torch.Tensor) and x.device.type == "meta":
+    if isinstance(x, torch.Tensor) and x.is_meta:
         raise ValueError(f"{name} is a meta tensor, without values; the kinematics needs real ones (cpu)")
     try:
         finite = all_finite(x)

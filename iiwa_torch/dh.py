@@ -200,7 +200,7 @@ class DHChain(nn.Module):
         check_float_tensor(q, name, f"(..., {n})")
         if q.ndim == 0 or q.shape[-1] != n:
             raise ValueError(f"{name} must have shape (..., {n}), got {tuple(q.shape)}")
-        if q.device != self.dh.device:
+        if not (q.is_cpu and self.dh.is_cpu) and q.device != self.dh.device:  # is_cpu: no device object built
             raise ValueError(
                 f"{name} is on {q.device} but the chain is on {self.dh.device}; use chain.to({str(q.device)!r})"
             )

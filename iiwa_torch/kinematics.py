@@ -41,6 +41,8 @@ from itertools import accumulate
 import numpy as np
 import torch
 
+from . import compiled
+
 __all__ = [
     "BLOCK",
     "POSITION_BLOCK",
@@ -134,7 +136,9 @@ class Geometry:
     last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``, ``offsets (n, 1)``,
     ``offset_trig (2, n, 1)`` their cos and sin; ``end_numpy`` the numpy copies of
     ``trig_phase, end_trig, end_const`` on the CPU (else ``None``), ``link_numpy`` those of
-    ``trig_phase, link_trig, link_const``, the base and the tool ``(4, 4)``.
+    ``trig_phase, link_trig, link_const``, the base and the tool ``(4, 4)``; ``float_arrays`` the
+    float64 numpy table ``(n, 5)`` of ``(a, cos alpha, sin alpha, d, offset)``, base and tool
+    ``(4, 4)``, and whether the convention is modified: the arguments of :mod:`iiwa_torch.compiled.numba_kernels`.
     """
 
     modified: bool
@@ -156,6 +160,7 @@ class Geometry:
     offset_trig: Tensor
     end_numpy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     link_numpy: tuple[np.ndarray, ...] | None
+    float_arrays: tuple[np.ndarray, np.ndarray, np.ndarray, bool]
 
     @property
     def n_joints(self) -> int:
@@ -204,9 +209,11 @@ class Geometry:
             link_numpy = (*(tensors[k].numpy() for k in ("trig_phase", "link_trig", "link_const", "base")),
                           tool.to(dtype).numpy())
         offset_list = tuple(offsets.tolist())
+        steps = tuple((a, _exact(math.cos(al)), _exact(math.sin(al)), d) for a, al, d, _ in dh.tolist())
+        table = np.array([(*step, offset) for step, offset in zip(steps, offset_list)], dtype=np.float64)
         return cls(
             modified=modified,
-            steps=tuple((a, _exact(math.cos(al)), _exact(math.sin(al)), d) for a, al, d, _ in dh.tolist()),
+            steps=steps,
             offset_list=offset_list,
             has_base=not torch.equal(base, eye),
             has_tool=not torch.equal(tool, eye),
@@ -215,6 +222,7 @@ class Geometry:
             base_rows=tuple(map(tuple, base[:3].tolist())),
             end_numpy=end_numpy,
             link_numpy=link_numpy,
+            float_arrays=(table.reshape(n, 5), base.numpy().copy(), tool.numpy().copy(), modified),
             **tensors,
         )
 
@@ -485,9 +493,14 @@ def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:
 
 def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (a single one: ``q.numel() == n``) -> its end pose
-    ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), not checked.
+    ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), or by the
+    same recursion compiled (:func:`iiwa_torch.compiled.numba_kernels.end_pose`) when enabled; not checked.
     For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
     tensor outside autograd. Its latency is a fraction of any torch kernel's."""
+    kernels = _compiled()
+    if kernels is not None:
+        pose = kernels.end_pose(*g.float_arrays, _float64(q))
+        return torch.from_numpy(pose.astype(_NUMPY_DTYPES[q.dtype], copy=False).reshape(*q.shape[:-1], 4, 4))
     (x, y, z, p), _ = _frames_floats(g, q, keep_axes=False)
     rows = [x[0], y[0], z[0], p[0], x[1], y[1], z[1], p[1], x[2], y[2], z[2], p[2], 0.0, 0.0, 0.0, 1.0]
     return torch.from_numpy(np.array(rows, dtype=_NUMPY_DTYPES[q.dtype]).reshape(*q.shape[:-1], 4, 4))
@@ -495,8 +508,12 @@ def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
 
 def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
-    :func:`jacobian`, computed in Python floats, not checked; for :func:`floats_ok` inputs.
-    Column i is ``[z_i x (p_e - p_i); z_i]``."""
+    :func:`jacobian`, computed in Python floats (or compiled: :func:`iiwa_torch.compiled.numba_kernels.jacobian`),
+    not checked; for :func:`floats_ok` inputs. Column i is ``[z_i x (p_e - p_i); z_i]``."""
+    kernels = _compiled()
+    if kernels is not None:
+        out = kernels.jacobian(*g.float_arrays, _float64(q)).astype(_NUMPY_DTYPES[q.dtype], copy=False)
+        return torch.from_numpy(out.reshape(*q.shape[:-1], 6, g.n_joints))
     (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q, keep_axes=True)
     columns = []
     for (z0, z1, z2), (p0, p1, p2) in axes:
@@ -506,10 +523,20 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
 
 
+def _compiled():
+    """The compiled kernels (:func:`iiwa_torch.compiled.kernels`) if enabled, else None."""
+    return compiled.kernels() if compiled.ENABLED else None
+
+
+def _float64(q: Tensor) -> np.ndarray:
+    """A CPU tensor's values as a flat float64 numpy array (a view when they already are)."""
+    return (q.detach() if q.requires_grad else q).numpy().reshape(-1).astype(np.float64, copy=False)
+
+
 def floats_ok(q: Tensor) -> bool:
     """Whether one configuration ``q`` may take :func:`end_pose_floats` and :func:`jacobian_floats`:
     on the CPU with nothing to differentiate (no ``requires_grad`` under grad mode)."""
-    return q.device.type == "cpu" and not (q.requires_grad and torch.is_grad_enabled())
+    return q.is_cpu and not (q.requires_grad and torch.is_grad_enabled())
 
 
 # ---------------------------------------------------------------------- batch first, small batches

@@ -77,3 +77,17 @@ def test_check_rigid_tolerance_per_dtype():
     with pytest.raises(TypeError):
         so3.check_rigid(T.numpy())
     so3.check_rigid(torch.empty(0, 4, 4))
+
+
+@pytest.mark.parametrize("count", [1, 4, 100])  # one pose in Python floats, a few in numpy, more in torch
+@pytest.mark.parametrize("kind", KINDS)
+def test_check_rigid_at_every_batch_size(kind, count):
+    chain = robots.iiwa14()
+    T = chain.fk(chain.random_q(count, generator=torch.Generator().manual_seed(5)))
+    so3.check_rigid(T)
+    so3.check_rigid(T * torch.tensor([1 + 4e-7, 1, 1, 1], dtype=torch.float64))  # 8e-7 < 1e-6
+    with pytest.raises(ValueError, match=r"within 1e-06"):
+        so3.check_rigid(T * torch.tensor([1 + 1e-6, 1, 1, 1], dtype=torch.float64))  # 2e-6
+    T[count // 2] = _bad(kind, T[count // 2])
+    with pytest.raises(ValueError, match="NaN" if kind == "nan" else "rigid"):
+        so3.check_rigid(T)

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Literal, NamedTuple, get_args
 
+import numpy as np
 import torch
 
 from .. import so3
@@ -48,6 +49,7 @@ __all__ = [
     "into_limits",
     "minimize",
     "pool_distance",
+    "pool_features",
     "round_width",
     "seed_ranks",
     "solve",
@@ -285,11 +287,12 @@ def inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
 def into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Joint angles into ``[lo, hi]``: an angle outside is first shifted by a multiple of 2 pi
     (the same pose for a revolute joint), then clamped to the nearer limit (around the circle)
-    if still outside."""
+    if still outside. Numpy arrays in give a numpy array, by the same formula."""
+    xp = np if isinstance(q, np.ndarray) else torch
     shifted, fits = shift_into_limits(q, lo, hi)
-    turned = lo + torch.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
-    nearer = torch.where(turned - hi <= lo + 2 * math.pi - turned, hi, lo)
-    return torch.where(fits, shifted, nearer)
+    turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
+    nearer = xp.where(turned - hi <= lo + 2 * math.pi - turned, hi, lo)
+    return xp.where(fits, shifted, nearer)
 
 
 def broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
@@ -303,17 +306,23 @@ def broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dty
         ) from None
 
 
-def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str) -> Tensor:
+def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str, features=None) -> Tensor:
     """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
     squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
-    less terms that are the same for every pool entry."""
+    less terms that are the same for every pool entry. ``features``: the pool's
+    :func:`pool_features`, if computed already."""
+    sq, twice_feat = pool_features(chain, pool, mode) if features is None else features
+    feat_target = torch.cat([target[:, :3, 3], 0.3 * target[:, :3, :3].flatten(1)], 1) if mode == "pose" else target
+    return sq - twice_feat @ feat_target.T
+
+
+def pool_features(chain: DHChain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
+    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and twice
+    the features ``(pool, 12)`` (position, 0.3 times the rotation; position only: ``(pool, 3)``)."""
     pose = chain.fk(pool)
-    if mode == "pose":
-        feat_pool = torch.cat([pose[:, :3, 3], 0.3 * pose[:, :3, :3].flatten(1)], 1)
-        feat_target = torch.cat([target[:, :3, 3], 0.3 * target[:, :3, :3].flatten(1)], 1)
-    else:
-        feat_pool, feat_target = pose[:, :3, 3], target
-    return pose[:, :3, 3].square().sum(1, keepdim=True) - 2 * feat_pool @ feat_target.T
+    position = pose[:, :3, 3]
+    feat = torch.cat([position, 0.3 * pose[:, :3, :3].flatten(1)], 1) if mode == "pose" else position
+    return position.square().sum(1, keepdim=True), 2 * feat
 
 
 def seed_ranks(distance: Tensor, count: int) -> Tensor:
@@ -460,17 +469,17 @@ def solve(
     work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
     flat = target.reshape(-1, *target.shape[len(batch) :])
     rest_flat = None if rest is None or rest_gain == 0 else broadcast_q(rest, chain, batch, "rest", work)
-    if generator is None:
-        generator = torch.Generator(device).manual_seed(0)
     from . import small  # imports this module, so not at the top
 
-    if small.applies(target, q0, rest, world, flat.shape[0]):
+    if small.applies(target, q0, rest, world, flat.shape[0]):  # it caches the default generator's pool
         return small.solve_small(
             chain, target, q0, rest_flat, mode=mode, work=work, generator=generator, rot_weight=rot_weight,
             pos_tol=pos_tol, rot_tol=rot_tol, seeds=seeds, iterations=iterations, rest_gain=rest_gain,
             check_every=check_every,
         )  # fmt: skip
 
+    if generator is None:
+        generator = torch.Generator(device).manual_seed(0)
     with torch.no_grad():
         flat = flat.to(work)
         lo, hi = (x[:, None] for x in inner_limits(chain, work))  # (n, 1) each

@@ -2,10 +2,11 @@
 
 For a batch of ``SMALL_BATCH`` targets or fewer, on the CPU, with no world and nothing to
 differentiate (:func:`applies`), :func:`~iiwa_torch.ik.solve` runs its Levenberg-Marquardt
-iteration here in numpy (float64) instead of torch: the same seeds (the same pool, drawn from
-the same generator, in the same order), the same rounds of seeds side by side, damping
-schedule, free steps and projection into the limits, convergence checks and choice of
-answer, with the end pose and Jacobian of
+iteration here in numpy (float64) instead of torch, or up to ``COMPILED_BATCH`` targets in
+compiled code (:func:`iiwa_torch.compiled.numba_kernels.lm_round`, when enabled): the same
+seeds (the same pool, drawn from the same generator, in the same order), the same rounds of
+seeds side by side, damping schedule, free steps and projection into the limits,
+convergence checks and choice of answer, with the end pose and Jacobian of
 :func:`~iiwa_torch.kinematics.pose_jacobian_numpy`. A torch op costs several microseconds
 however small its tensors, a numpy op about one, and an iteration takes a few dozen ops.
 The layout is batch first: ``(slots, ...)``, a slot being one seed of one problem.
@@ -13,9 +14,12 @@ The layout is batch first: ``(slots, ...)``, a slot being one seed of one proble
 
 from __future__ import annotations
 
+from weakref import WeakKeyDictionary
+
 import numpy as np
 import torch
 
+from .. import compiled
 from ..dh import DHChain
 from ..kinematics import floats_ok, pose_jacobian_numpy
 from .gradient import (
@@ -28,23 +32,31 @@ from .gradient import (
     inner_limits,
     into_limits,
     pool_distance,
+    pool_features,
     round_width,
     seed_ranks,
 )
 from .result import IKResult
 
-__all__ = ["SMALL_BATCH", "applies", "pose_errors", "solve_small"]
+__all__ = ["COMPILED_BATCH", "SMALL_BATCH", "applies", "batch_limit", "pose_errors", "solve_small"]
 
 SMALL_BATCH = 64  # up to this many targets per call, solve iterates in numpy
+COMPILED_BATCH = 1024  # with the compiled kernels, up to this many (measured: 1.5x the torch loop at 1,000)
+
+
+def batch_limit() -> int:
+    """The most targets per call this path takes: ``COMPILED_BATCH`` with the compiled kernels
+    (:data:`iiwa_torch.compiled.ENABLED`), else ``SMALL_BATCH``."""
+    return COMPILED_BATCH if compiled.ENABLED else SMALL_BATCH
 
 
 def applies(target: torch.Tensor, q0, rest, world, size: int) -> bool:
     """Whether :func:`~iiwa_torch.ik.solve` takes this path for ``size`` targets: at most
-    ``SMALL_BATCH``, no world, and ``target``, ``q0`` and ``rest`` on the CPU with nothing to
+    :func:`batch_limit`, no world, and ``target``, ``q0`` and ``rest`` on the CPU with nothing to
     differentiate (:func:`~iiwa_torch.kinematics.floats_ok`)."""
     given = [t for t in (target, q0, rest) if t is not None]
     # anything but a tensor goes the batched way, to the same error message as before
-    return world is None and size <= SMALL_BATCH and all(isinstance(t, torch.Tensor) and floats_ok(t) for t in given)
+    return world is None and size <= batch_limit() and all(isinstance(t, torch.Tensor) and floats_ok(t) for t in given)
 
 
 _SKEW = np.array([5, 6, 1]), np.array([7, 2, 3])  # (1, 2), (2, 0), (0, 1) and their mirrors in a flat 3x3
@@ -73,7 +85,9 @@ class _Problems:
     """What every round shares: targets ``pos (b, 3)`` and ``rot (b, 3, 3)`` (or None) in
     float64, the rest posture ``rest (b, n)`` or None, limits ``lo, hi (n,)``, the options of
     :func:`~iiwa_torch.ik.solve`, and the answers so far: ``q (b, n)``, key ``E (b,)``
-    (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``."""
+    (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``; the
+    options again as :func:`iiwa_torch.compiled.numba_kernels.lm_round` takes them
+    (``kernel_options``, ``kernel_counts``)."""
 
     def __init__(self, chain: DHChain, pos, rot, rest, lo, hi, options: dict, lam_min: float, eps: float):
         self.g = chain.geometry(torch.float64)
@@ -86,6 +100,9 @@ class _Problems:
         self.lam_min, self.eps = lam_min, eps
         b, n = pos.shape[0], chain.n_joints
         self.q, self.E, self.used = np.empty((b, n)), np.full(b, np.inf), np.zeros(b, dtype=np.int64)
+        self.kernel_options = np.array([self.weight, self.rest_gain, eps, lam_min, LAMBDA0, DAMP_DOWN, DAMP_UP,
+                                 self.pos_tol, self.rot_tol])  # fmt: skip
+        self.kernel_counts = np.array([self.iterations, self.check_every, self.free_steps, self.seeds])
 
     def evaluate(self, q, pos, rot):
         """``q (s, n)`` and the slots' targets -> weighted Jacobian ``J (s, m, n)``, weighted error
@@ -150,7 +167,11 @@ class _Problems:
         return (~done & (number < first_done[problem])).nonzero()[0]
 
     def run_round(self, q, problem, number) -> None:
-        """The LM iterations of one round of seeds ``q (s, n)``."""
+        """The LM iterations of one round of seeds ``q (s, n)``; compiled
+        (:func:`iiwa_torch.compiled.numba_kernels.lm_round`) when enabled."""
+        if compiled.ENABLED:
+            self.run_compiled(q, problem, number)
+            return
         pos, rot = self.pos[problem], None if self.rot is None else self.rot[problem]
         rest = None if self.rest is None else self.rest[problem]
         J, e, E, pos_err, rot_err = self.evaluate(q, pos, rot)
@@ -158,8 +179,7 @@ class _Problems:
         checked = 0
         for step in range(self.iterations):
             if step == self.free_steps and step:  # the unconstrained start ends: into the limits
-                q = into_limits(torch.from_numpy(state[0]), torch.from_numpy(self.lo), torch.from_numpy(self.hi))
-                q = q.numpy()
+                q = into_limits(state[0], self.lo, self.hi)
                 state = [q, *self.evaluate(q, pos, rot), state[6]]
             state = self.step(state, pos, rot, rest, step >= self.free_steps)
             if (step + 1) % self.check_every and step + 1 < self.iterations:
@@ -176,6 +196,36 @@ class _Problems:
                 break
 
 
+    def run_compiled(self, q, problem, number) -> None:
+        """:meth:`run_round` by :func:`iiwa_torch.compiled.numba_kernels.lm_round`."""
+        rot = np.empty((0, 3, 3)) if self.rot is None else self.rot
+        rest = np.empty((0, q.shape[1])) if self.rest is None else np.ascontiguousarray(self.rest)
+        compiled.kernels().lm_round(*self.g.float_arrays, q, problem, number, self.pos, rot, rest,
+                          self.lo, self.hi, self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
+
+
+_NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
+_CACHE: WeakKeyDictionary = WeakKeyDictionary()  # Geometry -> {key: value}
+
+
+def _cached(chain: DHChain, dtype: torch.dtype, key, make):
+    """``make()``, computed once per ``key`` and chain geometry in ``dtype``: the geometry is
+    rebuilt whenever the chain's buffers change, so the value is computed again then."""
+    entries = _CACHE.setdefault(chain.geometry(dtype), {})
+    if key not in entries:
+        entries[key] = make()
+    return entries[key]
+
+
+def _pool(chain: DHChain, size: int, generator, work: torch.dtype, mode: str):
+    """The seed pool as :func:`~iiwa_torch.ik.solve` draws it (``generator`` None: a fresh one
+    seeded with 0) -> the pool ``(size, n)`` in ``work``, its :func:`pool_features` and the
+    pool in float64 numpy."""
+    generator = torch.Generator().manual_seed(0) if generator is None else generator
+    pool = chain.random_q(size, generator=generator, dtype=work)
+    return pool, pool_features(chain, pool, mode), pool.double().numpy()
+
+
 def solve_small(
     chain: DHChain, target: torch.Tensor, q0, rest, *, mode: str, work: torch.dtype, generator, **options
 ) -> IKResult:
@@ -187,35 +237,50 @@ def solve_small(
     batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
     flat = target.reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
-    lo, hi = (x.double() for x in inner_limits(chain, dtype))  # within the limits in dtype too
-    first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64), lo, hi).numpy()
+    lo, hi = _cached(chain, dtype, "limits", lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
+    first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64).numpy(), lo, hi)
     shift = 0 if first is None else 1
     pool = order = None
     if seeds > shift:
-        pool_t = chain.random_q(max(POOL, seeds), generator=generator, dtype=work)
-        order = seed_ranks(pool_distance(chain, pool_t, flat.to(work), mode), seeds - shift).numpy()  # (ranks, b)
-        pool = pool_t.double().numpy()
+        size = max(POOL, seeds)
+        if generator is None:  # a fresh generator seeded with 0 draws the same pool every time
+            pool_t, features, pool = _cached(chain, work, (size, mode), lambda: _pool(chain, size, None, work, mode))
+        else:
+            pool_t, features, pool = _pool(chain, size, generator, work, mode)
+        distance = pool_distance(chain, pool_t, flat.to(work), mode, features)
+        order = seed_ranks(distance, seeds - shift).numpy()  # (ranks, b)
     flat = flat.double().numpy()
-    pos, rot = (flat, None) if mode == "position" else (flat[:, :3, 3], flat[:, :3, :3])
+    # contiguous copies: the compiled kernels are typed (and compiled) for C-ordered arrays
+    pos, rot = (np.ascontiguousarray(flat), None) if mode == "position" else (flat[:, :3, 3].copy(),
+                                                                            flat[:, :3, :3].copy())
     rest = None if rest is None else rest.double().numpy()
     lam_min = 1e-12 if work == torch.float64 else 1e-6
-    problems = _Problems(chain, pos, rot, rest, lo.numpy(), hi.numpy(), options, lam_min, torch.finfo(work).eps)
+    problems = _Problems(chain, pos, rot, rest, lo, hi, options, lam_min, torch.finfo(work).eps)
     remaining, next_seed = np.arange(b), 0
     while remaining.size and next_seed < seeds:
         width = round_width(seeds, next_seed, remaining.size)
-        problem = np.tile(remaining, width)  # slot -> problem
+        problem = np.concatenate([remaining] * width)  # slot -> problem (np.tile: the same, slower)
         number = np.repeat(np.arange(next_seed, next_seed + width), remaining.size)
-        numbers = range(next_seed, next_seed + width)
-        q = np.concatenate([first[remaining] if k < shift else pool[order[k - shift, remaining]] for k in numbers])
+        ranks = order[max(next_seed, shift) - shift : next_seed + width - shift] if seeds > shift else order
+        q = pool[ranks[:, remaining].reshape(-1)] if ranks is not None else None  # pool seeds, seed-major
+        if next_seed < shift:  # q0 first
+            q = first[remaining] if q is None else np.concatenate([first[remaining], q])
         if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
             problems.q[:] = q[:b]
         problems.run_round(q, problem, number)
         next_seed += width
         remaining = remaining[problems.E[remaining] >= 0]
-    q_out = torch.from_numpy(problems.q).to(dtype).reshape(*batch, n)
+    out_dtype = _NUMPY[dtype]
+    q_out = torch.from_numpy(problems.q.astype(out_dtype, copy=False).reshape(*batch, n))
     # errors and success from the public chain.fk of the answer, as the batched path's
-    _, pos_err, _, rot_err = pose_errors(chain.fk(q_out).reshape(b, 4, 4).double().numpy(), pos, rot, problems.eps)
+    pose = chain.fk(q_out).numpy().reshape(b, 4, 4).astype(np.float64, copy=False)
+    if compiled.ENABLED:
+        rot_in = np.empty((0, 3, 3)) if rot is None else rot
+        pos_err, rot_err = compiled.kernels().pose_errors(pose, pos, rot_in, problems.eps)
+    else:
+        _, pos_err, _, rot_err = pose_errors(pose, pos, rot, problems.eps)
     success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
-    out = (torch.from_numpy(x).reshape(batch) for x in (success, pos_err, rot_err, problems.used))
-    success, pos_err, rot_err, used = out
-    return IKResult(q_out, success, pos_err.to(dtype), rot_err.to(dtype), used)
+    pos_err, rot_err = (x.astype(out_dtype, copy=False) for x in (pos_err, rot_err))
+    success, pos_err, rot_err, used = (torch.from_numpy(x.reshape(batch)) for x in (success, pos_err, rot_err,
+                                                                                    problems.used))  # fmt: skip
+    return IKResult(q_out, success, pos_err, rot_err, used)

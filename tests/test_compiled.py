@@ -1,0 +1,176 @@
+"""The optional compiled kernels (iiwa_torch.compiled, numba) against the code they restate.
+
+Each comparison runs the same call twice, with the kernels enabled and with them switched off
+(``compiled.ENABLED`` monkeypatched to False: the numpy / Python-float paths), so the references
+are the existing small-batch paths, themselves held to the torch kernels and the batched solve
+in test_dh.py and test_ik_small.py. Without numba installed only the fallback tests run.
+"""
+
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from iiwa_torch import compiled, robots
+from iiwa_torch.dh import DHChain
+from iiwa_torch.ik import gradient, small, solve
+
+needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
+kernels = compiled.kernels() if compiled.ENABLED else None
+
+
+def _tilted(angle: float, shift) -> torch.Tensor:
+    t = torch.eye(4, dtype=torch.float64)
+    c, s = math.cos(angle), math.sin(angle)
+    t[:2, :2] = torch.tensor([[c, -s], [s, c]])
+    t[:3, 3] = torch.tensor(shift)
+    return t
+
+
+CHAINS = {
+    "iiwa14_tool": robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05))),
+    "puma560": robots.puma560(),
+    "lrmate_modified_base": DHChain(robots.lrmate200ic().dh, convention="modified",
+                                    base=_tilted(-0.7, (0.1, 0.2, 0.3)), tool=_tilted(0.2, (0.0, 0.0, 0.1))),
+    "planar3r": robots.planar3r(),
+}  # fmt: skip
+
+
+def both_ways(monkeypatch, fn):
+    """``fn()`` with the kernels enabled, then with them switched off."""
+    fast = fn()
+    with monkeypatch.context() as m:
+        m.setattr(compiled, "ENABLED", False)
+        slow = fn()
+    return fast, slow
+
+
+@needs_numba
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("name", list(CHAINS))
+def test_one_configuration_fk_and_jacobian(monkeypatch, name, dtype):
+    chain = CHAINS[name]
+    gen = torch.Generator().manual_seed(0)
+    for q in (chain.random_q(dtype=dtype, generator=gen), chain.random_q(1, dtype=dtype, generator=gen)):
+        for method in (chain.fk, chain.jacobian):
+            fast, slow = both_ways(monkeypatch, lambda: method(q))  # noqa: B023
+            assert fast.dtype == slow.dtype == dtype and fast.shape == slow.shape
+            tol = 1e-6 if dtype == torch.float32 else 1e-14
+            assert torch.allclose(fast, slow, atol=tol, rtol=0), (method.__name__, (fast - slow).abs().max())
+
+
+@needs_numba
+def test_pose_errors_and_into_limits():
+    rng = np.random.default_rng(1)
+    chain = robots.iiwa14()
+    pose = chain.fk(chain.random_q(50, generator=torch.Generator().manual_seed(2))).numpy()
+    target = chain.fk(chain.random_q(50, generator=torch.Generator().manual_seed(3))).numpy()
+    target[:3] = pose[:3]  # zero error
+    target[3, :3, :3] = pose[3, :3, :3] @ np.diag([-1.0, -1.0, 1.0])  # a half turn
+    pos, rot = np.ascontiguousarray(target[:, :3, 3]), np.ascontiguousarray(target[:, :3, :3])
+    _, pos_ref, _, rot_ref = small.pose_errors(pose, pos, rot, 1e-7)
+    pos_err, rot_err = kernels.pose_errors(pose, pos, rot, 1e-7)
+    assert np.allclose(pos_err, pos_ref, atol=1e-15) and np.allclose(rot_err, rot_ref, atol=1e-13)
+    assert abs(rot_err[3] - math.pi) < 1e-7
+    _, pos_ref, _, rot_ref = small.pose_errors(pose, pos, None, 1e-7)
+    pos_err, rot_err = kernels.pose_errors(pose, pos, np.empty((0, 3, 3)), 1e-7)
+    assert np.allclose(pos_err, pos_ref, atol=1e-15) and not rot_err.any() and not rot_ref.any()
+    lo, hi = chain.limits.numpy()
+    q = rng.uniform(-12.0, 12.0, (400, 7))  # mostly outside the limits, by up to two turns
+    expected = gradient.into_limits(q, lo, hi)  # numpy in: numpy's remainder, as the kernel's
+    got = np.array([[kernels.into_limits(x, lo[i], hi[i]) for i, x in enumerate(row)] for row in q])
+    assert np.array_equal(got, expected)
+    # torch's remainder rounds differently in float64 (a - b floor(a / b)): the same within 1e-14
+    torch_answer = gradient.into_limits(torch.from_numpy(q), chain.limits[0], chain.limits[1]).numpy()
+    assert np.allclose(got, torch_answer, atol=1e-14, rtol=0)
+    assert ((got >= lo) & (got <= hi)).all()
+
+
+def _solve_cases():
+    iiwa = robots.iiwa14()
+    target, q = _targets(iiwa, 24, 5, "pose")
+    q0 = q + 0.1 * torch.randn(q.shape, generator=torch.Generator().manual_seed(6), dtype=q.dtype)
+    q0[::3, 0] += 2 * math.pi
+    yield "iiwa pose", iiwa, target, {}
+    yield "iiwa q0 rest weight", iiwa, target, dict(q0=q0, rest=q, rest_gain=0.1, rot_weight=0.5, seeds=3,
+                                                    iterations=12, check_every=3)  # fmt: skip
+    yield "iiwa float32 tight", iiwa, target.float(), dict(pos_tol=1e-5, rot_tol=1e-4, precision="input")
+    yield "iiwa position", iiwa, _targets(iiwa, 24, 7, "position")[0], dict(mode="position")
+    yield "iiwa own generator", iiwa, target[:5], dict(generator=torch.Generator().manual_seed(9))
+    puma = robots.puma560()
+    yield "puma pose", puma, _targets(puma, 24, 8, "pose")[0], {}
+    planar = robots.planar3r()
+    yield "planar position", planar, _targets(planar, 24, 9, "position")[0], dict(mode="position")
+
+
+def _targets(chain, count, seed, mode):
+    q = chain.random_q(count, generator=torch.Generator().manual_seed(seed))
+    pose = chain.fk(q)
+    return (pose if mode == "pose" else pose[:, :3, 3]), q
+
+
+@needs_numba
+@pytest.mark.parametrize("case", list(_solve_cases()), ids=lambda case: case[0])
+def test_solve_takes_the_same_steps(monkeypatch, case):
+    """The same method: the same answers (to rounding), iterations and success as the numpy loop."""
+    _, chain, target, options = case
+    options = dict(options)
+    q0 = options.pop("q0", None)
+    generator = options.pop("generator", None)
+
+    def run():
+        gen = None if generator is None else generator.clone_state()
+        return solve(chain, target, q0, generator=gen, **options)
+
+    fast, slow = both_ways(monkeypatch, run)
+    assert torch.equal(fast.success, slow.success)
+    assert torch.equal(fast.iterations, slow.iterations)
+    assert fast.q.dtype == slow.q.dtype and fast.pos_err.dtype == slow.pos_err.dtype
+    tol = 1e-5 if target.dtype == torch.float32 else 1e-9
+    assert (fast.q - slow.q).abs().max() < tol
+    assert (fast.pos_err - slow.pos_err).abs().max() < tol * 1e-3
+    assert fast.success.float().mean() > 0.7
+
+
+def test_fallback_without_the_kernels(monkeypatch):
+    """Switched off, solve, fk and jacobian run the numpy / Python-float paths and still agree with
+    the batched torch loop and the torch kernels."""
+    monkeypatch.setattr(compiled, "ENABLED", False)
+    chain = robots.iiwa14()
+    target, q = _targets(chain, 10, 11, "pose")
+    result = solve(chain, target)
+    with monkeypatch.context() as m:
+        m.setattr(small, "SMALL_BATCH", 0)
+        m.setattr(small, "COMPILED_BATCH", 0)
+        batched = solve(chain, target)
+    assert int((result.success != batched.success).sum()) <= 1 and result.success.float().mean() > 0.8
+    with torch.enable_grad():  # the torch kernels, through autograd
+        q_grad = q[:1].clone().requires_grad_(True)
+        reference = chain.fk(q_grad).detach(), chain.jacobian(q_grad).detach()
+    assert torch.allclose(chain.fk(q[:1]), reference[0], atol=1e-14)
+    assert torch.allclose(chain.jacobian(q[:1]), reference[1], atol=1e-14)
+
+
+def _run(code: str, **env) -> list[str]:
+    environ = {k: v for k, v in os.environ.items() if k != "IIWA_TORCH_NUMBA"} | env
+    return subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True,
+                          check=True).stdout.split()  # fmt: skip
+
+
+def test_nothing_compiled_or_imported_at_import():
+    """``import iiwa_torch`` (and its subpackages) loads no numba; the first small-batch call does,
+    if enabled; IIWA_TORCH_NUMBA=0 keeps it out even then."""
+    code = (
+        "import sys, torch, iiwa_torch, iiwa_torch.ik, iiwa_torch.ik.analytic, iiwa_torch.trajectory\n"
+        "from iiwa_torch import robots; from iiwa_torch.ik import solve\n"
+        "print('numba' in sys.modules)\n"
+        "arm = robots.iiwa14(); solve(arm, arm.fk(arm.random_q(1)))\n"
+        "from iiwa_torch import compiled; print(compiled.ENABLED, 'numba' in sys.modules)\n"
+    )
+    assert _run(code, IIWA_TORCH_NUMBA="0") == ["False", "False", "False"]
+    enabled = str(compiled.ENABLED)
+    assert _run(code) == ["False", enabled, enabled]
