@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from iiwa_torch import kinematics as kin
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
 
@@ -332,13 +333,22 @@ class ReachTask:
         q, velocity = self.arm.integrate(xp.of(state.q), xp.of(action), xp)
         q_t = xp.tensor(q)
         cos_t, sin_t = torch.cos(q_t), torch.sin(q_t)  # torch's on both paths: one env's equal a batch's
-        achieved = self.goal_of(q_t, (cos_t, sin_t))
+        world = self.world
+        block = state.obstacles if world is not None and world.slots else None
+        collision = None
+        if xp is NUMPY:  # one env: its frames once, in Python floats, for the goal and the clearance
+            g = self.robot.geometry(self.dtype)
+            frames = kin.frames_floats(g, q_t)
+            achieved = self.goals.goal_of_frame(kin.tool_frame_floats(g, frames[-1]), self.dtype)
+            if world is not None:
+                collision = np.array([world.clearance_of_frames(frames, block) < 0])
+        else:
+            achieved = self.goal_of(q_t, (cos_t, sin_t))
+            if world is not None:  # one clearance call for the batch
+                collision = world.clearance(q_t.T, block) < 0
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         # the reward of the goals as observed, in float32
         dist, angle, success = self.goals.errors(*map(xp.of, observed), xp)
-        collision = None
-        if self.world is not None:  # one clearance call for the batch
-            collision = xp.of(self.world.clearance(q_t.T, state.obstacles if self.world.slots else None)) < 0
         reward = self.penalised(self.goals.reward_of(dist, angle, success, xp), collision, xp)
         t = xp.of(state.t) + 1
         terminated = success if self.terminate_on_success else xp.zeros_like(success)

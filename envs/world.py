@@ -18,7 +18,7 @@ import math
 
 import torch
 
-from iiwa_torch.collision import World, clearance, pairwise_clearance, robot_capsules
+from iiwa_torch.collision import World, clearance, clearance_of_frames, pairwise_clearance, robot_capsules, solids_numpy
 from iiwa_torch.dh import DHChain
 
 from .seeding import uniform
@@ -91,6 +91,7 @@ class ObstacleWorld:
         self.block_size = SLOT_SIZE * slots
         self._floor_world = World(floor=floor)
         self._last: tuple = (None, None, None)  # (block, extra, its World): the last one built
+        self._last_solids: tuple = (None, (None, None))  # (one env's block, its spheres and boxes as numpy)
 
     def world_of(self, block: Tensor | None, extra: int = 0) -> World:
         """:func:`obstacle_world` of ``block``, kept for the next call with the same block
@@ -108,6 +109,21 @@ class ObstacleWorld:
         """Smallest signed distance (m) of ``q (m, *extra, nj)`` to itself, the floor and the
         obstacles of ``block`` (one batched :func:`~iiwa_torch.collision.clearance` call)."""
         return clearance(self.chain, q, self.world_of(block, extra), self.capsules)
+
+    def clearance_of_frames(self, frames: list[tuple], block: Tensor | None = None) -> float:
+        """:meth:`clearance` of one configuration from its frames
+        (:func:`iiwa_torch.kinematics.frames_floats` of the chain) and one env's ``block``
+        ``(SLOT_SIZE * M, 1)``, in Python floats, unchecked
+        (:func:`~iiwa_torch.collision.clearance_of_frames`). The block's active obstacles become
+        float64 arrays once per block (the stand-ins of absent ones are left out: they are never
+        the minimum)."""
+        spheres, boxes = None, None
+        if block is not None and block.shape[0]:
+            last, (spheres, boxes) = self._last_solids
+            if last is not block:
+                spheres, boxes = solids_numpy(active_obstacles(block[:, 0], self.floor))
+                self._last_solids = (block, (spheres, boxes))
+        return clearance_of_frames(self.capsules, frames, self.floor, spheres, boxes)
 
     def draw(self, key: Tensor, episode: Tensor, start: Tensor, offset: int, rounds: int) -> Tensor:
         """Obstacle blocks ``(SLOT_SIZE * slots, n)`` for ``n`` envs starting at ``start (n, nj)``:

@@ -36,9 +36,11 @@ __all__ = [
     "World",
     "check_world",
     "clearance",
+    "clearance_of_frames",
     "pairwise_clearance",
     "robot_capsules",
     "self_collision_pairs",
+    "solids_numpy",
     "segment_distance",
     "segment_box_distance",
 ]
@@ -821,14 +823,13 @@ def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bo
 
 
 def _own_clearance_floats(
-    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
-) -> tuple[float | None, np.ndarray, np.ndarray]:
+    frames: list[tuple], floor: float | None, capsules: Capsules
+) -> tuple[float | None, list[tuple], list[tuple]]:
     """One configuration's self and floor clearance in Python floats (``None``: neither is
-    checked), and its capsules' start points and start-to-end vectors (K 3-tuples each), as
-    :func:`_clearance_numpy` computes them for a batch: the frames by the float recursion, the
-    segments by :func:`_closest_parameters`."""
+    checked) from its frames (:func:`iiwa_torch.kinematics.frames_floats`), and its capsules'
+    start points and start-to-end vectors (K 3-tuples each), as :func:`_clearance_numpy` computes
+    them for a batch, the segments by :func:`_closest_parameters`."""
     table = capsules._float_table()
-    frames = kin.frames_floats(chain.geometry(), q)
     start, direction = [], []
     for f, (u0, v0, w0), (u1, v1, w1) in table["points"]:  # each end point: p + u x + v y + w z
         (x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2) = frames[f]
@@ -848,14 +849,91 @@ def _present(kind: tuple[Tensor, Tensor] | None, axis: int) -> bool:
     return kind is not None and kind[1].shape[axis] > 0
 
 
+NumpyPair = tuple[np.ndarray, np.ndarray]
+
+
+def solids_numpy(world: World) -> tuple[NumpyPair | None, NumpyPair | None]:
+    """A CPU world's spheres and boxes as float64 numpy arrays, as :func:`clearance_of_frames`
+    takes them: ``(centres (..., S, 3), radii (..., S))`` and ``(poses (..., B, 4, 4), half
+    extents (..., B, 3))``, ``None`` for a kind that is absent or holds no obstacle (walls and
+    obstacle capsules are left out: no numpy path has them)."""
+
+    def arrays(pair, axis):
+        return tuple(t.detach().numpy().astype(np.float64) for t in pair) if _present(pair, axis) else None
+
+    return arrays(world.spheres, -1), arrays(world.boxes, -2)
+
+
+def _least(values: list):
+    """The elementwise minimum of arrays (or floats) that broadcast; ``None`` for none."""
+    out = values[0] if values else None
+    for v in values[1:]:
+        out = np.minimum(out, v)
+    return out
+
+
+def _solid_gaps(a: np.ndarray, b: np.ndarray, radius: np.ndarray, spheres: NumpyPair | None,
+                boxes: NumpyPair | None, found) -> list[np.ndarray]:
+    """The smallest signed distances ``(...)`` of capsule segments ``a b`` (``(..., W, 1, 3)``, radii
+    ``radius (W, 1)``) to the spheres and to the boxes (:func:`solids_numpy`'s arrays, their batch
+    broadcasting with ``...``), one array per kind given. ``found``: the batch's smallest distance
+    so far (an array or a float; ``None``: none). As in :func:`_culled_box_distance`, the exact
+    capsule-box closed form runs only on pairs whose lower bound ``|s - c| - |h| - r`` (``s`` the
+    segment's point nearest the box centre ``c``) is at most the smallest upper bound
+    ``|s - c| - r`` and ``found``: the others cannot be the minimum, and keep the lower bound."""
+    mins = []
+    if spheres is not None:
+        centre, rad = spheres
+        c = centre[..., None, :, :]
+        gap = _segment_gap_numpy(a, b - a, c, c - c) - radius - rad[..., None, :]
+        mins.append(gap.min((-2, -1)))
+    if boxes is not None:
+        pose, half = boxes[0][..., None, :, :, :], boxes[1][..., None, :, :]
+        c = pose[..., :3, 3]
+        upper = _segment_gap_numpy(a, b - a, c, c - c) - radius  # (..., W, B): c is inside its box
+        lower = upper - _norm_numpy(half)  # every point of a box is within |h| of its centre
+        limit = _least([upper.min((-2, -1))] + ([] if found is None else [found]) + mins)
+        near = lower <= limit[..., None, None]
+        if near.all():
+            lower = _segment_box_distance(a, b, pose, half, np) - radius
+        elif near.any():
+            pick = [np.broadcast_to(x, near.shape + x.shape[x.ndim - k:])[near]
+                    for x, k in ((a, 1), (b, 1), (pose, 2), (half, 1))]
+            lower[near] = _segment_box_distance(*pick, np) - np.broadcast_to(radius, near.shape)[near]
+        mins.append(lower.min((-2, -1)))
+    return mins
+
+
+def clearance_of_frames(capsules: Capsules, frames: list[tuple], floor: float | None,
+                        spheres: NumpyPair | None = None, boxes: NumpyPair | None = None) -> float:
+    """:func:`clearance` of one configuration from its frames, unchecked: for callers that built
+    every argument themselves and query one configuration at a time (the envs' single env).
+    ``frames``: :func:`iiwa_torch.kinematics.frames_floats` of the configuration (the capsules'
+    chain); ``floor``: its height (m, ``None``: none); ``spheres``, ``boxes``: one set of
+    obstacles (:func:`solids_numpy`, every batch dim of size 1) -> metres, a Python float.
+    :func:`clearance` runs the same functions on one CPU configuration after its checks."""
+    own, start, direction = _own_clearance_floats(frames, floor, capsules)
+    mins = [] if own is None else [own]
+    tables = capsules._numpy_tables()
+    idx = tables["world"]
+    if (spheres is not None or boxes is not None) and idx.size:
+        start, direction = np.array([start, direction])[:, idx, None]  # (W, 1, 3) each
+        mins += [float(m.min()) for m in _solid_gaps(start, start + direction, tables["world_radius"], spheres,
+                                                     boxes, own)]
+    if not mins:
+        raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
+    return min(mins)
+
+
 def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """:func:`clearance` of a small CPU batch in numpy float64: a few dozen numpy ops, each a
     fraction of a torch op's overhead. Self pairs, floor, spheres and boxes; not differentiable."""
     tables = capsules._numpy_tables()
     lead = q.shape[:-1]
     floor = tables["floor"]
+    spheres, boxes = solids_numpy(world)
     if q.numel() == chain.n_joints:  # one configuration: its own distances in Python floats
-        own, start, direction = _own_clearance_floats(chain, q, world.floor, capsules)
+        own, start, direction = _own_clearance_floats(kin.frames_floats(chain.geometry(), q), world.floor, capsules)
         mins = [] if own is None else [np.array(own).reshape(lead)]
     else:
         flat = q.detach().reshape(-1, chain.n_joints).numpy().astype(np.float64)
@@ -872,21 +950,9 @@ def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules
             mins.append((low - (tables["floor_radius"] + world.floor)).min(0))
         mins = [m.reshape(lead) for m in mins]
     idx = tables["world"]
-    spheres, boxes = _present(world.spheres, -1), _present(world.boxes, -2)  # a kind with M = 0 adds nothing
-    if (spheres or boxes) and idx.size:
+    if (spheres is not None or boxes is not None) and idx.size:  # a kind with M = 0 adds nothing
         if isinstance(start, list):  # one configuration's, from the float path: (K, 1, 3) arrays
             start, direction = np.array([start, direction])[:, :, None]
         a, b = (x.transpose(1, 0, 2).reshape(*lead, idx.size, 1, 3) for x in (start[idx], start[idx] + direction[idx]))
-    if spheres and idx.size:
-        centre, rad = (t.detach().numpy().astype(np.float64) for t in world.spheres)
-        c = centre[..., None, :, :]
-        gap = _segment_gap_numpy(a, b - a, c, c - c) - tables["world_radius"] - rad[..., None, :]
-        mins.append(gap.min((-2, -1)))
-    if boxes and idx.size:
-        pose, half = (t.detach().numpy().astype(np.float64) for t in world.boxes)
-        gap = _segment_box_distance(a, b, pose[..., None, :, :, :], half[..., None, :, :], np) - tables["world_radius"]
-        mins.append(gap.min((-2, -1)))
-    out = mins[0]
-    for m in mins[1:]:
-        out = np.minimum(out, m)
-    return torch.from_numpy(np.array(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
+        mins += _solid_gaps(a, b, tables["world_radius"], spheres, boxes, _least(mins))
+    return torch.from_numpy(np.array(_least(mins), dtype=np.float32 if q.dtype == torch.float32 else np.float64))
