@@ -276,7 +276,7 @@ class ReachTask:
                 q = arm.configurations(u)  # (m, nj)
                 if world is None:
                     return torch.ones(len(idx), dtype=torch.bool, device=q.device), q.T
-                return world.clearance(q) > 0, q.T
+                return world.is_free(q), q.T
 
             start = _first_found(n, draw_start, lambda: arm.home[:, None].expand(nj, n), self.device).T
         blank = start.new_zeros(0, n)
@@ -295,8 +295,10 @@ class ReachTask:
                 both = torch.cat([start[:, None], configs], 1)
                 goals = self.goal_of(both.reshape(-1, nj).T).view(-1, m, k + 1)
                 start_goal["all"], goals = goals[:, :, 0], goals[:, :, 1:]
+            # the whole block when every env draws (round 0): the block the episode's steps then use
+            block = None if world is None or not world.slots else obstacles if m == n else obstacles[:, idx]
             ok = torch.ones(m, k, dtype=torch.bool, device=goals.device) if world is None else \
-                world.clearance(configs, obstacles[:, idx] if world.slots else None, extra=1) > 0
+                world.is_free(configs, block, extra=1)
             rank = -torch.arange(k, dtype=goals.dtype, device=goals.device)
             if far:  # the first valid candidate far enough, else the farthest valid: no loop, no sync
                 d = torch.linalg.vector_norm(goals[:3] - start_goal["all"][:3, idx, None], dim=0)  # (m, k)
