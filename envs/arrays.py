@@ -72,6 +72,7 @@ class ArrayOps:
         return torch.clamp(x, max=high)
 
     where, asin, zeros_like = staticmethod(torch.where), staticmethod(torch.asin), staticmethod(torch.zeros_like)
+    ones_like, stack, moveaxis = staticmethod(torch.ones_like), staticmethod(torch.stack), staticmethod(torch.moveaxis)
 
     @staticmethod
     def cross(u, v):
@@ -125,6 +126,7 @@ class _NumpyOps(ArrayOps):
         return np.minimum(x, high)
 
     where, zeros_like = staticmethod(np.where), staticmethod(np.zeros_like)
+    ones_like, stack, moveaxis = staticmethod(np.ones_like), staticmethod(np.stack), staticmethod(np.moveaxis)
 
 
     @staticmethod

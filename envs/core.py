@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from iiwa_torch import kinematics as kin
 from iiwa_torch.collision import capsule_clearance
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
@@ -301,7 +302,7 @@ class ReachTask:
                 q = arm.configurations(u)  # (m, nj)
                 if world is None:
                     return torch.ones(len(idx), dtype=torch.bool, device=q.device), q.T
-                return world.clearance(q) > 0, q.T
+                return world.is_free(q), q.T
 
             start = _first_found(n, draw_start, lambda: arm.home[:, None].expand(nj, n), self.device).T
         blank = start.new_zeros(0, n)
@@ -320,8 +321,10 @@ class ReachTask:
                 both = torch.cat([start[:, None], configs], 1)
                 goals = self.goal_of(both.reshape(-1, nj).T).view(-1, m, k + 1)
                 start_goal["all"], goals = goals[:, :, 0], goals[:, :, 1:]
+            # the whole block when every env draws (round 0): the block the episode's steps then use
+            block = None if world is None or not world.slots else obstacles if m == n else obstacles[:, idx]
             ok = torch.ones(m, k, dtype=torch.bool, device=goals.device) if world is None else \
-                world.clearance(configs, obstacles[:, idx] if world.slots else None, extra=1) > 0
+                world.is_free(configs, block, extra=1)
             rank = -torch.arange(k, dtype=goals.dtype, device=goals.device)
             if far:  # the first valid candidate far enough, else the farthest valid: no loop, no sync
                 d = torch.linalg.vector_norm(goals[:3] - start_goal["all"][:3, idx, None], dim=0)  # (m, k)
@@ -358,13 +361,22 @@ class ReachTask:
         q, velocity = self.arm.integrate(xp.of(state.q), xp.of(action), xp)
         q_t = xp.tensor(q)
         cos_t, sin_t = torch.cos(q_t), torch.sin(q_t)  # torch's on both paths: one env's equal a batch's
-        achieved = self.goal_of(q_t, (cos_t, sin_t))
+        world = self.world
+        block = state.obstacles if world is not None and world.slots else None
+        collision = None
+        if xp is NUMPY:  # one env: its frames once, in Python floats, for the goal and the clearance
+            g = self.robot.geometry(self.dtype)
+            frames = kin.frames_floats(g, q_t)
+            achieved = self.goals.goal_of_frame(kin.tool_frame_floats(g, frames[-1]), self.dtype)
+            if world is not None:
+                collision = np.array([world.clearance_of_frames(frames, block) < 0])
+        else:
+            achieved = self.goal_of(q_t, (cos_t, sin_t))
+            if world is not None:  # one clearance call for the batch
+                collision = world.clearance(q_t.T, block) < 0
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         # the reward of the goals as observed, in float32
         dist, angle, success = self.goals.errors(*map(xp.of, observed), xp)
-        collision = None
-        if self.world is not None:  # one clearance call for the batch
-            collision = xp.of(self.world.clearance(q_t.T, state.obstacles if self.world.slots else None)) < 0
         reward = self.penalised(self.goals.reward_of(dist, angle, success, xp), collision, xp)
         t = xp.of(state.t) + 1
         terminated = success if self.terminate_on_success else xp.zeros_like(success)

@@ -118,6 +118,14 @@ class ReachGoals:
             return chain.position_batch_last(q, trig)
         return encode_pose_goal(chain.fk(q.T)).T.contiguous()
 
+    def goal_of_frame(self, frame: tuple, dtype: torch.dtype) -> Tensor:
+        """One end-effector frame ``(x, y, z, p)``, 3-tuples of Python floats
+        (:func:`iiwa_torch.kinematics.tool_frame_floats`) -> its goal vector ``(g, 1)`` in ``dtype``
+        (float32 or float64): :meth:`goal_of` of one configuration, without a torch op."""
+        x, y, _, p = frame
+        values = p if self.kind is GoalKind.POSITION else p + x + y  # the layout of encode_pose_goal
+        return torch.from_numpy(np.array(values, dtype=np.float32 if dtype == torch.float32 else np.float64)[:, None])
+
     def errors(self, achieved, desired, xp: ArrayOps = TORCH) -> tuple:
         """Goals ``(g, ...)``, components first -> position distance (m), orientation angle
         (rad; ``None`` for position goals) and success, each ``(...)``. Tensors, or numpy

@@ -16,11 +16,21 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
-from iiwa_torch.collision import World, clearance, pairwise_clearance, robot_capsules
+from iiwa_torch import kinematics as kin
+from iiwa_torch.collision import (
+    World,
+    clearance,
+    clearance_of_frames,
+    obstacle_clearance_of_frames,
+    pairwise_clearance,
+    robot_capsules,
+)
 from iiwa_torch.dh import DHChain
 
+from .arrays import NUMPY, TORCH, ArrayOps
 from .seeding import uniform
 
 __all__ = ["SLOT_SIZE", "PARK", "ObstacleWorld", "obstacle_world", "active_obstacles"]
@@ -42,30 +52,52 @@ def _scale(u: Tensor, bounds: tuple[float, float]) -> Tensor:
     return bounds[0] + u * (bounds[1] - bounds[0])
 
 
+def _slot_solids(block, xp: ArrayOps = TORCH) -> tuple:
+    """Obstacle blocks ``(SLOT_SIZE * M, m)`` (tensors, or numpy arrays with ``xp=NUMPY``) -> sphere
+    centres ``(m, M, 3)`` and radii ``(m, M)``, box poses ``(m, M, 4, 4)`` and half extents
+    ``(m, M, 3)``: every slot as a sphere and as a box, the one it is not a stand-in."""
+    b = xp.moveaxis(block.reshape(block.shape[0] // SLOT_SIZE, SLOT_SIZE, -1), -1, 0)  # (m, M, SLOT_SIZE)
+    active, is_box = b[..., 0] > 0.5, b[..., 1] > 0.5
+    centre, size, cos, sin = b[..., 2:5], b[..., 5:8], b[..., 8], b[..., 9]
+    sphere, box = active & ~is_box, active & is_box
+    sphere_centre = xp.stack([xp.where(sphere, centre[..., 0], 0.0), xp.where(sphere, centre[..., 1], 0.0),
+                              xp.where(sphere, centre[..., 2], PARK)], -1)
+    sphere_radius = xp.where(sphere, size[..., 0], 0.01)
+    zero, one = xp.zeros_like(cos), xp.ones_like(cos)
+    c, s = xp.where(box, cos, one), xp.where(box, sin, zero)
+    rows = [[c, -s, zero, xp.where(box, centre[..., 0], 0.0)],
+            [s, c, zero, xp.where(box, centre[..., 1], 0.0)],
+            [zero, zero, one, xp.where(box, centre[..., 2], PARK)],
+            [zero, zero, zero, one]]
+    pose = xp.stack([xp.stack(r, -1) for r in rows], -2)  # (m, M, 4, 4)
+    half = xp.where(box[..., None], size, 0.01)
+    return sphere_centre, sphere_radius, pose, half
+
+
 def obstacle_world(block: Tensor | None, floor: float | None, extra: int = 0) -> World:
     """Obstacle blocks ``(SLOT_SIZE * M, m)`` (``None`` or no rows: no obstacle) -> a :class:`World`
     with the floor at ``floor`` and obstacles of batch shape ``(m,)`` plus ``extra`` dims of
     size 1 (to broadcast with several configurations per env)."""
     if block is None or not block.shape[0]:
         return World(floor=floor)
-    b = block.reshape(block.shape[0] // SLOT_SIZE, SLOT_SIZE, -1).permute(2, 0, 1)  # (m, M, SLOT_SIZE)
-    active, is_box = b[..., 0] > 0.5, b[..., 1] > 0.5
-    centre, size, cos, sin = b[..., 2:5], b[..., 5:8], b[..., 8], b[..., 9]
-    sphere, box = active & ~is_box, active & is_box
-    sphere_centre = torch.where(sphere[..., None], centre, centre.new_tensor([0.0, 0.0, PARK]))
-    sphere_radius = torch.where(sphere, size[..., 0], 0.01)
-    zero, one = torch.zeros_like(cos), torch.ones_like(cos)
-    c, s = torch.where(box, cos, one), torch.where(box, sin, zero)
-    rows = [[c, -s, zero, torch.where(box, centre[..., 0], 0.0)],
-            [s, c, zero, torch.where(box, centre[..., 1], 0.0)],
-            [zero, zero, one, torch.where(box, centre[..., 2], PARK)],
-            [zero, zero, zero, one]]
-    pose = torch.stack([torch.stack(r, -1) for r in rows], -2)  # (m, M, 4, 4)
-    half = torch.where(box[..., None], size, 0.01)
-    lead = (b.shape[0],) + (1,) * extra
-    sphere_centre, sphere_radius, pose, half = (t.reshape(*lead, *t.shape[1:]) for t in (sphere_centre, sphere_radius,
-                                                                                           pose, half))
+    lead = (block.shape[1],) + (1,) * extra
+    sphere_centre, sphere_radius, pose, half = (t.reshape(*lead, *t.shape[1:]) for t in _slot_solids(block))
     return World(floor=floor, spheres=(sphere_centre, sphere_radius), boxes=(pose, half))
+
+
+def _numpy_solids(block: Tensor) -> tuple:
+    """:func:`_slot_solids` of blocks ``(SLOT_SIZE * M, m)`` (CPU) in float64 numpy, as
+    :func:`iiwa_torch.collision.solids_numpy` gives a world's: without building the world."""
+    centre, radius, pose, half = _slot_solids(NUMPY.of(block).astype(np.float64), NUMPY)
+    return (centre, radius), (pose, half)
+
+
+def _active_kinds(block: Tensor) -> tuple[Tensor, Tensor]:
+    """One env's obstacle block ``(SLOT_SIZE * M,)`` -> which slots hold an active sphere and which
+    an active box, ``(M,)`` bools each."""
+    b = block.reshape(-1, SLOT_SIZE)
+    active, is_box = b[:, 0] > 0.5, b[:, 1] > 0.5
+    return active & ~is_box, active & is_box
 
 
 def active_obstacles(block: Tensor, floor: float | None) -> World:
@@ -74,9 +106,7 @@ def active_obstacles(block: Tensor, floor: float | None) -> World:
     full = obstacle_world(block[:, None], floor)
     if full.spheres is None:
         return full
-    b = block.reshape(-1, SLOT_SIZE)
-    active, is_box = b[:, 0] > 0.5, b[:, 1] > 0.5
-    sphere, box = active & ~is_box, active & is_box
+    sphere, box = _active_kinds(block)
     (centre, radius), (pose, half) = full.spheres, full.boxes
     return World(floor=floor, spheres=(centre[0, sphere], radius[0, sphere]), boxes=(pose[0, box], half[0, box]))
 
@@ -91,6 +121,7 @@ class ObstacleWorld:
         self.block_size = SLOT_SIZE * slots
         self._floor_world = World(floor=floor)
         self._last: tuple = (None, None, None)  # (block, extra, its World): the last one built
+        self._last_solids: tuple = (None, (None, None))  # (one env's block, its spheres and boxes as numpy)
 
     def world_of(self, block: Tensor | None, extra: int = 0) -> World:
         """:func:`obstacle_world` of ``block``, kept for the next call with the same block
@@ -109,6 +140,41 @@ class ObstacleWorld:
         obstacles of ``block`` (one batched :func:`~iiwa_torch.collision.clearance` call)."""
         return clearance(self.chain, q, self.world_of(block, extra), self.capsules)
 
+    def clearance_of_frames(self, frames: list[tuple], block: Tensor | None = None) -> float:
+        """:meth:`clearance` of one configuration given by its frames
+        (:func:`iiwa_torch.kinematics.frames_floats` of the chain) and one env's ``block``
+        ``(SLOT_SIZE * M, 1)``, in Python floats, unchecked
+        (:func:`~iiwa_torch.collision.clearance_of_frames`), exact where negative: a value >= 0
+        only has the clearance's sign (0 for 0), which is all the envs ask of it. The block's
+        active obstacles become float64 arrays once per block (the stand-ins of absent ones are
+        left out: they are never the minimum)."""
+        spheres = boxes = None
+        if block is not None and block.shape[0]:
+            last, (spheres, boxes) = self._last_solids
+            if last is not block:
+                spheres, boxes = self._active_solids(block)
+                self._last_solids = (block, (spheres, boxes))
+        return clearance_of_frames(self.capsules, frames, self.floor, spheres, boxes, exact_below=0.0)
+
+    def _active_solids(self, block: Tensor) -> tuple:
+        """One env's block ``(SLOT_SIZE * M, 1)`` -> its active spheres and boxes as
+        :func:`~iiwa_torch.collision.solids_numpy` gives them (``None`` for a kind it has none of)."""
+        spheres, boxes = _numpy_solids(block)  # (1, M, ...) each, stand-ins included
+        kinds = [mask.numpy() for mask in _active_kinds(block[:, 0])]
+        return tuple(tuple(t[:, mask] for t in solids) if mask.any() else None
+                     for solids, mask in zip((spheres, boxes), kinds))
+
+    def is_free(self, q: Tensor, block: Tensor | None = None, extra: int = 0) -> Tensor:
+        """``clearance(q, block, extra) > 0``, bools ``(m, *extra)``; for one env on the CPU
+        (``m = 1``, nothing to differentiate) by the float path of each configuration
+        (:meth:`clearance_of_frames`), with the obstacles built once for the episode's steps."""
+        if q.shape[0] != 1 or not kin.floats_ok(q):
+            return self.clearance(q, block, extra) > 0
+        g = self.chain.geometry(q.dtype)
+        flat = q.reshape(-1, q.shape[-1])
+        free = [self.clearance_of_frames(kin.frames_floats(g, c), block) > 0 for c in flat]
+        return torch.tensor(free, device=q.device).reshape(q.shape[:-1])
+
     def draw(self, key: Tensor, episode: Tensor, start: Tensor, offset: int, rounds: int) -> Tensor:
         """Obstacle blocks ``(SLOT_SIZE * slots, n)`` for ``n`` envs starting at ``start (n, nj)``:
         1 to ``slots`` obstacles, each a sphere or a box with equal odds, each clear of the start
@@ -121,6 +187,9 @@ class ObstacleWorld:
         env = torch.arange(n, device=key.device).repeat_interleave(m)  # one item per (env, slot)
         item_slot = slot.repeat(n)
         pending = (item_slot < count[env]).nonzero().squeeze(-1)
+        # one env on the CPU: its start's frames once, each item by the float path
+        frames = kin.frames_floats(self.chain.geometry(start.dtype), start) if n == 1 and kin.floats_ok(start) \
+            else None
         for r in range(rounds):
             if not pending.numel():
                 break
@@ -129,9 +198,14 @@ class ObstacleWorld:
             u = u.view(-1, m, _DRAWS_PER_SLOT)[torch.arange(e.shape[0], device=e.device), s]  # (p, 8)
             rows = self._slot_rows(u)
             # each item alone against its env's start (rows.T: one slot per column)
-            d = pairwise_clearance(self.chain, start[e], obstacle_world(rows.T, None), self.capsules)
-            facing = torch.tensor([b in ("sphere0", "box0") for _, b in d.pairs], device=key.device)
-            ok = d.distance[:, facing].amin(-1) > START_MARGIN
+            if frames is not None:
+                d = obstacle_clearance_of_frames(self.capsules, frames, *_numpy_solids(rows.T),
+                                                 exact_below=START_MARGIN)
+                ok = torch.from_numpy(d > START_MARGIN)
+            else:
+                d = pairwise_clearance(self.chain, start[e], obstacle_world(rows.T, None), self.capsules)
+                facing = torch.tensor([b in ("sphere0", "box0") for _, b in d.pairs], device=key.device)
+                ok = d.distance[:, facing].amin(-1) > START_MARGIN
             block[e[ok], s[ok]] = rows[ok]
             pending = pending[~ok]
         return block.reshape(n, -1).T.contiguous()

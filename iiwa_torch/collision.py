@@ -37,15 +37,19 @@ __all__ = [
     "capsule_clearance",
     "check_world",
     "clearance",
+    "clearance_of_frames",
+    "obstacle_clearance_of_frames",
     "pairwise_clearance",
     "robot_capsules",
     "self_collision_pairs",
+    "solids_numpy",
     "segment_distance",
     "segment_box_distance",
 ]
 
 _BLOCK = 4096  # configurations per block of the robot's own distances
 CLEARANCE_NUMPY_BATCH = 32  # clearance: numpy float64 up to this many CPU configurations without autograd
+_EPS = float(np.finfo(np.float64).eps)  # a Python float: a numpy scalar would make the float kernel's products numpy's
 
 
 # ---------------------------------------------------------------------------- distance kernels
@@ -66,7 +70,7 @@ def _closest_parameters(a, e, b, c, f, where, unit, div=operator.truediv):
     torch or numpy, or Python floats: ``where``, ``unit`` (clamp into [0, 1]) and ``div`` (a
     quotient ``where`` may discard) are that library's, so the torch, numpy and float kernels
     run this one formula."""
-    eps = np.finfo(np.float64).eps
+    eps = _EPS
     ae = a * e
     denom = ae - b * b
     s = unit(where(denom > eps * ae, div(b * f - c * e, denom), 0.0))
@@ -133,6 +137,20 @@ def _segment_gap_numpy(p1: np.ndarray, d1: np.ndarray, p2: np.ndarray, d2: np.nd
     with np.errstate(divide="ignore", invalid="ignore"):  # the quotients np.where discards
         s, t = _closest_parameters(*dots, np.where, _unit)
     w = r + s[..., None] * d1 - t[..., None] * d2
+    return np.sqrt((w * w).sum(-1))
+
+
+def _point_gap_numpy(p: np.ndarray, d: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """:func:`_segment_gap_numpy` from segments ``p + s d`` to points ``c`` (a second segment of
+    zero length), ``(..., 3)`` each (broadcast) -> ``(...)``: the arithmetic
+    :func:`_closest_parameters` does when ``d2 = 0`` (``s = -(d . r) / (d . d)`` clamped, ``t = 0``)
+    without the ops that come to nothing, so the same distances bit for bit."""
+    r = p - c
+    a = (d * d).sum(-1)
+    eps = _EPS
+    with np.errstate(divide="ignore", invalid="ignore"):  # the quotient np.where discards
+        s = _unit(np.where(a <= eps * eps, 0.0, -(d * r).sum(-1) / a))
+    w = r + s[..., None] * d
     return np.sqrt((w * w).sum(-1))
 
 
@@ -848,22 +866,27 @@ def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bo
     return bool(capsules.pairs) or floor or solids
 
 
-def _own_clearance_floats(
-    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
-) -> tuple[float | None, np.ndarray, np.ndarray]:
-    """One configuration's self and floor clearance in Python floats (``None``: neither is
-    checked), and its capsules' start points and start-to-end vectors (K 3-tuples each), as
-    :func:`_clearance_numpy` computes them for a batch: the frames by the float recursion, the
-    segments by :func:`_closest_parameters`."""
-    table = capsules._float_table()
-    frames = kin.frames_floats(chain.geometry(), q)
+def _capsule_ends_floats(frames: list[tuple], capsules: Capsules) -> tuple[list[tuple], list[tuple]]:
+    """One configuration's capsules from its frames (:func:`iiwa_torch.kinematics.frames_floats`):
+    their start points and start-to-end vectors, K 3-tuples of Python floats each."""
     start, direction = [], []
-    for f, (u0, v0, w0), (u1, v1, w1) in table["points"]:  # each end point: p + u x + v y + w z
+    for f, (u0, v0, w0), (u1, v1, w1) in capsules._float_table()["points"]:  # each end point: p + u x + v y + w z
         (x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2) = frames[f]
         a = (p0 + u0 * x0 + v0 * y0 + w0 * z0, p1 + u0 * x1 + v0 * y1 + w0 * z1, p2 + u0 * x2 + v0 * y2 + w0 * z2)
         start.append(a)
         direction.append((p0 + u1 * x0 + v1 * y0 + w1 * z0 - a[0], p1 + u1 * x1 + v1 * y1 + w1 * z1 - a[1],
                           p2 + u1 * x2 + v1 * y2 + w1 * z2 - a[2]))
+    return start, direction
+
+
+def _own_clearance_floats(
+    frames: list[tuple], floor: float | None, capsules: Capsules
+) -> tuple[float | None, list[tuple], list[tuple]]:
+    """One configuration's self and floor clearance in Python floats (``None``: neither is
+    checked) from its frames, and :func:`_capsule_ends_floats`, as :func:`_clearance_numpy`
+    computes them for a batch, the segments by :func:`_closest_parameters`."""
+    table = capsules._float_table()
+    start, direction = _capsule_ends_floats(frames, capsules)
     gaps = [_segment_gap_floats(start[i], direction[i], start[j], direction[j]) - r
             for (i, j), r in zip(capsules.pairs, table["pair_radius"])]
     if floor is not None:
@@ -876,14 +899,118 @@ def _present(kind: tuple[Tensor, Tensor] | None, axis: int) -> bool:
     return kind is not None and kind[1].shape[axis] > 0
 
 
+NumpyPair = tuple[np.ndarray, np.ndarray]
+
+
+def solids_numpy(world: World) -> tuple[NumpyPair | None, NumpyPair | None]:
+    """A CPU world's spheres and boxes as float64 numpy arrays, as :func:`clearance_of_frames`
+    takes them: ``(centres (..., S, 3), radii (..., S))`` and ``(poses (..., B, 4, 4), half
+    extents (..., B, 3))``, ``None`` for a kind that is absent or holds no obstacle (walls and
+    obstacle capsules are left out: no numpy path has them)."""
+
+    def arrays(pair, axis):
+        return tuple(t.detach().numpy().astype(np.float64) for t in pair) if _present(pair, axis) else None
+
+    return arrays(world.spheres, -1), arrays(world.boxes, -2)
+
+
+def _least(values: list):
+    """The elementwise minimum of arrays (or floats) that broadcast; ``None`` for none."""
+    out = values[0] if values else None
+    for v in values[1:]:
+        out = np.minimum(out, v)
+    return out
+
+
+def _solid_gaps(a: np.ndarray, b: np.ndarray, radius: np.ndarray, spheres: NumpyPair | None,
+                boxes: NumpyPair | None, found) -> list[np.ndarray]:
+    """The smallest signed distances ``(...)`` of capsule segments ``a b`` (``(..., W, 1, 3)``, radii
+    ``radius (W, 1)``) to the spheres and to the boxes (:func:`solids_numpy`'s arrays, their batch
+    broadcasting with ``...``), one array per kind given. ``found``: the batch's smallest distance
+    so far (an array or a float; ``None``: none). As in :func:`_culled_box_distance`, the exact
+    capsule-box closed form runs only on pairs whose lower bound ``|s - c| - |h| - r`` (``s`` the
+    segment's point nearest the box centre ``c``) is at most the smallest upper bound
+    ``|s - c| - r`` and ``found``: the others cannot be the minimum, and keep the lower bound."""
+    mins, d = [], b - a
+    if spheres is not None:
+        centre, rad = spheres
+        c = centre[..., None, :, :]
+        gap = _point_gap_numpy(a, d, c) - radius - rad[..., None, :]
+        mins.append(gap.min((-2, -1)))
+    if boxes is not None:
+        pose, half = boxes[0][..., None, :, :, :], boxes[1][..., None, :, :]
+        c = pose[..., :3, 3]
+        upper = _point_gap_numpy(a, d, c) - radius  # (..., W, B): c is inside its box
+        lower = upper - _norm_numpy(half)  # every point of a box is within |h| of its centre
+        limit = _least([upper.min((-2, -1))] + ([] if found is None else [found]) + mins)
+        near = lower <= limit[..., None, None]
+        if near.all():
+            lower = _segment_box_distance(a, b, pose, half, np) - radius
+        elif near.any():
+            pick = [np.broadcast_to(x, near.shape + x.shape[x.ndim - k:])[near]
+                    for x, k in ((a, 1), (b, 1), (pose, 2), (half, 1))]
+            lower[near] = _segment_box_distance(*pick, np) - np.broadcast_to(radius, near.shape)[near]
+        mins.append(lower.min((-2, -1)))
+    return mins
+
+
+def _obstacle_gaps(capsules: Capsules, start: list[tuple], direction: list[tuple], spheres: NumpyPair | None,
+                   boxes: NumpyPair | None, found: float) -> np.ndarray | None:
+    """One configuration's capsules (:func:`_own_clearance_floats`' start points and vectors)
+    against the spheres and boxes: the smallest distance per world of their batch (boxes exact
+    where it can be below ``found``, see :func:`_solid_gaps`), ``None`` if nothing faces them."""
+    tables = capsules._numpy_tables()
+    idx = tables["world"]
+    if (spheres is None and boxes is None) or not idx.size:
+        return None
+    start, direction = np.array([start, direction])[:, idx, None]  # (W, 1, 3) each
+    return _least(_solid_gaps(start, start + direction, tables["world_radius"], spheres, boxes, found))
+
+
+def clearance_of_frames(capsules: Capsules, frames: list[tuple], floor: float | None,
+                        spheres: NumpyPair | None = None, boxes: NumpyPair | None = None,
+                        exact_below: float = math.inf) -> float:
+    """:func:`clearance` of one configuration from its frames, unchecked: for callers that built
+    every argument themselves and query one configuration at a time (the envs' single env).
+    ``frames``: :func:`iiwa_torch.kinematics.frames_floats` of the configuration (the capsules'
+    chain); ``floor``: its height (m, ``None``: none); ``spheres``, ``boxes``: one set of
+    obstacles (:func:`solids_numpy`, every batch dim of size 1) -> metres, a Python float.
+    ``exact_below``: a clearance at or above it may come back as any value at or above it (boxes
+    farther than it are not searched): with ``exact_below=0`` the sign is still exact, and 0
+    comes back only for a clearance of 0. :func:`clearance` runs the same functions on one CPU
+    configuration after its checks."""
+    own, start, direction = _own_clearance_floats(frames, floor, capsules)
+    mins = [] if own is None else [own]
+    # a box pair whose lower bound exceeds the smallest of these cannot matter
+    solid = _obstacle_gaps(capsules, start, direction, spheres, boxes, min(mins + [exact_below]))
+    if solid is not None:
+        mins.append(float(solid.min()))
+    if not mins:
+        raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
+    return min(mins)
+
+
+def obstacle_clearance_of_frames(capsules: Capsules, frames: list[tuple], spheres: NumpyPair | None = None,
+                                 boxes: NumpyPair | None = None, exact_below: float = math.inf) -> np.ndarray:
+    """:func:`clearance_of_frames` against the obstacles alone (no self pairs, no floor), for each
+    world of the obstacles' batch: ``(...)`` float64 metres (e.g. one candidate obstacle per
+    world, each against the same configuration). Unchecked, as :func:`clearance_of_frames`."""
+    start, direction = _capsule_ends_floats(frames, capsules)
+    solid = _obstacle_gaps(capsules, start, direction, spheres, boxes, exact_below)
+    if solid is None:
+        raise ValueError("nothing to check: no obstacle, or no capsule checked against obstacles")
+    return solid
+
+
 def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """:func:`clearance` of a small CPU batch in numpy float64: a few dozen numpy ops, each a
     fraction of a torch op's overhead. Self pairs, floor, spheres and boxes; not differentiable."""
     tables = capsules._numpy_tables()
     lead = q.shape[:-1]
     floor = tables["floor"]
+    spheres, boxes = solids_numpy(world)
     if q.numel() == chain.n_joints:  # one configuration: its own distances in Python floats
-        own, start, direction = _own_clearance_floats(chain, q, world.floor, capsules)
+        own, start, direction = _own_clearance_floats(kin.frames_floats(chain.geometry(), q), world.floor, capsules)
         mins = [] if own is None else [np.array(own).reshape(lead)]
     else:
         flat = q.detach().reshape(-1, chain.n_joints).numpy().astype(np.float64)
@@ -900,21 +1027,9 @@ def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules
             mins.append((low - (tables["floor_radius"] + world.floor)).min(0))
         mins = [m.reshape(lead) for m in mins]
     idx = tables["world"]
-    spheres, boxes = _present(world.spheres, -1), _present(world.boxes, -2)  # a kind with M = 0 adds nothing
-    if (spheres or boxes) and idx.size:
+    if (spheres is not None or boxes is not None) and idx.size:  # a kind with M = 0 adds nothing
         if isinstance(start, list):  # one configuration's, from the float path: (K, 1, 3) arrays
             start, direction = np.array([start, direction])[:, :, None]
         a, b = (x.transpose(1, 0, 2).reshape(*lead, idx.size, 1, 3) for x in (start[idx], start[idx] + direction[idx]))
-    if spheres and idx.size:
-        centre, rad = (t.detach().numpy().astype(np.float64) for t in world.spheres)
-        c = centre[..., None, :, :]
-        gap = _segment_gap_numpy(a, b - a, c, c - c) - tables["world_radius"] - rad[..., None, :]
-        mins.append(gap.min((-2, -1)))
-    if boxes and idx.size:
-        pose, half = (t.detach().numpy().astype(np.float64) for t in world.boxes)
-        gap = _segment_box_distance(a, b, pose[..., None, :, :, :], half[..., None, :, :], np) - tables["world_radius"]
-        mins.append(gap.min((-2, -1)))
-    out = mins[0]
-    for m in mins[1:]:
-        out = np.minimum(out, m)
-    return torch.from_numpy(np.array(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
+        mins += _solid_gaps(a, b, tables["world_radius"], spheres, boxes, _least(mins))
+    return torch.from_numpy(np.array(_least(mins), dtype=np.float32 if q.dtype == torch.float32 else np.float64))

@@ -71,6 +71,7 @@ __all__ = [
     "position_horner",
     "reference_fk",
     "tool_frame_batch_last",
+    "tool_frame_floats",
 ]
 
 Tensor = torch.Tensor
@@ -472,14 +473,21 @@ def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool, frames: list | None 
             y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
         if frames is not None:
             frames.append(((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)))
+    return tool_frame_floats(g, ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2))), axes
+
+
+def tool_frame_floats(g: Geometry, frame: tuple) -> tuple:
+    """The last link frame ``(x, y, z, p)``, 3-tuples of Python floats (:func:`frames_floats`'s
+    last), -> the end-effector (tool) frame, the same four 3-tuples."""
     if not g.has_tool:
-        return ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)), axes
+        return frame
+    (x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2) = frame
     end = [  # column k of the tool, (u, v, w), in the world: u x + v y + w z (plus p for the origin)
         (u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1, u * x2 + v * y2 + w * z2)
         for u, v, w in g.tool_columns
     ]
     o0, o1, o2 = end[3]
-    return (end[0], end[1], end[2], (p0 + o0, p1 + o1, p2 + o2)), axes
+    return end[0], end[1], end[2], (p0 + o0, p1 + o1, p2 + o2)
 
 
 def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:

@@ -453,6 +453,11 @@ EXEMPT = {
     "iiwa_torch.collision:Capsules": "a model type, built by robot_capsules",
     "iiwa_torch.collision:Clearances": "a result type",
     "iiwa_torch.collision:CLEARANCE_NUMPY_BATCH": "a constant",
+    "iiwa_torch.collision:clearance_of_frames": "documented unchecked kernel of one configuration (the single env's "
+    "step); clearance is the checked entry and runs it",
+    "iiwa_torch.collision:obstacle_clearance_of_frames": "documented unchecked kernel of one configuration (the "
+    "single env's obstacle draws); pairwise_clearance is the checked entry",
+    "iiwa_torch.collision:solids_numpy": "converts an already validated World",
     "iiwa_torch.workspace:Section": "an Enum of choice strings (checked where taken)",
     "iiwa_torch.workspace:Occupancy": "a result type",
     "iiwa_torch.workspace:Volume": "a result type",
