@@ -14,7 +14,8 @@ from iiwa_torch.collision import clearance, pairwise_clearance, robot_capsules
 from train import evaluate as ev
 from train.rollout import PolicyEvaluator, make_goal_set
 
-POLICY = Path(__file__).resolve().parents[1] / "train" / "policies" / "ppo_iiwa_reach"
+# a policy that reads no clearance rows, so that it also runs with collision="off"
+POLICY = Path(__file__).resolve().parents[1] / "train" / "policies" / "ppo_iiwa_reach_mlp"
 GOALS, SEED = 64, 3
 
 

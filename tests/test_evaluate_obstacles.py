@@ -237,13 +237,16 @@ def test_picture_goals_pick_a_collision_a_miss_then_crowded_successes():
 
 @pytest.fixture(scope="module")
 def step0_model(tmp_path_factory):
-    """The residual policy untrained (its DLS step and an initial correction), as a run folder."""
+    """The residual policy untrained (its plain DLS step, blind to the obstacles, and an initial
+    correction), as a run folder: without the block's velocity damper, so that it collides."""
     from train import train as tr
     from train.run_dir import RunDir
 
     run = RunDir(tmp_path_factory.mktemp("step0") / "run")
     run.path.mkdir()
-    hp = tr.load_hyperparams("ppo", ENV, {"n_envs": 4, "n_steps": 8, "batch_size": 32})
+    blind = {"env_kwargs": {"terminate_on_success": False, "collision_penalty": 10.0},
+             "features_extractor_kwargs": {"scales": [0.3, 0.03, 0.003], "dampings": [0.1, 0.01]}}
+    hp = tr.load_hyperparams("ppo", ENV, {"n_envs": 4, "n_steps": 8, "batch_size": 32, **blind})
     config = tr.make_config("ppo", ENV, 0, hp, "test")
     run.write_config(config)
     tr.new_model(run, config).save(run.path / "model.zip")
