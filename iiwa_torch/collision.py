@@ -841,7 +841,8 @@ def capsule_clearance(
     the minimum over every checked pair it is in (a self pair counts for both of its capsules);
     one in no pair gets ``inf`` and a zero gradient. For controllers that keep each link clear
     (e.g. a velocity damper: ``gradient[k] . dq >= -xi (distance[k] - d_safe)``). Neither output
-    is differentiable further."""
+    is differentiable further. The gradient is autograd's, but for one CPU configuration with no
+    obstacle but the floor the closed form in Python floats (:func:`_capsule_clearance_floats`)."""
     world, capsules = _resolve(chain, q, world, capsules)
     if q.numel() == chain.n_joints and q.is_cpu and not world.tensors():  # one configuration, floor and self
         distance, gradient = _capsule_clearance_floats(chain, q, world.floor, capsules)

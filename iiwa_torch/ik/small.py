@@ -10,6 +10,8 @@ convergence checks and choice of answer, with the end pose and Jacobian of
 :func:`~iiwa_torch.kinematics.pose_jacobian_numpy`. A torch op costs several microseconds
 however small its tensors, a numpy op about one, and an iteration takes a few dozen ops.
 The layout is batch first: ``(slots, ...)``, a slot being one seed of one problem.
+:func:`track_small` runs the gradient method of :func:`~iiwa_torch.trajectory.track` (one
+such solve per pose) in one call.
 """
 
 from __future__ import annotations
