@@ -4,6 +4,7 @@ and what came."""
 from __future__ import annotations
 
 import math
+from itertools import chain
 
 import numpy as np
 import torch
@@ -15,7 +16,12 @@ def all_finite(x: torch.Tensor | np.ndarray) -> bool:
     elementwise test runs only when the sum is not finite (a NaN/inf, or an overflow of huge
     finite values)."""
     if (x.size if isinstance(x, np.ndarray) else x.numel()) <= 64:
-        return all(map(math.isfinite, x.reshape(-1).tolist()))
+        values = x.tolist()
+        if not x.ndim:
+            return math.isfinite(values)
+        for _ in range(x.ndim - 1):  # nested lists, flattened: cheaper than the tolist of a reshape
+            values = chain.from_iterable(values)
+        return all(map(math.isfinite, values))
     if isinstance(x, np.ndarray):
         return bool(np.isfinite(x).all())
     return math.isfinite(x.detach().sum()) or bool(torch.isfinite(x).all())

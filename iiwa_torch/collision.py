@@ -96,13 +96,19 @@ def _dot(u, v) -> float:
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
-def _segment_gap_floats(p1, d1, p2, d2) -> float:
-    """:func:`_segment_gap` of one pair of segments, 3-tuples of Python floats."""
+def _segment_closest_floats(p1, d1, p2, d2) -> tuple[float, float, tuple[float, float, float]]:
+    """The closest points of one pair of segments ``p1 + s d1``, ``p2 + t d2`` (3-tuples of Python
+    floats) as in :func:`_segment_gap`: ``s``, ``t`` and the vector ``w`` between them (first minus second)."""
     r = (p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2])
     s, t = _closest_parameters(_dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r),
                                _choose, _unit_float, _quotient)
-    w0, w1, w2 = r[0] + s * d1[0] - t * d2[0], r[1] + s * d1[1] - t * d2[1], r[2] + s * d1[2] - t * d2[2]
-    return math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    return s, t, (r[0] + s * d1[0] - t * d2[0], r[1] + s * d1[1] - t * d2[1], r[2] + s * d1[2] - t * d2[2])
+
+
+def _segment_gap_floats(p1, d1, p2, d2) -> float:
+    """:func:`_segment_gap` of one pair of segments, 3-tuples of Python floats."""
+    w = _segment_closest_floats(p1, d1, p2, d2)[2]
+    return math.sqrt(_dot(w, w))
 
 
 def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
@@ -835,8 +841,14 @@ def capsule_clearance(
     the minimum over every checked pair it is in (a self pair counts for both of its capsules);
     one in no pair gets ``inf`` and a zero gradient. For controllers that keep each link clear
     (e.g. a velocity damper: ``gradient[k] . dq >= -xi (distance[k] - d_safe)``). Neither output
-    is differentiable further."""
+    is differentiable further. The gradient is autograd's, but for one CPU configuration with no
+    obstacle but the floor the closed form in Python floats (:func:`_capsule_clearance_floats`)."""
     world, capsules = _resolve(chain, q, world, capsules)
+    if q.numel() == chain.n_joints and q.is_cpu and not world.tensors():  # one configuration, floor and self
+        distance, gradient = _capsule_clearance_floats(chain, q, world.floor, capsules)
+        dtype = np.float32 if q.dtype == torch.float32 else np.float64
+        return (torch.from_numpy(np.array(distance, dtype=dtype).reshape(*q.shape[:-1], -1)),
+                torch.from_numpy(np.array(gradient, dtype=dtype).reshape(*q.shape[:-1], -1, chain.n_joints)))
     with torch.enable_grad():
         x = q.detach().requires_grad_(True)
         d = pairwise_clearance(chain, x, world, capsules)
@@ -851,6 +863,55 @@ def capsule_clearance(
         (gradient,) = torch.autograd.grad(distance, x, one_hot.expand(k, *distance.shape), is_grads_batched=True,
                                           allow_unused=True, materialize_grads=True)
     return distance.detach(), gradient.movedim(0, -2)
+
+
+def _capsule_clearance_floats(
+    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
+) -> tuple[list[float], list[list[float]]]:
+    """:func:`capsule_clearance` of one CPU configuration against the floor and itself, in Python
+    floats: each capsule's distance ``K`` (m) and gradient ``K x n`` (m/rad). A distance is ``|w| - r``
+    at the closest points ``x, y`` (``w = x - y``) or ``x_z - floor - r`` at the lower end point; by
+    the envelope theorem its gradient is ``u . (dx/dq - dy/dq)`` (``u = w / |w|``, or ``e_z``), each
+    point fixed in its capsule's frame, so ``dx/dq_j = z_j x (x - p_j)`` over the joints that move that
+    frame (the same value the autograd of the batched formulas gives)."""
+    n, table = chain.n_joints, capsules._float_table()
+    frames = kin.frames_floats(chain.geometry(), q)  # the base, then the link frames
+    start, direction = _capsule_ends_floats(frames, capsules)
+    axis = 1 if chain.geometry().modified else 0  # joint j turns about frame j's z (standard DH) or frame j + 1's
+    axes = [frames[j + axis][2:] for j in range(n)]
+    frame_of = [f for f, _, _ in table["points"]]
+    best: list[tuple[float, list[float]]] = [(math.inf, [0.0] * n)] * len(frame_of)
+
+    def along(k: int, point, u) -> list[float]:
+        """``u . d point / dq`` for a point fixed in capsule ``k``'s frame."""
+        out = [0.0] * n
+        for j in range(frame_of[k]):
+            (z0, z1, z2), (p0, p1, p2) = axes[j]
+            l0, l1, l2 = point[0] - p0, point[1] - p1, point[2] - p2
+            out[j] = u[0] * (z1 * l2 - z2 * l1) + u[1] * (z2 * l0 - z0 * l2) + u[2] * (z0 * l1 - z1 * l0)
+        return out
+
+    def offer(k: int, distance: float, gradient: list[float]) -> None:
+        if distance < best[k][0]:
+            best[k] = (distance, gradient)
+
+    for (i, j), r in zip(capsules.pairs, table["pair_radius"]):
+        (a, da), (b, db) = (start[i], direction[i]), (start[j], direction[j])
+        s, t, w = _segment_closest_floats(a, da, b, db)
+        norm = math.sqrt(_dot(w, w))
+        u = (w[0] / norm, w[1] / norm, w[2] / norm) if norm > 0 else (0.0, 0.0, 0.0)
+        x = (a[0] + s * da[0], a[1] + s * da[1], a[2] + s * da[2])
+        y = (b[0] + t * db[0], b[1] + t * db[1], b[2] + t * db[2])
+        gradient = [gx - gy for gx, gy in zip(along(i, x, u), along(j, y, u))]
+        offer(i, norm - r, gradient)
+        offer(j, norm - r, gradient)
+    if floor is not None:
+        for k, r in table["floor"]:
+            a, d = start[k], direction[k]
+            end = (a[0] + d[0], a[1] + d[1], a[2] + d[2])
+            low = a if a[2] <= end[2] else end
+            offer(k, low[2] - (r + floor), along(k, low, (0.0, 0.0, 1.0)))
+    return [d for d, _ in best], [g for _, g in best]
 
 
 def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bool:

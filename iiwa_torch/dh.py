@@ -123,6 +123,7 @@ class DHChain(nn.Module):
             raise TypeError(f"name must be a string, got {name!r}")
         self.name = name
         self.joint_names = tuple(names)
+        self._q_shape = f"(..., {n})"  # the shape check_q names
         self.register_buffer("dh", dh)
         self.register_buffer("limits", lim)
         self.register_buffer("base", _as_matrix(base, "base"))
@@ -197,12 +198,13 @@ class DHChain(nn.Module):
         float64 tensor on this chain's device, with data (not ``meta``), outside ``torch.func.vmap``
         (batch with leading dimensions instead: every method takes ``(..., n)``)."""
         n = self.n_joints
-        check_float_tensor(q, name, f"(..., {n})")
+        check_float_tensor(q, name, self._q_shape)
         if q.ndim == 0 or q.shape[-1] != n:
-            raise ValueError(f"{name} must have shape (..., {n}), got {tuple(q.shape)}")
-        if not (q.is_cpu and self.dh.is_cpu) and q.device != self.dh.device:  # is_cpu: no device object built
+            raise ValueError(f"{name} must have shape {self._q_shape}, got {tuple(q.shape)}")
+        dh = self._buffers["dh"]  # not self.dh: nn.Module's attribute lookup of a buffer costs a third of this check
+        if not (q.is_cpu and dh.is_cpu) and q.device != dh.device:  # is_cpu: no device object built
             raise ValueError(
-                f"{name} is on {q.device} but the chain is on {self.dh.device}; use chain.to({str(q.device)!r})"
+                f"{name} is on {q.device} but the chain is on {dh.device}; use chain.to({str(q.device)!r})"
             )
         check_finite(q, name)
 

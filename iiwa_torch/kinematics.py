@@ -505,10 +505,8 @@ def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
     same recursion compiled (:func:`iiwa_torch.compiled.numba_kernels.end_pose`) when enabled; not checked.
     For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
     tensor outside autograd. Its latency is a fraction of any torch kernel's."""
-    kernels = _compiled()
-    if kernels is not None:
-        pose = kernels.end_pose(*g.float_arrays, _float64(q))
-        return torch.from_numpy(pose.astype(_NUMPY_DTYPES[q.dtype], copy=False).reshape(*q.shape[:-1], 4, 4))
+    if compiled.ENABLED:
+        return _from_one(compiled.kernels().end_pose(*g.float_arrays, _float64(q)), q)
     (x, y, z, p), _ = _frames_floats(g, q, keep_axes=False)
     rows = [x[0], y[0], z[0], p[0], x[1], y[1], z[1], p[1], x[2], y[2], z[2], p[2], 0.0, 0.0, 0.0, 1.0]
     return torch.from_numpy(np.array(rows, dtype=_NUMPY_DTYPES[q.dtype]).reshape(*q.shape[:-1], 4, 4))
@@ -518,10 +516,8 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
     :func:`jacobian`, computed in Python floats (or compiled: :func:`iiwa_torch.compiled.numba_kernels.jacobian`),
     not checked; for :func:`floats_ok` inputs. Column i is ``[z_i x (p_e - p_i); z_i]``."""
-    kernels = _compiled()
-    if kernels is not None:
-        out = kernels.jacobian(*g.float_arrays, _float64(q)).astype(_NUMPY_DTYPES[q.dtype], copy=False)
-        return torch.from_numpy(out.reshape(*q.shape[:-1], 6, g.n_joints))
+    if compiled.ENABLED:
+        return _from_one(compiled.kernels().jacobian(*g.float_arrays, _float64(q)), q)
     (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q, keep_axes=True)
     columns = []
     for (z0, z1, z2), (p0, p1, p2) in axes:
@@ -531,14 +527,17 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
 
 
-def _compiled():
-    """The compiled kernels (:func:`iiwa_torch.compiled.kernels`) if enabled, else None."""
-    return compiled.kernels() if compiled.ENABLED else None
-
-
 def _float64(q: Tensor) -> np.ndarray:
     """A CPU tensor's values as a flat float64 numpy array (a view when they already are)."""
     return (q.detach() if q.requires_grad else q).numpy().reshape(-1).astype(np.float64, copy=False)
+
+
+def _from_one(out: np.ndarray, q: Tensor) -> Tensor:
+    """A compiled kernel's float64 result ``out (...)`` for one configuration ``q (..., n)`` -> a
+    tensor in ``q``'s dtype with ``q``'s leading dims (all 1) in front (indexing: cheaper than a reshape)."""
+    if q.dtype != torch.float64:
+        out = out.astype(np.float32)
+    return torch.from_numpy(out[(None,) * (q.ndim - 1)])
 
 
 def floats_ok(q: Tensor) -> bool:

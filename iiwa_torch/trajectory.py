@@ -48,6 +48,7 @@ Profile = Literal["linear", "quintic"]
 
 _PEAK_SPEED = 15 / 8  # peak of d/ds (10 s^3 - 15 s^4 + 6 s^5), at s = 1/2
 _LOG_STEPS, _ZOOM_STEPS, _ZOOMS = 24, 9, 3  # analytic tracking: arm-angle offsets 1e-6..pi either side, then zooms
+_TRACK_ITERATIONS = 50  # LM iterations of the gradient method at each pose
 _BRANCH_FIELDS = ("q", "valid", "reachable", "within_limits", "clearance", "collision_free")
 
 
@@ -322,16 +323,23 @@ def track(
             f"the batch shapes of poses {tuple(poses.shape)} (..., T, 4, 4) and q0 {tuple(q0.shape)} (..., n) "
             "do not broadcast"
         ) from None
-    if method == "gradient":
-        step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain, world, margin, capsules)
+    from .ik import small
+
+    if method == "gradient" and batch == poses.shape[:-3] and small.applies(poses, q0, q0, world, batch.numel()):
+        # a few CPU paths: every step of the loop below in one call, the same answers
+        q = small.track_small(chain, poses, q0, pos_tol=pos_tol, rot_tol=rot_tol, rest_gain=rest_gain,
+                              iterations=_TRACK_ITERATIONS)
     else:
-        step = _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules)
-    q_prev = q0.to(poses.dtype)
-    qs = []
-    for k in range(poses.shape[-3]):  # sequential by nature: each step starts from the last
-        q_prev = step(poses[..., k, :, :], q_prev)
-        qs.append(q_prev)
-    q = torch.stack(qs, -2)  # (..., T, n)
+        if method == "gradient":
+            step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain, world, margin, capsules)
+        else:
+            step = _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules)
+        q_prev = q0.to(poses.dtype)
+        qs = []
+        for k in range(poses.shape[-3]):  # sequential by nature: each step starts from the last
+            q_prev = step(poses[..., k, :, :], q_prev)
+            qs.append(q_prev)
+        q = torch.stack(qs, -2)  # (..., T, n)
     pos_vec, rot_vec = so3.pose_error(chain.fk(q), poses)
     pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
     steps = q.diff(dim=-2).abs().amax(-1)  # (..., T - 1)
@@ -368,7 +376,7 @@ def _gradient_stepper(
             pos_tol=pos_tol,
             rot_tol=rot_tol,
             seeds=1,
-            iterations=50,
+            iterations=_TRACK_ITERATIONS,
             rest=q0.to(pose.dtype),
             rest_gain=rest_gain,
             world=world,

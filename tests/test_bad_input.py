@@ -604,3 +604,21 @@ def test_good_input_runs_and_is_finite(key):
 def test_vmap_gets_a_clear_error(fn, arg):
     with pytest.raises(TypeError, match=r"batched by torch.func.vmap.*leading dimensions"):
         torch.func.vmap(fn)(arg)
+
+
+@pytest.mark.parametrize("shape", [(), (7,), (1, 7), (2, 1, 3), (8, 8), (65,)])
+def test_all_finite_finds_every_non_finite_element(shape):
+    """checks.all_finite, which every input check reads, against numpy's isfinite: one NaN or inf
+    at each position of tensors and arrays of every rank (small ones are read in Python)."""
+    from iiwa_torch.checks import all_finite
+
+    n = math.prod(shape)
+    for index in range(n):
+        for bad in (math.nan, math.inf, -math.inf):
+            x = np.arange(n, dtype=np.float64)
+            x[index] = bad
+            x = x.reshape(shape)
+            assert all_finite(x) is bool(np.isfinite(x).all()) is False
+            assert all_finite(torch.from_numpy(x)) is False
+    clean = np.ones(shape)
+    assert all_finite(clean) and all_finite(torch.from_numpy(clean)) and all_finite(torch.from_numpy(clean).float())

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import robots
+from iiwa_torch import robots, so3
 from iiwa_torch.collision import (
     Capsules,
     World,
@@ -585,3 +585,49 @@ def test_a_capsule_in_no_pair_reads_inf_with_a_zero_gradient():
     distance, gradient = capsule_clearance(chain, q, no_floor, caps)
     assert math.isinf(distance[1]) and not gradient[1].any()
     assert distance[0] == distance[2] == clearance(chain, q, no_floor, caps)
+
+
+def _modified_arm():
+    """A modified-DH arm (the lrmate's table) on a tilted base, with capsules of its own."""
+    base = torch.eye(4, dtype=torch.float64)
+    base[:3, :3] = so3.exp(torch.tensor([0.2, -0.1, 0.4], dtype=torch.float64))
+    base[:3, 3] = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    chain = robots.lrmate200ic().__class__(robots.lrmate200ic().dh, convention="modified", base=base, name="mod")
+    caps = Capsules.build(chain, ["base", "upper", "fore", "wrist"], [0, 2, 3, 6],
+                          [[[0, 0, 0], [0, 0, 0.3]], [[0.3, 0, 0], [0, 0, 0]], [[0, 0, 0], [0.2, 0, 0.4]],
+                           [[0, 0, -0.1], [0, 0, 0.05]]], [0.1, 0.07, 0.06, 0.05],
+                          pairs=((0, 2), (0, 3), (1, 3)), floor=[False, True, True, True], floor_height=0.0)
+    return chain, caps
+
+
+@pytest.mark.parametrize("arm", ["iiwa14", "puma560", "lrmate200ic", "modified"])
+def test_capsule_clearance_of_one_configuration_matches_the_batched_autograd(arm):
+    """One CPU configuration against the floor and itself takes the closed-form gradient in Python
+    floats: equal to the batched call's autograd (two configurations per call) to rounding, and to
+    central finite differences of its own distances; float32 too. Configurations where two capsule
+    axes cross (a zero segment gap: no gradient there, either path's direction is rounding) are left out."""
+    if arm == "modified":
+        chain, caps = _modified_arm()
+    else:
+        chain = getattr(robots, arm)()
+        caps = robot_capsules(chain)
+    q = chain.random_q(40, generator=torch.Generator().manual_seed(3))
+    d_batch, g_batch = capsule_clearance(chain, q.view(20, 2, -1), capsules=caps)
+    d_batch, g_batch = d_batch.reshape(40, -1), g_batch.reshape(40, -1, chain.n_joints)
+    radii = caps.radii.tolist()
+    gaps = pairwise_clearance(chain, q, World(floor=None), caps).distance  # the self pairs
+    gaps = gaps + torch.tensor([radii[a] + radii[b] for a, b in caps.pairs], dtype=torch.float64)
+    generic = (gaps > 1e-6).all(-1).nonzero().squeeze(-1).tolist()
+    assert len(generic) >= 30
+    h = 1e-6
+    for i in generic:
+        distance, gradient = capsule_clearance(chain, q[i], capsules=caps)
+        torch.testing.assert_close(distance, d_batch[i], rtol=0, atol=1e-14)
+        torch.testing.assert_close(gradient, g_batch[i], rtol=0, atol=1e-13)
+        step = h * torch.eye(chain.n_joints, dtype=torch.float64)
+        fd = (capsule_clearance(chain, q[i] + step, capsules=caps)[0]
+              - capsule_clearance(chain, q[i] - step, capsules=caps)[0]) / (2 * h)  # (n, K) from the batched path
+        torch.testing.assert_close(gradient, fd.T, rtol=0, atol=1e-6)
+        d32, g32 = capsule_clearance(chain, q[i : i + 1].float(), capsules=caps)
+        assert d32.dtype == g32.dtype == torch.float32 and d32.shape == (1, len(caps.names))
+        torch.testing.assert_close(g32[0].double(), gradient, rtol=0, atol=1e-5)

@@ -174,6 +174,25 @@ def test_velocity_damper_is_the_qp_solution():
     torch.testing.assert_close(far, dq0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_hildreth_numpy_path_equals_the_torch_path(dtype):
+    """A few rows without autograd iterate in numpy; with requires_grad (or more rows) in torch: the
+    same answers to the rounding of the sums, and the torch path's gradients still flow."""
+    from train.features import NUMPY_ROWS, hildreth
+
+    rng = np.random.default_rng(7)
+    for rows in (1, 2, NUMPY_ROWS):
+        x, normal, scaled = (torch.as_tensor(rng.normal(size=shape), dtype=dtype)
+                             for shape in ((rows, 7), (rows, 4, 7), (rows, 4, 7)))
+        scaled = normal + 0.1 * scaled  # a metric near the Euclidean one
+        bound = torch.as_tensor(rng.normal(size=(rows, 4)), dtype=dtype)
+        fast = hildreth(x, normal, scaled, bound)
+        leaf = x.clone().requires_grad_(True)
+        slow = hildreth(leaf, normal, scaled, bound)
+        assert slow.requires_grad and not fast.requires_grad and fast.dtype == dtype
+        torch.testing.assert_close(fast, slow.detach(), rtol=0, atol=1e-12 if dtype == torch.float64 else 1e-5)
+
+
 def test_avoidance_needs_the_clearance_rows():
     with pytest.raises(ValueError, match="observe_clearance=True"):
         JointGoalExtractor(_space(), max_step=MAX_STEP, avoidance={"xi": 0.3, "safe": 0.02, "influence": 0.15})

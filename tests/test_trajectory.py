@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import robots, so3
+from iiwa_torch import compiled, robots, so3
+from iiwa_torch.ik import solve
 from iiwa_torch.trajectory import ctraj, jtraj, sampled_duration, shortest_duration, track
 
 F64 = torch.float64
@@ -228,6 +229,46 @@ def test_track_batched_paths(arm):
     for i in range(3):
         single = track(arm, path[i], q0[i], method="gradient")
         torch.testing.assert_close(single.q, res.q[i], rtol=0, atol=1e-9)
+
+
+def _solve_per_pose(arm, path, q0, pos_tol=1e-7, rot_tol=1e-6, rest_gain=0.0):
+    """The gradient method as one ik.solve per pose, each from the last answer (q0 first)."""
+    q, out = q0.to(path.dtype), []
+    for k in range(path.shape[-3]):
+        q = solve(arm, path[..., k, :, :], q, pos_tol=pos_tol, rot_tol=rot_tol, seeds=1, iterations=50,
+                  rest=q0.to(path.dtype), rest_gain=rest_gain).q
+        out.append(q)
+    return torch.stack(out, -2)
+
+
+@pytest.mark.parametrize("compiled_on", [True, False])
+@pytest.mark.parametrize(
+    "case",
+    ["one line", "three lines", "rest gain", "float32", "loose tolerances", "q0 outside the limits"],
+)
+def test_track_small_path_equals_one_solve_per_pose(arm, monkeypatch, case, compiled_on):
+    """A few CPU paths take the whole loop in one call (ik.small.track_small): the answers of one
+    ik.solve per pose (the loop it replaces), bit for bit, and of the batched torch loop that a
+    q0 requiring grad takes, to rounding."""
+    if not compiled_on:
+        monkeypatch.setattr(compiled, "ENABLED", False)
+    gen = torch.Generator().manual_seed(5)
+    batch = (3,) if case == "three lines" else ()
+    q0 = Q_START + 0.2 * torch.randn(*batch, 7, generator=gen, dtype=F64)
+    if case == "q0 outside the limits":
+        q0[6] = 3.1  # beyond joint 7's 175 deg: solve shifts or clamps it into the limits
+    path = _line(arm, q0, [0.05, -0.08, 0.06], 25)
+    options = {"rest gain": {"rest_gain": 0.3}, "loose tolerances": {"pos_tol": 1e-4, "rot_tol": 1e-3}}.get(case, {})
+    if case == "float32":
+        path, q0 = path.float(), q0.float()
+    res = track(arm, path, q0, **options)
+    expected = _solve_per_pose(arm, path, q0, **options)
+    assert res.q.dtype == path.dtype and res.q.shape == (*batch, 25, 7)
+    torch.testing.assert_close(res.q, expected, rtol=0, atol=0)
+    torch_loop = track(arm, path, q0.clone().requires_grad_(True), **options)
+    torch.testing.assert_close(res.q, torch_loop.q, rtol=0, atol=1e-5 if case in ("float32", "loose tolerances")
+                               else 1e-9)  # fmt: skip
+    torch.testing.assert_close(res.pos_err, torch_loop.pos_err, rtol=0, atol=1e-5)
 
 
 @pytest.mark.parametrize("method", ["gradient", "analytic"])

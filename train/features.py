@@ -15,13 +15,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+import numpy as np
 import torch
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from envs.goals import decode_pose_goal
 from iiwa_torch import so3
-from iiwa_torch.ik.dls import dls_step, dls_step_batch_last
+from iiwa_torch.ik.dls import dls_step_batch_last
 
 
 class GoalDeltaExtractor(BaseFeaturesExtractor):
@@ -53,19 +54,34 @@ class GoalDeltaExtractor(BaseFeaturesExtractor):
         return torch.cat([observations["observation"], achieved, desired, scaled], dim=-1)
 
 
+NUMPY_ROWS = 16  # hildreth: up to this many rows on the CPU with nothing to differentiate, in numpy
+
+
 def hildreth(x: torch.Tensor, normal: torch.Tensor, scaled: torch.Tensor, bound: torch.Tensor,
              sweeps: int = 5) -> torch.Tensor:
     """``x (..., n)`` moved as little as possible in a metric ``M`` so that ``normal_k . x >= bound_k``
     for each of K constraints: ``normal (..., K, n)``, ``scaled = M^-1 normal`` (the same for the
     Euclidean metric), ``bound (..., K)``. Hildreth's method: coordinate ascent on the dual, one
     constraint at a time, ``sweeps`` times over (exact after one sweep for one constraint; a zero
-    ``normal`` with a negative bound is a constraint that never acts). Differentiable."""
-    curvature = (normal * scaled).sum(-1).clamp(min=1e-12)  # (..., K)
-    multipliers = [torch.zeros_like(curvature[..., 0])] * normal.shape[-2]  # Lagrange's, >= 0
+    ``normal`` with a negative bound is a constraint that never acts). Differentiable. Up to
+    ``NUMPY_ROWS`` rows on the CPU with nothing to differentiate (one env's policy step) the same
+    formulas run on numpy views, each op a fraction of a torch op's cost (the sums' rounding may
+    differ in the last bit)."""
+    given = (x, normal, scaled, bound)
+    grad = torch.is_grad_enabled() and any(t.requires_grad for t in given)
+    if not grad and all(t.is_cpu for t in given) and x.numel() <= NUMPY_ROWS * x.shape[-1]:
+        return torch.from_numpy(_hildreth(*(t.numpy() for t in given), sweeps, np))
+    return _hildreth(x, normal, scaled, bound, sweeps, torch)
+
+
+def _hildreth(x, normal, scaled, bound, sweeps: int, xp):
+    """:func:`hildreth` on torch tensors or numpy arrays (``xp``: ``torch`` or ``numpy``)."""
+    curvature = (normal * scaled).sum(-1).clip(min=1e-12)  # (..., K)
+    multipliers = [xp.zeros_like(curvature[..., 0])] * normal.shape[-2]  # Lagrange's, >= 0
     for _ in range(sweeps):
         for k, m in enumerate(multipliers):
             change = (bound[..., k] - (normal[..., k, :] * x).sum(-1)) / curvature[..., k]
-            change = torch.maximum(change, -m)  # a constraint can let go, never pull
+            change = xp.maximum(change, -m)  # a constraint can let go, never pull
             multipliers[k] = m + change
             x = x + scaled[..., k, :] * change[..., None]
     return x
@@ -206,13 +222,14 @@ class JointGoalExtractor(GoalDeltaExtractor):
         ``error (B, k)`` -> ``(B, L, nj)``. With ``limit_rounds``, a joint that the step would push past its
         limit is held still and the step solved again without it, up to that many times (the arm's
         other joints then carry the motion, instead of the step being clamped at the limit)."""
-        dq = dls_step(jac.unsqueeze(1), error.unsqueeze(1), self.damping_sq)  # (B, L, nj) rad
+        b, n, m = q.shape[0], self.nj, jac.shape[-2]
+        size = len(self.damping_sq)
+        # dls_step's layout and kernel, unchecked: the inputs are this network's own
+        J = jac.unsqueeze(1).expand(b, size, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, nj, B L)
+        rhs = error.unsqueeze(1).expand(b, size, m).reshape(-1, m).T[:, None]  # (m, 1, B L)
+        damping, tiny = self.damping_sq.repeat(b), torch.finfo(q.dtype).tiny
+        dq = dls_step_batch_last(J, rhs, damping, tiny)[:, 0].T.reshape(b, size, n)  # (B, L, nj) rad
         if self.limit_rounds:
-            b, n, m = q.shape[0], self.nj, jac.shape[-2]
-            size = len(self.damping_sq)
-            J = jac.unsqueeze(1).expand(b, size, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, nj, B L)
-            rhs = error.unsqueeze(1).expand(b, size, m).reshape(-1, m).T[:, None]  # (m, 1, B L)
-            damping = self.damping_sq.repeat(b)
             lower, upper = self.chain.limits.to(q.dtype)
             free = torch.ones_like(dq)
             for _ in range(self.limit_rounds):
@@ -222,8 +239,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
                 if not bool((blocked & (free > 0)).any()):
                     break
                 free = free * ~blocked
-                dq = dls_step_batch_last(J, rhs, damping, torch.finfo(q.dtype).tiny,
-                                         free.reshape(-1, n).T)[:, 0].T.reshape(b, size, n)
+                dq = dls_step_batch_last(J, rhs, damping, tiny, free.reshape(-1, n).T)[:, 0].T.reshape(b, size, n)
         u = dq / self.max_step
         return u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
 

@@ -43,6 +43,7 @@ __all__ = [
     "Optimizer",
     "Precision",
     "broadcast_q",
+    "check_solve_options",
     "clearance_shortfall",
     "ik_result",
     "inner_limits",
@@ -53,6 +54,7 @@ __all__ = [
     "round_width",
     "seed_ranks",
     "solve",
+    "work_dtype",
 ]
 
 Tensor = torch.Tensor
@@ -457,7 +459,7 @@ def solve(
     to optimise through IK.
     """
     check_instance(chain, DHChain, "chain")
-    _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
+    check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
     seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
     check_positive(seeds, "seeds", integer=True)
     batch = _check_target(target, mode, None, None)
@@ -465,8 +467,7 @@ def solve(
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
     _check_world(world, margin, target, batch, capsules)
     dtype, device, n = target.dtype, target.device, chain.n_joints
-    loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
-    work = torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
+    work = work_dtype(dtype, precision, pos_tol, rot_tol)
     flat = target.reshape(-1, *target.shape[len(batch) :])
     rest_flat = None if rest is None or rest_gain == 0 else broadcast_q(rest, chain, batch, "rest", work)
     from . import small  # imports this module, so not at the top
@@ -510,7 +511,14 @@ def solve(
         return result if world is None else _with_clearance(chain, result, world, margin, capsules)
 
 
-def _check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
+def work_dtype(dtype: torch.dtype, precision: str, pos_tol: float, rot_tol: float) -> torch.dtype:
+    """The dtype :func:`solve` iterates in for targets of ``dtype`` (see its ``precision``)."""
+    loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
+    return torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
+
+
+def check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
+    """Raise ``ValueError`` unless :func:`solve`'s options of these names are valid."""
     check_choice(mode, get_args(Mode), "mode")
     for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
         check_positive(value, name)

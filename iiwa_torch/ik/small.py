@@ -10,6 +10,8 @@ convergence checks and choice of answer, with the end pose and Jacobian of
 :func:`~iiwa_torch.kinematics.pose_jacobian_numpy`. A torch op costs several microseconds
 however small its tensors, a numpy op about one, and an iteration takes a few dozen ops.
 The layout is batch first: ``(slots, ...)``, a slot being one seed of one problem.
+:func:`track_small` runs the gradient method of :func:`~iiwa_torch.trajectory.track` (one
+such solve per pose) in one call.
 """
 
 from __future__ import annotations
@@ -29,16 +31,18 @@ from .gradient import (
     LAMBDA0,
     POOL,
     broadcast_q,
+    check_solve_options,
     inner_limits,
     into_limits,
     pool_distance,
     pool_features,
     round_width,
     seed_ranks,
+    work_dtype,
 )
 from .result import IKResult
 
-__all__ = ["COMPILED_BATCH", "SMALL_BATCH", "applies", "batch_limit", "pose_errors", "solve_small"]
+__all__ = ["COMPILED_BATCH", "SMALL_BATCH", "applies", "batch_limit", "pose_errors", "solve_small", "track_small"]
 
 SMALL_BATCH = 64  # up to this many targets per call, solve iterates in numpy
 COMPILED_BATCH = 1024  # with the compiled kernels, up to this many (measured: 1.5x the torch loop at 1,000)
@@ -87,22 +91,29 @@ class _Problems:
     :func:`~iiwa_torch.ik.solve`, and the answers so far: ``q (b, n)``, key ``E (b,)``
     (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``; the
     options again as :func:`iiwa_torch.compiled.numba_kernels.lm_round` takes them
-    (``kernel_options``, ``kernel_counts``)."""
+    (``kernel_options``, ``kernel_counts``). ``work``: the dtype the batched loop would iterate
+    in, which sets the smallest damping and the rounding ``eps``."""
 
-    def __init__(self, chain: DHChain, pos, rot, rest, lo, hi, options: dict, lam_min: float, eps: float):
+    def __init__(self, chain: DHChain, pos, rot, rest, lo, hi, options: dict, work: torch.dtype):
         self.g = chain.geometry(torch.float64)
-        self.pos, self.rot, self.rest, self.lo, self.hi = pos, rot, rest, lo, hi
+        self.rest, self.lo, self.hi = rest, lo, hi
+        lam_min, eps = 1e-12 if work == torch.float64 else 1e-6, torch.finfo(work).eps
         self.weight = float(options["rot_weight"])
         self.rest_gain = options["rest_gain"]
         self.iterations, self.check_every = options["iterations"], options["check_every"]
         self.free_steps = min(FREE_STEPS, self.iterations // 2)
         self.seeds, self.pos_tol, self.rot_tol = options["seeds"], options["pos_tol"], options["rot_tol"]
         self.lam_min, self.eps = lam_min, eps
-        b, n = pos.shape[0], chain.n_joints
-        self.q, self.E, self.used = np.empty((b, n)), np.full(b, np.inf), np.zeros(b, dtype=np.int64)
+        self.q = np.empty((pos.shape[0], chain.n_joints))
+        self.aim(pos, rot)
         self.kernel_options = np.array([self.weight, self.rest_gain, eps, lam_min, LAMBDA0, DAMP_DOWN, DAMP_UP,
                                  self.pos_tol, self.rot_tol])  # fmt: skip
         self.kernel_counts = np.array([self.iterations, self.check_every, self.free_steps, self.seeds])
+
+    def aim(self, pos, rot) -> None:
+        """New targets ``pos (b, 3)``, ``rot (b, 3, 3)`` (or None) for the same problems: no answer yet."""
+        self.pos, self.rot = pos, rot
+        self.E, self.used = np.full(pos.shape[0], np.inf), np.zeros(pos.shape[0], dtype=np.int64)
 
     def evaluate(self, q, pos, rot):
         """``q (s, n)`` and the slots' targets -> weighted Jacobian ``J (s, m, n)``, weighted error
@@ -217,6 +228,11 @@ def _cached(chain: DHChain, dtype: torch.dtype, key, make):
     return entries[key]
 
 
+def _limits(chain: DHChain, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~iiwa_torch.ik.gradient.inner_limits` for ``dtype``, as float64 numpy ``(n,)`` each."""
+    return _cached(chain, dtype, "limits", lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
+
+
 def _pool(chain: DHChain, size: int, generator, work: torch.dtype, mode: str):
     """The seed pool as :func:`~iiwa_torch.ik.solve` draws it (``generator`` None: a fresh one
     seeded with 0) -> the pool ``(size, n)`` in ``work``, its :func:`pool_features` and the
@@ -237,7 +253,7 @@ def solve_small(
     batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
     flat = target.reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
-    lo, hi = _cached(chain, dtype, "limits", lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
+    lo, hi = _limits(chain, dtype)
     first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64).numpy(), lo, hi)
     shift = 0 if first is None else 1
     pool = order = None
@@ -254,8 +270,7 @@ def solve_small(
     pos, rot = (np.ascontiguousarray(flat), None) if mode == "position" else (flat[:, :3, 3].copy(),
                                                                             flat[:, :3, :3].copy())
     rest = None if rest is None else rest.double().numpy()
-    lam_min = 1e-12 if work == torch.float64 else 1e-6
-    problems = _Problems(chain, pos, rot, rest, lo, hi, options, lam_min, torch.finfo(work).eps)
+    problems = _Problems(chain, pos, rot, rest, lo, hi, options, work)
     remaining, next_seed = np.arange(b), 0
     while remaining.size and next_seed < seeds:
         width = round_width(seeds, next_seed, remaining.size)
@@ -284,3 +299,36 @@ def solve_small(
     success, pos_err, rot_err, used = (torch.from_numpy(x.reshape(batch)) for x in (success, pos_err, rot_err,
                                                                                     problems.used))  # fmt: skip
     return IKResult(q_out, success, pos_err, rot_err, used)
+
+
+def track_small(chain: DHChain, poses: torch.Tensor, q0: torch.Tensor, *, pos_tol: float, rot_tol: float,
+                rest_gain: float, iterations: int) -> torch.Tensor:
+    """The gradient method of :func:`~iiwa_torch.trajectory.track` for checked ``poses (..., T, 4, 4)``
+    and ``q0 (..., n)`` of the poses' batch shape that :func:`applies` to: each pose solved as
+    :func:`~iiwa_torch.ik.solve` (here :func:`solve_small`) solves it with the one seed of the
+    previous answer (``q0`` first) and ``rest=q0``, so the same iterations and answers, without
+    each call's checks, set-up and error report -> ``q (..., T, n)`` in the poses' dtype."""
+    check_solve_options("pose", 1.0, pos_tol, rot_tol, iterations, 2, rest_gain, "auto")
+    dtype, n = poses.dtype, chain.n_joints
+    batch, steps = poses.shape[:-3], poses.shape[-3]
+    work = work_dtype(dtype, "auto", pos_tol, rot_tol)
+    flat = poses.reshape(-1, steps, 4, 4).transpose(0, 1).double().numpy()  # (T, b, 4, 4)
+    pos, rot = np.ascontiguousarray(flat[..., :3, 3]), np.ascontiguousarray(flat[..., :3, :3])
+    start = q0.to(dtype)
+    rest = None if rest_gain == 0 else broadcast_q(start, chain, batch, "rest", work).double().numpy()
+    options = {"rot_weight": 1.0, "rest_gain": rest_gain, "iterations": iterations, "check_every": 2, "seeds": 1,
+               "pos_tol": pos_tol, "rot_tol": rot_tol}  # fmt: skip
+    lo, hi = _limits(chain, dtype)
+    problems = _Problems(chain, pos[0], rot[0], rest, lo, hi, options, work)
+    b = pos.shape[1]
+    problem, number = np.arange(b), np.zeros(b, dtype=np.int64)
+    q = np.empty((steps, b, n), dtype=_NUMPY[dtype])
+    previous = broadcast_q(start, chain, batch, "q0", torch.float64).numpy()
+    for k in range(steps):  # sequential by nature: each step starts from the last
+        problems.aim(pos[k], rot[k])
+        first = into_limits(previous, lo, hi)
+        problems.q[:] = first
+        problems.run_round(first, problem, number)
+        q[k] = problems.q
+        previous = q[k].astype(np.float64)
+    return torch.from_numpy(q).transpose(0, 1).reshape(*batch, steps, n)
