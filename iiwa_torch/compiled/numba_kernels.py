@@ -310,3 +310,203 @@ def lm_round(table, base, tool, modified, q, problem, number, pos, rot, rest, lo
                 left -= not active[k]
         if not left:
             break
+
+
+# ---------------------------------------------------------------------- the arm-angle sweep of iiwa_solve
+_TINY = 1e-30  # iiwa_torch.ik.analytic._common._TINY
+
+
+@_inline
+def _safe_atan2(y, x):
+    """Mirrors :func:`iiwa_torch.ik.analytic._common.safe_atan2`."""
+    return math.atan2(y, 1.0 if x * x + y * y < _TINY else x)
+
+
+@_inline
+def _safe_norm2(x, y):
+    """Mirrors :func:`iiwa_torch.ik.analytic._common.safe_norm2`."""
+    return math.sqrt(max(x * x + y * y, _TINY))
+
+
+@_inline
+def _zxzxz_ab(m02, m12, m22, sig_a, sig_b):
+    """The first two angles ``(a, b)`` of branch 0 of a spherical triple, from column 2 of ``M``, and
+    ``(cos a, sin a, cos b, sin b)`` (the flip is ``(a + pi, -b)``). Mirrors
+    :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
+    sb = _safe_norm2(m02, m12)
+    cb = -sig_a * sig_b * m22
+    a = _safe_atan2(sig_b * m12, sig_b * m02)
+    return a, math.atan2(sb, cb), math.cos(a), math.sin(a), cb, sb
+
+
+@_inline
+def _zxzxz_c(ab, m00, m10, m20, sig_a, sig_b):
+    """The third angle ``c`` of branch 0 (the flip: ``c + pi``) from ``ab`` (:func:`_zxzxz_ab`) and
+    column 0 of ``M``. Mirrors :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
+    _, _, ca, sa, cb, sb = ab
+    cos_c = cb * (ca * m00 + sa * m10) + sig_a * sb * m20
+    sin_c = sig_a * sig_b * (sa * m00 - ca * m10)
+    return _safe_atan2(sin_c, cos_c)
+
+
+@_inline
+def _iiwa_pose(rot, sw, d3, d5, sig, tol):
+    """What the closed form takes from one pose: ``rot (3, 3)`` and ``W - S`` ``sw (3,)`` ->
+    ``(dist, c4, s4_abs, theta4 of both elbow branches, reachable, u, v_ref, w_ref)`` (``w_ref``'s
+    third entry is 0). Mirrors the psi-independent part of :func:`iiwa_torch.ik.analytic.srs._closed_form`
+    (``_elbow``, ``_reference``)."""
+    sx, sy, sz = sw[0], sw[1], sw[2]
+    dist = _safe_norm2(_safe_norm2(sx, sy), sz)
+    # _common.triangle(dist, d3, d5, tol)
+    c = (dist * dist - (d3 * d3 + d5 * d5)) / (2 * d3 * d5)
+    reachable = abs(c) <= 1 + tol
+    outer, inner = d3 + d5, abs(d3 - d5)
+    s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
+    c4 = -sig[2] * sig[3] * min(max(c, -1.0), 1.0)
+    s4_abs = math.sqrt(max(s2, _TINY)) / (2 * d3 * d5)
+    ux, uy, uz = sx / dist, sy / dist, sz / dist
+    b = _safe_atan2(uy, ux)
+    cb, sb = math.cos(b), math.sin(b)
+    theta4 = (math.atan2(s4_abs, c4), math.atan2(-s4_abs, c4))
+    return dist, c4, s4_abs, theta4, reachable, (ux, uy, uz), (-uz * cb, -uz * sb, _safe_norm2(ux, uy)), (sb, -cb)
+
+
+@_inline
+def _dot_col(r, rot, col):
+    """``r . rot[:, col]``, summed left to right as :func:`iiwa_torch.ik.analytic.srs._dot`."""
+    return r[0] * rot[0, col] + r[1] * rot[1, col] + r[2] * rot[2, col]
+
+
+@_inline
+def _iiwa_branches(pose, rot, psi, d3, d5, sig, theta):
+    """The DH angles of the 8 branches at arm angle ``psi`` into ``theta (8, 7)``, row
+    ``4 shoulder + 2 elbow + wrist``; ``pose`` from :func:`_iiwa_pose`. Mirrors
+    :func:`iiwa_torch.ik.analytic.srs._closed_form`."""
+    dist, c4, s4_abs, theta4s, _, u, v_ref, w_ref = pose
+    cp, sp = math.cos(psi), math.sin(psi)
+    v0, v1, v2 = cp * v_ref[0] + sp * w_ref[0], cp * v_ref[1] + sp * w_ref[1], cp * v_ref[2] + sp * 0.0
+    n0, n1, n2 = cp * w_ref[0] - sp * v_ref[0], cp * w_ref[1] - sp * v_ref[1], cp * 0.0 - sp * v_ref[2]
+    cos_a = (d3 - sig[2] * sig[3] * d5 * c4) / dist
+    sin_a = d5 * abs(s4_abs) / dist
+    e0, e1, e2 = cos_a * u[0] + sin_a * v0, cos_a * u[1] + sin_a * v1, cos_a * u[2] + sin_a * v2
+    x0, x1, x2 = sin_a * u[0] - cos_a * v0, sin_a * u[1] - cos_a * v1, sin_a * u[2] - cos_a * v2
+    y0, y1, y2 = sig[2] * e0, sig[2] * e1, sig[2] * e2  # y3
+    shoulder = _zxzxz_ab(sig[2] * y0, sig[2] * y1, sig[2] * y2, sig[0], sig[1])  # the same for both elbows
+    t1, t2 = shoulder[0], shoulder[1]
+    for el in range(2):
+        sign = 1.0 if el == 0 else -1.0
+        kappa = sig[2] * sig[3] * sign
+        theta4 = theta4s[el]
+        s4 = s4_abs * sign
+        k3 = sig[2] * kappa
+        a0, a1, a2 = k3 * x0, k3 * x1, k3 * x2  # x3
+        z0, z1, z2 = kappa * n0, kappa * n1, kappa * n2  # z3
+        t3 = _zxzxz_c(shoulder, a0, a1, a2, sig[0], sig[1])
+        # R_04 = R_03 Rz(theta4) Rx(alpha4), then columns 0, 2 of R_04^T R
+        r0 = (c4 * a0 + s4 * y0, c4 * a1 + s4 * y1, c4 * a2 + s4 * y2)
+        r1 = (sig[3] * z0, sig[3] * z1, sig[3] * z2)
+        r2 = (sig[3] * (s4 * a0 - c4 * y0), sig[3] * (s4 * a1 - c4 * y1), sig[3] * (s4 * a2 - c4 * y2))
+        wrist = _zxzxz_ab(_dot_col(r0, rot, 2), _dot_col(r1, rot, 2), _dot_col(r2, rot, 2), sig[4], sig[5])
+        t5, t6 = wrist[0], wrist[1]
+        t7 = _zxzxz_c(wrist, _dot_col(r0, rot, 0), _dot_col(r1, rot, 0), _dot_col(r2, rot, 0), sig[4], sig[5])
+        for sh in range(2):
+            for wr in range(2):
+                row = 4 * sh + 2 * el + wr
+                theta[row, 0] = t1 + math.pi if sh else t1
+                theta[row, 1] = -t2 if sh else t2
+                theta[row, 2] = t3 + math.pi if sh else t3
+                theta[row, 3] = theta4
+                theta[row, 4] = t5 + math.pi if wr else t5
+                theta[row, 5] = -t6 if wr else t6
+                theta[row, 6] = t7 + math.pi if wr else t7
+
+
+@_inline
+def _wrap_joint(theta, offset, lo, hi):
+    """One DH angle -> ``(q, within)``. Mirrors :func:`iiwa_torch.ik.analytic._common.wrap_joints`
+    (and :func:`iiwa_torch.ik.limits.shift_into_limits`)."""
+    turn = 2 * math.pi
+    q = theta - offset if offset else theta
+    q = q - turn * np.rint(q * (1 / turn))
+    inside = lo <= q <= hi
+    if not (hi > math.pi or lo < -math.pi):
+        return q, inside
+    turned = lo + (q - lo) % turn  # Python's float remainder, as np.remainder
+    fits = turned <= hi
+    return (q if inside or not fits else turned), inside or fits
+
+
+@_inline
+def _sq(q, q0, j):
+    return (q[j] - q0[j]) * (q[j] - q0[j])
+
+
+@_inline
+def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, single, theta, q, best_q):
+    """Best of the ``count * 8`` candidates of one pose at the arm angles ``psis[:count]`` into
+    ``best_q (7,)``, clamped into the limits; returns ``(found, psi_best)``. ``limits (7, 7)``: the
+    joints' offsets, lows and highs to check against, mid-points, half-widths, and the limits to
+    clamp into; ``single``: rank in float32. Mirrors :func:`iiwa_torch.ik.analytic.srs._pick`, whose
+    sum of squares it adds in the same order (``_common.reduce_grouped``: joint 4, then 1 + 2, 3,
+    then 5 + 6 + 7)."""
+    pose = _iiwa_pose(rot, sw, d3, d5, sig, tol)
+    reachable = pose[4]
+    best_key, best_found, psi_best = np.inf, False, psis[0]
+    for k in range(count):
+        _iiwa_branches(pose, rot, psis[k], d3, d5, sig, theta)
+        for c in range(8):
+            within = True
+            for j in range(7):
+                q[j], inside = _wrap_joint(theta[c, j], limits[0, j], limits[1, j], limits[2, j])
+                within = within and inside
+            if has_q0:
+                cost = (((_sq(q, q0, 3) + (_sq(q, q0, 0) + _sq(q, q0, 1))) + _sq(q, q0, 2))
+                        + ((_sq(q, q0, 4) + _sq(q, q0, 5)) + _sq(q, q0, 6)))  # fmt: skip
+            else:
+                cost = -np.inf
+                for j in range(7):
+                    cost = max(cost, abs(q[j] - limits[3, j]) - limits[4, j])
+            key = (cost + (0.0 if within else 1e6)) + (0.0 if reachable else 2e6)
+            if single:
+                key = float(np.float32(key))
+            if key < best_key:
+                best_key, best_found, psi_best = key, reachable and within, psis[k]
+                best_q[:] = q
+    for j in range(7):
+        best_q[j] = min(max(best_q[j], limits[5, j]), limits[6, j])
+    return best_found, psi_best
+
+
+@_jit
+def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, limits, single):
+    """:func:`iiwa_torch.ik.analytic.srs._solve_all` for ``rot (B, 3, 3)``, ``sw (B, 3)``, ``q0 (B, 7)``
+    and its arm angles ``psi0 (B,)`` (both 0 rows: none) -> ``q (B, 7)``: per pose the sweep over
+    ``grid (K,)`` (after ``psi0``) and the refining passes ``local (P, 9)`` from the best so far, then,
+    where nothing valid was found, over ``fine_grid`` and ``fine_local`` (``srs._angles``).
+    ``consts``: ``d3, d5``, the six ``sin(alpha)`` and the reach tolerance; ``limits`` as
+    :func:`_iiwa_pick`. Mirrors :func:`iiwa_torch.ik.analytic.srs._sweep`."""
+    b = rot.shape[0]
+    d3, d5, sig, tol = consts[0], consts[1], consts[2:8], consts[8]
+    has_q0 = q0.shape[0] > 0
+    out = np.empty((b, 7))
+    theta, q = np.empty((8, 7)), np.empty(7)
+    psis = np.empty(max(grid.shape[0], fine_grid.shape[0]) + 1)
+    no_q0 = np.empty(7)
+    for p in range(b):
+        q0p = q0[p] if has_q0 else no_q0
+        for attempt in range(2):
+            angles, passes = (grid, local) if attempt == 0 else (fine_grid, fine_local)
+            first = 1 if has_q0 and attempt == 0 else 0  # the retry sweeps without psi0
+            if first:
+                psis[0] = psi0[p]
+            psis[first : first + angles.shape[0]] = angles
+            found, psi_best = _iiwa_pick(rot[p], sw[p], psis, first + angles.shape[0], q0p, has_q0, d3, d5, sig,
+                                         tol, limits, single, theta, q, out[p])  # fmt: skip
+            for r in range(passes.shape[0]):
+                for i in range(passes.shape[1]):
+                    psis[i] = psi_best + passes[r, i]
+                found, psi_best = _iiwa_pick(rot[p], sw[p], psis, passes.shape[1], q0p, has_q0, d3, d5, sig, tol,
+                                             limits, single, theta, q, out[p])  # fmt: skip
+            if found:
+                break
+    return out
