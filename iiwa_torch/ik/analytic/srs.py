@@ -33,6 +33,14 @@ undefined and :func:`iiwa_arm_angle` returns 0), ``SW`` along the base z axis (s
 shoulder or wrist aligned (``sin theta_2 = 0`` or ``sin theta_6 = 0``: only the sum or
 difference of the neighbouring angles is determined; the first is set to 0 there and the
 pose is still reproduced exactly).
+
+Small batches: up to ``SOLVE_NUMPY_BATCH`` CPU poses with nothing to differentiate and no world,
+:func:`iiwa_solve` runs its sweep in numpy (the closed form is written once over ``_common``'s
+array libraries), or up to ``SOLVE_COMPILED_BATCH`` in one compiled call,
+:func:`iiwa_torch.compiled.numba_kernels.iiwa_sweep`, when numba is enabled. That kernel restates
+the closed form, the wrap into the limits, the ranking and the retry as scalar loops (numba cannot
+run the array code); ``tests/test_iiwa_solve_numpy.py`` and ``tests/test_compiled.py`` hold it to
+the numpy and the batched sweep.
 """
 
 from __future__ import annotations
