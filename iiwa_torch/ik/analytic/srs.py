@@ -507,18 +507,20 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
         q = _solve_compiled(setup, rot, sw, q0, psi0, num_psi, dtype)
     else:
         q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
-    q = torch.from_numpy(q).to(dtype)
-    pose = end_pose_matmul(chain.geometry(dtype), q).double().numpy()  # chain.fk's kernel for these
+    out_dtype = np.float32 if dtype == torch.float32 else np.float64
+    q = q.astype(out_dtype, copy=False)
+    pose = end_pose_matmul(chain.geometry(dtype), torch.from_numpy(q)).double().numpy()  # chain.fk's kernel for these
     pos, eps = target[:, :3, 3], torch.finfo(dtype).eps
     if compiled.ENABLED:
         pos_err, rot_err = compiled.kernels().pose_errors(pose, np.ascontiguousarray(pos), np.ascontiguousarray(
             target[:, :3, :3]), eps)  # fmt: skip
     else:
         _, pos_err, _, rot_err = pose_errors(pose, pos, target[:, :3, :3], eps)
-    success = torch.from_numpy((pos_err <= pos_tol) & (rot_err <= rot_tol)).reshape(batch)
-    pos_err, rot_err = (torch.from_numpy(x).to(dtype).reshape(batch) for x in (pos_err, rot_err))
-    iterations = torch.zeros(batch, dtype=torch.int64)
-    return IKResult(q=q.reshape(*batch, 7), success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
+    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    # reshaped in numpy, then wrapped: a torch reshape costs a few numpy ones
+    fields = (q.reshape(*batch, 7), success.reshape(batch), pos_err.astype(out_dtype).reshape(batch),
+              rot_err.astype(out_dtype).reshape(batch), np.zeros(batch, dtype=np.int64))  # fmt: skip
+    return IKResult(*(torch.from_numpy(x) for x in fields))
 
 
 def _solve_compiled(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtype) -> np.ndarray:
