@@ -379,8 +379,10 @@ def _dot_col(r, rot, col):
 
 @_inline
 def _iiwa_branches(pose, rot, psi, d3, d5, sig, theta):
-    """The DH angles of the 8 branches at arm angle ``psi`` into ``theta (8, 7)``, row
-    ``4 shoulder + 2 elbow + wrist``; ``pose`` from :func:`_iiwa_pose`. Mirrors
+    """The DH angles of the 8 branches at arm angle ``psi`` into ``theta (7, 4)``: each joint's
+    distinct values (as the array code holds each joint at the size its branches need), branch
+    ``(s, e, w)`` taking joints 1-2 from column ``s``, joint 3 from ``2 s + e``, joint 4 from ``e``
+    and joints 5-7 from ``2 e + w``; ``pose`` from :func:`_iiwa_pose`. Mirrors
     :func:`iiwa_torch.ik.analytic.srs._closed_form`."""
     dist, c4, s4_abs, theta4s, _, u, v_ref, w_ref = pose
     cp, sp = math.cos(psi), math.sin(psi)
@@ -409,16 +411,16 @@ def _iiwa_branches(pose, rot, psi, d3, d5, sig, theta):
         wrist = _zxzxz_ab(_dot_col(r0, rot, 2), _dot_col(r1, rot, 2), _dot_col(r2, rot, 2), sig[4], sig[5])
         t5, t6 = wrist[0], wrist[1]
         t7 = _zxzxz_c(wrist, _dot_col(r0, rot, 0), _dot_col(r1, rot, 0), _dot_col(r2, rot, 0), sig[4], sig[5])
-        for sh in range(2):
-            for wr in range(2):
-                row = 4 * sh + 2 * el + wr
-                theta[row, 0] = t1 + math.pi if sh else t1
-                theta[row, 1] = -t2 if sh else t2
-                theta[row, 2] = t3 + math.pi if sh else t3
-                theta[row, 3] = theta4
-                theta[row, 4] = t5 + math.pi if wr else t5
-                theta[row, 5] = -t6 if wr else t6
-                theta[row, 6] = t7 + math.pi if wr else t7
+        theta[2, el], theta[2, 2 + el] = t3, t3 + math.pi  # shoulder branch 0, 1
+        theta[3, el] = theta4
+        theta[4, 2 * el], theta[4, 2 * el + 1] = t5, t5 + math.pi  # wrist branch 0, 1
+        theta[5, 2 * el], theta[5, 2 * el + 1] = t6, -t6
+        theta[6, 2 * el], theta[6, 2 * el + 1] = t7, t7 + math.pi
+    theta[0, 0], theta[0, 1] = t1, t1 + math.pi
+    theta[1, 0], theta[1, 1] = t2, -t2
+
+
+_DISTINCT = (2, 2, 4, 2, 4, 4, 4)  # distinct values of each joint over the 8 branches
 
 
 @_inline
@@ -437,41 +439,44 @@ def _wrap_joint(theta, offset, lo, hi):
 
 
 @_inline
-def _sq(q, q0, j):
-    return (q[j] - q0[j]) * (q[j] - q0[j])
-
-
-@_inline
-def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, single, theta, q, best_q):
+def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, single, work, best_q):
     """Best of the ``count * 8`` candidates of one pose at the arm angles ``psis[:count]`` into
     ``best_q (7,)``, clamped into the limits; returns ``(found, psi_best)``. ``limits (7, 7)``: the
     joints' offsets, lows and highs to check against, mid-points, half-widths, and the limits to
-    clamp into; ``single``: rank in float32. Mirrors :func:`iiwa_torch.ik.analytic.srs._pick`, whose
-    sum of squares it adds in the same order (``_common.reduce_grouped``: joint 4, then 1 + 2, 3,
-    then 5 + 6 + 7)."""
+    clamp into; ``single``: rank in float32; ``work``: scratch ``(7, 4)`` arrays for the angles, the
+    wrapped joints, their limit checks and scores. Mirrors :func:`iiwa_torch.ik.analytic.srs._pick`,
+    whose sum of squares it adds in the same order (``_common.reduce_grouped``: joint 4, then 1 + 2,
+    3, then 5 + 6 + 7)."""
+    theta, q, inside, score = work
     pose = _iiwa_pose(rot, sw, d3, d5, sig, tol)
     reachable = pose[4]
     best_key, best_found, psi_best = np.inf, False, psis[0]
     for k in range(count):
         _iiwa_branches(pose, rot, psis[k], d3, d5, sig, theta)
-        for c in range(8):
-            within = True
-            for j in range(7):
-                q[j], inside = _wrap_joint(theta[c, j], limits[0, j], limits[1, j], limits[2, j])
-                within = within and inside
+        for j in range(7):  # each distinct joint value wrapped, checked and scored once
+            for i in range(_DISTINCT[j]):
+                q[j, i], inside[j, i] = _wrap_joint(theta[j, i], limits[0, j], limits[1, j], limits[2, j])
+                if has_q0:
+                    score[j, i] = (q[j, i] - q0[j]) * (q[j, i] - q0[j])
+                else:  # minus the margin to the nearer limit
+                    score[j, i] = abs(q[j, i] - limits[3, j]) - limits[4, j]
+        for c in range(8):  # branch c = 4 s + 2 e + w, in the array code's order
+            a, e = c // 4, (c // 2) % 2  # columns of joints 1-2 and 4 (_iiwa_branches)
+            b, w = 2 * a + e, 2 * e + c % 2  # of joint 3, of joints 5-7
+            within = (inside[0, a] and inside[1, a] and inside[2, b] and inside[3, e] and inside[4, w]
+                      and inside[5, w] and inside[6, w])  # fmt: skip
             if has_q0:
-                cost = (((_sq(q, q0, 3) + (_sq(q, q0, 0) + _sq(q, q0, 1))) + _sq(q, q0, 2))
-                        + ((_sq(q, q0, 4) + _sq(q, q0, 5)) + _sq(q, q0, 6)))  # fmt: skip
+                cost = ((score[3, e] + (score[0, a] + score[1, a])) + score[2, b]) + (
+                    (score[4, w] + score[5, w]) + score[6, w])  # fmt: skip
             else:
-                cost = -np.inf
-                for j in range(7):
-                    cost = max(cost, abs(q[j] - limits[3, j]) - limits[4, j])
+                cost = max(score[0, a], score[1, a], score[2, b], score[3, e], score[4, w], score[5, w], score[6, w])
             key = (cost + (0.0 if within else 1e6)) + (0.0 if reachable else 2e6)
             if single:
                 key = float(np.float32(key))
             if key < best_key:
                 best_key, best_found, psi_best = key, reachable and within, psis[k]
-                best_q[:] = q
+                best_q[0], best_q[1], best_q[2], best_q[3] = q[0, a], q[1, a], q[2, b], q[3, e]
+                best_q[4], best_q[5], best_q[6] = q[4, w], q[5, w], q[6, w]
     for j in range(7):
         best_q[j] = min(max(best_q[j], limits[5, j]), limits[6, j])
     return best_found, psi_best
@@ -489,7 +494,7 @@ def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, li
     d3, d5, sig, tol = consts[0], consts[1], consts[2:8], consts[8]
     has_q0 = q0.shape[0] > 0
     out = np.empty((b, 7))
-    theta, q = np.empty((8, 7)), np.empty(7)
+    work = (np.empty((7, 4)), np.empty((7, 4)), np.empty((7, 4), dtype=np.bool_), np.empty((7, 4)))
     psis = np.empty(max(grid.shape[0], fine_grid.shape[0]) + 1)
     no_q0 = np.empty(7)
     for p in range(b):
@@ -501,12 +506,12 @@ def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, li
                 psis[0] = psi0[p]
             psis[first : first + angles.shape[0]] = angles
             found, psi_best = _iiwa_pick(rot[p], sw[p], psis, first + angles.shape[0], q0p, has_q0, d3, d5, sig,
-                                         tol, limits, single, theta, q, out[p])  # fmt: skip
+                                         tol, limits, single, work, out[p])  # fmt: skip
             for r in range(passes.shape[0]):
                 for i in range(passes.shape[1]):
                     psis[i] = psi_best + passes[r, i]
                 found, psi_best = _iiwa_pick(rot[p], sw[p], psis, passes.shape[1], q0p, has_q0, d3, d5, sig, tol,
-                                             limits, single, theta, q, out[p])  # fmt: skip
+                                             limits, single, work, out[p])  # fmt: skip
             if found:
                 break
     return out
