@@ -67,7 +67,8 @@ class AnalyticSolutions:
 # ``TORCH`` (batched, differentiable, any device) or ``NUMPY`` (arrays on the CPU: the
 # low-overhead path for a few poses, where a torch op's overhead dominates; float64 in
 # ``iiwa_solve``, the target's dtype in ``pieper``). Operators (+, *, /, abs, &, ~, comparisons,
-# indexing, reshape) are the arrays' own; ``tensor`` turns a result into a torch tensor.
+# indexing, reshape) are the arrays' own; ``tensor`` turns a result into a torch tensor, and
+# ``stack_full`` stacks arrays broadcast to a shape.
 TORCH = SimpleNamespace(
     atan2=torch.atan2,
     cos=torch.cos,
@@ -85,6 +86,7 @@ TORCH = SimpleNamespace(
     moveaxis=torch.movedim,
     broadcast_shapes=torch.broadcast_shapes,
     tensor=lambda x: x,
+    stack_full=lambda xs, shape: torch.stack([x.expand(shape) for x in xs]),
     swap=lambda x: x.transpose(-1, -2),
     front=lambda m: m.movedim((-2, -1), (0, 1)).contiguous(),  # (..., r, c) -> (r, c, ...)
     signs=lambda like: torch.tensor([1.0, -1.0], dtype=like.dtype, device=like.device),
@@ -115,7 +117,8 @@ NUMPY = SimpleNamespace(
     full_like=np.full_like,
     moveaxis=np.moveaxis,
     broadcast_shapes=np.broadcast_shapes,
-    tensor=lambda x: torch.from_numpy(x if x.flags.writeable else x.copy()),  # broadcast views are read-only
+    tensor=torch.from_numpy,
+    stack_full=lambda xs, shape: _stack_full(xs, shape),
     swap=lambda x: np.swapaxes(x, -1, -2),
     front=lambda m: np.moveaxis(m, (-2, -1), (0, 1)),
     signs=lambda like: _SIGNS.astype(like.dtype, copy=False),
@@ -134,6 +137,15 @@ NUMPY = SimpleNamespace(
 
 _SIGNS = np.array([1.0, -1.0])
 _SIGNS.flags.writeable = False
+
+
+def _stack_full(xs: list[np.ndarray], shape: tuple) -> np.ndarray:
+    """``(len(xs), *shape)``: the arrays ``xs`` broadcast to ``shape`` and stacked (filled in place:
+    cheaper than ``np.stack`` of ``np.broadcast_to`` views)."""
+    out = np.empty((len(xs), *shape), dtype=np.result_type(*xs))
+    for i, x in enumerate(xs):
+        out[i] = x
+    return out
 
 
 def _put(x: np.ndarray, index, values) -> np.ndarray:
@@ -414,9 +426,8 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
     batch, branches = tuple(shape[:-branch_dims]), math.prod(shape[-branch_dims:])
     # Joint-major memory (each joint's values contiguous, as chain.fk wants them): q is a
     # non-contiguous view; the branch dims flatten without a copy.
-    q = ops.moveaxis(ops.stack([ops.expand(q, shape) for q in qs], 0), 0, -1).reshape(*batch, branches, len(qs))
-    within = ops.expand(within, shape).reshape(*batch, branches)
-    reachable = ops.expand(reachable, shape).reshape(*batch, branches)
+    q = ops.moveaxis(ops.stack_full(qs, shape), 0, -1).reshape(*batch, branches, len(qs))
+    reachable, within = ops.stack_full([reachable, within], shape).reshape(2, *batch, branches)
     q, valid, reachable, within = (ops.tensor(x) for x in (q, reachable & within, reachable, within))
     return AnalyticSolutions(q=q, valid=valid, reachable=reachable, within_limits=within)
 
