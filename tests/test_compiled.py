@@ -157,6 +157,35 @@ def test_iiwa_solve_sweeps_the_same(monkeypatch, with_q0, dtype):
         assert (fast.pos_err - slow.pos_err).abs().max() < tol and fast.success[5:].all()
 
 
+@needs_numba
+@pytest.mark.parametrize("name", ["puma560", "lrmate_base_tool"])
+def test_pieper_branches_are_the_numpy_ones(monkeypatch, name):
+    """The compiled closed form of pieper (numba_kernels.pieper_branches) against the numpy one it
+    restates, on every branch of random, unreachable and wrist-aligned poses: the same flags, joints
+    within 1e-12 rad where rounding does not decide (away from +-pi and the limits). The batched
+    torch path holds both in test_pieper_numpy.py."""
+    chain = robots.puma560() if name == "puma560" else robots.lrmate200ic()
+    if name == "lrmate_base_tool":
+        chain.base.copy_(_tilted(-0.7, (0.1, 0.2, 0.3)))
+        chain.tool.copy_(_tilted(0.2, (0.0, 0.0, 0.1)))
+    q = chain.random_q(60, generator=torch.Generator().manual_seed(13))
+    q[40:, 4] = -chain.dh[4, 3]  # wrist aligned
+    target = chain.fk(q)
+    target[:5, :3, 3] *= 5.0  # out of reach
+    fast, slow = both_ways(monkeypatch, lambda: analytic.pieper(chain, target))
+    for field in ("valid", "reachable", "within_limits"):
+        assert torch.equal(getattr(fast, field), getattr(slow, field)), field
+    assert fast.q.stride() == slow.q.stride() and fast.q.dtype == slow.q.dtype
+    lo, hi = chain.limits
+    clear = ((slow.q.abs() - math.pi).abs() > 1e-9) & ((slow.q - lo).abs() > 1e-9) & ((slow.q - hi).abs() > 1e-9)
+    aligned = torch.zeros_like(clear)
+    aligned[40:] = True  # at sin(theta5) = 0 rounding splits theta4 +- theta6
+    keep = clear.all(-1, keepdim=True) & ~aligned
+    assert keep.float().mean() > 0.5
+    assert (fast.q - slow.q).abs()[keep.expand_as(fast.q)].max() < 1e-12
+    assert slow.reachable[5:].any(-1).all() and not slow.reachable[:5].any()
+
+
 def test_fallback_without_the_kernels(monkeypatch):
     """Switched off, solve, fk and jacobian run the numpy / Python-float paths and still agree with
     the batched torch loop and the torch kernels."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from iiwa_torch import robots
+from iiwa_torch import compiled, robots
 from iiwa_torch.collision import World
 from iiwa_torch.ik import analytic
 from iiwa_torch.ik.analytic import spherical6r
@@ -16,6 +16,16 @@ from iiwa_torch.so3 import exp, pose_error
 
 BATCH = min(64, spherical6r.PIEPER_NUMPY_BATCH)  # poses per call, all on the numpy path
 F64 = torch.float64
+
+
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def kernel(request, monkeypatch):
+    """What runs the small-batch closed form: the compiled kernel, or the numpy code it restates."""
+    if request.param == "compiled" and not compiled.ENABLED:
+        pytest.skip("numba not installed or IIWA_TORCH_NUMBA=0")
+    if request.param == "numpy":
+        monkeypatch.setattr(compiled, "ENABLED", False)
+    return request.param
 
 
 def _gen(seed: int) -> torch.Generator:

@@ -515,3 +515,67 @@ def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, li
             if found:
                 break
     return out
+
+
+# ---------------------------------------------------------------------- the closed form of pieper
+@_jit
+def pieper_branches(frame5, consts, limits):
+    """All 8 branches of :func:`iiwa_torch.ik.analytic.pieper` for ``frame5 = T_05 Rz(theta6)
+    (B, 4, 4)``: ``consts`` ``a1, d1, a2, d2 + d3, L3 = |(a3, d4)|, gamma``, the four ``sin(alpha)``
+    of rows 1, 3, 4, 5 and the reach tolerance, ``limits (3, 6)`` the joints' offsets, lows and
+    highs -> joint angles ``(6, B, 8)`` (joint-major, as the array code lays them out), reachable and
+    within the limits ``(B, 8)``, branch ``4 shoulder + 2 elbow + wrist``. Mirrors
+    :func:`iiwa_torch.ik.analytic.spherical6r._closed_form` (with ``_common.zxzx`` and
+    ``transpose_times``) and :func:`iiwa_torch.ik.analytic._common.finish`."""
+    a1, d1, a2, lateral, link3, gamma = consts[0], consts[1], consts[2], consts[3], consts[4], consts[5]
+    s1, s3, s4, s5, tol = consts[6], consts[7], consts[8], consts[9], consts[10]
+    b = frame5.shape[0]
+    q, reachable, within = np.empty((6, b, 8)), np.empty((b, 8), dtype=np.bool_), np.empty((b, 8), dtype=np.bool_)
+    theta = np.empty(6)
+    for p in range(b):
+        f = frame5[p]
+        wx, wy, wz = f[0, 3], f[1, 3], f[2, 3]
+        r = _safe_norm2(wx, wy)
+        shoulder_ok = r >= abs(lateral) * (1 - tol)
+        along = math.sqrt(max((r - abs(lateral)) * (r + abs(lateral)), _TINY))
+        for sh in range(2):
+            big_x = along * (1.0 if sh == 0 else -1.0)
+            theta[0] = _safe_atan2(wy, wx) - math.atan2(-s1 * lateral, big_x)
+            px, py = big_x - a1, s1 * (wz - d1)
+            # _common.triangle(|(px, py)|, a2, L3, tol)
+            dist = _safe_norm2(px, py)
+            c = (dist * dist - (a2 * a2 + link3 * link3)) / (2 * a2 * link3)
+            elbow_ok = abs(c) <= 1 + tol
+            outer, inner = a2 + link3, abs(a2 - link3)
+            s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
+            c_el = min(max(c, -1.0), 1.0)
+            s_el_abs = math.sqrt(max(s2, _TINY)) / (2 * a2 * link3)
+            ca, sa = math.cos(theta[0]), math.sin(theta[0])
+            for el in range(2):
+                s_el = s_el_abs * (1.0 if el == 0 else -1.0)
+                theta[2] = math.atan2(s_el, c_el) - gamma
+                theta[1] = _safe_atan2(py, px) - _safe_atan2(link3 * s_el, a2 + link3 * c_el)
+                # R_03 = zxzx(theta1, theta2 + theta3, s1, s3); m = columns 0, 2 of R_03^T R
+                t23 = theta[1] + theta[2]
+                cb, sb = math.cos(t23), math.sin(t23)
+                k = s1 * s3
+                r00, r01, r02 = ca * cb, k * sa, s3 * ca * sb
+                r10, r11, r12 = sa * cb, -k * ca, s3 * sa * sb
+                r20, r22 = s1 * sb, -k * cb  # r21 = 0: transpose_times skips it
+                x0, x1, x2, z0, z1, z2 = f[0, 0], f[1, 0], f[2, 0], f[0, 2], f[1, 2], f[2, 2]
+                ab = _zxzxz_ab(r00 * z0 + r10 * z1 + r20 * z2, r01 * z0 + r11 * z1, r02 * z0 + r12 * z1 + r22 * z2,
+                               s4, s5)  # fmt: skip
+                t6 = _zxzxz_c(ab, r00 * x0 + r10 * x1 + r20 * x2, r01 * x0 + r11 * x1, r02 * x0 + r12 * x1 + r22 * x2,
+                              s4, s5)  # fmt: skip
+                for wr in range(2):
+                    branch = 4 * sh + 2 * el + wr
+                    theta[3] = ab[0] + math.pi if wr else ab[0]
+                    theta[4] = -ab[1] if wr else ab[1]
+                    theta[5] = t6 + math.pi if wr else t6
+                    inside = True
+                    for j in range(6):
+                        q[j, p, branch], fits = _wrap_joint(theta[j], limits[0, j], limits[1, j], limits[2, j])
+                        inside = inside and fits
+                    reachable[p, branch] = shoulder_ok and elbow_ok
+                    within[p, branch] = inside
+    return q, reachable, within

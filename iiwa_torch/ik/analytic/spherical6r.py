@@ -31,15 +31,20 @@ so that the pose is still reproduced exactly).
 
 Up to ``PIEPER_NUMPY_BATCH`` poses on the CPU with nothing to differentiate and no world run
 the same closed form in numpy, in the target's dtype (``_common``'s array libraries): a torch
-op's overhead (several microseconds) is most of a small call.
+op's overhead (several microseconds) is most of a small call. float64 ones go through one
+compiled call instead when numba is enabled (:func:`iiwa_torch.compiled.numba_kernels.pieper_branches`,
+which restates the closed form and the wrap into the limits as scalar loops: numba cannot run the
+array code; ``tests/test_pieper_numpy.py`` runs every case both ways).
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
+from ... import compiled
 from ...collision import Capsules, World
 from ...dh import DHChain
 from ._common import (
@@ -106,9 +111,27 @@ def pieper(
         ops, frame5 = NUMPY, last_frame_numpy(chain, target.detach().numpy())
     else:
         ops, frame5 = TORCH, last_frame_target(chain, target)
-    thetas, reachable = _closed_form(rows, frame5, tol, ops)
-    sol = finish(chain, thetas, reachable, branch_dims=3, ops=ops)
+    if ops is NUMPY and compiled.ENABLED and target.dtype == torch.float64:
+        sol = _compiled(chain, rows, frame5, tol)
+    else:
+        thetas, reachable = _closed_form(rows, frame5, tol, ops)
+        sol = finish(chain, thetas, reachable, branch_dims=3, ops=ops)
     return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)
+
+
+def _compiled(chain: DHChain, rows: list[tuple], frame5: np.ndarray, tol: float) -> AnalyticSolutions:
+    """:func:`_closed_form` and :func:`~._common.finish` by
+    :func:`iiwa_torch.compiled.numba_kernels.pieper_branches` for a float64 ``frame5 (..., 4, 4)``."""
+    (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
+    consts = np.array([a1, d1, a2, d2 + d3, math.hypot(a3, d4), math.atan2(-sigma(al3) * d4, a3),
+                       *(sigma(al) for al in (al1, al3, al4, al5)), tol])  # fmt: skip
+    limits = np.array([[row[3] for row in rows], *chain.limits.tolist()])
+    batch = frame5.shape[:-2]
+    q, reachable, within = compiled.kernels().pieper_branches(np.ascontiguousarray(frame5.reshape(-1, 4, 4)),
+                                                              consts, limits)  # fmt: skip
+    q = np.moveaxis(q.reshape(6, *batch, 8), 0, -1)  # joint-major, as finish lays it out
+    reachable, within = reachable.reshape(*batch, 8), within.reshape(*batch, 8)
+    return AnalyticSolutions(*(torch.from_numpy(x) for x in (q, reachable & within, reachable, within)))
 
 
 def _closed_form(rows: list[tuple], frame5, tol: float, ops=TORCH) -> tuple[list, Tensor]:
