@@ -112,14 +112,14 @@ def pieper(
     else:
         ops, frame5 = TORCH, last_frame_target(chain, target)
     if ops is NUMPY and compiled.ENABLED and target.dtype == torch.float64:
-        sol = _compiled(chain, rows, frame5, tol)
+        sol = _solve_compiled(chain, rows, frame5, tol)
     else:
         thetas, reachable = _closed_form(rows, frame5, tol, ops)
         sol = finish(chain, thetas, reachable, branch_dims=3, ops=ops)
     return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)
 
 
-def _compiled(chain: DHChain, rows: list[tuple], frame5: np.ndarray, tol: float) -> AnalyticSolutions:
+def _solve_compiled(chain: DHChain, rows: list[tuple], frame5: np.ndarray, tol: float) -> AnalyticSolutions:
     """:func:`_closed_form` and :func:`~._common.finish` by
     :func:`iiwa_torch.compiled.numba_kernels.pieper_branches` for a float64 ``frame5 (..., 4, 4)``."""
     (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
