@@ -17,7 +17,7 @@ import torch
 
 from iiwa_torch import compiled, robots
 from iiwa_torch.dh import DHChain
-from iiwa_torch.ik import gradient, small, solve
+from iiwa_torch.ik import analytic, gradient, small, solve
 
 needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
 kernels = compiled.kernels() if compiled.ENABLED else None
@@ -134,6 +134,56 @@ def test_solve_takes_the_same_steps(monkeypatch, case):
     assert (fast.q - slow.q).abs().max() < tol
     assert (fast.pos_err - slow.pos_err).abs().max() < tol * 1e-3
     assert fast.success.float().mean() > 0.7
+
+
+@needs_numba
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("with_q0", [False, True])
+def test_iiwa_solve_sweeps_the_same(monkeypatch, with_q0, dtype):
+    """The compiled arm-angle sweep (numba_kernels.iiwa_sweep) against the numpy one it restates: the
+    same answers to rounding, on random poses, unreachable ones and with a single arm angle (most
+    poses then take the retry with 16 angles). The batched torch path holds both in
+    test_iiwa_solve_numpy.py."""
+    chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
+    target, q = _targets(chain, 40, 12, "pose")
+    target[:5, :3, 3] *= 3.0  # out of reach
+    target, q = target.to(dtype), q.to(dtype)
+    for num_psi in (16, 1):
+        q0 = q + 0.05 if with_q0 else None
+        fast, slow = both_ways(monkeypatch, lambda: analytic.iiwa_solve(chain, target, q0, num_psi=num_psi))  # noqa: B023
+        assert torch.equal(fast.success, slow.success) and fast.q.dtype == slow.q.dtype == dtype
+        tol = 1e-5 if dtype == torch.float32 else 1e-12
+        assert (fast.q - slow.q).abs().max() < tol
+        assert (fast.pos_err - slow.pos_err).abs().max() < tol and fast.success[5:].all()
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["puma560", "lrmate_base_tool"])
+def test_pieper_branches_are_the_numpy_ones(monkeypatch, name):
+    """The compiled closed form of pieper (numba_kernels.pieper_branches) against the numpy one it
+    restates, on every branch of random, unreachable and wrist-aligned poses: the same flags, joints
+    within 1e-12 rad where rounding does not decide (away from +-pi and the limits). The batched
+    torch path holds both in test_pieper_numpy.py."""
+    chain = robots.puma560() if name == "puma560" else robots.lrmate200ic()
+    if name == "lrmate_base_tool":
+        chain.base.copy_(_tilted(-0.7, (0.1, 0.2, 0.3)))
+        chain.tool.copy_(_tilted(0.2, (0.0, 0.0, 0.1)))
+    q = chain.random_q(60, generator=torch.Generator().manual_seed(13))
+    q[40:, 4] = -chain.dh[4, 3]  # wrist aligned
+    target = chain.fk(q)
+    target[:5, :3, 3] *= 5.0  # out of reach
+    fast, slow = both_ways(monkeypatch, lambda: analytic.pieper(chain, target))
+    for field in ("valid", "reachable", "within_limits"):
+        assert torch.equal(getattr(fast, field), getattr(slow, field)), field
+    assert fast.q.stride() == slow.q.stride() and fast.q.dtype == slow.q.dtype
+    lo, hi = chain.limits
+    clear = ((slow.q.abs() - math.pi).abs() > 1e-9) & ((slow.q - lo).abs() > 1e-9) & ((slow.q - hi).abs() > 1e-9)
+    aligned = torch.zeros_like(clear)
+    aligned[40:] = True  # at sin(theta5) = 0 rounding splits theta4 +- theta6
+    keep = clear.all(-1, keepdim=True) & ~aligned
+    assert keep.float().mean() > 0.5
+    assert (fast.q - slow.q).abs()[keep.expand_as(fast.q)].max() < 1e-12
+    assert slow.reachable[5:].any(-1).all() and not slow.reachable[:5].any()
 
 
 def test_fallback_without_the_kernels(monkeypatch):

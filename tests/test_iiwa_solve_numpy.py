@@ -1,5 +1,6 @@
 """iiwa_solve's numpy path for small CPU batches against its batched torch path, on the same targets:
-random reachable poses, unreachable ones, poses at joint limits and singular ones, float32 and float64."""
+random reachable poses, unreachable ones, poses at joint limits and singular ones, float32 and float64.
+Every test runs twice: with the compiled sweep (numba; skipped without it) and the numpy one."""
 
 from __future__ import annotations
 
@@ -8,13 +9,23 @@ import math
 import pytest
 import torch
 
-from iiwa_torch import robots
+from iiwa_torch import compiled, robots
 from iiwa_torch.collision import World
 from iiwa_torch.ik import analytic
 from iiwa_torch.ik.analytic import srs
 from iiwa_torch.so3 import exp
 
 BATCH = min(64, srs.SOLVE_NUMPY_BATCH)  # poses per call, all on the numpy path
+
+
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def sweep(request, monkeypatch):
+    """The kernel that runs the small-batch sweep: the compiled one, or the numpy code it restates."""
+    if request.param == "compiled" and not compiled.ENABLED:
+        pytest.skip("numba not installed or IIWA_TORCH_NUMBA=0")
+    if request.param == "numpy":
+        monkeypatch.setattr(compiled, "ENABLED", False)
+    return request.param
 
 
 def _gen(seed: int) -> torch.Generator:
@@ -40,12 +51,12 @@ CHAINS = _chains()
 
 def _batched(chain, target, **kwargs):
     """The batched torch path: the numpy path switched off."""
-    old = srs.SOLVE_NUMPY_BATCH
-    srs.SOLVE_NUMPY_BATCH = 0
+    old = srs.SOLVE_NUMPY_BATCH, srs.SOLVE_COMPILED_BATCH
+    srs.SOLVE_NUMPY_BATCH = srs.SOLVE_COMPILED_BATCH = 0
     try:
         return analytic.iiwa_solve(chain, target, **kwargs)
     finally:
-        srs.SOLVE_NUMPY_BATCH = old
+        srs.SOLVE_NUMPY_BATCH, srs.SOLVE_COMPILED_BATCH = old
 
 
 def _stable(chain, target, kwargs: dict, q_tol: float, ulps: float) -> torch.Tensor:

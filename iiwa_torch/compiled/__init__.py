@@ -1,5 +1,7 @@
 """Optional compiled kernels (numba) for the small-batch CPU paths: one configuration's end pose
-and Jacobian, and the Levenberg-Marquardt rounds of :func:`~iiwa_torch.ik.solve`.
+and Jacobian, the Levenberg-Marquardt rounds of :func:`~iiwa_torch.ik.solve`, the arm-angle
+sweep of :func:`~iiwa_torch.ik.analytic.iiwa_solve` and the closed form of
+:func:`~iiwa_torch.ik.analytic.pieper`.
 
 numba is an optional extra (``pip install iiwa-torch[fast]``). This package only looks for
 it; :func:`kernels` imports numba and the kernels (:mod:`iiwa_torch.compiled.numba_kernels`) on

@@ -15,6 +15,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import operator
+import weakref
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -24,6 +26,7 @@ import torch
 from ...checks import check_finite, check_float_tensor, check_instance
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import Convention, DHChain
+from ...kinematics import floats_ok
 from ...so3 import check_rigid
 from ..limits import shift_into_limits
 
@@ -61,9 +64,11 @@ class AnalyticSolutions:
 
 # ---------------------------------------------------------------- array libraries
 # The closed forms are written once over the few functions they take from their array library:
-# ``TORCH`` (batched, differentiable, any device) or ``NUMPY`` (float64 arrays on the CPU: the
-# low-overhead path of ``iiwa_solve`` for a few poses, where a torch op's overhead dominates).
-# Operators (+, *, /, abs, &, ~, comparisons, indexing) are the arrays' own.
+# ``TORCH`` (batched, differentiable, any device) or ``NUMPY`` (arrays on the CPU: the
+# low-overhead path for a few poses, where a torch op's overhead dominates; float64 in
+# ``iiwa_solve``, the target's dtype in ``pieper``). Operators (+, *, /, abs, &, ~, comparisons,
+# indexing, reshape) are the arrays' own; ``tensor`` turns a result into a torch tensor, and
+# ``stack_full`` stacks arrays broadcast to a shape.
 TORCH = SimpleNamespace(
     atan2=torch.atan2,
     cos=torch.cos,
@@ -77,6 +82,11 @@ TORCH = SimpleNamespace(
     logical_and=torch.logical_and,
     stack=torch.stack,
     cat=torch.cat,
+    full_like=torch.full_like,
+    moveaxis=torch.movedim,
+    broadcast_shapes=torch.broadcast_shapes,
+    tensor=lambda x: x,
+    stack_full=lambda xs, shape: torch.stack([x.expand(shape) for x in xs]),
     swap=lambda x: x.transpose(-1, -2),
     front=lambda m: m.movedim((-2, -1), (0, 1)).contiguous(),  # (..., r, c) -> (r, c, ...)
     signs=lambda like: torch.tensor([1.0, -1.0], dtype=like.dtype, device=like.device),
@@ -104,9 +114,14 @@ NUMPY = SimpleNamespace(
     logical_and=np.logical_and,
     stack=np.stack,
     cat=np.concatenate,
+    full_like=np.full_like,
+    moveaxis=np.moveaxis,
+    broadcast_shapes=np.broadcast_shapes,
+    tensor=torch.from_numpy,
+    stack_full=lambda xs, shape: _stack_full(xs, shape),
     swap=lambda x: np.swapaxes(x, -1, -2),
     front=lambda m: np.moveaxis(m, (-2, -1), (0, 1)),
-    signs=lambda like: _SIGNS,
+    signs=lambda like: _SIGNS.astype(like.dtype, copy=False),
     arange=lambda n, like: np.arange(n, dtype=np.float64),
     linspace=lambda a, b, n, like: np.linspace(a, b, n),
     rows=lambda n, like: np.arange(n),
@@ -122,6 +137,15 @@ NUMPY = SimpleNamespace(
 
 _SIGNS = np.array([1.0, -1.0])
 _SIGNS.flags.writeable = False
+
+
+def _stack_full(xs: list[np.ndarray], shape: tuple) -> np.ndarray:
+    """``(len(xs), *shape)``: the arrays ``xs`` broadcast to ``shape`` and stacked (filled in place:
+    cheaper than ``np.stack`` of ``np.broadcast_to`` views)."""
+    out = np.empty((len(xs), *shape), dtype=np.result_type(*xs))
+    for i, x in enumerate(xs):
+        out[i] = x
+    return out
 
 
 def _put(x: np.ndarray, index, values) -> np.ndarray:
@@ -174,14 +198,14 @@ def reach_tol(dtype: torch.dtype) -> float:
 
 
 # ---------------------------------------------------------------- rotations
-def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float) -> list[list]:
+def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float, ops=TORCH) -> list[list]:
     """Entries ``A[i][k]`` of ``A = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b)`` for ``sin(alpha) =
     sig_a, sig_b = +-1``: tensors broadcast from ``a, b (...)`` (a structural zero is 0.0).
 
     Kept as separate contiguous tensors ("structure of arrays"): products of such matrices
     are then a few elementwise kernels over the batch, with no batched 3x3 product and no
     strided access."""
-    ca, sa, cb, sb = torch.cos(a), torch.sin(a), torch.cos(b), torch.sin(b)
+    ca, sa, cb, sb = ops.cos(a), ops.sin(a), ops.cos(b), ops.sin(b)
     k = sig_a * sig_b
     return [
         [ca * cb, k * sa, sig_b * ca * sb],
@@ -197,7 +221,7 @@ def transpose_times(a: list[list], b: list[list]) -> list[list]:
         row = []
         for j in range(len(b[0])):
             terms = [a[k][i] * b[k][j] for k in range(3) if not (isinstance(a[k][i], float) and a[k][i] == 0.0)]
-            row.append(functools.reduce(torch.add, terms))
+            row.append(functools.reduce(operator.add, terms))
         out.append(row)
     return out
 
@@ -330,17 +354,39 @@ def strip_transforms(chain: DHChain) -> tuple[Tensor, Tensor | None]:
     return flange_inv, torch.linalg.inv(chain.base)
 
 
-# ---------------------------------------------------------------- joint limits
-def joint_angles(chain: DHChain, thetas: list[Tensor]) -> tuple[list[Tensor], Tensor]:
-    """DH angles -> joint angles and whether all are within the limits.
+_NUMPY_STRIPS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # chain.geometry(float64) -> (F, B)
 
-    ``thetas`` holds one tensor per joint, all broadcastable together (a joint that does not
+
+def last_frame_numpy(chain: DHChain, target: np.ndarray) -> np.ndarray:
+    """:func:`last_frame_target` of a numpy ``target (..., 4, 4)``, in its dtype: the transforms of
+    :func:`strip_transforms` cached per chain geometry (rebuilt when the chain's buffers change)."""
+    key = chain.geometry(torch.float64)
+    strips = _NUMPY_STRIPS.get(key)
+    if strips is None:
+        strips = tuple(None if t is None else t.double().numpy() for t in strip_transforms(chain))
+        _NUMPY_STRIPS[key] = strips
+    flange_inv, base_inv = (None if t is None else t.astype(target.dtype, copy=False) for t in strips)
+    return (target if base_inv is None else base_inv @ target) @ flange_inv
+
+
+def numpy_applies(chain: DHChain, size: int, limit: int, *tensors: Tensor) -> bool:
+    """Whether a closed form takes its numpy path: ``1..limit`` poses, and ``tensors`` and the
+    chain's base and tool on the CPU with nothing to differentiate
+    (:func:`~iiwa_torch.kinematics.floats_ok`)."""
+    return 1 <= size <= limit and all(floats_ok(t) for t in (chain.base, chain.tool, *tensors))
+
+
+# ---------------------------------------------------------------- joint limits
+def joint_angles(chain: DHChain, thetas: list[Tensor], ops=TORCH) -> tuple[list[Tensor], Tensor]:
+    """DH angles -> joint angles and whether all are within the limits (arrays of ``ops``).
+
+    ``thetas`` holds one array per joint, all broadcastable together (a joint that does not
     depend on some branch sign has size 1 in that dim, so it is wrapped and checked once, not
     once per branch). Each joint gets its offset removed, is wrapped into ``[-pi, pi]`` and
     then shifted by 2 pi if that brings it within its limits. Returns the joint angles (same
     shapes) and the broadcast ``within`` mask.
     """
-    return wrap_joints(thetas, chain.dh[:, 3].tolist(), *chain.limits.tolist())
+    return wrap_joints(thetas, chain.dh[:, 3].tolist(), *chain.limits.tolist(), ops)
 
 
 def wrap_joints(thetas: list, offsets: list, lows: list, highs: list, ops=TORCH) -> tuple[list, Tensor]:
@@ -368,20 +414,22 @@ def reduce_grouped(op, tensors: list[Tensor]) -> Tensor:
     return functools.reduce(op, sorted(groups.values(), key=lambda t: math.prod(t.shape)))
 
 
-def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int) -> AnalyticSolutions:
-    """DH angles -> :class:`AnalyticSolutions` (see :func:`joint_angles`).
+def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int, ops=TORCH) -> AnalyticSolutions:
+    """DH angles -> :class:`AnalyticSolutions` (see :func:`joint_angles`; arrays of ``ops``, the
+    result in torch tensors).
 
     The joints and ``reachable`` broadcast to a common shape ``(..., b_1, ..., b_m)`` whose
     last ``m = branch_dims`` dims index the branch signs. Returns ``q (..., B, n)``.
     """
-    qs, within = joint_angles(chain, thetas)
-    shape = torch.broadcast_shapes(*(q.shape for q in qs), reachable.shape)
+    qs, within = joint_angles(chain, thetas, ops)
+    shape = ops.broadcast_shapes(*(q.shape for q in qs), reachable.shape)
+    batch, branches = tuple(shape[:-branch_dims]), math.prod(shape[-branch_dims:])
     # Joint-major memory (each joint's values contiguous, as chain.fk wants them): q is a
     # non-contiguous view; the branch dims flatten without a copy.
-    q = torch.stack([q.expand(shape) for q in qs], 0).movedim(0, -1).flatten(-1 - branch_dims, -2)
-    within = within.expand(shape).flatten(-branch_dims)
-    reachable = reachable.expand(shape).flatten(-branch_dims)
-    return AnalyticSolutions(q=q, valid=reachable & within, reachable=reachable, within_limits=within)
+    q = ops.moveaxis(ops.stack_full(qs, shape), 0, -1).reshape(*batch, branches, len(qs))
+    reachable, within = ops.stack_full([reachable, within], shape).reshape(2, *batch, branches)
+    q, valid, reachable, within = (ops.tensor(x) for x in (q, reachable & within, reachable, within))
+    return AnalyticSolutions(q=q, valid=valid, reachable=reachable, within_limits=within)
 
 
 def with_clearance(

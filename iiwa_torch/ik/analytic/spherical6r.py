@@ -28,25 +28,38 @@ Singularities (finite values, documented, not errors): wrist centre on the cylin
 ``atan2(0, 0) = 0``), arm stretched or folded (``theta_3 + gamma`` in ``{0, pi}``), wrist
 aligned (``sin theta_5 = 0``: only ``theta_4 +- theta_6`` is determined; ``theta_4`` is set
 so that the pose is still reproduced exactly).
+
+Up to ``PIEPER_NUMPY_BATCH`` poses on the CPU with nothing to differentiate and no world run
+the same closed form in numpy, in the target's dtype (``_common``'s array libraries): a torch
+op's overhead (several microseconds) is most of a small call. float64 ones go through one
+compiled call instead when numba is enabled (:func:`iiwa_torch.compiled.numba_kernels.pieper_branches`,
+which restates the closed form and the wrap into the limits as scalar loops: numba cannot run the
+array code; ``tests/test_pieper_numpy.py`` runs every case both ways).
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
+from ... import compiled
 from ...collision import Capsules, World
 from ...dh import DHChain
 from ._common import (
     _TINY,
+    NUMPY,
+    TORCH,
     AnalyticSolutions,
     check_chain,
     check_target,
     decompose_zxzxz,
     entries,
     finish,
+    last_frame_numpy,
     last_frame_target,
+    numpy_applies,
     reach_tol,
     safe_atan2,
     safe_norm2,
@@ -57,9 +70,11 @@ from ._common import (
     zxzx,
 )
 
-__all__ = ["pieper"]
+__all__ = ["PIEPER_NUMPY_BATCH", "pieper"]
 
 Tensor = torch.Tensor
+
+PIEPER_NUMPY_BATCH = 512  # up to this many poses per call (CPU, no world, no gradient), pieper runs in numpy
 
 _ROWS = [
     {"perp": True},
@@ -91,39 +106,67 @@ def pieper(
     """
     rows = check_chain(chain, 6, _ROWS, "6R spherical-wrist (Pieper)")
     check_target(chain, target)
+    tol = reach_tol(target.dtype)
+    if world is None and numpy_applies(chain, target.numel() // 16, PIEPER_NUMPY_BATCH, target):
+        ops, frame5 = NUMPY, last_frame_numpy(chain, target.detach().numpy())
+    else:
+        ops, frame5 = TORCH, last_frame_target(chain, target)
+    if ops is NUMPY and compiled.ENABLED and target.dtype == torch.float64:
+        sol = _solve_compiled(chain, rows, frame5, tol)
+    else:
+        thetas, reachable = _closed_form(rows, frame5, tol, ops)
+        sol = finish(chain, thetas, reachable, branch_dims=3, ops=ops)
+    return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)
+
+
+def _solve_compiled(chain: DHChain, rows: list[tuple], frame5: np.ndarray, tol: float) -> AnalyticSolutions:
+    """:func:`_closed_form` and :func:`~._common.finish` by
+    :func:`iiwa_torch.compiled.numba_kernels.pieper_branches` for a float64 ``frame5 (..., 4, 4)``."""
+    (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
+    consts = np.array([a1, d1, a2, d2 + d3, math.hypot(a3, d4), math.atan2(-sigma(al3) * d4, a3),
+                       *(sigma(al) for al in (al1, al3, al4, al5)), tol])  # fmt: skip
+    limits = np.array([[row[3] for row in rows], *chain.limits.tolist()])
+    batch = frame5.shape[:-2]
+    q, reachable, within = compiled.kernels().pieper_branches(np.ascontiguousarray(frame5.reshape(-1, 4, 4)),
+                                                              consts, limits)  # fmt: skip
+    q = np.moveaxis(q.reshape(6, *batch, 8), 0, -1)  # joint-major, as finish lays it out
+    reachable, within = reachable.reshape(*batch, 8), within.reshape(*batch, 8)
+    return AnalyticSolutions(*(torch.from_numpy(x) for x in (q, reachable & within, reachable, within)))
+
+
+def _closed_form(rows: list[tuple], frame5, tol: float, ops=TORCH) -> tuple[list, Tensor]:
+    """The DH angles of every branch from the chain's rows ``(a, alpha, d, offset)`` and
+    ``frame5 = T_05 Rz(theta6) (..., 4, 4)`` (:func:`~._common.last_frame_target`), in the arrays of
+    ``ops`` (``_common``): 6 arrays broadcasting to ``(..., 2 shoulder, 2 elbow, 2 wrist)`` and
+    ``reachable``, broadcastable too."""
     (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
     s1, s3, s4, s5 = sigma(al1), sigma(al3), sigma(al4), sigma(al5)
-    dtype, device = target.dtype, target.device
-    tol = reach_tol(dtype)
-    frame5 = last_frame_target(chain, target)  # T_05 Rz(theta6)
     wx, wy, wz = frame5[..., 0, 3], frame5[..., 1, 3], frame5[..., 2, 3]
 
     # Waist (shoulder branch): Rz(-theta1) w = (X, -s1 D, wz) with X = +-sqrt(r^2 - D^2).
     lateral = d2 + d3
-    r = safe_norm2(wx, wy)
+    r = safe_norm2(wx, wy, ops)
     shoulder_ok = r >= abs(lateral) * (1 - tol)
-    along = ((r - abs(lateral)) * (r + abs(lateral))).clamp_min(_TINY).sqrt()  # sqrt(r^2 - D^2)
-    sign = torch.tensor([1.0, -1.0], dtype=dtype, device=device)
+    along = ops.sqrt(ops.clamp_min((r - abs(lateral)) * (r + abs(lateral)), _TINY))  # sqrt(r^2 - D^2)
+    sign = ops.signs(wx)
     big_x = along[..., None] * sign  # (..., 2)
-    theta1 = safe_atan2(wy, wx)[..., None] - torch.atan2(torch.full_like(big_x, -s1 * lateral), big_x)
+    theta1 = safe_atan2(wy, wx, ops)[..., None] - ops.atan2(ops.full_like(big_x, -s1 * lateral), big_x)
 
     # Shoulder and elbow: planar two-link arm in frame 1's xy plane, second link (a3, -s3 d4).
     px = big_x - a1  # (..., 2)
-    py = (s1 * (wz - d1))[..., None].expand_as(px)
+    py = ops.expand((s1 * (wz - d1))[..., None], px.shape)
     link3 = math.hypot(a3, d4)
     gamma = math.atan2(-s3 * d4, a3)
-    c_el, s_el_abs, elbow_ok = triangle(safe_norm2(px, py), a2, link3, tol)
+    c_el, s_el_abs, elbow_ok = triangle(safe_norm2(px, py, ops), a2, link3, tol, ops)
     s_el = s_el_abs[..., None] * sign  # (..., 2 shoulder, 2 elbow)
-    c_el = c_el[..., None].expand_as(s_el)
-    theta3 = torch.atan2(s_el, c_el) - gamma
-    theta2 = safe_atan2(py, px)[..., None] - safe_atan2(link3 * s_el, a2 + link3 * c_el)
+    c_el = ops.expand(c_el[..., None], s_el.shape)
+    theta3 = ops.atan2(s_el, c_el) - gamma
+    theta2 = safe_atan2(py, px, ops)[..., None] - safe_atan2(link3 * s_el, a2 + link3 * c_el, ops)
 
     # Wrist: R_03^T (R_05 Rz(theta6)) = Rz(theta4) Rx(alpha4) Rz(theta5) Rx(alpha5) Rz(theta6).
-    r03 = zxzx(theta1[..., None], theta2 + theta3, s1, s3)  # entries (..., 2, 2); alpha2 = 0
-    rot = entries(frame5[..., :3, 0:3:2])  # columns 0, 2 of R (per pose)
+    r03 = zxzx(theta1[..., None], theta2 + theta3, s1, s3, ops)  # entries (..., 2, 2); alpha2 = 0
+    rot = entries(frame5[..., :3, 0:3:2], ops)  # columns 0, 2 of R (per pose)
     m = transpose_times(r03, [[v[..., None, None] for v in row] for row in rot])  # R_03^T R
-    theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5)  # (..., 2, 2, 2)
+    theta4, theta5, theta6 = decompose_zxzxz(m, s4, s5, ops)  # (..., 2, 2, 2)
     thetas = [theta1[..., None, None], theta2[..., None], theta3[..., None], theta4, theta5, theta6]
-    reachable = (shoulder_ok[..., None] & elbow_ok)[..., None, None]
-    sol = finish(chain, thetas, reachable, branch_dims=3)
-    return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)
+    return thetas, (shoulder_ok[..., None] & elbow_ok)[..., None, None]

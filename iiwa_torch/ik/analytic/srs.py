@@ -33,6 +33,14 @@ undefined and :func:`iiwa_arm_angle` returns 0), ``SW`` along the base z axis (s
 shoulder or wrist aligned (``sin theta_2 = 0`` or ``sin theta_6 = 0``: only the sum or
 difference of the neighbouring angles is determined; the first is set to 0 there and the
 pose is still reproduced exactly).
+
+Small batches: up to ``SOLVE_NUMPY_BATCH`` CPU poses with nothing to differentiate and no world,
+:func:`iiwa_solve` runs its sweep in numpy (the closed form is written once over ``_common``'s
+array libraries), or up to ``SOLVE_COMPILED_BATCH`` in one compiled call,
+:func:`iiwa_torch.compiled.numba_kernels.iiwa_sweep`, when numba is enabled. That kernel restates
+the closed form, the wrap into the limits, the ranking and the retry as scalar loops (numba cannot
+run the array code); ``tests/test_iiwa_solve_numpy.py`` and ``tests/test_compiled.py`` hold it to
+the numpy and the batched sweep.
 """
 
 from __future__ import annotations
@@ -48,10 +56,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ... import compiled
 from ...checks import check_positive
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
-from ...kinematics import end_pose_matmul, floats_ok, frames_numpy
+from ...kinematics import end_pose_matmul, frames_numpy
 from ...so3 import pose_error
 from ..result import IKResult
 from ..small import pose_errors
@@ -66,13 +75,14 @@ from ._common import (
     decompose_zxzxz,
     entries,
     finish,
+    last_frame_numpy,
     last_frame_target,
+    numpy_applies,
     reach_tol,
     reduce_grouped,
     safe_atan2,
     safe_norm2,
     sigma,
-    strip_transforms,
     transpose_times,
     triangle,
     with_clearance,
@@ -80,11 +90,12 @@ from ._common import (
     zxzx,
 )
 
-__all__ = ["SOLVE_NUMPY_BATCH", "iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
+__all__ = ["SOLVE_COMPILED_BATCH", "SOLVE_NUMPY_BATCH", "iiwa", "iiwa_arm_angle", "iiwa_solve", "iiwa_q3_locked"]
 
 Tensor = torch.Tensor
 
 SOLVE_NUMPY_BATCH = 256  # up to this many poses per call (CPU, no world, no gradient), iiwa_solve runs in numpy
+SOLVE_COMPILED_BATCH = 1024  # with the compiled kernel, up to this many (measured: 2x the torch sweep at 1,000)
 
 _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
@@ -407,13 +418,17 @@ def iiwa_solve(
 
 
 def _numpy_applies(chain: DHChain, flat: Tensor, q0: Tensor | None, world: World | None, num_psi: int) -> bool:
-    """Whether :func:`iiwa_solve` runs in numpy (:func:`_solve_numpy`): ``1..SOLVE_NUMPY_BATCH``
-    poses ``flat (B, 4, 4)`` that fit in one chunk, no world, and the target, ``q0``, the chain's
-    base and tool on the CPU with nothing to differentiate (:func:`~iiwa_torch.kinematics.floats_ok`)."""
+    """Whether :func:`iiwa_solve` runs in numpy (:func:`_solve_numpy`): no world, the target, ``q0``,
+    the chain's base and tool on the CPU with nothing to differentiate
+    (:func:`~._common.numpy_applies`), and ``1..SOLVE_COMPILED_BATCH`` poses ``flat (B, 4, 4)`` with the
+    compiled kernel (:data:`iiwa_torch.compiled.ENABLED`), else ``1..SOLVE_NUMPY_BATCH`` that fit in
+    one chunk (the numpy sweep takes them all at once)."""
     size = flat.shape[0]
-    if world is not None or not 1 <= size <= SOLVE_NUMPY_BATCH or size * 8 * (16 * num_psi + 1) > _CANDIDATES:
-        return False
-    return all(floats_ok(t) for t in (flat, chain.base, chain.tool) + (() if q0 is None else (q0,)))
+    if compiled.ENABLED:
+        limit = SOLVE_COMPILED_BATCH
+    else:
+        limit = SOLVE_NUMPY_BATCH if size * 8 * (16 * num_psi + 1) <= _CANDIDATES else 0
+    return world is None and numpy_applies(chain, size, limit, flat, *(() if q0 is None else (q0,)))
 
 
 @dataclass(frozen=True)
@@ -421,8 +436,8 @@ class _Setup:
     """What a sweep takes from the chain, for the arrays of ``ops`` (``_common``): the closed
     form's constants ``geo``, the joint offsets and limits (floats, rad) and their mid-points and
     half-widths, and ``clamp``, ``q (B, 7)`` -> ``q`` clamped into the limits. For torch also the
-    chain (for a world), for numpy the float64 arrays ``flange_inv``, ``base_inv``
-    (:func:`~._common.strip_transforms`) and ``base``."""
+    chain (for a world), for numpy the float64 arrays ``base`` and ``limits (2, 7)`` and the cache of
+    :func:`_kernel_args`."""
 
     geo: _Geometry
     ops: object
@@ -433,9 +448,9 @@ class _Setup:
     halves: list
     clamp: Callable
     chain: DHChain | None = None
-    flange_inv: np.ndarray | None = None
-    base_inv: np.ndarray | None = None
     base: np.ndarray | None = None
+    limits: np.ndarray | None = None
+    kernel_args: dict = dataclasses.field(default_factory=dict)
 
     def bounds(self, dtype: torch.dtype) -> tuple[list, list]:
         """The limits (rad) against which candidates for targets of ``dtype`` are checked: in numpy,
@@ -462,11 +477,10 @@ def _numpy_setup(chain: DHChain) -> _Setup:
     key = chain.geometry(torch.float64)
     setup = _NUMPY_SETUPS.get(key)
     if setup is None:
-        flange_inv, base_inv = (None if t is None else t.double().numpy() for t in strip_transforms(chain))
-        lo, hi = chain.limits.double().numpy()
+        limits = chain.limits.double().numpy()
         setup = _Setup.build(
-            chain, NUMPY, functools.partial(NUMPY.clamp, lo=lo, hi=hi),
-            flange_inv=flange_inv, base_inv=base_inv, base=chain.base.double().numpy(),
+            chain, NUMPY, functools.partial(NUMPY.clamp, lo=limits[0], hi=limits[1]),
+            base=chain.base.double().numpy(), limits=limits,
         )
         _NUMPY_SETUPS[key] = setup
     return setup
@@ -476,27 +490,63 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
                  batch: torch.Size) -> IKResult:
     """:func:`iiwa_solve` in numpy float64 for ``flat (B, 4, 4)`` and ``q0 (B, 7)`` (or None), checked
     and flattened: the same sweep (:func:`_solve_all`, with the reach tolerance of ``flat``'s
-    dtype), then ``q`` in that dtype and its errors from the chain's FK, as the batched path."""
+    dtype; compiled, :func:`iiwa_torch.compiled.numba_kernels.iiwa_sweep`, when enabled), then ``q``
+    in that dtype and its errors from the chain's FK, as the batched path."""
     dtype = flat.dtype
     setup = _numpy_setup(chain)
-    target = flat.double().numpy()
-    frame6 = (target if setup.base_inv is None else setup.base_inv @ target) @ setup.flange_inv
+    target = flat.detach().double().numpy()
+    frame6 = last_frame_numpy(chain, target)
     rot, sw = frame6[:, :3, :3], frame6[:, :3, 3] - np.array([0.0, 0.0, setup.geo.d1])
     psi0 = None
     if q0 is not None:
-        q0 = q0.double().numpy()
+        q0 = q0.detach().double().numpy()
         frames = frames_numpy(chain.geometry(torch.float64), q0)  # world frame; S, E, W back into frame 0
         base = setup.base
         psi0 = _arm_angle(*((frames[[1, 3, 5], :, :3, 3] - base[:3, 3]) @ base[:3, :3]), ops=NUMPY)
-    q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
-    q = torch.from_numpy(q).to(dtype)
-    pose = end_pose_matmul(chain.geometry(dtype), q).double().numpy()  # chain.fk's kernel for these
-    eps = torch.finfo(dtype).eps
-    _, pos_err, _, rot_err = pose_errors(pose, target[:, :3, 3], target[:, :3, :3], eps)
-    success = torch.from_numpy((pos_err <= pos_tol) & (rot_err <= rot_tol)).reshape(batch)
-    pos_err, rot_err = (torch.from_numpy(x).to(dtype).reshape(batch) for x in (pos_err, rot_err))
-    iterations = torch.zeros(batch, dtype=torch.int64)
-    return IKResult(q=q.reshape(*batch, 7), success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
+    if compiled.ENABLED:
+        q = _solve_compiled(setup, rot, sw, q0, psi0, num_psi, dtype)
+    else:
+        q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
+    out_dtype = np.float32 if dtype == torch.float32 else np.float64
+    q = q.astype(out_dtype, copy=False)
+    pose = end_pose_matmul(chain.geometry(dtype), torch.from_numpy(q)).double().numpy()  # chain.fk's kernel for these
+    pos, eps = target[:, :3, 3], torch.finfo(dtype).eps
+    if compiled.ENABLED:
+        pos_err, rot_err = compiled.kernels().pose_errors(pose, np.ascontiguousarray(pos), np.ascontiguousarray(
+            target[:, :3, :3]), eps)  # fmt: skip
+    else:
+        _, pos_err, _, rot_err = pose_errors(pose, pos, target[:, :3, :3], eps)
+    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    # reshaped in numpy, then wrapped: a torch reshape costs a few numpy ones
+    fields = (q.reshape(*batch, 7), success.reshape(batch), pos_err.astype(out_dtype).reshape(batch),
+              rot_err.astype(out_dtype).reshape(batch), np.zeros(batch, dtype=np.int64))  # fmt: skip
+    return IKResult(*(torch.from_numpy(x) for x in fields))
+
+
+def _solve_compiled(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtype) -> np.ndarray:
+    """:func:`_solve_all` by :func:`iiwa_torch.compiled.numba_kernels.iiwa_sweep` (numpy arrays, no
+    world) -> ``q (B, 7)``."""
+    none = np.empty((0, 7))
+    return compiled.kernels().iiwa_sweep(
+        np.ascontiguousarray(rot), np.ascontiguousarray(sw), none if q0 is None else q0,
+        none[:, 0] if psi0 is None else psi0, *_kernel_args(setup, num_psi, q0 is not None, dtype),
+    )  # fmt: skip
+
+
+def _kernel_args(setup: _Setup, num_psi: int, with_q0: bool, dtype: torch.dtype) -> tuple:
+    """The constant arguments of :func:`iiwa_torch.compiled.numba_kernels.iiwa_sweep` for ``setup``'s
+    chain (numpy), cached in it: the arm angles of the sweep and of its retry (:func:`_angles`), the
+    closed form's constants and the joint offsets and limits."""
+    key = (num_psi, with_q0, dtype)
+    if key not in setup.kernel_args:
+        grid, local = _angles(NUMPY, None, num_psi, with_q0)
+        fine_grid, fine_local = _angles(NUMPY, None, 16 * num_psi, with_q0)
+        geo = setup.geo
+        consts = np.array([geo.d3, geo.d5, *geo.sig, reach_tol(dtype)])
+        limits = np.array([setup.offsets, *setup.bounds(dtype), setup.mids, setup.halves, *setup.limits])
+        setup.kernel_args[key] = (grid, np.stack(local), fine_grid, np.stack(fine_local), consts, limits,
+                                  dtype == torch.float32)  # fmt: skip
+    return setup.kernel_args[key]
 
 
 @dataclass(frozen=True)
@@ -562,19 +612,30 @@ def _solve_all(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtyp
 def _sweep(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtype, obstacles: Obstacles | None):
     """Best candidate of each pose over ``num_psi`` evenly spaced arm angles (plus ``psi0``, the arm
     angle of ``q0``, when given), then over finer grids of ``_LOCAL`` angles spanning one step
-    either side of the best so far (their centre). Arguments as for :func:`_solve_all`."""
+    either side of the best so far (their centre; :func:`_angles`). Arguments as for :func:`_solve_all`."""
     ops = setup.ops
     pick = _pick_chunked if ops is TORCH else _pick
-    step = 2 * math.pi / num_psi
-    psi = ops.expand(ops.arange(num_psi, rot) * step - math.pi, (rot.shape[0], num_psi))
+    grid, local = _angles(ops, rot, num_psi, q0 is not None)
+    psi = ops.expand(grid, (rot.shape[0], num_psi))
     if psi0 is not None:
         psi = ops.cat([psi0[:, None], psi], -1)  # (B, K + 1)
     q, found, psi_best = pick(setup, rot, sw, psi, q0, dtype, obstacles)
-    for _ in range(_REFINE if q0 is not None else 1):  # a margin is flat near its best: one pass
-        local = ops.linspace(-step, step, _LOCAL, rot)
-        q, found, psi_best = pick(setup, rot, sw, psi_best[:, None] + local, q0, dtype, obstacles)
-        step = 2 * step / (_LOCAL - 1)  # the next window spans the neighbours of the best
+    for offsets in local:
+        q, found, psi_best = pick(setup, rot, sw, psi_best[:, None] + offsets, q0, dtype, obstacles)
     return q, found
+
+
+def _angles(ops, like, num_psi: int, with_q0: bool) -> tuple:
+    """The arm angles of :func:`_sweep` (arrays of ``ops`` like ``like``): the grid ``(num_psi,)``
+    over ``[-pi, pi)`` and the offsets ``(_LOCAL,)`` of each refining pass (``_REFINE`` passes
+    ``with_q0``, else one)."""
+    step = 2 * math.pi / num_psi
+    grid = ops.arange(num_psi, like) * step - math.pi
+    local = []
+    for _ in range(_REFINE if with_q0 else 1):  # a margin is flat near its best: one pass
+        local.append(ops.linspace(-step, step, _LOCAL, like))
+        step = 2 * step / (_LOCAL - 1)  # the next window spans the neighbours of the best
+    return grid, local
 
 
 def _pick_chunked(setup: _Setup, rot: Tensor, sw: Tensor, psi: Tensor, q0: Tensor | None, dtype: torch.dtype,
