@@ -85,7 +85,8 @@ def hildreth(x, normal, scaled, bound, sweeps: int = 5):
     in, a numpy array out; tensors of up to ``NUMPY_ROWS`` rows (``x.numel() <= NUMPY_ROWS n``) on
     the CPU with nothing to differentiate (one env's policy step) take the same formulas on numpy
     views too, each op a fraction of a torch op's cost (the sums' rounding may differ in the last
-    bit). In numpy the sweeps stop after one that moved nothing (the next would repeat it exactly)."""
+    bit; constraints that cannot move ``x`` are skipped and the sweeps stop once one moves nothing,
+    which changes no value)."""
     if isinstance(x, np.ndarray):
         return _hildreth(x, normal, scaled, bound, sweeps, np)
     given = (x, normal, scaled, bound)
@@ -98,15 +99,18 @@ def hildreth(x, normal, scaled, bound, sweeps: int = 5):
 def _hildreth(x, normal, scaled, bound, sweeps: int, xp):
     """:func:`hildreth` on torch tensors or numpy arrays (``xp``: ``torch`` or ``numpy``)."""
     curvature = (normal * scaled).sum(-1).clip(min=1e-12)  # (..., K)
-    multipliers = [xp.zeros_like(curvature[..., 0])] * normal.shape[-2]  # Lagrange's, >= 0
+    acting = range(normal.shape[-2])
+    if xp is np:  # a constraint whose scaled normal is zero in every row never moves x: skipped
+        acting = np.flatnonzero(scaled.any(-1).reshape(-1, normal.shape[-2]).any(0))
+    multipliers = {k: xp.zeros_like(curvature[..., 0]) for k in acting}  # Lagrange's, >= 0
     for _ in range(sweeps):
-        moved = False
-        for k, m in enumerate(multipliers):
+        moved = xp is torch  # numpy: stop after a sweep that moved nothing (the next would repeat it)
+        for k, m in multipliers.items():
             change = (bound[..., k] - (normal[..., k, :] * x).sum(-1)) / curvature[..., k]
             change = xp.maximum(change, -m)  # a constraint can let go, never pull
             multipliers[k] = m + change
             x = x + scaled[..., k, :] * change[..., None]
-            moved = moved or xp is torch or bool(change.any())
+            moved = moved or bool(change.any())
         if not moved:
             break
     return x
@@ -245,7 +249,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     def _constants(self, xp) -> tuple:
         """``max_step``, ``damping_sq`` and the chain's lower and upper limits, float64, in ``xp``'s arrays."""
-        values = (self.max_step, self.damping_sq, *self.chain.limits.to(torch.float64))
+        values = (self.max_step, self.damping_sq, *self.chain.limits)  # the chain's buffers are float64
         return values if xp is torch else tuple(v.numpy() for v in values)
 
     def _dls_solver(self, jac, error):
@@ -300,6 +304,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
         DLS steps in actions per damping, ``J^T e / |e|`` (m), the place within the limits, ``|e|`` (m).
         Tensors, or numpy arrays (all of them; the Jacobian then by
+        :func:`iiwa_torch.kinematics.jacobian_floats` for one row, else
         :func:`iiwa_torch.kinematics.pose_jacobian_numpy`).
 
         ``k = 3``: a position error (m), ``J = J_p``; ``k = 6``: ``[e_p; w e_r]`` (m), ``J = [J_p; w J_r]``.
@@ -311,7 +316,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
             jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
         else:
             q, e = q.astype(np.float64), error.astype(np.float64)
-            jac = kin.pose_jacobian_numpy(self.chain.geometry(), q)[1]
+            g = self.chain.geometry()  # one row: the float recursion costs a fifth of the 4x4 products
+            jac = kin.jacobian_floats(g, torch.from_numpy(q)).numpy() if len(q) == 1 else \
+                kin.pose_jacobian_numpy(g, q)[1]
         max_step, damping_sq, lower, upper = self._constants(xp)
         k = e.shape[-1]
         w = self.orientation_weight
