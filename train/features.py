@@ -249,8 +249,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     def _constants(self, xp) -> tuple:
         """``max_step``, ``damping_sq`` and the chain's lower and upper limits, float64, in ``xp``'s arrays."""
-        values = (self.max_step, self.damping_sq, *self.chain.limits)  # the chain's buffers are float64
-        return values if xp is torch else tuple(v.numpy() for v in values)
+        values = self.max_step, self.damping_sq, self.chain.limits  # the chain's buffers are float64
+        max_step, damping_sq, (lower, upper) = values if xp is torch else (v.numpy() for v in values)
+        return max_step, damping_sq, lower, upper
 
     def _dls_solver(self, jac, error):
         """``free (B, L, nj)`` (0 or 1) or None -> the DLS steps ``(B, L, nj)`` (rad) per damping for
@@ -264,7 +265,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
             def solve(free):
                 held = jac[:, None] if free is None else jac[:, None] * free[:, :, None]  # (B, L, k, nj)
                 A = (held[:, :, :, None] * jac[:, None, None]).sum(-1) + damping * eye  # (B, L, k, k)
-                y = np.linalg.solve(A, np.broadcast_to(error[:, None, :, None], (b, size, m, 1)))
+                y = np.linalg.solve(A, error[:, None, :, None])  # (B, L, k, 1)
                 dq = (jac[:, None] * y).sum(-2)
                 return dq if free is None else dq * free
             return solve
