@@ -371,6 +371,14 @@ class JointGoalExtractor(GoalDeltaExtractor):
         return xp.concatenate([base, *parts], -1)
 
 
+_CYCLE, _CYCLE2 = [1, 2, 0], [2, 0, 1]  # x[_CYCLE] * y[_CYCLE2] - x[_CYCLE2] * y[_CYCLE] = x cross y
+# Shepperd's rows (so3's ``rows``), as indices into [4 w^2, 4 x^2, 4 y^2, 4 z^2, m21 - m12, m02 - m20,
+# m10 - m01, m10 + m01, m02 + m20, m21 + m12], and those six entries of a flattened matrix
+_ROWS = np.array([[0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3]])
+_PLUS, _MINUS, _SIGN = [7, 2, 3, 3, 2, 7], [5, 6, 1, 1, 6, 5], np.array([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
+_DIAGONAL_SIGNS = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
+
+
 def _rotation_error(desired: np.ndarray, achieved: np.ndarray) -> np.ndarray:
     """Pose goals ``(B, 9)`` -> ``log(R_desired R_achieved^T) (B, 3)`` float64 (rad), for a few rows:
     :func:`envs.goals.decode_pose_goal`'s Gram-Schmidt and :func:`iiwa_torch.so3.log`'s route through
@@ -380,21 +388,18 @@ def _rotation_error(desired: np.ndarray, achieved: np.ndarray) -> np.ndarray:
         x = g[:, 3:6] / np.sqrt((g[:, 3:6] * g[:, 3:6]).sum(-1))[:, None]
         y = g[:, 6:9] - (x * g[:, 6:9]).sum(-1)[:, None] * x
         y = y / np.sqrt((y * y).sum(-1))[:, None]
-        return np.stack([x, y, np.cross(x, y)], -1)
+        z = x[:, _CYCLE] * y[:, _CYCLE2] - x[:, _CYCLE2] * y[:, _CYCLE]
+        return np.stack([x, y, z], -1)
 
-    rot = rotation(desired) @ rotation(achieved).mT
-    (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = rot.transpose(1, 2, 0)
-    four_sq = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
-    rows = np.stack([np.stack([four_sq[:, 0], m21 - m12, m02 - m20, m10 - m01], -1),
-                     np.stack([m21 - m12, four_sq[:, 1], m10 + m01, m02 + m20], -1),
-                     np.stack([m02 - m20, m10 + m01, four_sq[:, 2], m21 + m12], -1),
-                     np.stack([m10 - m01, m02 + m20, m21 + m12, four_sq[:, 3]], -1)], -2)  # (B, 4, 4)
-    pick = np.arange(len(rot)), four_sq.argmax(-1)
-    quat = rows[pick] / (2 * np.sqrt(np.maximum(four_sq[pick], 1e-30)))[:, None]
+    flat = (rotation(desired) @ rotation(achieved).mT).reshape(-1, 9)  # (B, 9): m00, m01, ... m22
+    diagonal, off = 1.0 + flat[:, [0, 4, 8]] @ _DIAGONAL_SIGNS.T, flat[:, _PLUS] + flat[:, _MINUS] * _SIGN
+    entries = np.concatenate([diagonal, off], 1)
+    best = entries[:, :4].argmax(-1)
+    quat = entries[np.arange(len(flat))[:, None], _ROWS[best]]  # (B, 4): 4 |q_best| (w, x, y, z)
+    quat = quat / (2 * np.sqrt(np.maximum(quat[np.arange(len(flat)), best], 1e-30)))[:, None]
     quat = np.where(quat[:, :1] < 0, -quat, quat)
     w, v = quat[:, :1], quat[:, 1:]
     vn2 = (v * v).sum(-1)[:, None]
     small = vn2 < 1e-12
     vn = np.sqrt(np.where(small, 1.0, vn2))
-    factor = np.where(small, 2 / np.maximum(w, 1e-6), 2 * np.arctan2(vn, w) / vn)
-    return factor * v
+    return np.where(small, 2 / np.maximum(w, 1e-6), 2 * np.arctan2(vn, w) / vn) * v
