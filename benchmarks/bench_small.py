@@ -241,7 +241,7 @@ def row_policy(batch: int, quick: bool) -> dict:
 
     model, vec_normalize, config = load_policy(POLICY)
     act = policy_actor(model, vec_normalize)
-    goals = make_goal_set(config["env_id"], batch, 0)
+    goals = make_goal_set(config["env_id"], batch, 0, config["hyperparams"].get("env_kwargs"))
     out = {"ours": timeit(lambda: rollout(goals, act), **TIMING)}
     final = rollout(goals, act).distance[-1]
     out["ours score"] = {"success": float((final < 0.01).mean())}

@@ -240,3 +240,73 @@ def test_limit_rounds_hold_the_joints_a_step_would_push_past_a_limit():
 def test_limit_rounds_must_be_a_count():
     with pytest.raises(ValueError, match="limit_rounds must be an int >= 0"):
         JointGoalExtractor(_space(), max_step=MAX_STEP, limit_rounds=-1)
+
+
+def _observations(rows: int, goal_dim: int, dtype, rng) -> dict[str, torch.Tensor]:
+    """Random observations of the clearance env's layout (``cos q, sin q``, velocities, then 4
+    capsules' clearances and gradients from column 21): joints anywhere within their limits, row 0
+    at the lower limits, row 1 at the upper ones, row 2 stretched out (q = 0); goal errors from
+    1 m down to zero (the last row); pose goals turned by 0 to 3.1 rad; some capsules within reach."""
+    from envs.goals import encode_pose_goal
+    from iiwa_torch import so3
+
+    chain = iiwa14()
+    lower, upper = chain.limits.numpy()
+    q = rng.uniform(lower, upper, (rows, 7))
+    q[:3] = [lower, upper, np.zeros(7)][: rows]
+    q[3::2, rng.integers(7)] = upper[0]  # one joint at a limit (the first joint's range is the widest)
+    q = torch.as_tensor(q)
+    pose = chain.fk(q)
+    error = rng.normal(size=(rows, 3)) * np.geomspace(1.0, 1e-4, rows)[:, None]
+    error[-1] = 0.0
+    desired = pose.clone()
+    desired[:, :3, 3] += torch.as_tensor(error)
+    angles = np.resize([0.0, 1e-7, 1e-3, 0.5, 2.0, 3.1], rows)
+    axes = rng.normal(size=(rows, 3))
+    turn = so3.exp(torch.as_tensor(axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None]))
+    desired[:, :3, :3] = turn @ pose[:, :3, :3]
+    if rows > 1:
+        desired[-1] = pose[-1]
+    goal = (lambda p: p[:, :3, 3]) if goal_dim == 3 else encode_pose_goal
+    clearance = np.concatenate([rng.uniform(-0.02, 0.4, (rows, 4)), rng.normal(size=(rows, 28)) * 0.3], 1)
+    obs = torch.cat([q.cos(), q.sin(), torch.as_tensor(rng.uniform(-1, 1, (rows, 7))), torch.as_tensor(clearance)], 1)
+    return {"observation": obs.to(dtype), "achieved_goal": goal(pose).to(dtype),
+            "desired_goal": goal(desired).to(dtype)}
+
+
+@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds", [
+    (3, False, 0), (3, True, 0), (3, True, 3), (9, False, 3), (9, True, 3)])
+def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, monkeypatch):
+    """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy; with NUMPY_ROWS = 0 the same
+    observations take the torch path. Float64 observations: every feature agrees to 1e-12 (the
+    DLS and damper solves by LU instead of Cholesky, the Jacobian and the pose goals' rotation error
+    computed another way); float32 ones (the env's): to the last bit of float32."""
+    import train.features
+    from train.features import NUMPY_ROWS
+
+    rng = np.random.default_rng(11)
+    kwargs = {"avoidance": {"xi": 0.3, "safe": 0.005, "influence": 0.1}} if avoidance else {}
+    ext = JointGoalExtractor(_space(21 + 4 * 8, goal_dim), "iiwa14", MAX_STEP, dampings=(0.1, 0.03),
+                             orientation_weight=0.2, clearance_rows=(21, 4), limit_rounds=limit_rounds, **kwargs)
+    cases = [(rows, dtype) for rows in (1, 2, 7, NUMPY_ROWS) for dtype in (torch.float64, torch.float32)] * 3
+    held = 0
+    for rows, dtype in cases:
+        obs = _observations(rows, goal_dim, dtype, rng)
+        with monkeypatch.context() as patch:  # the numpy path takes no torch Jacobian
+            patch.setattr(ext.chain, "jacobian", None)
+            fast = ext(obs)
+        with monkeypatch.context() as patch:
+            patch.setattr(train.features, "NUMPY_ROWS", 0)
+            slow = ext(obs)
+        assert fast.dtype == slow.dtype == dtype and fast.shape == slow.shape == (rows, ext.features_dim)
+        if dtype == torch.float64:
+            torch.testing.assert_close(fast, slow, rtol=0, atol=1e-12)
+        else:
+            torch.testing.assert_close(fast, slow, rtol=2.0 ** -23, atol=1e-12)
+        if limit_rounds:
+            steps = slow[:, ext.step_columns[0] : ext.step_columns[1]].double() * torch.as_tensor(MAX_STEP)
+            q = torch.atan2(obs["observation"][:, 7:14], obs["observation"][:, :7]).double()
+            at_limit = q[:-1] >= iiwa14().limits[1] - 1e-6  # the last row's error is zero: no step at all
+            held += int((steps[:-1][at_limit] == 0).sum())
+    if limit_rounds:
+        assert held > 0  # some joints at their limits were held by the limit rounds

@@ -118,3 +118,37 @@ def test_with_avoidance_the_whole_mean_keeps_the_damper_constraints():
     slack = (normal * mean[:, None]).sum(-1) - bound
     assert (slack[near] >= -1e-4).all()
     assert (mean.abs() <= 1.0 + 1e-6).all()
+
+
+def test_one_row_head_in_numpy_equals_the_torch_path(monkeypatch):
+    """At inference on a few rows the head's mean (hildreth, the shrink) runs in numpy: the torch path
+    (NUMPY_ROWS = 0) gives the same means to float32 rounding, row by row, on a batch whose large
+    corrections the damper's constraints have to hold back. The deterministic ``_predict`` is the
+    mode of SB3's Gaussian."""
+    import train.features
+    from train.evaluate import load_policy
+
+    model, _, config = load_policy(ROOT / "train" / "policies" / "ppo_iiwa_reach_obstacles")
+    policy, venv = model.policy, tr.build_venv(config["env_id"], {**config["hyperparams"], "n_envs": 64}, 0)
+    head, rng = policy.action_net, np.random.default_rng(1)
+    obs = venv.reset()
+    for _ in range(20):  # random motion: some arms come near their obstacles
+        obs, *_ = venv.step(rng.uniform(-1, 1, (64, 7)).astype(np.float32))
+    with torch.no_grad():
+        x = policy.obs_to_tensor(obs)[0]
+        features = policy.extract_features(x)
+        latent = policy.mlp_extractor.forward_actor(features)
+        head.linear.bias.add_(torch.from_numpy(rng.uniform(-3, 3, 7).astype(np.float32)))
+        fast = torch.cat([head(latent[i : i + 1]) for i in range(64)])
+        first = {key: v[:3] for key, v in x.items()}
+        assert torch.equal(policy._predict(first, True), policy.get_distribution(first).mode())
+        with monkeypatch.context() as patch:
+            patch.setattr(train.features, "NUMPY_ROWS", 0)
+            slow = head(latent)
+            patch.setattr(head, "constraints", 0)
+            unconstrained = head(latent)
+    torch.testing.assert_close(fast, slow, rtol=0, atol=1e-6)
+    start, k = policy.features_extractor.damper_columns
+    normal, bound = features[:, start : start + 7 * k].view(-1, k, 7), features[:, start + 7 * k : start + 8 * k]
+    held = ((normal * unconstrained[:, None]).sum(-1) < bound - 1e-3).any(-1)
+    assert held.sum() >= 3 and not torch.allclose(fast[held], unconstrained[held].clamp(-1, 1), atol=1e-3)

@@ -21,6 +21,7 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from envs.goals import decode_pose_goal
+from iiwa_torch import kinematics as kin
 from iiwa_torch import so3
 from iiwa_torch.ik.dls import dls_step_batch_last
 
@@ -48,25 +49,46 @@ class GoalDeltaExtractor(BaseFeaturesExtractor):
         self.register_buffer("inv_scales", 1.0 / torch.tensor([float(s) for s in scales]).unsqueeze(-1))  # (S, 1)
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.goal_features(observations, torch)
+
+    def goal_features(self, observations: dict, xp=torch):
+        """:meth:`forward` on tensors (``xp=torch``) or on numpy arrays (``xp=numpy``)."""
         achieved, desired = observations["achieved_goal"], observations["desired_goal"]  # (B, G)
         delta = desired - achieved  # (B, G)
-        scaled = (delta.unsqueeze(-2) * self.inv_scales).clamp(-1.0, 1.0).flatten(-2)  # (B, S * G)
-        return torch.cat([observations["observation"], achieved, desired, scaled], dim=-1)
+        inv_scales = self.inv_scales if xp is torch else self.inv_scales.numpy()
+        scaled = (delta[..., None, :] * inv_scales).clip(-1.0, 1.0).reshape(delta.shape[0], -1)  # (B, S * G)
+        return xp.concatenate([observations["observation"], achieved, desired, scaled], -1)
 
 
-NUMPY_ROWS = 16  # hildreth: up to this many rows on the CPU with nothing to differentiate, in numpy
+NUMPY_ROWS = 16  # up to this many rows on the CPU with nothing to differentiate, in numpy
 
 
-def hildreth(x: torch.Tensor, normal: torch.Tensor, scaled: torch.Tensor, bound: torch.Tensor,
-             sweeps: int = 5) -> torch.Tensor:
+def numpy_ok(*tensors: torch.Tensor) -> bool:
+    """Whether tensors of up to :data:`NUMPY_ROWS` rows (dim 0) may take the numpy paths of this
+    module and of :mod:`train.residual`: on the CPU, with nothing to differentiate."""
+    return (all(t.is_cpu and t.shape[0] <= NUMPY_ROWS for t in tensors)
+            and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)))
+
+
+def shrink(u, xp=torch):
+    """``u (..., n)`` (tensor, or numpy array with ``xp=numpy``) divided by ``max(1, max_i |u_i|)``: into
+    ``[-1, 1]`` with its direction kept."""
+    return u / xp.amax(abs(u), -1)[..., None].clip(min=1.0)
+
+
+def hildreth(x, normal, scaled, bound, sweeps: int = 5):
     """``x (..., n)`` moved as little as possible in a metric ``M`` so that ``normal_k . x >= bound_k``
     for each of K constraints: ``normal (..., K, n)``, ``scaled = M^-1 normal`` (the same for the
     Euclidean metric), ``bound (..., K)``. Hildreth's method: coordinate ascent on the dual, one
     constraint at a time, ``sweeps`` times over (exact after one sweep for one constraint; a zero
-    ``normal`` with a negative bound is a constraint that never acts). Differentiable. Up to
-    ``NUMPY_ROWS`` rows on the CPU with nothing to differentiate (one env's policy step) the same
-    formulas run on numpy views, each op a fraction of a torch op's cost (the sums' rounding may
-    differ in the last bit)."""
+    ``normal`` with a negative bound is a constraint that never acts). Differentiable. Numpy arrays
+    in, a numpy array out; tensors of up to ``NUMPY_ROWS`` rows (``x.numel() <= NUMPY_ROWS n``) on
+    the CPU with nothing to differentiate (one env's policy step) take the same formulas on numpy
+    views too, each op a fraction of a torch op's cost (the sums' rounding may differ in the last
+    bit; constraints that cannot move ``x`` are skipped and the sweeps stop once one moves nothing,
+    which changes no value)."""
+    if isinstance(x, np.ndarray):
+        return _hildreth(x, normal, scaled, bound, sweeps, np)
     given = (x, normal, scaled, bound)
     grad = torch.is_grad_enabled() and any(t.requires_grad for t in given)
     if not grad and all(t.is_cpu for t in given) and x.numel() <= NUMPY_ROWS * x.shape[-1]:
@@ -77,38 +99,46 @@ def hildreth(x: torch.Tensor, normal: torch.Tensor, scaled: torch.Tensor, bound:
 def _hildreth(x, normal, scaled, bound, sweeps: int, xp):
     """:func:`hildreth` on torch tensors or numpy arrays (``xp``: ``torch`` or ``numpy``)."""
     curvature = (normal * scaled).sum(-1).clip(min=1e-12)  # (..., K)
-    multipliers = [xp.zeros_like(curvature[..., 0])] * normal.shape[-2]  # Lagrange's, >= 0
+    acting = range(normal.shape[-2])
+    if xp is np:  # a constraint whose scaled normal is zero in every row never moves x: skipped
+        acting = np.flatnonzero(scaled.any(-1).reshape(-1, normal.shape[-2]).any(0))
+    multipliers = {k: xp.zeros_like(curvature[..., 0]) for k in acting}  # Lagrange's, >= 0
     for _ in range(sweeps):
-        for k, m in enumerate(multipliers):
+        moved = xp is torch  # numpy: stop after a sweep that moved nothing (the next would repeat it)
+        for k, m in multipliers.items():
             change = (bound[..., k] - (normal[..., k, :] * x).sum(-1)) / curvature[..., k]
             change = xp.maximum(change, -m)  # a constraint can let go, never pull
             multipliers[k] = m + change
             x = x + scaled[..., k, :] * change[..., None]
+            moved = moved or bool(change.any())
+        if not moved:
+            break
     return x
 
 
-def damper_constraints(distance: torch.Tensor, gradient: torch.Tensor, xi: float, safe: float,
-                       influence: float) -> tuple[torch.Tensor, torch.Tensor]:
+def damper_constraints(distance, gradient, xi: float, safe: float, influence: float):
     """The velocity damper of Faverjon and Tournassoud, linearised, as :func:`hildreth`'s constraints
     on a joint step ``dq`` (rad): each capsule within ``influence`` (m) of something may close at most
     the share ``xi`` of its gap above ``safe`` (m) in one step, ``gradient_k . dq >= -xi (distance_k -
-    safe)``. ``distance (B, K)`` (m), ``gradient (B, K, n)`` (m/rad) -> ``normal (B, K, n)`` (zero for
-    capsules out of reach) and ``bound (B, K)`` (m)."""
+    safe)``. ``distance (B, K)`` (m), ``gradient (B, K, n)`` (m/rad), tensors or numpy arrays ->
+    ``normal (B, K, n)`` (zero for capsules out of reach) and ``bound (B, K)`` (m)."""
+    where = np.where if isinstance(distance, np.ndarray) else torch.where
     near = distance < influence
-    return torch.where(near[..., None], gradient, 0.0), torch.where(near, -xi * (distance - safe), -1.0)
+    return where(near[..., None], gradient, 0.0), where(near, -xi * (distance - safe), -1.0)
 
 
-def velocity_damper(dq: torch.Tensor, jac: torch.Tensor, damping_sq: torch.Tensor, distance: torch.Tensor,
-                    gradient: torch.Tensor, xi: float, safe: float, influence: float, sweeps: int = 5) -> torch.Tensor:
+def velocity_damper(dq, jac, damping_sq, distance, gradient, xi: float, safe: float, influence: float,
+                    sweeps: int = 5):
     """Joint steps ``dq (B, L, n)`` (rad), one per damping ``damping_sq (L,)``, changed as little as
     possible in the metric ``H = J^T J + damping I`` of the DLS step (``jac (B, m, n)``) to meet
     :func:`damper_constraints` (``distance (B, K)``, ``gradient (B, K, n)``, ``xi``, ``safe``,
-    ``influence``), by :func:`hildreth`."""
-    n = jac.shape[-1]
-    H = (jac.mT @ jac)[:, None] + damping_sq[:, None, None] * torch.eye(n, dtype=jac.dtype, device=jac.device)
+    ``influence``), by :func:`hildreth`. Tensors, or numpy arrays (all of them)."""
+    xp = np if isinstance(dq, np.ndarray) else torch
+    eye = xp.eye(jac.shape[-1], dtype=jac.dtype, device=jac.device)
+    H = (jac.mT @ jac)[:, None] + damping_sq[:, None, None] * eye  # (B, L, n, n)
     normal, bound = damper_constraints(distance, gradient, xi, safe, influence)
-    normal = normal[:, None].expand(-1, dq.shape[1], -1, -1)  # (B, L, K, n)
-    return hildreth(dq, normal, torch.linalg.solve(H, normal.mT).mT, bound[:, None], sweeps)
+    normal = normal[:, None]  # (B, 1, K, n): the same constraints for every damping
+    return hildreth(dq, normal, xp.linalg.solve(H, normal.mT).mT, bound[:, None], sweeps)
 
 
 class JointGoalExtractor(GoalDeltaExtractor):
@@ -217,70 +247,159 @@ class JointGoalExtractor(GoalDeltaExtractor):
         self.register_buffer("max_step", torch.tensor([float(s) for s in max_step], dtype=torch.float64))
         self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in dampings], dtype=torch.float64))
 
-    def shrunk_step(self, q: torch.Tensor, jac: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
-        """The DLS step per damping in actions, shrunk into ``[-1, 1]``: ``q (B, nj)`` rad, ``jac (B, k, nj)``,
-        ``error (B, k)`` -> ``(B, L, nj)``. With ``limit_rounds``, a joint that the step would push past its
-        limit is held still and the step solved again without it, up to that many times (the arm's
-        other joints then carry the motion, instead of the step being clamped at the limit)."""
-        b, n, m = q.shape[0], self.nj, jac.shape[-2]
+    def _constants(self, xp) -> tuple:
+        """``max_step``, ``damping_sq`` and the chain's lower and upper limits, float64, in ``xp``'s arrays."""
+        values = self.max_step, self.damping_sq, self.chain.limits  # the chain's buffers are float64
+        max_step, damping_sq, (lower, upper) = values if xp is torch else (v.numpy() for v in values)
+        return max_step, damping_sq, lower, upper
+
+    def _dls_solver(self, jac, error):
+        """``free (B, L, nj)`` (0 or 1) or None -> the DLS steps ``(B, L, nj)`` (rad) per damping for
+        ``jac (B, k, nj)`` and ``error (B, k)``, the held joints' columns of ``J`` counted as zero."""
+        b, m, n = jac.shape
         size = len(self.damping_sq)
+        if isinstance(jac, np.ndarray):
+            # dls_step's formulas in numpy (LU rather than Cholesky: the same step to rounding)
+            eye, damping = np.eye(m), self.damping_sq.numpy()[:, None, None]
+
+            def solve(free):
+                held = jac[:, None] if free is None else jac[:, None] * free[:, :, None]  # (B, L, k, nj)
+                A = (held[:, :, :, None] * jac[:, None, None]).sum(-1) + damping * eye  # (B, L, k, k)
+                y = np.linalg.solve(A, error[:, None, :, None])  # (B, L, k, 1)
+                dq = (jac[:, None] * y).sum(-2)
+                return dq if free is None else dq * free
+            return solve
         # dls_step's layout and kernel, unchecked: the inputs are this network's own
         J = jac.unsqueeze(1).expand(b, size, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, nj, B L)
         rhs = error.unsqueeze(1).expand(b, size, m).reshape(-1, m).T[:, None]  # (m, 1, B L)
-        damping, tiny = self.damping_sq.repeat(b), torch.finfo(q.dtype).tiny
-        dq = dls_step_batch_last(J, rhs, damping, tiny)[:, 0].T.reshape(b, size, n)  # (B, L, nj) rad
+        damping, tiny = self.damping_sq.repeat(b), torch.finfo(jac.dtype).tiny
+
+        def solve(free):
+            free = None if free is None else free.reshape(-1, n).T
+            return dls_step_batch_last(J, rhs, damping, tiny, free)[:, 0].T.reshape(b, size, n)
+        return solve
+
+    def shrunk_step(self, q, jac, error):
+        """The DLS step per damping in actions, shrunk into ``[-1, 1]``: ``q (B, nj)`` rad, ``jac (B, k, nj)``,
+        ``error (B, k)`` (float64 tensors, or numpy arrays) -> ``(B, L, nj)``. With ``limit_rounds``, a
+        joint that the step would push past its limit is held still and the step solved again without
+        it, up to that many times (the arm's other joints then carry the motion, instead of the step
+        being clamped at the limit)."""
+        xp = np if isinstance(q, np.ndarray) else torch
+        max_step, _, lower, upper = self._constants(xp)
+        solve = self._dls_solver(jac, error)
+        dq = solve(None)  # (B, L, nj) rad
         if self.limit_rounds:
-            lower, upper = self.chain.limits.to(q.dtype)
-            free = torch.ones_like(dq)
+            free = xp.ones_like(dq)
             for _ in range(self.limit_rounds):
-                step = dq / (dq / self.max_step).abs().amax(-1, keepdim=True).clamp(min=1.0)
-                end = q.unsqueeze(1) + step
+                step = dq / xp.amax(abs(dq / max_step), -1)[..., None].clip(min=1.0)
+                end = q[:, None] + step
                 blocked = ((end > upper) & (step > 0)) | ((end < lower) & (step < 0))
                 if not bool((blocked & (free > 0)).any()):
                     break
                 free = free * ~blocked
-                dq = dls_step_batch_last(J, rhs, damping, tiny, free.reshape(-1, n).T)[:, 0].T.reshape(b, size, n)
-        u = dq / self.max_step
-        return u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
+                dq = solve(free)
+        return shrink(dq / max_step, xp)
 
-    def joint_features(self, q: torch.Tensor, error: torch.Tensor,
-                       clearance: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    def joint_features(self, q, error, clearance: tuple | None = None):
         """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
         DLS steps in actions per damping, ``J^T e / |e|`` (m), the place within the limits, ``|e|`` (m).
+        Tensors, or numpy arrays (all of them; the Jacobian then by
+        :func:`iiwa_torch.kinematics.jacobian_floats` for one row, else
+        :func:`iiwa_torch.kinematics.pose_jacobian_numpy`).
 
         ``k = 3``: a position error (m), ``J = J_p``; ``k = 6``: ``[e_p; w e_r]`` (m), ``J = [J_p; w J_r]``.
         ``clearance``: the capsules' distances ``(B, K)`` (m) and gradients ``(B, K, nj)`` (m/rad), for
         ``avoidance``."""
-        q, e = q.double(), error.double()
+        xp = np if isinstance(q, np.ndarray) else torch
+        if xp is torch:
+            q, e = q.double(), error.double()
+            jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
+        else:
+            q, e = q.astype(np.float64), error.astype(np.float64)
+            g = self.chain.geometry()  # one row: the float recursion costs a fifth of the 4x4 products
+            jac = kin.jacobian_floats(g, torch.from_numpy(q)).numpy() if len(q) == 1 else \
+                kin.pose_jacobian_numpy(g, q)[1]
+        max_step, damping_sq, lower, upper = self._constants(xp)
         k = e.shape[-1]
-        jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
-        jp = jac[..., :3, :] if k == 3 else torch.cat([jac[..., :3, :], self.orientation_weight * jac[..., 3:, :]], -2)
+        w = self.orientation_weight
+        jp = jac[..., :3, :] if k == 3 else xp.concatenate([jac[..., :3, :], w * jac[..., 3:, :]], -2)
         u = self.shrunk_step(q, jp, e)  # (B, L, nj) in actions
         if self.avoidance is not None:
-            u = velocity_damper(u * self.max_step, jp, self.damping_sq, *clearance, **self.avoidance) / self.max_step
-            u = u / u.abs().amax(-1, keepdim=True).clamp(min=1.0)
-        distance = e.norm(dim=-1, keepdim=True)  # (B, 1)
-        grad = (jp.transpose(-1, -2) @ e.unsqueeze(-1)).squeeze(-1) / distance.clamp(min=1e-6)
-        lower, upper = self.chain.limits.to(q.dtype)
+            u = shrink(velocity_damper(u * max_step, jp, damping_sq, *clearance, **self.avoidance) / max_step, xp)
+        distance = xp.sqrt((e * e).sum(-1))[:, None]  # (B, 1)
+        grad = (jp.mT @ e[..., None])[..., 0] / distance.clip(min=1e-6)
         place = 2.0 * (q - lower) / (upper - lower) - 1.0
-        return torch.cat([u.flatten(1), grad, place, distance], dim=-1)
+        return xp.concatenate([u.reshape(u.shape[0], -1), grad, place, distance], -1)
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
-        base = super().forward(observations)
+        """The features ``(B, features_dim)``; up to ``NUMPY_ROWS`` rows on the CPU with nothing to
+        differentiate (:func:`numpy_ok`: one env's policy step) the same formulas run in numpy, which
+        costs a fraction of torch's per-op overhead (the DLS solves, the Jacobian and the pose goals'
+        rotation error are computed another way there: the same values to rounding)."""
         obs, nj = observations["observation"], self.nj
+        # torch's float32 atan2 on both paths: numpy's may differ in the last bit
         q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
+        if numpy_ok(*observations.values()):
+            return torch.from_numpy(self._features(q.numpy(), {key: v.numpy() for key, v in observations.items()}))
+        return self._features(q, observations)
+
+    def _features(self, q, observations: dict):
+        """:meth:`forward` from ``q (B, nj)``, on tensors or numpy arrays."""
+        xp = np if isinstance(q, np.ndarray) else torch
+        base = self.goal_features(observations, xp)
+        obs, nj = observations["observation"], self.nj
         desired, achieved = observations["desired_goal"], observations["achieved_goal"]
         error = desired[:, :3] - achieved[:, :3]
         with torch.no_grad():  # no parameters upstream: features only
             if self.pose:
-                rot = decode_pose_goal(desired)[:, :3, :3] @ decode_pose_goal(achieved)[:, :3, :3].transpose(-1, -2)
-                error = torch.cat([error.double(), self.orientation_weight * so3.log(rot)], -1)
+                rotation = _rotation_error(desired, achieved) if xp is np else so3.log(
+                    decode_pose_goal(desired)[:, :3, :3] @ decode_pose_goal(achieved)[:, :3, :3].mT)
+                error = xp.concatenate([error.astype(np.float64) if xp is np else error.double(),
+                                        self.orientation_weight * rotation], -1)
             clearance, damper = None, []
             if self.avoidance is not None:
                 start, k = self.clearance_rows
-                rows = obs[:, start : start + k * (1 + nj)].double()
+                rows = obs[:, start : start + k * (1 + nj)]
+                rows = rows.astype(np.float64) if xp is np else rows.double()
                 clearance = rows[:, :k], rows[:, k:].reshape(-1, k, nj)
                 normal, bound = damper_constraints(*clearance, **self.avoidance)
-                damper = [(normal * self.max_step).flatten(1), bound]
+                damper = [(normal * self._constants(xp)[0]).reshape(normal.shape[0], -1), bound]
             joint = self.joint_features(q, error, clearance)
-        return torch.cat([base, joint.to(base.dtype), *(d.to(base.dtype) for d in damper)], dim=-1)
+        parts = [joint, *damper]
+        parts = [p.astype(base.dtype) for p in parts] if xp is np else [p.to(base.dtype) for p in parts]
+        return xp.concatenate([base, *parts], -1)
+
+
+_CYCLE, _CYCLE2 = [1, 2, 0], [2, 0, 1]  # x[_CYCLE] * y[_CYCLE2] - x[_CYCLE2] * y[_CYCLE] = x cross y
+# Shepperd's rows (so3's ``rows``), as indices into [4 w^2, 4 x^2, 4 y^2, 4 z^2, m21 - m12, m02 - m20,
+# m10 - m01, m10 + m01, m02 + m20, m21 + m12], and those six entries of a flattened matrix
+_ROWS = np.array([[0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3]])
+_PLUS, _MINUS, _SIGN = [7, 2, 3, 3, 2, 7], [5, 6, 1, 1, 6, 5], np.array([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
+_DIAGONAL_SIGNS = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
+
+
+def _rotation_error(desired: np.ndarray, achieved: np.ndarray) -> np.ndarray:
+    """Pose goals ``(B, 9)`` -> ``log(R_desired R_achieved^T) (B, 3)`` float64 (rad), for a few rows:
+    :func:`envs.goals.decode_pose_goal`'s Gram-Schmidt and :func:`iiwa_torch.so3.log`'s route through
+    the quaternion (Shepperd's method), restated in numpy (held to them by the tests)."""
+    def rotation(goal):
+        g = goal.astype(np.float64)
+        x = g[:, 3:6] / np.sqrt((g[:, 3:6] * g[:, 3:6]).sum(-1))[:, None]
+        y = g[:, 6:9] - (x * g[:, 6:9]).sum(-1)[:, None] * x
+        y = y / np.sqrt((y * y).sum(-1))[:, None]
+        z = x[:, _CYCLE] * y[:, _CYCLE2] - x[:, _CYCLE2] * y[:, _CYCLE]
+        return np.stack([x, y, z], -1)
+
+    flat = (rotation(desired) @ rotation(achieved).mT).reshape(-1, 9)  # (B, 9): m00, m01, ... m22
+    diagonal, off = 1.0 + flat[:, [0, 4, 8]] @ _DIAGONAL_SIGNS.T, flat[:, _PLUS] + flat[:, _MINUS] * _SIGN
+    entries = np.concatenate([diagonal, off], 1)
+    best = entries[:, :4].argmax(-1)
+    quat = entries[np.arange(len(flat))[:, None], _ROWS[best]]  # (B, 4): 4 |q_best| (w, x, y, z)
+    quat = quat / (2 * np.sqrt(np.maximum(quat[np.arange(len(flat)), best], 1e-30)))[:, None]
+    quat = np.where(quat[:, :1] < 0, -quat, quat)
+    w, v = quat[:, :1], quat[:, 1:]
+    vn2 = (v * v).sum(-1)[:, None]
+    small = vn2 < 1e-12
+    vn = np.sqrt(np.where(small, 1.0, vn2))
+    return np.where(small, 2 / np.maximum(w, 1e-6), 2 * np.arctan2(vn, w) / vn) * v

@@ -21,11 +21,12 @@ unchanged; the DLS step is computed from the observation inside the network, so
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from stable_baselines3.common.policies import MultiInputActorCriticPolicy
 from torch import nn
 
-from train.features import JointGoalExtractor, hildreth
+from train.features import JointGoalExtractor, hildreth, numpy_ok, shrink
 
 
 class _LatentWithBase(nn.Module):
@@ -39,15 +40,18 @@ class _LatentWithBase(nn.Module):
         self.latent_dim_pi = inner.latent_dim_pi + sum(b - a for a, b in columns)
         self.latent_dim_vf = inner.latent_dim_vf
 
-    def _base(self, features: torch.Tensor) -> torch.Tensor:
-        return torch.cat([features[:, a:b] for a, b in self.columns], -1)
+    def _with_base(self, latent: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        parts = [latent, *(features[:, a:b] for a, b in self.columns)]
+        if numpy_ok(latent, features):  # a few rows at inference: numpy's concatenation costs a fraction
+            return torch.from_numpy(np.concatenate([p.numpy() for p in parts], -1))
+        return torch.cat(parts, -1)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         latent_pi, latent_vf = self.inner(features)
-        return torch.cat([latent_pi, self._base(features)], dim=-1), latent_vf
+        return self._with_base(latent_pi, features), latent_vf
 
     def forward_actor(self, features: torch.Tensor) -> torch.Tensor:
-        return torch.cat([self.inner.forward_actor(features), self._base(features)], dim=-1)
+        return self._with_base(self.inner.forward_actor(features), features)
 
     def forward_critic(self, features: torch.Tensor) -> torch.Tensor:
         return self.inner.forward_critic(features)
@@ -62,14 +66,21 @@ class _ResidualHead(nn.Module):
         self.linear, self.gate_distance, self.constraints = linear, gate_distance, constraints
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
+        correction = self.linear(latent[:, : self.linear.in_features])
+        if numpy_ok(correction):  # inference on a few rows: the rest in numpy (the same float32 values)
+            return torch.from_numpy(self._mean(latent.numpy(), correction.numpy(), np))
+        return self._mean(latent, correction, torch)
+
+    def _mean(self, latent, correction, xp):
+        """The mean from ``latent`` and ``correction = linear(latent's first columns) (B, nj)``, tensors or
+        numpy arrays (``xp``)."""
         n, nj, k = self.linear.in_features, self.linear.out_features, self.constraints
         step, distance = latent[:, n : n + nj], latent[:, n + nj : n + nj + 1]
-        mean = step + distance / (distance + self.gate_distance) * self.linear(latent[:, :n])
+        mean = step + distance / (distance + self.gate_distance) * correction
         if not k:
             return mean
-        normal, bound = latent[:, n + nj + 1 : n + nj + 1 + k * nj].view(-1, k, nj), latent[:, -k:]
-        mean = hildreth(mean, normal, normal, bound)
-        return mean / mean.abs().amax(-1, keepdim=True).clamp(min=1.0)
+        normal, bound = latent[:, n + nj + 1 : n + nj + 1 + k * nj].reshape(-1, k, nj), latent[:, -k:]
+        return shrink(hildreth(mean, normal, normal, bound), xp)
 
 
 class ResidualDLSPolicy(MultiInputActorCriticPolicy):
@@ -88,6 +99,19 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
             raise ValueError(f"gate_distance must be a positive number (m), got {gate_distance!r}")
         self.gate_distance = float(gate_distance)
         super().__init__(*args, **kwargs)
+
+    def _predict(self, observation, deterministic: bool = False) -> torch.Tensor:
+        """SB3's ``_predict``; deterministic: the action head's mean, without building the Gaussian
+        whose mode it is (the same tensor)."""
+        if not deterministic:
+            return super()._predict(observation, deterministic)
+        return self.action_net(self.mlp_extractor.forward_actor(self.extract_features(observation)))
+
+    def set_training_mode(self, mode: bool) -> None:
+        """SB3's, skipped when the policy is in that mode already (``predict`` calls it every step, and
+        the walk over every module costs more than a features extractor call on one row)."""
+        if mode != self.training:
+            super().set_training_mode(mode)
 
     def _get_constructor_parameters(self) -> dict:
         return {**super()._get_constructor_parameters(), "gate_distance": self.gate_distance}
