@@ -353,8 +353,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         error = desired[:, :3] - achieved[:, :3]
         with torch.no_grad():  # no parameters upstream: features only
             if self.pose:
-                rotation = _rotation_error(desired, achieved) if xp is np else so3.log(
-                    decode_pose_goal(desired)[:, :3, :3] @ decode_pose_goal(achieved)[:, :3, :3].mT)
+                rotation = _rotation_error(*(torch.from_numpy(g) for g in (desired, achieved))).numpy() \
+                    if xp is np else _rotation_error(desired, achieved)
                 error = xp.concatenate([error.astype(np.float64) if xp is np else error.double(),
                                         self.orientation_weight * rotation], -1)
             clearance, damper = None, []
@@ -371,35 +371,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         return xp.concatenate([base, *parts], -1)
 
 
-_CYCLE, _CYCLE2 = [1, 2, 0], [2, 0, 1]  # x[_CYCLE] * y[_CYCLE2] - x[_CYCLE2] * y[_CYCLE] = x cross y
-# Shepperd's rows (so3's ``rows``), as indices into [4 w^2, 4 x^2, 4 y^2, 4 z^2, m21 - m12, m02 - m20,
-# m10 - m01, m10 + m01, m02 + m20, m21 + m12], and those six entries of a flattened matrix
-_ROWS = np.array([[0, 4, 5, 6], [4, 1, 7, 8], [5, 7, 2, 9], [6, 8, 9, 3]])
-_PLUS, _MINUS, _SIGN = [7, 2, 3, 3, 2, 7], [5, 6, 1, 1, 6, 5], np.array([-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
-_DIAGONAL_SIGNS = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
-
-
-def _rotation_error(desired: np.ndarray, achieved: np.ndarray) -> np.ndarray:
-    """Pose goals ``(B, 9)`` -> ``log(R_desired R_achieved^T) (B, 3)`` float64 (rad), for a few rows:
-    :func:`envs.goals.decode_pose_goal`'s Gram-Schmidt and :func:`iiwa_torch.so3.log`'s route through
-    the quaternion (Shepperd's method), restated in numpy (held to them by the tests)."""
-    def rotation(goal):
-        g = goal.astype(np.float64)
-        x = g[:, 3:6] / np.sqrt((g[:, 3:6] * g[:, 3:6]).sum(-1))[:, None]
-        y = g[:, 6:9] - (x * g[:, 6:9]).sum(-1)[:, None] * x
-        y = y / np.sqrt((y * y).sum(-1))[:, None]
-        z = x[:, _CYCLE] * y[:, _CYCLE2] - x[:, _CYCLE2] * y[:, _CYCLE]
-        return np.stack([x, y, z], -1)
-
-    flat = (rotation(desired) @ rotation(achieved).mT).reshape(-1, 9)  # (B, 9): m00, m01, ... m22
-    diagonal, off = 1.0 + flat[:, [0, 4, 8]] @ _DIAGONAL_SIGNS.T, flat[:, _PLUS] + flat[:, _MINUS] * _SIGN
-    entries = np.concatenate([diagonal, off], 1)
-    best = entries[:, :4].argmax(-1)
-    quat = entries[np.arange(len(flat))[:, None], _ROWS[best]]  # (B, 4): 4 |q_best| (w, x, y, z)
-    quat = quat / (2 * np.sqrt(np.maximum(quat[np.arange(len(flat)), best], 1e-30)))[:, None]
-    quat = np.where(quat[:, :1] < 0, -quat, quat)
-    w, v = quat[:, :1], quat[:, 1:]
-    vn2 = (v * v).sum(-1)[:, None]
-    small = vn2 < 1e-12
-    vn = np.sqrt(np.where(small, 1.0, vn2))
-    return np.where(small, 2 / np.maximum(w, 1e-6), 2 * np.arctan2(vn, w) / vn) * v
+def _rotation_error(desired: torch.Tensor, achieved: torch.Tensor) -> torch.Tensor:
+    """Pose goals ``(B, 9)`` -> ``log(R_desired R_achieved^T) (B, 3)`` (rad), in the goals' dtype (the
+    numpy path hands its arrays over as tensors: a dozen torch ops, one formula)."""
+    return so3.log(decode_pose_goal(desired)[:, :3, :3] @ decode_pose_goal(achieved)[:, :3, :3].mT)
