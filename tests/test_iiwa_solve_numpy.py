@@ -8,45 +8,24 @@ import math
 
 import pytest
 import torch
+from conftest import placed
 
-from iiwa_torch import compiled, robots
+from iiwa_torch import robots
 from iiwa_torch.collision import World
 from iiwa_torch.ik import analytic
 from iiwa_torch.ik.analytic import srs
-from iiwa_torch.so3 import exp
 
 BATCH = min(64, srs.SOLVE_NUMPY_BATCH)  # poses per call, all on the numpy path
 
 
-@pytest.fixture(autouse=True, params=["compiled", "numpy"])
-def sweep(request, monkeypatch):
-    """The kernel that runs the small-batch sweep: the compiled one, or the numpy code it restates."""
-    if request.param == "compiled" and not compiled.ENABLED:
-        pytest.skip("numba not installed or IIWA_TORCH_NUMBA=0")
-    if request.param == "numpy":
-        monkeypatch.setattr(compiled, "ENABLED", False)
-    return request.param
+pytestmark = pytest.mark.usefixtures("small_kernel")  # every test twice: compiled and numpy
 
 
 def _gen(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
-def _chains():
-    plain = robots.iiwa14()
-    placed = robots.iiwa14()  # a base and a tool: both are stripped from the target
-    base = torch.eye(4, dtype=torch.float64)
-    base[:3, :3] = exp(torch.tensor([0.1, -0.3, 0.7], dtype=torch.float64))
-    base[:3, 3] = torch.tensor([0.2, -0.1, 0.05])
-    tool = torch.eye(4, dtype=torch.float64)
-    tool[:3, :3] = exp(torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64))
-    tool[:3, 3] = torch.tensor([0.02, -0.01, 0.1])
-    placed.base.copy_(base)
-    placed.tool.copy_(tool)
-    return {"plain": plain, "placed": placed}
-
-
-CHAINS = _chains()
+CHAINS = {"plain": robots.iiwa14(), "placed": placed(robots.iiwa14())}  # placed: base and tool stripped from the target
 
 
 def _batched(chain, target, **kwargs):

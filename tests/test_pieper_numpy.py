@@ -7,44 +7,26 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import placed
 
-from iiwa_torch import compiled, robots
+from iiwa_torch import robots
 from iiwa_torch.collision import World
 from iiwa_torch.ik import analytic
 from iiwa_torch.ik.analytic import spherical6r
-from iiwa_torch.so3 import exp, pose_error
+from iiwa_torch.so3 import pose_error
 
 BATCH = min(64, spherical6r.PIEPER_NUMPY_BATCH)  # poses per call, all on the numpy path
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, params=["compiled", "numpy"])
-def kernel(request, monkeypatch):
-    """What runs the small-batch closed form: the compiled kernel, or the numpy code it restates."""
-    if request.param == "compiled" and not compiled.ENABLED:
-        pytest.skip("numba not installed or IIWA_TORCH_NUMBA=0")
-    if request.param == "numpy":
-        monkeypatch.setattr(compiled, "ENABLED", False)
-    return request.param
+pytestmark = pytest.mark.usefixtures("small_kernel")  # every test twice: compiled and numpy
 
 
 def _gen(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 
 
-def _placed(chain):
-    """``chain`` with a base and a tool: both are stripped from the target."""
-    base, tool = torch.eye(4, dtype=F64), torch.eye(4, dtype=F64)
-    base[:3, :3] = exp(torch.tensor([0.1, -0.3, 0.7], dtype=F64))
-    base[:3, 3] = torch.tensor([0.2, -0.1, 0.05])
-    tool[:3, :3] = exp(torch.tensor([0.3, -0.2, 0.5], dtype=F64))
-    tool[:3, 3] = torch.tensor([0.02, -0.01, 0.1])
-    chain.base.copy_(base)
-    chain.tool.copy_(tool)
-    return chain
-
-
-CHAINS = {"puma560": robots.puma560(), "lrmate_placed": _placed(robots.lrmate200ic())}
+CHAINS = {"puma560": robots.puma560(), "lrmate_placed": placed(robots.lrmate200ic())}
 
 
 def _batched(chain, target, **kwargs):
@@ -250,7 +232,7 @@ def test_a_changed_chain_is_seen():
     chain = robots.puma560()
     target = chain.fk(chain.random_q(5, generator=_gen(9)))
     analytic.pieper(chain, target)
-    chain.tool.copy_(_placed(robots.puma560()).tool)
+    chain.tool.copy_(placed(robots.puma560()).tool)
     fast = analytic.pieper(chain, target)
     _assert_same(fast, _batched(chain, target), q_tol=1e-9)
     _assert_closure(chain, fast, target, 1e-9)
