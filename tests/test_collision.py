@@ -523,6 +523,26 @@ def test_one_configuration_equals_its_row_of_a_large_batch():
     torch.testing.assert_close(clearance(chain, q, world), batch.amin(-1), atol=0, rtol=0)
 
 
+def test_large_batches_give_the_same_answer_on_any_thread_count_and_leave_it_as_it_was():
+    chain = robots.iiwa14()
+    q = chain.random_q(10_000, generator=torch.Generator().manual_seed(12)).float()  # several blocks
+    world = World(floor=0.0, spheres=(torch.tensor([[0.4, 0.0, 0.6]]), torch.tensor([0.15])))
+    before = torch.get_num_threads()
+    try:
+        answers = []
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            x = q.clone().requires_grad_(True)
+            d = clearance(chain, x, world)
+            assert torch.get_num_threads() == threads
+            answers.append((d.detach(), torch.autograd.grad(d.sum(), x)[0]))
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(*answers):
+        torch.testing.assert_close(b, a, atol=0, rtol=0)
+    torch.testing.assert_close(answers[0][0], pairwise_clearance(chain, q, world).distance.amin(-1), atol=0, rtol=0)
+
+
 @pytest.mark.parametrize("world_batch", [(), (60,)])
 def test_clearance_skips_far_boxes_without_changing_the_minimum_or_its_gradient(world_batch):
     # clearance runs the exact segment-box search only on pairs that can be the minimum; the
