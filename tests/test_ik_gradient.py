@@ -7,13 +7,14 @@ batch-last kernel), and from closed-form facts (reach of the arm, planar z).
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import IKResult, minimize, solve
-from iiwa_torch.ik.dls import cholesky_solve_batch_last, dls_step
+from iiwa_torch.ik.dls import cholesky_solve_batch_last, dls_step, dls_step_numpy
 
 DTYPES = [torch.float64, torch.float32]
 
@@ -279,6 +280,24 @@ def test_dls_step_is_damped_least_squares(rows):
     torch.testing.assert_close(dls_step(J[0, 0], e[0], 1e-2), broadcast)
     args = (J[1, :2].clone().requires_grad_(), e[1, :2].clone().requires_grad_())
     assert torch.autograd.gradcheck(lambda j, v: dls_step(j, v, 1e-2), args)
+
+
+@pytest.mark.parametrize("rows", [6, 3])
+def test_dls_step_numpy_is_damped_least_squares_with_held_joints(rows):
+    """The numpy step against least squares on [J diag(free); sqrt(lam) I] dq = [e; 0], the held
+    joints' columns zeroed (their step 0), damping broadcast over a batch."""
+    gen = np.random.default_rng(28)
+    J, e = gen.normal(size=(4, 3, rows, 7)), gen.normal(size=(4, 3, rows))
+    lam = np.array([1e-2, 1e-3, 1e-4])  # (3,): one per column of the batch
+    free = (gen.random((4, 3, 7)) > 0.3).astype(np.float64)
+    for held in (None, free):
+        f = np.ones_like(free) if held is None else held
+        stacked = np.concatenate([J * f[..., None, :], np.sqrt(lam)[:, None, None] * np.eye(7)[None]
+                                  .repeat(4 * 3, 0).reshape(4, 3, 7, 7)], -2)
+        rhs = np.concatenate([e, np.zeros((4, 3, 7))], -1)
+        expected = np.stack([np.linalg.lstsq(a, b, rcond=None)[0] for a, b in
+                             zip(stacked.reshape(-1, rows + 7, 7), rhs.reshape(-1, rows + 7))]).reshape(4, 3, 7) * f
+        np.testing.assert_allclose(dls_step_numpy(J, e, lam, held), expected, atol=1e-10, rtol=1e-10)
 
 
 def test_dls_step_gradient_same_on_both_cholesky_paths():

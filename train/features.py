@@ -23,7 +23,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from envs.goals import decode_pose_goal
 from iiwa_torch import kinematics as kin
 from iiwa_torch import so3
-from iiwa_torch.ik.dls import dls_step_batch_last
+from iiwa_torch.ik.dls import dls_step_batch_last, dls_step_numpy
 
 
 class GoalDeltaExtractor(BaseFeaturesExtractor):
@@ -259,16 +259,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         b, m, n = jac.shape
         size = len(self.damping_sq)
         if isinstance(jac, np.ndarray):
-            # dls_step's formulas in numpy (LU rather than Cholesky: the same step to rounding)
-            eye, damping = np.eye(m), self.damping_sq.numpy()[:, None, None]
-
-            def solve(free):
-                held = jac[:, None] if free is None else jac[:, None] * free[:, :, None]  # (B, L, k, nj)
-                A = (held[:, :, :, None] * jac[:, None, None]).sum(-1) + damping * eye  # (B, L, k, k)
-                y = np.linalg.solve(A, error[:, None, :, None])  # (B, L, k, 1)
-                dq = (jac[:, None] * y).sum(-2)
-                return dq if free is None else dq * free
-            return solve
+            damping = self.damping_sq.numpy()  # (L,)
+            return lambda free: dls_step_numpy(jac[:, None], error[:, None], damping, free)  # (B, L, nj)
         # dls_step's layout and kernel, unchecked: the inputs are this network's own
         J = jac.unsqueeze(1).expand(b, size, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, nj, B L)
         rhs = error.unsqueeze(1).expand(b, size, m).reshape(-1, m).T[:, None]  # (m, 1, B L)

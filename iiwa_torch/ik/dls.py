@@ -8,16 +8,18 @@ angular rows in rad/rad) and an error ``e (m,)`` (m, or rad for the rotation row
 ``damping`` (the squared damping factor, in the units of ``J J^T``: m^2 for an arm) keeps
 ``dq`` finite where ``J`` loses rank (Nakamura and Hanafusa; Wampler). :func:`dls_step` takes
 any leading batch shape; :func:`dls_step_batch_last` is the same step in the batch-last layout
-the gradient solver iterates in, and :func:`cholesky_solve_batch_last` its linear solve.
+the gradient solver iterates in, and :func:`cholesky_solve_batch_last` its linear solve;
+:func:`dls_step_numpy` the same step on numpy arrays, for a few problems at a time.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from ..checks import all_finite, check_finite, check_float_tensor, check_positive
 
-__all__ = ["dls_step", "dls_step_batch_last", "cholesky_solve_batch_last"]
+__all__ = ["dls_step", "dls_step_batch_last", "dls_step_numpy", "cholesky_solve_batch_last"]
 
 Tensor = torch.Tensor
 
@@ -76,6 +78,20 @@ def dls_step_batch_last(J: Tensor, rhs: Tensor, damping: Tensor, floor: float, f
     y = cholesky_solve_batch_last(A, rhs, floor)
     dq = (J[:, :, None] * y[:, None]).sum(0)
     return dq if free is None else dq * free[:, None]
+
+
+def dls_step_numpy(jacobian: np.ndarray, error: np.ndarray, damping: np.ndarray, free: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """:func:`dls_step` on numpy arrays, unchecked, for a few problems with nothing to differentiate
+    (a numpy op costs a fraction of a torch op): ``jacobian (..., m, n)``, ``error (..., m)``,
+    ``damping`` broadcasting to the batch ``(...)``, ``free (..., n)`` (0 or 1) or None as in
+    :func:`dls_step_batch_last` -> ``(..., n)``. An LU solve rather than Cholesky: the same step
+    to rounding."""
+    held = jacobian if free is None else jacobian * free[..., None, :]
+    A = (held[..., :, None, :] * jacobian[..., None, :, :]).sum(-1) + np.asarray(damping)[..., None, None] * np.eye(
+        jacobian.shape[-2])
+    dq = (jacobian * np.linalg.solve(A, error[..., None])).sum(-2)
+    return dq if free is None else dq * free
 
 
 def dls_step(jacobian: Tensor, error: Tensor, damping: Tensor | float) -> Tensor:
