@@ -327,8 +327,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
         """The features ``(B, features_dim)``; up to ``NUMPY_ROWS`` rows on the CPU with nothing to
         differentiate (:func:`numpy_ok`: one env's policy step) the same formulas run in numpy, which
-        costs a fraction of torch's per-op overhead (the DLS solves, the Jacobian and the pose goals'
-        rotation error are computed another way there: the same values to rounding)."""
+        costs a fraction of torch's per-op overhead (the DLS solves, by ``dls_step_numpy``, and the
+        Jacobian are computed another way there: the same values to rounding)."""
         obs, nj = observations["observation"], self.nj
         # torch's float32 atan2 on both paths: numpy's may differ in the last bit
         q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
