@@ -69,6 +69,35 @@ def test_joint_features_match_least_squares_on_finite_difference_jacobians():
     assert np.all(np.abs(joint[:, :14]) <= 1.0 + 1e-9)
 
 
+def test_error_damping_grows_each_damping_with_the_error():
+    """``error_damping = c``: the step is the least-squares one with ``lambda + c |e|`` (numpy's lstsq on
+    ``[J_p; lambda I] dq = [e; 0]``, J_p by finite differences); a large error is damped far more."""
+    chain = iiwa14()
+    g = torch.Generator().manual_seed(4)
+    q = chain.random_q(4, generator=g)
+    error = (torch.rand(4, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([[0.8], [0.1], [0.01], [0.001]])
+    dampings, c = (0.01, 0.03), 1.5
+    ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=dampings, error_damping=c)
+    achieved = chain.fk(q)[:, :3, 3]
+    obs = {"observation": torch.cat([q.cos(), q.sin(), torch.zeros(4, 7), achieved], -1).float(),
+           "achieved_goal": achieved.float(), "desired_goal": (achieved + error).float()}
+    joint = ext(obs).double()[:, -(4 * 7 + 1):].numpy()
+    e = (obs["desired_goal"] - obs["achieved_goal"]).double().numpy()
+    for b in range(4):
+        jp = _fd_position_jacobian(q[b].numpy())
+        for k, lam in enumerate(dampings):
+            lam = lam + c * np.linalg.norm(e[b])
+            dq = np.linalg.lstsq(np.vstack([jp, lam * np.eye(7)]), np.concatenate([e[b], np.zeros(7)]), rcond=None)[0]
+            u = dq / np.array(MAX_STEP)
+            np.testing.assert_allclose(joint[b, 7 * k : 7 * k + 7], u / max(1.0, np.abs(u).max()), atol=2e-5)
+
+
+@pytest.mark.parametrize("value", [-0.1, float("nan"), True, "1"])
+def test_error_damping_must_be_a_non_negative_number(value):
+    with pytest.raises(ValueError, match="error_damping must be a number >= 0"):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, error_damping=value)
+
+
 def test_joint_features_at_the_limits_and_on_target_by_hand():
     """At q = upper limits the place features are +1; with a zero error every step feature is zero."""
     chain = iiwa14()
@@ -274,9 +303,9 @@ def _observations(rows: int, goal_dim: int, dtype, rng) -> dict[str, torch.Tenso
             "desired_goal": goal(desired).to(dtype)}
 
 
-@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds", [
-    (3, False, 0), (3, True, 0), (3, True, 3), (9, False, 3), (9, True, 3)])
-def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, monkeypatch):
+@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping", [
+    (3, False, 0, 0.0), (3, True, 0, 0.0), (3, True, 3, 0.0), (9, False, 3, 0.0), (9, True, 3, 0.0), (9, True, 3, 1.0)])
+def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, monkeypatch):
     """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy; with NUMPY_ROWS = 0 the same
     observations take the torch path. Float64 observations: every feature agrees to 1e-12 (the
     DLS and damper solves by LU instead of Cholesky, the Jacobian and the pose goals' rotation error
@@ -287,7 +316,8 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, mon
     rng = np.random.default_rng(11)
     kwargs = {"avoidance": {"xi": 0.3, "safe": 0.005, "influence": 0.1}} if avoidance else {}
     ext = JointGoalExtractor(_space(21 + 4 * 8, goal_dim), "iiwa14", MAX_STEP, dampings=(0.1, 0.03),
-                             orientation_weight=0.2, clearance_rows=(21, 4), limit_rounds=limit_rounds, **kwargs)
+                             orientation_weight=0.2, clearance_rows=(21, 4), limit_rounds=limit_rounds,
+                             error_damping=error_damping, **kwargs)
     cases = [(rows, dtype) for rows in (1, 2, 7, NUMPY_ROWS) for dtype in (torch.float64, torch.float32)] * 3
     held = 0
     for rows, dtype in cases:

@@ -129,13 +129,13 @@ def damper_constraints(distance, gradient, xi: float, safe: float, influence: fl
 
 def velocity_damper(dq, jac, damping_sq, distance, gradient, xi: float, safe: float, influence: float,
                     sweeps: int = 5):
-    """Joint steps ``dq (B, L, n)`` (rad), one per damping ``damping_sq (L,)``, changed as little as
+    """Joint steps ``dq (B, L, n)`` (rad), one per damping ``damping_sq (L,)`` or ``(B, L)``, changed as little as
     possible in the metric ``H = J^T J + damping I`` of the DLS step (``jac (B, m, n)``) to meet
     :func:`damper_constraints` (``distance (B, K)``, ``gradient (B, K, n)``, ``xi``, ``safe``,
     ``influence``), by :func:`hildreth`. Tensors, or numpy arrays (all of them)."""
     xp = np if isinstance(dq, np.ndarray) else torch
     eye = xp.eye(jac.shape[-1], dtype=jac.dtype, device=jac.device)
-    H = (jac.mT @ jac)[:, None] + damping_sq[:, None, None] * eye  # (B, L, n, n)
+    H = (jac.mT @ jac)[:, None] + damping_sq[..., None, None] * eye  # (B, L, n, n)
     normal, bound = damper_constraints(distance, gradient, xi, safe, influence)
     normal = normal[:, None]  # (B, 1, K, n): the same constraints for every damping
     return hildreth(dq, normal, xp.linalg.solve(H, normal.mT).mT, bound[:, None], sweeps)
@@ -187,6 +187,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
         avoidance: the velocity damper's ``xi`` (in (0, 1]), ``safe`` and ``influence`` (m), or None.
         limit_rounds: how many times a DLS step is solved again without the joints it would push
             past their limits (:meth:`shrunk_step`; 0: never).
+        error_damping: ``c >= 0`` (dimensionless): each damping grows with the error, ``lambda + c |e|``
+            (m), the Levenberg-Marquardt rule of damping in proportion to the error (Sugihara's damps by
+            its square); 0: constant dampings.
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
@@ -195,7 +198,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
                  max_step: Sequence[float] | None = None, scales: Sequence[float] = (0.3, 0.03, 0.003),
                  dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5,
                  clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None,
-                 limit_rounds: int = 0):
+                 limit_rounds: int = 0, error_damping: float = 0.0):
         from iiwa_torch.robots import PRESETS
 
         super().__init__(observation_space, scales)
@@ -227,6 +230,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
                 raise ValueError(f"clearance_rows {list(clearance_rows)} lie outside the observation ({obs_dim})")
         if isinstance(limit_rounds, bool) or not isinstance(limit_rounds, int) or limit_rounds < 0:
             raise ValueError(f"limit_rounds must be an int >= 0, got {limit_rounds!r}")
+        if isinstance(error_damping, bool) or not isinstance(error_damping, (int, float)) or not error_damping >= 0:
+            raise ValueError(f"error_damping must be a number >= 0, got {error_damping!r}")
+        self.error_damping = float(error_damping)
         self.limit_rounds = limit_rounds
         self.avoidance = None if avoidance is None else {key: float(v) for key, v in avoidance.items()}
         self.clearance_rows = None if clearance_rows is None else tuple(int(c) for c in clearance_rows)
@@ -253,18 +259,28 @@ class JointGoalExtractor(GoalDeltaExtractor):
         max_step, damping_sq, (lower, upper) = values if xp is torch else (v.numpy() for v in values)
         return max_step, damping_sq, lower, upper
 
+    def squared_dampings(self, error):
+        """``error (B, k)`` (tensor or numpy array) -> the squared dampings ``(B, L)`` (m^2),
+        ``(lambda + c |e|)^2`` with ``c = error_damping``."""
+        xp = np if isinstance(error, np.ndarray) else torch
+        damping_sq = self._constants(xp)[1]  # (L,)
+        if not self.error_damping:
+            return xp.broadcast_to(damping_sq, (error.shape[0], damping_sq.shape[0]))
+        size = xp.sqrt((error * error).sum(-1))[:, None]  # (B, 1)
+        return (xp.sqrt(damping_sq) + self.error_damping * size) ** 2
+
     def _dls_solver(self, jac, error):
         """``free (B, L, nj)`` (0 or 1) or None -> the DLS steps ``(B, L, nj)`` (rad) per damping for
         ``jac (B, k, nj)`` and ``error (B, k)``, the held joints' columns of ``J`` counted as zero."""
         b, m, n = jac.shape
-        size = len(self.damping_sq)
+        damping = self.squared_dampings(error)  # (B, L)
+        size = damping.shape[1]
         if isinstance(jac, np.ndarray):
-            damping = self.damping_sq.numpy()  # (L,)
             return lambda free: dls_step_numpy(jac[:, None], error[:, None], damping, free)  # (B, L, nj)
         # dls_step's layout and kernel, unchecked: the inputs are this network's own
         J = jac.unsqueeze(1).expand(b, size, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, nj, B L)
         rhs = error.unsqueeze(1).expand(b, size, m).reshape(-1, m).T[:, None]  # (m, 1, B L)
-        damping, tiny = self.damping_sq.repeat(b), torch.finfo(jac.dtype).tiny
+        damping, tiny = damping.reshape(-1), torch.finfo(jac.dtype).tiny
 
         def solve(free):
             free = None if free is None else free.reshape(-1, n).T
@@ -312,12 +328,13 @@ class JointGoalExtractor(GoalDeltaExtractor):
             g = self.chain.geometry()  # one row: the float recursion costs a fifth of the 4x4 products
             jac = kin.jacobian_floats(g, torch.from_numpy(q)).numpy() if len(q) == 1 else \
                 kin.pose_jacobian_numpy(g, q)[1]
-        max_step, damping_sq, lower, upper = self._constants(xp)
+        max_step, _, lower, upper = self._constants(xp)
         k = e.shape[-1]
         w = self.orientation_weight
         jp = jac[..., :3, :] if k == 3 else xp.concatenate([jac[..., :3, :], w * jac[..., 3:, :]], -2)
         u = self.shrunk_step(q, jp, e)  # (B, L, nj) in actions
         if self.avoidance is not None:
+            damping_sq = self.squared_dampings(e)
             u = shrink(velocity_damper(u * max_step, jp, damping_sq, *clearance, **self.avoidance) / max_step, xp)
         distance = xp.sqrt((e * e).sum(-1))[:, None]  # (B, 1)
         grad = (jp.mT @ e[..., None])[..., 0] / distance.clip(min=1e-6)
