@@ -92,6 +92,27 @@ def test_error_damping_grows_each_damping_with_the_error():
             np.testing.assert_allclose(joint[b, 7 * k : 7 * k + 7], u / max(1.0, np.abs(u).max()), atol=2e-5)
 
 
+def test_step_bound_clip_clips_each_joint_where_shrink_keeps_the_direction():
+    """A far goal: the DLS step exceeds full speed. ``shrink`` divides it by its largest entry (numpy's
+    lstsq step, divided by hand); ``clip`` clips each joint to +-1 and leaves the unsaturated ones as
+    they are."""
+    chain = iiwa14()
+    q = chain.random_q(1, generator=torch.Generator().manual_seed(8))
+    achieved = chain.fk(q)[:, :3, 3]
+    error = torch.tensor([[0.03, -0.02, 0.01]], dtype=torch.float64)
+    obs = {"observation": torch.cat([q.cos(), q.sin(), torch.zeros(1, 7), achieved], -1).float(),
+           "achieved_goal": achieved.float(), "desired_goal": (achieved + error).float()}
+    e = (obs["desired_goal"] - obs["achieved_goal"]).double().numpy()[0]
+    jp = _fd_position_jacobian(q[0].numpy())
+    u = np.linalg.lstsq(np.vstack([jp, 0.1 * np.eye(7)]), np.concatenate([e, np.zeros(7)]), rcond=None)[0] / MAX_STEP
+    assert np.abs(u).max() > 1 and np.sum(np.abs(u) < 1) >= 2  # some joints saturate, some do not
+    for bound, expected in (("shrink", u / np.abs(u).max()), ("clip", np.clip(u, -1, 1))):
+        ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,), step_bound=bound)
+        np.testing.assert_allclose(ext(obs).double()[0, -(3 * 7 + 1):][:7].numpy(), expected, atol=2e-5)
+    with pytest.raises(ValueError, match="step_bound must be one of"):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, step_bound="scale")
+
+
 @pytest.mark.parametrize("value", [-0.1, float("nan"), True, "1"])
 def test_error_damping_must_be_a_non_negative_number(value):
     with pytest.raises(ValueError, match="error_damping must be a number >= 0"):
@@ -249,11 +270,11 @@ def test_limit_rounds_hold_the_joints_a_step_would_push_past_a_limit():
             continue
         error = jp[:, i] * 0.05 / np.linalg.norm(jp[:, i])  # along joint i's own motion: pushes it up
         qt, et, jt = torch.as_tensor(q)[None], torch.as_tensor(error)[None], torch.as_tensor(jp)[None]
-        before = plain.shrunk_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
+        before = plain.bounded_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
         if not q[i] + before[i] > upper[i]:
             continue
         checked += 1
-        step = ext.shrunk_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
+        step = ext.bounded_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
         assert np.all(q + step <= upper + 1e-12) and np.all(q + step >= lower - 1e-12)
         free = np.abs(step) > 0
         assert not free[i]
@@ -303,9 +324,10 @@ def _observations(rows: int, goal_dim: int, dtype, rng) -> dict[str, torch.Tenso
             "desired_goal": goal(desired).to(dtype)}
 
 
-@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping", [
-    (3, False, 0, 0.0), (3, True, 0, 0.0), (3, True, 3, 0.0), (9, False, 3, 0.0), (9, True, 3, 0.0), (9, True, 3, 1.0)])
-def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, monkeypatch):
+@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping, step_bound", [
+    (3, False, 0, 0.0, "shrink"), (3, True, 0, 0.0, "shrink"), (3, True, 3, 0.0, "shrink"),
+    (9, False, 3, 0.0, "shrink"), (9, True, 3, 0.0, "shrink"), (9, True, 3, 1.0, "clip")])
+def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, step_bound, monkeypatch):
     """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy; with NUMPY_ROWS = 0 the same
     observations take the torch path. Float64 observations: every feature agrees to 1e-12 (the
     DLS and damper solves by LU instead of Cholesky, the Jacobian and the pose goals' rotation error
@@ -317,7 +339,7 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
     kwargs = {"avoidance": {"xi": 0.3, "safe": 0.005, "influence": 0.1}} if avoidance else {}
     ext = JointGoalExtractor(_space(21 + 4 * 8, goal_dim), "iiwa14", MAX_STEP, dampings=(0.1, 0.03),
                              orientation_weight=0.2, clearance_rows=(21, 4), limit_rounds=limit_rounds,
-                             error_damping=error_damping, **kwargs)
+                             error_damping=error_damping, step_bound=step_bound, **kwargs)
     cases = [(rows, dtype) for rows in (1, 2, 7, NUMPY_ROWS) for dtype in (torch.float64, torch.float32)] * 3
     held = 0
     for rows, dtype in cases:

@@ -60,6 +60,8 @@ class GoalDeltaExtractor(BaseFeaturesExtractor):
         return xp.concatenate([observations["observation"], achieved, desired, scaled], -1)
 
 
+STEP_BOUNDS = ("shrink", "clip")  # JointGoalExtractor's step_bound
+
 NUMPY_ROWS = 16  # up to this many rows on the CPU with nothing to differentiate, in numpy
 
 
@@ -152,8 +154,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         dq = J_p^T (J_p J_p^T + lambda^2 I)^-1 e        (rad; J_p: the Jacobian's position rows, m/rad)
 
     expressed in actions, ``u = dq / max_step`` (``max_step``: rad per step at ``|a| = 1``), and
-    shrunk as a whole to ``u / max(1, max_i |u_i|)`` so that it stays in ``[-1, 1]`` with its
-    direction kept. It also appends ``J_p^T e / |e|`` (m; the steepest-descent direction, defined
+    brought into ``[-1, 1]``: shrunk as a whole to ``u / max(1, max_i |u_i|)``, its direction kept,
+    or clipped joint by joint (``step_bound``). It also appends ``J_p^T e / |e|`` (m; the steepest-descent direction, defined
     at any rank), each joint's place within its limits, ``2 (q - lower) / (upper - lower) - 1``,
     and the distance ``|e|`` (m).
 
@@ -170,7 +172,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
     With ``avoidance`` (``{"xi", "safe", "influence"}``, see :func:`damper_constraints`) and an env
     that observes its clearances (``observe_clearance=True``; ``clearance_rows = (first column, K)``
     of them in ``observation``), every DLS step is first changed by :func:`velocity_damper` to keep
-    each capsule clear, then shrunk; and the damper's constraints in actions (``normal * max_step``,
+    each capsule clear, then bounded; and the damper's constraints in actions (``normal * max_step``,
     m, then ``bound``, m) are appended, ``K (nj + 1)`` columns from ``damper_columns[0]``, for a
     policy head that keeps its whole action clear (:class:`train.residual.ResidualDLSPolicy`).
 
@@ -186,10 +188,14 @@ class JointGoalExtractor(GoalDeltaExtractor):
             the number K of capsules (filled in from the env by ``train.train``); None: not observed.
         avoidance: the velocity damper's ``xi`` (in (0, 1]), ``safe`` and ``influence`` (m), or None.
         limit_rounds: how many times a DLS step is solved again without the joints it would push
-            past their limits (:meth:`shrunk_step`; 0: never).
+            past their limits (:meth:`bounded_step`; 0: never).
         error_damping: ``c >= 0`` (dimensionless): each damping grows with the error, ``lambda + c |e|``
             (m), the Levenberg-Marquardt rule of damping in proportion to the error (Sugihara's damps by
             its square); 0: constant dampings.
+        step_bound: how a DLS step larger than full speed is brought into ``[-1, 1]`` (in actions):
+            ``"shrink"`` divides the whole step by its largest entry (the direction kept), ``"clip"``
+            clips each joint (the joints that do not saturate keep their own speed: the wrist goes on
+            turning while the shoulder moves at full speed).
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
@@ -198,7 +204,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
                  max_step: Sequence[float] | None = None, scales: Sequence[float] = (0.3, 0.03, 0.003),
                  dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5,
                  clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None,
-                 limit_rounds: int = 0, error_damping: float = 0.0):
+                 limit_rounds: int = 0, error_damping: float = 0.0, step_bound: str = "shrink"):
         from iiwa_torch.robots import PRESETS
 
         super().__init__(observation_space, scales)
@@ -233,6 +239,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
         if isinstance(error_damping, bool) or not isinstance(error_damping, (int, float)) or not error_damping >= 0:
             raise ValueError(f"error_damping must be a number >= 0, got {error_damping!r}")
         self.error_damping = float(error_damping)
+        if step_bound not in STEP_BOUNDS:
+            raise ValueError(f"step_bound must be one of {STEP_BOUNDS}, got {step_bound!r}")
+        self.step_bound = step_bound
         self.limit_rounds = limit_rounds
         self.avoidance = None if avoidance is None else {key: float(v) for key, v in avoidance.items()}
         self.clearance_rows = None if clearance_rows is None else tuple(int(c) for c in clearance_rows)
@@ -287,8 +296,12 @@ class JointGoalExtractor(GoalDeltaExtractor):
             return dls_step_batch_last(J, rhs, damping, tiny, free)[:, 0].T.reshape(b, size, n)
         return solve
 
-    def shrunk_step(self, q, jac, error):
-        """The DLS step per damping in actions, shrunk into ``[-1, 1]``: ``q (B, nj)`` rad, ``jac (B, k, nj)``,
+    def _bounded(self, u, xp):
+        """Steps in actions ``u (..., nj)`` brought into ``[-1, 1]`` as ``step_bound`` says."""
+        return u.clip(-1.0, 1.0) if self.step_bound == "clip" else shrink(u, xp)
+
+    def bounded_step(self, q, jac, error):
+        """The DLS step per damping in actions, bounded into ``[-1, 1]`` (``step_bound``): ``q (B, nj)`` rad, ``jac (B, k, nj)``,
         ``error (B, k)`` (float64 tensors, or numpy arrays) -> ``(B, L, nj)``. With ``limit_rounds``, a
         joint that the step would push past its limit is held still and the step solved again without
         it, up to that many times (the arm's other joints then carry the motion, instead of the step
@@ -300,14 +313,14 @@ class JointGoalExtractor(GoalDeltaExtractor):
         if self.limit_rounds:
             free = xp.ones_like(dq)
             for _ in range(self.limit_rounds):
-                step = dq / xp.amax(abs(dq / max_step), -1)[..., None].clip(min=1.0)
+                step = self._bounded(dq / max_step, xp) * max_step
                 end = q[:, None] + step
                 blocked = ((end > upper) & (step > 0)) | ((end < lower) & (step < 0))
                 if not bool((blocked & (free > 0)).any()):
                     break
                 free = free * ~blocked
                 dq = solve(free)
-        return shrink(dq / max_step, xp)
+        return self._bounded(dq / max_step, xp)
 
     def joint_features(self, q, error, clearance: tuple | None = None):
         """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
@@ -332,10 +345,11 @@ class JointGoalExtractor(GoalDeltaExtractor):
         k = e.shape[-1]
         w = self.orientation_weight
         jp = jac[..., :3, :] if k == 3 else xp.concatenate([jac[..., :3, :], w * jac[..., 3:, :]], -2)
-        u = self.shrunk_step(q, jp, e)  # (B, L, nj) in actions
+        u = self.bounded_step(q, jp, e)  # (B, L, nj) in actions
         if self.avoidance is not None:
             damping_sq = self.squared_dampings(e)
-            u = shrink(velocity_damper(u * max_step, jp, damping_sq, *clearance, **self.avoidance) / max_step, xp)
+            u = velocity_damper(u * max_step, jp, damping_sq, *clearance, **self.avoidance) / max_step
+            u = self._bounded(u, xp)
         distance = xp.sqrt((e * e).sum(-1))[:, None]  # (B, 1)
         grad = (jp.mT @ e[..., None])[..., 0] / distance.clip(min=1e-6)
         place = 2.0 * (q - lower) / (upper - lower) - 1.0
