@@ -156,8 +156,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
     expressed in actions, ``u = dq / max_step`` (``max_step``: rad per step at ``|a| = 1``), and
     brought into ``[-1, 1]``: shrunk as a whole to ``u / max(1, max_i |u_i|)``, its direction kept,
     or clipped joint by joint (``step_bound``). It also appends ``J_p^T e / |e|`` (m; the
-    steepest-descent direction, defined at any rank), each joint's place within its limits, ``2 (q - lower) / (upper - lower) - 1``,
-    and the distance ``|e|`` (m).
+    steepest-descent direction, defined at any rank), each joint's place within its limits,
+    ``2 (q - lower) / (upper - lower) - 1``, and the distance ``|e|`` (m).
 
     Pose goals (9 numbers: position, then the first two columns of the rotation matrix) use
     the whole Jacobian, its rotation rows weighted by ``w = orientation_weight`` (m/rad), and
@@ -302,9 +302,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     def bounded_step(self, q, jac, error):
         """The DLS step per damping in actions, bounded into ``[-1, 1]`` (``step_bound``): ``q (B, nj)``
-        rad, ``jac (B, k, nj)``, ``error (B, k)`` (float64 tensors, or numpy arrays) -> ``(B, L, nj)``. With ``limit_rounds``, a
-        joint that the step would push past its limit is held still and the step solved again without
-        it, up to that many times (the arm's other joints then carry the motion, instead of the step
+        rad, ``jac (B, k, nj)``, ``error (B, k)`` (float64 tensors, or numpy arrays) -> ``(B, L, nj)``.
+        With ``limit_rounds``, a joint that the step would push past its limit is held still and the step
+        solved again without it, up to that many times (the arm's other joints then carry the motion, instead of the step
         being clamped at the limit)."""
         xp = np if isinstance(q, np.ndarray) else torch
         max_step, _, lower, upper = self._constants(xp)
