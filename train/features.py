@@ -304,8 +304,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         """The DLS step per damping in actions, bounded into ``[-1, 1]`` (``step_bound``): ``q (B, nj)``
         rad, ``jac (B, k, nj)``, ``error (B, k)`` (float64 tensors, or numpy arrays) -> ``(B, L, nj)``.
         With ``limit_rounds``, a joint that the step would push past its limit is held still and the step
-        solved again without it, up to that many times (the arm's other joints then carry the motion, instead of the step
-        being clamped at the limit)."""
+        solved again without it, up to that many times (the arm's other joints then carry the motion,
+        instead of the step being clamped at the limit)."""
         xp = np if isinstance(q, np.ndarray) else torch
         max_step, _, lower, upper = self._constants(xp)
         solve = self._dls_solver(jac, error)
