@@ -3,11 +3,13 @@
     python benchmarks/bench_collision.py [--quick]
 
 Ours: ``clearance(chain, q)`` on a batch of configurations (FK included), one thread, float64
-and float32. Peers, on the same capsules and pairs (3 self pairs, 3 capsule-floor pairs):
-coal (FCL's successor, C++) and pybullet (``getClosestPoints``), called from a Python loop
-over a subset of the configurations. The peers get their capsule poses precomputed (our FK,
-outside the timing), so their times are their distance queries alone: the ratios favour
-them. Writes results/collision.json and results/collision.md.
+and float32, by each of its two paths for such a batch: the compiled kernel (numba, the default
+when installed) and the torch ops (``compiled.ENABLED`` switched off, as ``IIWA_TORCH_NUMBA=0``
+does; also what any query with gradients runs). Peers, on the same capsules and pairs (3 self
+pairs, 3 capsule-floor pairs): coal (FCL's successor, C++) and pybullet (``getClosestPoints``),
+called from a Python loop over a subset of the configurations. The peers get their capsule poses
+precomputed (our FK, outside the timing), so their times are their distance queries alone: the
+ratios favour them. Writes results/collision.json and results/collision.md.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from common import markdown_table, save, timeit  # noqa: E402
 
-from iiwa_torch import robots  # noqa: E402
+from iiwa_torch import compiled, robots  # noqa: E402
 from iiwa_torch.collision import clearance, pairwise_clearance, robot_capsules  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
 
@@ -60,16 +62,22 @@ def main() -> None:
     pairs = pairwise_clearance(chain, q[:1], capsules=caps).pairs
     rows, payload = [], {"batch": batch, "peer_subset": subset, "pairs": pairs, "machine": machine_info()}
 
-    ours = {}
-    for dtype in (torch.float64, torch.float32):
-        qd = q.to(dtype)
-        seconds = timeit(lambda qd=qd: clearance(chain, qd, capsules=caps), repeats=5)
-        fk = timeit(lambda qd=qd: chain.fk_all(qd), repeats=5)
-        ours[str(dtype)] = seconds / batch
-        name = f"iiwa-torch {dtype}".replace("torch.", "")
-        note = f"for scale, fk_all (every 4x4 frame) alone {fk / batch * 1e9:,.0f}"
-        rows.append([name, batch, f"{seconds / batch * 1e9:,.0f}", note])
-        print(" | ".join(map(str, rows[-1])), flush=True)
+    ours, enabled = {}, compiled.ENABLED
+    paths = (["compiled"] if enabled else []) + ["torch"]
+    for path in paths:
+        compiled.ENABLED = path == "compiled"
+        for dtype in (torch.float64, torch.float32):
+            qd = q.to(dtype)
+            seconds = timeit(lambda qd=qd: clearance(chain, qd, capsules=caps), repeats=5)
+            key = f"{path} {dtype}".replace("torch.", "")
+            ours[key] = seconds / batch
+            note = ""
+            if path == "torch":
+                fk = timeit(lambda qd=qd: chain.fk_all(qd), repeats=5)
+                note = f"for scale, fk_all (every 4x4 frame) alone {fk / batch * 1e9:,.0f}"
+            rows.append([f"iiwa-torch, {key}", batch, f"{seconds / batch * 1e9:,.0f}", note])
+            print(" | ".join(map(str, rows[-1])), flush=True)
+    compiled.ENABLED = enabled
 
     qs = q[:subset]
     ref = pairwise_clearance(chain, qs, capsules=caps).distance.numpy()  # (subset, P)
@@ -134,19 +142,19 @@ def main() -> None:
         agree = float(np.abs(values - ref)[apart].max())
         per = timeit(run, min_time=0.0, repeats=5) / subset  # median of 5 passes over the subset
         payload[f"{name}_max_abs_diff_m"] = agree
-        ours_ratio = per / ours["torch.float64"]
-        note = f"ours f64 {ours_ratio:,.1f}x, f32 {per / ours['torch.float32']:,.1f}x faster; max diff {agree:.1e} m"
-        rows.append([name, subset, f"{per * 1e9:,.0f}", note])
+        ratios = {key: per / seconds for key, seconds in ours.items()}
+        note = "ours " + ", ".join(f"{key} {ratio:,.1f}x" for key, ratio in ratios.items())
+        rows.append([name, subset, f"{per * 1e9:,.0f}", f"{note} faster; max diff {agree:.1e} m"])
         print(" | ".join(map(str, rows[-1])), flush=True)
         payload[f"{name}_s_per_config"] = per
-        payload[f"speedup_f64_vs_{name}"] = ours_ratio
-        payload[f"speedup_f32_vs_{name}"] = per / ours["torch.float32"]
+        payload[f"speedup_vs_{name}"] = ratios
     pb.disconnect(client)
     payload["ours_s_per_config"] = ours
+    payload["loadavg_after"] = list(os.getloadavg())
     md = (
         "# Self + floor clearance, iiwa 14 capsule model (3 self pairs + 3 floor pairs), 1 thread\n\n"
         + markdown_table(["method", "configs", "ns/config", "note"], rows)
-        + f"\nMachine: {payload['machine']}\n"
+        + f"\nMachine: {payload['machine']}; load average after the run: {payload['loadavg_after']}\n"
     )
     print(save("collision", payload, md))
 

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from . import compiled
 from . import kinematics as kin
 from .checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
 from .dh import DHChain
@@ -836,12 +837,14 @@ def pairwise_clearance(
 def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: Capsules | None = None) -> Tensor:
     """Smallest signed distance, metres: ``q (..., n) -> (...)``, over the checked self pairs and
     capsule-obstacle pairs (arguments as :func:`pairwise_clearance`). Differentiable in ``q``
-    and the obstacles' tensors. Up to ``CLEARANCE_NUMPY_BATCH`` configurations on the CPU
-    with nothing to differentiate and no walls or obstacle capsules, the same formulas
-    run in numpy float64 (:func:`_clearance_numpy`)."""
+    and the obstacles' tensors. On the CPU with nothing to differentiate, the same formulas
+    run in numpy float64 up to ``CLEARANCE_NUMPY_BATCH`` configurations (no walls or obstacle
+    capsules), and compiled above when numba is enabled and the floor is the only obstacle
+    (:func:`_plain_path`)."""
     world, capsules = _resolve(chain, q, world, capsules)
-    if _numpy_ok(chain, q, world, capsules):
-        return _clearance_numpy(chain, q, world, capsules)
+    plain = _plain_path(chain, q, world, capsules)
+    if plain is not None:
+        return plain(chain, q, world, capsules)
     own, others, _ = _distances(chain, q, world, capsules, cull=True)
     # a kind given with no obstacle (M = 0) adds no distance
     mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others if o.shape[-1]]
@@ -933,17 +936,36 @@ def _capsule_clearance_floats(
     return [d for d, _ in best], [g for _, g in best]
 
 
-def _numpy_ok(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> bool:
-    """Whether :func:`clearance` may take :func:`_clearance_numpy` (checked arguments)."""
-    if q.numel() > CLEARANCE_NUMPY_BATCH * chain.n_joints or world.walls or world.capsules:
-        return False
-    if not all(kin.floats_ok(t) for t in (q, *world.tensors())) or chain.geometry().link_numpy is None:
-        return False
+def _plain_path(chain: DHChain, q: Tensor, world: World, capsules: Capsules):
+    """The function :func:`clearance` hands checked arguments with nothing to differentiate on the
+    CPU to, or ``None`` for its torch path: :func:`_clearance_numpy` up to ``CLEARANCE_NUMPY_BATCH``
+    configurations (no walls or obstacle capsules), :func:`_clearance_compiled` above (numba
+    enabled, no obstacle but the floor)."""
+    if world.walls or world.capsules or chain.geometry().link_numpy is None:
+        return None
+    if not all(kin.floats_ok(t) for t in (q, *world.tensors())):
+        return None
     tables = capsules._numpy_tables()
     floor = world.floor is not None and tables["floor"].size > 0
+    if q.numel() > CLEARANCE_NUMPY_BATCH * chain.n_joints:
+        return _clearance_compiled if compiled.ENABLED and not world.tensors() and (capsules.pairs or floor) else None
     solids = _present(world.spheres, -1) or _present(world.boxes, -2)
     solids = solids and tables["world"].size > 0
-    return bool(capsules.pairs) or floor or solids
+    return _clearance_numpy if capsules.pairs or floor or solids else None
+
+
+def _clearance_compiled(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
+    """:func:`clearance` of a CPU batch against itself and the floor by the compiled kernel
+    (:func:`iiwa_torch.compiled.numba_kernels.own_clearance`, float64 inside); not differentiable."""
+    tables = capsules._numpy_tables()
+    table, base, _, modified = chain.geometry().float_arrays
+    floor = tables["floor"] if world.floor is not None else tables["floor"][:0]
+    out = np.empty(q.shape[:-1])
+    compiled.kernels().own_clearance(q.detach().reshape(-1, chain.n_joints).numpy(), table, base, modified,
+                                     tables["frames"], tables["local"], tables["first"], tables["second"],
+                                     tables["pair_radius"], floor, tables["floor_radius"],
+                                     0.0 if world.floor is None else float(world.floor), out.reshape(-1))
+    return torch.from_numpy(out).to(q.dtype)
 
 
 def _capsule_ends_floats(frames: list[tuple], capsules: Capsules) -> tuple[list[tuple], list[tuple]]:

@@ -1,5 +1,7 @@
-"""The small-batch numpy path of clearance against its torch path (itself tested against coal in
-test_collision.py), which runs whenever something requires grad or the batch is large."""
+"""The paths clearance takes without autograd on the CPU against its torch path (itself tested
+against coal in test_collision.py), which runs whenever something requires grad: numpy for small
+batches, the compiled kernel (numba) for larger ones against the floor alone, both with numba on
+and off (``small_kernel``: off, the larger batches take the torch path)."""
 
 from __future__ import annotations
 
@@ -9,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import kinematics, robots
+from iiwa_torch import collision, compiled, kinematics, robots
 from iiwa_torch.collision import CLEARANCE_NUMPY_BATCH, World, clearance, robot_capsules
+from iiwa_torch.dh import DHChain
 
 PRESETS = sorted(robots.PRESETS)
 
@@ -35,8 +38,8 @@ def numpy_calls(monkeypatch):
     return calls
 
 
-def _torch_path(chain, q, world=None):
-    return clearance(chain, q.clone().requires_grad_(), world).detach()
+def _torch_path(chain, q, world=None, capsules=None):
+    return clearance(chain, q.clone().requires_grad_(), world, capsules).detach()
 
 
 def _configurations(chain, n: int, rng: np.random.Generator) -> torch.Tensor:
@@ -192,9 +195,10 @@ def test_gradients_take_the_torch_path():
     assert d.requires_grad  # only the world's tensor requires grad
 
 
-def test_the_shared_model_first_used_in_inference_mode_still_differentiates():
+def test_the_shared_model_first_used_in_inference_mode_still_differentiates(monkeypatch):
     """robot_capsules returns one shared model per chain: tables it first builds under
     torch.inference_mode (as the envs' steps do) must not leak inference tensors into autograd."""
+    monkeypatch.setattr(compiled, "ENABLED", False)  # the torch path builds the float32 tables
     chain = robots.puma560().float()
     q = _configurations(chain, 40, np.random.default_rng(4)).float()
     with torch.inference_mode():
@@ -206,3 +210,69 @@ def test_the_shared_model_first_used_in_inference_mode_still_differentiates():
     d = clearance(other, x, World(), robot_capsules(other))
     d.sum().backward()
     assert torch.isfinite(x.grad).all() and torch.allclose(d.detach(), first)
+
+
+@pytest.fixture
+def compiled_calls(monkeypatch):
+    """The batch sizes the compiled path of clearance ran, to tell which path a query took."""
+    calls = []
+    real = collision._clearance_compiled
+
+    def spy(chain, q, world, capsules):
+        calls.append(q.numel() // chain.n_joints)
+        return real(chain, q, world, capsules)
+
+    monkeypatch.setattr(collision, "_clearance_compiled", spy)
+    return calls
+
+
+def _modified_with_base() -> tuple[DHChain, collision.Capsules]:
+    """The LR Mate in the modified convention on a turned, raised base, with its preset's capsules
+    (sized from the same DH table, so they sit elsewhere on the arm: any segments do)."""
+    lr = robots.lrmate200ic()
+    base = torch.eye(4, dtype=torch.float64)
+    base[:2, :2] = torch.tensor([[math.cos(0.7), -math.sin(0.7)], [math.sin(0.7), math.cos(0.7)]])
+    base[:3, 3] = torch.tensor([0.1, -0.2, 0.3])
+    chain = DHChain(lr.dh, convention="modified", base=base, limits=lr.limits)
+    return chain, robot_capsules(lr)
+
+
+@pytest.mark.parametrize("name", [*PRESETS, "modified_with_base"])
+def test_large_batches_equal_the_torch_path(name, small_kernel, compiled_calls):
+    """3,000 configurations (a tenth with straight arms: parallel and collinear capsules) against
+    the floor at 0 (some colliding) and at 0.4 m (deep), and self pairs alone, in float64 to 1e-12 m
+    and float32 to 1e-5 m; compiled when numba is on, else the torch path."""
+    chain, caps = _modified_with_base() if name == "modified_with_base" else (robots.PRESETS[name](), None)
+    caps = caps or robot_capsules(chain)
+    q = _configurations(chain, 3000, np.random.default_rng(11))
+    worlds = [World(floor=0.0), World(floor=0.4), World(floor=None)]
+    want = torch.stack([_torch_path(chain, q, world, caps) for world in worlds])
+    assert (want < 0).any(0).any() and (want > 0).any(0).any()
+    for world in worlds:
+        for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 1e-5)):
+            got = clearance(chain, q.to(dtype), world, caps)
+            reference = _torch_path(chain, q.to(dtype), world, caps)
+            assert got.dtype == dtype and got.shape == (3000,)
+            assert torch.allclose(got, reference, rtol=0, atol=tol), (dtype, (got - reference).abs().max())
+    assert compiled_calls == ([3000] * 2 * len(worlds) if small_kernel == "compiled" else [])
+
+
+def test_large_batches_take_any_layout_and_angle(small_kernel, compiled_calls):
+    """Leading batch dims, a transposed (batch-last) view, angles far outside the limits (the
+    kernel's own sine and cosine below 1e5 rad, libm's above) and a ``requires_grad`` tensor under
+    ``no_grad``: the torch path's values; obstacles besides the floor: the torch path."""
+    chain = robots.iiwa14()
+    q = _configurations(chain, 1000, np.random.default_rng(12))
+    turns = torch.from_numpy(np.random.default_rng(13).integers(-3000, 3000, q.shape)) * (2 * math.pi)
+    for x in (q.reshape(10, 100, 7), q.T.contiguous().T, q + turns, q + 1e3 * turns):
+        assert torch.allclose(clearance(chain, x), _torch_path(chain, x), rtol=0, atol=1e-12)
+    assert clearance(chain, q.reshape(10, 100, 7)).shape == (10, 100)
+    want = _torch_path(chain, q)
+    with torch.no_grad():
+        assert torch.allclose(clearance(chain, q.clone().requires_grad_()), want, rtol=0, atol=1e-12)
+    assert compiled_calls == ([1000] * 6 if small_kernel == "compiled" else [])
+    compiled_calls.clear()
+    spheres = World(spheres=(torch.tensor([[0.5, 0.0, 0.5]], dtype=torch.float64), torch.tensor([0.1]).double()))
+    clearance(chain, q, spheres)
+    clearance(chain, q.clone().requires_grad_())
+    assert not compiled_calls

@@ -225,3 +225,15 @@ def test_nothing_compiled_or_imported_at_import():
     assert _run(code, IIWA_TORCH_NUMBA="0") == ["False", "False", "False"]
     enabled = str(importlib.util.find_spec("numba") is not None)  # the child runs without the switch
     assert _run(code) == ["False", enabled, enabled]
+
+
+@needs_numba
+def test_sine_and_cosine_of_the_clearance_kernel():
+    """The clearance kernel's branch-free sine and cosine against libm's (numpy's) over its range,
+    including angles next to multiples of pi/2 (where the reduction cancels) and the quadrant ends."""
+    rng = np.random.default_rng(3)
+    edges = np.arange(-60000, 60001, 7) * (math.pi / 2)
+    x = np.concatenate([rng.uniform(-1e5, 1e5, 200_000), rng.uniform(-7, 7, 100_000), edges,
+                        np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf), [0.0, -0.0, 1e5, -1e5]])
+    sin, cos = np.array([kernels._sin_cos(v) for v in x]).T
+    assert np.abs(sin - np.sin(x)).max() <= 2.3e-16 and np.abs(cos - np.cos(x)).max() <= 2.3e-16

@@ -1,14 +1,15 @@
 """Optional compiled kernels (numba) for the small-batch CPU paths: one configuration's end pose
 and Jacobian, the Levenberg-Marquardt rounds of :func:`~iiwa_torch.ik.solve`, the arm-angle
 sweep of :func:`~iiwa_torch.ik.analytic.iiwa_solve` and the closed form of
-:func:`~iiwa_torch.ik.analytic.pieper`.
+:func:`~iiwa_torch.ik.analytic.pieper`; and for large CPU batches without autograd, the self and
+floor :func:`~iiwa_torch.collision.clearance`.
 
 numba is an optional extra (``pip install iiwa-torch[fast]``). This package only looks for
 it; :func:`kernels` imports numba and the kernels (:mod:`iiwa_torch.compiled.numba_kernels`) on
-the first small-batch call, never at ``import iiwa_torch``, and each kernel compiles on its
+the first call that uses them, never at ``import iiwa_torch``, and each kernel compiles on its
 first call (``cache=True``: numba's on-disk cache serves later processes). Without numba, or
 with the environment variable ``IIWA_TORCH_NUMBA=0``, :data:`ENABLED` is False and the callers
-run their numpy / Python-float code instead: the same method, which the kernels restate.
+run their numpy / Python-float / torch code instead: the same method, which the kernels restate.
 """
 
 from __future__ import annotations

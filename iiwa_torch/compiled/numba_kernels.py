@@ -13,13 +13,22 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["end_pose", "into_limits", "jacobian", "lm_round", "pose_errors"]
+from .. import collision
+
+__all__ = ["end_pose", "into_limits", "jacobian", "lm_round", "own_clearance", "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
 
 
 # ---------------------------------------------------------------------- kinematics
+@_inline
+def _turn(u0, u1, u2, v0, v1, v2, c, s):
+    """A frame's axis pair ``(u, v)`` turned by the angle of cosine ``c`` and sine ``s`` about the
+    third axis: ``(c u + s v, c v - s u)``, 3 + 3 components (a joint's Rz, or a link's Rx)."""
+    return c * u0 + s * v0, c * u1 + s * v1, c * u2 + s * v2, c * v0 - s * u0, c * v1 - s * u1, c * v2 - s * u2
+
+
 @_jit
 def _frames(table, base, tool, modified, q, pose, Z, P):
     """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)`` and, if ``Z`` has ``n``
@@ -32,19 +41,15 @@ def _frames(table, base, tool, modified, q, pose, Z, P):
     for i in range(table.shape[0]):
         a, ca, sa, d, offset = table[i, 0], table[i, 1], table[i, 2], table[i, 3], table[i, 4]
         if modified:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
-            y0, y1, y2, z0, z1, z2 = (ca * y0 + sa * z0, ca * y1 + sa * z1, ca * y2 + sa * z2,
-                                      ca * z0 - sa * y0, ca * z1 - sa * y1, ca * z2 - sa * y2)  # fmt: skip
+            y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
             p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
         if keep:
             Z[i, 0], Z[i, 1], Z[i, 2], P[i, 0], P[i, 1], P[i, 2] = z0, z1, z2, p0, p1, p2
-        c, s = math.cos(q[i] + offset), math.sin(q[i] + offset)
-        x0, x1, x2, y0, y1, y2 = (c * x0 + s * y0, c * x1 + s * y1, c * x2 + s * y2,
-                                  c * y0 - s * x0, c * y1 - s * x1, c * y2 - s * x2)  # fmt: skip
+        x0, x1, x2, y0, y1, y2 = _turn(x0, x1, x2, y0, y1, y2, math.cos(q[i] + offset), math.sin(q[i] + offset))
         p0, p1, p2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
         if not modified:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
             p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
-            y0, y1, y2, z0, z1, z2 = (ca * y0 + sa * z0, ca * y1 + sa * z1, ca * y2 + sa * z2,
-                                      ca * z0 - sa * y0, ca * z1 - sa * y1, ca * z2 - sa * y2)  # fmt: skip
+            y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
     for k in range(4):  # column k of the tool, (u, v, w), in the world: u x + v y + w z
         u, v, w = tool[0, k], tool[1, k], tool[2, k]
         pose[0, k], pose[1, k] = u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1
@@ -579,3 +584,130 @@ def pieper_branches(frame5, consts, limits):
                     reachable[p, branch] = shoulder_ok and elbow_ok
                     within[p, branch] = inside
     return q, reachable, within
+
+
+# ---------------------------------------------------------------------- collision: clearance of large batches
+# numba calls libm's sin and cos one element at a time (no SVML here), which stops LLVM from
+# vectorising a loop and costs more than the rest of the clearance kernel: _sin_cos is a
+# branch-free restatement of fdlibm's (FreeBSD msun e_rem_pio2.c, k_sin.c, k_cos.c): the angle
+# less the nearest multiple n of pi/2 (pi/2 in three 33-bit parts, so each product with n is
+# exact for |n| < 2^20), then the two minimax polynomials on [-pi/4, pi/4] and n's quadrant.
+_SIN_COS_RANGE = 1e5  # rad: |angle| up to which _sin_cos is within an ulp or two of libm; beyond, libm
+_INV_PIO2 = 6.36619772367581382433e-01
+_PIO2 = (1.57079632673412561417e00, 6.07710050630396597660e-11, 2.02226624871116645580e-21)
+_SIN = (-1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04,
+        2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10)  # fmt: skip
+_COS = (4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05,
+        -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11)  # fmt: skip
+
+
+@_inline
+def _sin_cos(x):
+    """``(sin x, cos x)`` for ``|x| <= _SIN_COS_RANGE``, without a branch or a call (see above)."""
+    n = math.floor(x * _INV_PIO2 + 0.5)
+    r = ((x - n * _PIO2[0]) - n * _PIO2[1]) - n * _PIO2[2]
+    z = r * r
+    s1, s2, s3, s4, s5, s6 = _SIN
+    c1, c2, c3, c4, c5, c6 = _COS
+    s = r + r * z * (s1 + z * (s2 + z * (s3 + z * (s4 + z * (s5 + z * s6)))))
+    half = 0.5 * z
+    w = 1.0 - half
+    c = w + (((1.0 - w) - half) + z * z * (c1 + z * (c2 + z * (c3 + z * (c4 + z * (c5 + z * c6))))))
+    odd = n * 0.5 != math.floor(n * 0.5)  # quadrants 1 and 3: sine and cosine swap
+    quadrant = n - 4.0 * math.floor(n * 0.25)
+    sin, cos = (c, s) if odd else (s, c)
+    return (-sin if quadrant >= 2.0 else sin), (-cos if (quadrant == 1.0) | (quadrant == 2.0) else cos)
+
+
+# the one closest-point formula of the torch, numpy and float paths, with the float path's helpers
+_closest = _inline(collision._closest_parameters)
+_choose, _unit, _quotient = _inline(collision._choose), _inline(collision._unit_float), _inline(collision._quotient)
+_LANES = 256  # configurations per block: the block's frames and capsules stay in the L1 cache
+
+
+@_jit
+def own_clearance(q, table, base, modified, frames, local, first, second, pair_radius, floor, floor_radius,
+                  height, out):
+    """Self and floor clearance of ``q (N, n)`` (float32 or float64; computed in float64) into
+    ``out (N,)``, metres: the smallest of ``|x - y| - r`` over the self pairs ``first, second
+    (P,)`` (``pair_radius (P, 1)`` radius sums) and ``min(z_start, z_end) - (r + height)`` over the
+    capsules ``floor (F,)`` (``floor_radius (F, 1)``). Capsule k joins the homogeneous points
+    ``local[k] (4, 2)`` (columns) of frame ``frames[k]`` (0 the base, i link i; the tool is not
+    used). The arguments are :meth:`iiwa_torch.collision.Capsules._numpy_tables`' and the chain's
+    ``float_arrays``. Mirrors :func:`iiwa_torch.collision._distances` without obstacles: the
+    frames of :func:`iiwa_torch.kinematics.frames_batch_last`, the segments of
+    :func:`iiwa_torch.collision._segment_gap` (:func:`iiwa_torch.collision._closest_parameters`
+    itself, compiled). Each block of configurations goes through every step as a loop over the
+    block, straight-line and branch-free, which LLVM vectorises."""
+    count, k_all, last = q.shape[0], frames.shape[0], 0
+    for k in range(k_all):
+        last = max(last, frames[k])
+    angle, cs = np.empty((last, _LANES)), np.empty((2, last, _LANES))
+    state = np.empty((12, _LANES))  # the moving frame: x, y, z axes and origin, 3 rows each
+    ends = np.empty((k_all, 6, _LANES))  # per capsule: start point, start-to-end vector
+    best = np.empty(_LANES)
+    for row in range(0, count, _LANES):
+        m = min(_LANES, count - row)
+        wide = False
+        for j in range(m):
+            for i in range(last):
+                angle[i, j] = q[row + j, i] + table[i, 4]
+                wide = wide or abs(angle[i, j]) > _SIN_COS_RANGE
+        for i in range(last):
+            if wide:
+                for j in range(m):
+                    cs[0, i, j], cs[1, i, j] = math.cos(angle[i, j]), math.sin(angle[i, j])
+            else:
+                for j in range(m):
+                    cs[1, i, j], cs[0, i, j] = _sin_cos(angle[i, j])
+        for r in range(12):
+            for j in range(m):
+                state[r, j] = base[r % 3, r // 3]
+        for f in range(last + 1):
+            if f > 0:
+                a, ca, sa, d = table[f - 1, 0], table[f - 1, 1], table[f - 1, 2], table[f - 1, 3]
+                for j in range(m):
+                    x0, x1, x2 = state[0, j], state[1, j], state[2, j]
+                    y0, y1, y2 = state[3, j], state[4, j], state[5, j]
+                    z0, z1, z2 = state[6, j], state[7, j], state[8, j]
+                    p0, p1, p2 = state[9, j], state[10, j], state[11, j]
+                    if modified:
+                        y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
+                        p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+                    x0, x1, x2, y0, y1, y2 = _turn(x0, x1, x2, y0, y1, y2, cs[0, f - 1, j], cs[1, f - 1, j])
+                    p0, p1, p2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
+                    if not modified:
+                        p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+                        y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
+                    state[0, j], state[1, j], state[2, j] = x0, x1, x2
+                    state[3, j], state[4, j], state[5, j] = y0, y1, y2
+                    state[6, j], state[7, j], state[8, j] = z0, z1, z2
+                    state[9, j], state[10, j], state[11, j] = p0, p1, p2
+            for k in range(k_all):
+                if frames[k] != f:
+                    continue
+                u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
+                u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
+                for r in range(3):  # each end point: p + u x + v y + w z
+                    for j in range(m):
+                        x, y, z, p = state[r, j], state[3 + r, j], state[6 + r, j], state[9 + r, j]
+                        start = p + u0 * x + v0 * y + w0 * z
+                        ends[k, r, j] = start
+                        ends[k, 3 + r, j] = p + u1 * x + v1 * y + w1 * z - start
+        for j in range(m):
+            best[j] = np.inf
+        for pair in range(first.shape[0]):
+            e1, e2, radius = ends[first[pair]], ends[second[pair]], pair_radius[pair, 0]
+            for j in range(m):
+                r0, r1, r2 = e1[0, j] - e2[0, j], e1[1, j] - e2[1, j], e1[2, j] - e2[2, j]
+                a0, a1, a2, b0, b1, b2 = e1[3, j], e1[4, j], e1[5, j], e2[3, j], e2[4, j], e2[5, j]
+                s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
+                                a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
+                w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+                best[j] = min(best[j], math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) - radius)
+        for i in range(floor.shape[0]):
+            e, offset = ends[floor[i]], floor_radius[i, 0] + height
+            for j in range(m):
+                best[j] = min(best[j], min(e[2, j], e[2, j] + e[5, j]) - offset)
+        for j in range(m):
+            out[row + j] = best[j]
