@@ -160,7 +160,8 @@ def test_evaluate_shipped_policy_writes_documented_report(tmp_path):
     for key in ("env_id", "algo", "model", "goals", "seed", "goals_below_floor", "methods", "verdict", "plots",
                 "machine"):
         assert key in report, key
-    assert set(report["methods"]) == set(ev.METHODS)
+    residual = yaml.safe_load((policies[0] / "config.yaml").read_text())["hyperparams"]["policy"] == "ResidualDLSPolicy"
+    assert set(report["methods"]) == set(ev.METHODS) | ({"controller"} if residual else set())
     for name, m in report["methods"].items():
         for key in ("success@1cm", "success@5mm", "success@1mm", "median_error_m", "p95_error_m",
                     "median_steps_to_reach", "joint_limit_violations", "median_path_length_rad",
@@ -181,12 +182,12 @@ def test_evaluate_shipped_policy_writes_documented_report(tmp_path):
 
 
 @pytest.mark.parametrize("name, minimum, median, collisions", [
-    ("ppo_iiwa_reach", 0.97, 1e-3, 0.01), ("ppo_iiwa_reach_pose", 0.89, 1e-3, 0.01),
+    ("ppo_iiwa_reach", 0.97, 1e-3, 0.01), ("ppo_iiwa_reach_pose", 0.93, 1e-3, 0.01),
     ("ppo_iiwa_reach_obstacles", 0.94, 1e-3, 0.02), ("ppo_iiwa_reach_mlp", 0.93, 5e-3, 0.02),
 ])
 def test_shipped_policy_still_reaches_held_out_goals(name, minimum, median, collisions):
     """Recomputed, not read from its report: the shipped policy on 200 held-out goals (seed 0, as the
-    report) with today's env and rollout code. Its 1,000-goal reports give 99.9%, 95.2% (pose, 1 cm
+    report) with today's env and rollout code. Its 1,000-goal reports give 99.9%, 97.8% (pose, 1 cm
     and 0.1 rad), 98.3% and 97.5% at 1 cm, with 0.0%, 0.0%, 0.2% and 0.3% of the rollouts colliding;
     the minimums are 4 binomial standard deviations of 200 goals below them (rounded down), the
     collision bounds as many above, the median bounds a few times the reports' medians."""

@@ -152,3 +152,24 @@ def test_one_row_head_in_numpy_equals_the_torch_path(monkeypatch):
     normal, bound = features[:, start : start + 7 * k].view(-1, k, 7), features[:, start + 7 * k : start + 8 * k]
     held = ((normal * unconstrained[:, None]).sum(-1) < bound - 1e-3).any(-1)
     assert held.sum() >= 3 and not torch.allclose(fast[held], unconstrained[held].clamp(-1, 1), atol=1e-3)
+
+
+def test_controller_alone_is_the_dls_step_and_leaves_the_model_as_it_was():
+    """``train.evaluate.controller_alone``: the residual policy with its correction zeroed acts as the DLS
+    step the extractor computes; the trained model still acts with its correction; other policies: None."""
+    from types import SimpleNamespace
+
+    from train.evaluate import controller_alone
+
+    model = _model()
+    with torch.no_grad():
+        model.policy.action_net.linear.bias.fill_(0.3)  # a correction that moves every joint
+    obs = model.env.reset()
+    before, _ = model.predict(obs, deterministic=True)
+    ext = model.policy.features_extractor
+    step = ext({k: torch.as_tensor(v) for k, v in obs.items()})[:, ext.step_columns[0] : ext.step_columns[1]]
+    alone = controller_alone(model)
+    np.testing.assert_allclose(alone.predict(obs, deterministic=True)[0], step.numpy(), atol=1e-6)
+    assert not np.allclose(before, step.numpy(), atol=1e-3)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], before)
+    assert controller_alone(SimpleNamespace(policy=object())) is None

@@ -15,6 +15,9 @@ Methods, each on every goal:
 
 - ``policy``: the deterministic policy, closed loop for the env's 50 steps (2.5 s at
   dt = 0.05 s), no early stop: the final error says whether it reached the goal and stayed;
+- ``controller`` (residual policies, :class:`train.residual.ResidualDLSPolicy`, only): the same
+  policy with its learned correction set to zero, i.e. the DLS step and its safety layer alone:
+  what the network adds is the difference between the two rows;
 - ``analytic_ik``: ``iiwa_torch.ik.analytic.iiwa_solve`` (arm-angle sweep, within limits),
   nearest solution to home. It solves the full pose: for position goals it is given the
   pose the goal was drawn from (a harder problem than the position alone);
@@ -45,7 +48,7 @@ from typing import Any
 import numpy as np
 
 TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
-METHODS = ("policy", "analytic_ik", "gradient_ik")
+METHODS = ("policy", "analytic_ik", "gradient_ik")  # and "controller" for a residual policy
 SINGLE_GOALS = 20  # goals timed one at a time for the "single" wall time
 BATCHED_REPEATS = 3  # batched runs over all goals; the median time is reported (the machine is shared)
 POSE_ENV = "IiwaReachPose-v0"
@@ -222,6 +225,26 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
                      "q_path": r.q, "collided": collided}
 
 
+def controller_alone(model):
+    """For a residual policy (:class:`train.residual.ResidualDLSPolicy`), a copy of ``model`` whose learned
+    correction is zero: its controller alone (the DLS step and the safety layer); None for any other policy.
+    ``model`` itself is left as it is."""
+    import copy
+
+    import torch
+
+    from train.residual import ResidualDLSPolicy
+
+    if not isinstance(model.policy, ResidualDLSPolicy):
+        return None
+    alone = copy.copy(model)
+    alone.policy = copy.deepcopy(model.policy)
+    with torch.no_grad():
+        alone.policy.action_net.linear.weight.zero_()
+        alone.policy.action_net.linear.bias.zero_()
+    return alone
+
+
 def ik_world(task, goals=None):
     """The world the IK methods are given for ``task``: when the env checks collisions, its floor and,
     with ``goals`` (a :class:`train.rollout.GoalSet`), each goal's obstacles (``goals.world()``, batch
@@ -305,8 +328,8 @@ def _design_note(config: dict[str, Any], trained_in) -> list[str]:
                  f"'{trained_in.collision.value}', a colliding step costs {trained_in.collision_penalty:g})."]
     if config["hyperparams"].get("policy") == "ResidualDLSPolicy":
         lines.append("How the policy is built: its action is a damped-least-squares joint step (the library's "
-                     "Jacobian, inside the network) plus a learned correction that fades near the goal. What the DLS "
-                     "step achieves alone, without the network, is measured in docs/training.md.")
+                     "Jacobian, inside the network) plus a learned correction that fades near the goal; the "
+                     "row 'controller' is that step alone, without the network.")
         avoidance = (config["hyperparams"].get("features_extractor_kwargs") or {}).get("avoidance")
         if avoidance:
             lines.append("A velocity damper (Faverjon and Tournassoud) keeps that step and the whole action from "
@@ -360,8 +383,17 @@ def verdict(m: dict[str, dict[str, Any]], below_floor: int = 0, spacing: dict[st
     spacing (m) at the goals per format (``{"float32": ..., "float64": ...}``), below which (times
     ``FLOOR_SPACINGS``) an error is rounding and is not compared in ratios."""
     p = m["policy"]
-    ik = {k: v for k, v in m.items() if k != "policy" and "error" not in v}
+    ik = {k: v for k, v in m.items() if k not in ("policy", "controller") and "error" not in v}
     lines = []
+    if "controller" in m:
+        c = m["controller"]
+        pose = (f" (pose success {100 * p['success_pose']:.1f}% against {100 * c['success_pose']:.1f}%)"
+                if "success_pose" in p else "")
+        lines.append(f"What the network adds to its controller (the DLS step and safety layer alone, the correction "
+                     f"set to zero): success at 1 cm {100 * p['success@1cm']:.1f}% against "
+                     f"{100 * c['success@1cm']:.1f}%{pose}, at 1 mm {100 * p['success@1mm']:.1f}% against "
+                     f"{100 * c['success@1mm']:.1f}%; rollouts colliding {p['collisions']} against "
+                     f"{c['collisions']}.")
     for name, v in ik.items():
         beyond = ""
         if spacing and "beyond_float32_floor" in p and "beyond_float32_floor" in v:
@@ -742,6 +774,9 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
     world = ik_world(task, goals)
     metrics, data = {}, {}
     metrics["policy"], data["policy"] = run_policy(goals, model, vec_normalize, chain)
+    alone = controller_alone(model)
+    if alone is not None:
+        metrics["controller"], data["controller"] = run_policy(goals, alone, vec_normalize, chain)
     for name in ("analytic_ik", "gradient_ik"):
         try:
             metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt, world)
