@@ -36,11 +36,33 @@ def _readme_rows() -> dict[str, list[str]]:
     return rows
 
 
+# float32's spacing at the goals' 0.5-2 m is 6e-8-1.2e-7 m a coordinate (float64's: 1.1e-16-2.2e-16 m): a
+# median error below 1e-6 m (about 10 float32 spacings; the success tolerances are 1 mm and 1 cm) is the
+# rounding of the number format (the analytic IK's float64, the gradient IK's float32 iterations), whose last
+# digits follow the CPU's vector kernels: the README's 1.25e-13 mm and 8.25e-05 mm (an Intel Xeon) are 1.27e-13 mm
+# and 8.2e-05 mm on an AMD EPYC with AVX-512, from the same code.
+ROUNDING_FLOOR_M = 1e-6
+
+
+def _assert_same_median(readme: str, printed: str, name: str) -> None:
+    """The README's median-error cell is the printed one, as text; for an error that is rounding (both below
+    :data:`ROUNDING_FLOOR_M`) the README's cell is in the command's format (3 significant digits, mm) and
+    within a factor of 2 of the printed value: its magnitude is checked, its last digits are not."""
+    if readme == printed:
+        return
+    message = f"{name}: README says {readme}, the command prints {printed}"
+    shown, got = (float(cell.removesuffix(" mm")) * 1e-3 for cell in (readme, printed))
+    assert readme == f"{shown * 1e3:.3g} mm" and printed == f"{got * 1e3:.3g} mm", message
+    assert max(shown, got) < ROUNDING_FLOOR_M, message
+    assert max(shown, got) <= 2 * min(shown, got), message
+
+
 def test_readme_comparison_row_is_what_the_shipped_command_prints(tmp_path):
     """The README's row is the printed table of ``python -m train.evaluate --model train/policies/ppo_iiwa_reach
     --goals 1000 --seed 0``: this runs that evaluation's methods on the same 1,000 goals (single-threaded, as
     the command is) and formats them with the command's own table. The wall-time column is not checked: it
-    is a measurement of the machine."""
+    is a measurement of the machine; nor are the last digits of a median error that is rounding (they follow
+    the CPU: :func:`_assert_same_median`). Every other cell is compared as text."""
     readme = _readme_rows()
     assert set(readme) == set(README_ROWS), "the README's comparison table lost a row"
     threads = torch.get_num_threads()
@@ -64,7 +86,8 @@ def test_readme_comparison_row_is_what_the_shipped_command_prints(tmp_path):
     printed = {_cells(line)[0]: dict(zip(header, _cells(line))) for line in table[2:]}
     for name, cells in readme.items():
         row = printed[name]
-        assert cells[1:4] == [row["success @1 cm"], row["@1 mm"], row["median error"]], name
+        assert cells[1:3] == [row["success @1 cm"], row["@1 mm"]], name
+        _assert_same_median(cells[3], row["median error"], name)
         share = 100 * metrics[name]["collision_share"]
         assert cells[5].startswith(f"{share:.1f}% of"), name
 

@@ -45,14 +45,18 @@ FLAGS = ("valid", "reachable", "within_limits")
 def _stable(chain, target, q_tol: float, ulps: float) -> torch.Tensor:
     """``(B, 8)`` bool: branches that rounding does not decide. The batched path's branch moves by at
     most ``q_tol`` and keeps its flags when the target positions are scaled by ``1 +- ulps * eps``, and
-    none of its joints is within ``q_tol`` of a limit or of +-pi (where the wrap into ``[-pi, pi]``
-    picks a side), nor is the wrist so near alignment that rounding moves the split of q4 and q6 by
-    ``q_tol`` (``|sin theta5| <= 100 eps / q_tol``). Elsewhere the numpy path, whose sin, cos and atan2
-    differ from torch's in the last bit, may decide otherwise."""
+    none of its joints is within ``q_tol`` of a limit, also a turn away (a joint whose limits span more
+    than ``[-pi, pi]`` is shifted by 2 pi into them when that fits, so an angle far from a limit can be
+    a turn from it), or of +-pi (where the wrap into ``[-pi, pi]`` picks a side), nor is the wrist so
+    near alignment that rounding moves the split of q4 and q6 by ``q_tol`` (``|sin theta5| <= 100 eps /
+    q_tol``). Elsewhere the numpy path, whose sin, cos, atan2 and sqrt differ from torch's in the last
+    bit or two (how much depends on the CPU's vector kernels), may decide otherwise."""
     ref = _batched(chain, target)
-    lo, hi = chain.limits.to(ref.q.dtype)
-    q = ref.q
-    ok = ((q - lo).abs().amin(-1) > q_tol) & ((q - hi).abs().amin(-1) > q_tol)
+    q = ref.q.double()
+    ok = torch.ones(q.shape[:-1], dtype=torch.bool)
+    for limit in chain.limits.double():
+        gap = torch.remainder(q - limit, 2 * torch.pi)  # distance to the nearest turn of the limit
+        ok &= torch.minimum(gap, 2 * torch.pi - gap).amin(-1) > q_tol
     ok &= (q.abs() - torch.pi).abs().amin(-1) > q_tol
     ok &= (q[..., 4] + chain.dh[4, 3]).sin().abs() > 100 * torch.finfo(target.dtype).eps / q_tol
     for sign in (1, -1):
@@ -143,7 +147,7 @@ def _targets(chain, case: str, seed: int) -> torch.Tensor:
 
 
 CASES = ["random", "unreachable", "limits", "singular"]
-MIN_STABLE = {"limits": 0.45, "singular": 0.2}  # share of branches not decided by rounding (seen: >= 0.52, 0.23)
+MIN_STABLE = {"limits": 0.45, "singular": 0.2}  # share of branches not decided by rounding (seen: >= 0.51, 0.23)
 
 
 def test_the_singular_set_is_singular():
