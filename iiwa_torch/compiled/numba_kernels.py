@@ -13,7 +13,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["end_pose", "into_limits", "jacobian", "lm_round", "pose_errors"]
+__all__ = ["end_pose", "into_limits", "jacobian", "lm_round", "lm_rounds", "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
@@ -310,6 +310,31 @@ def lm_round(table, base, tool, modified, q, problem, number, pos, rot, rest, lo
                 left -= not active[k]
         if not left:
             break
+
+
+@_jit
+def lm_rounds(table, base, tool, modified, pool, order, first, pos, rot, rest, lo, hi, opts, counts, best_q, best_E,
+              used):  # fmt: skip
+    """Every round of seeds of ``b = best_q.shape[0]`` problems, one seed per problem a round:
+    ``first (b, n)`` (q0; 0 rows: none), then the pool ``(P, n)`` entries of ranks ``order (ranks, b)``,
+    until a problem converges or runs out of its ``counts[3]`` seeds; the rest as :func:`lm_round`.
+    Mirrors :meth:`iiwa_torch.ik.small._Problems.run` with rounds one seed wide."""
+    b, n = best_q.shape
+    shift = 1 if first.shape[0] else 0
+    remaining = np.arange(b)
+    for k in range(counts[3]):
+        s = remaining.shape[0]
+        if not s:
+            break
+        q = np.empty((s, n))
+        for j in range(s):
+            p = remaining[j]
+            q[j] = first[p] if k < shift else pool[order[k - shift, p]]
+            if k == 0:  # until a better one is found, a problem's answer is its first seed
+                best_q[p] = q[j]
+        lm_round(table, base, tool, modified, q, remaining, np.full(s, k), pos, rot, rest, lo, hi, opts, counts,
+                 best_q, best_E, used)  # fmt: skip
+        remaining = remaining[best_E[remaining] >= 0]
 
 
 # ---------------------------------------------------------------------- the arm-angle sweep of iiwa_solve
