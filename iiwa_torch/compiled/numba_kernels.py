@@ -13,7 +13,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["end_pose", "into_limits", "jacobian", "lm_round", "lm_rounds", "pose_errors"]
+__all__ = ["end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds", "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
@@ -69,21 +69,23 @@ def _jacobian_columns(pose, Z, P, J):
 
 
 @_jit
-def end_pose(table, base, tool, modified, q):
-    """One configuration ``q (n,)`` -> its end pose ``(4, 4)``, as :func:`_frames`."""
-    pose = np.empty((4, 4))
-    _frames(table, base, tool, modified, q, pose, np.empty((0, 3)), np.empty((0, 3)))
-    return pose
+def end_poses(table, base, tool, modified, q):
+    """Configurations ``q (b, n)`` -> their end poses ``(b, 4, 4)``, as :func:`_frames`."""
+    out, none = np.empty((q.shape[0], 4, 4)), np.empty((0, 3))
+    for k in range(q.shape[0]):
+        _frames(table, base, tool, modified, q[k], out[k], none, none)
+    return out
 
 
 @_jit
-def jacobian(table, base, tool, modified, q):
-    """One configuration ``q (n,)`` -> its Jacobian ``(6, n)`` (linear rows first, world frame)."""
-    n = table.shape[0]
-    pose, Z, P, J = np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3)), np.empty((6, n))
-    _frames(table, base, tool, modified, q, pose, Z, P)
-    _jacobian_columns(pose, Z, P, J)
-    return J
+def jacobians(table, base, tool, modified, q):
+    """Configurations ``q (b, n)`` -> their Jacobians ``(b, 6, n)`` (linear rows first, world frame)."""
+    b, n = q.shape
+    out, pose, Z, P = np.empty((b, 6, n)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
+    for k in range(b):
+        _frames(table, base, tool, modified, q[k], pose, Z, P)
+        _jacobian_columns(pose, Z, P, out[k])
+    return out
 
 
 @_jit
