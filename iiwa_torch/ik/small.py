@@ -24,7 +24,7 @@ import torch
 
 from .. import compiled
 from ..dh import DHChain
-from ..kinematics import floats_ok, pose_jacobian_numpy
+from ..kinematics import end_pose_matmul, floats_ok, pose_jacobian_numpy
 from .gradient import (
     DAMP_DOWN,
     DAMP_UP,
@@ -299,9 +299,10 @@ def solve_small(
     problems = _Problems(chain, pos, rot, rest, lo, hi, options, work)
     problems.run(pool, order, first)
     out_dtype = _NUMPY[dtype]
-    q_out = torch.from_numpy(problems.q.astype(out_dtype, copy=False).reshape(*batch, n))
-    # errors and success from the public chain.fk of the answer, as the batched path's
-    pose = chain.fk(q_out).numpy().reshape(b, 4, 4).astype(np.float64, copy=False)
+    q_flat = torch.from_numpy(problems.q.astype(out_dtype, copy=False))
+    # errors and success from the answer's end pose by chain.fk's kernel for these (the batched path
+    # calls chain.fk; its input checks are moot on the kernels' own answers)
+    pose = end_pose_matmul(chain.geometry(dtype), q_flat).numpy().astype(np.float64, copy=False)
     if compiled.ENABLED:
         rot_in = np.empty((0, 3, 3)) if rot is None else rot
         pos_err, rot_err = compiled.kernels().pose_errors(pose, pos, rot_in, problems.eps)
@@ -311,7 +312,7 @@ def solve_small(
     pos_err, rot_err = (x.astype(out_dtype, copy=False) for x in (pos_err, rot_err))
     success, pos_err, rot_err, used = (torch.from_numpy(x.reshape(batch)) for x in (success, pos_err, rot_err,
                                                                                     problems.used))  # fmt: skip
-    return IKResult(q_out, success, pos_err, rot_err, used)
+    return IKResult(q_flat.reshape(*batch, n), success, pos_err, rot_err, used)
 
 
 def track_small(chain: DHChain, poses: torch.Tensor, q0: torch.Tensor, *, pos_tol: float, rot_tol: float,
