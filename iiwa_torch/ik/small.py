@@ -91,7 +91,7 @@ class _Problems:
     float64, the rest posture ``rest (b, n)`` or None, limits ``lo, hi (n,)``, the options of
     :func:`~iiwa_torch.ik.solve`, and the answers so far: ``q (b, n)``, key ``E (b,)``
     (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``; the
-    options again as :func:`iiwa_torch.compiled.numba_kernels.lm_round` takes them
+    options again as :func:`iiwa_torch.compiled.numba_kernels.lm_rounds` takes them
     (``kernel_options``, ``kernel_counts``). ``work``: the dtype the batched loop would iterate
     in, which sets the smallest damping and the rounding ``eps``."""
 
