@@ -73,6 +73,7 @@ class ArrayOps:
 
     where, asin, zeros_like = staticmethod(torch.where), staticmethod(torch.asin), staticmethod(torch.zeros_like)
     ones_like, stack, moveaxis = staticmethod(torch.ones_like), staticmethod(torch.stack), staticmethod(torch.moveaxis)
+    concatenate = staticmethod(torch.cat)
 
     @staticmethod
     def cross(u, v):
@@ -127,6 +128,7 @@ class _NumpyOps(ArrayOps):
 
     where, zeros_like = staticmethod(np.where), staticmethod(np.zeros_like)
     ones_like, stack, moveaxis = staticmethod(np.ones_like), staticmethod(np.stack), staticmethod(np.moveaxis)
+    concatenate = staticmethod(np.concatenate)
 
 
     @staticmethod

@@ -237,9 +237,12 @@ class ReachTask:
         with torch.inference_mode(False):
             q, block = state.q.T.clone(), state.obstacles.clone() if world.slots else None
             distance, gradient = capsule_clearance(self.robot, q, obstacle_world(block, world.floor), world.capsules)
+        xp = NUMPY if q.shape[0] == 1 and self.device.type == "cpu" else TORCH  # as step's
+        distance, gradient = xp.of(distance), xp.of(gradient)
         near = distance < CLEARANCE_RANGE
-        gradient = torch.where(near[..., None], gradient, 0.0)
-        return torch.cat([torch.where(near, distance, CLEARANCE_RANGE).T, gradient.reshape(q.shape[0], -1).T], 0)
+        gradient = xp.where(near[..., None], gradient, 0.0)
+        return xp.tensor(xp.concatenate([xp.where(near, distance, CLEARANCE_RANGE).T,
+                                         gradient.reshape(q.shape[0], -1).T], 0))
 
     # ------------------------------------------------------------------ what the callers read
     @property

@@ -10,10 +10,12 @@ Which kernel runs (``b`` configurations):
 
 - one CPU configuration with nothing to differentiate (:func:`floats_ok`): the end pose and
   the Jacobian in Python floats (:func:`end_pose_floats`, :func:`jacobian_floats`), the same
-  frame recursion as the elementwise kernel; no torch op but the result's creation.
+  frame recursion as the elementwise kernel; no torch op but the result's creation. With the
+  compiled kernels (:mod:`iiwa_torch.compiled`) the same recursion compiled, up to
+  ``SMALL_BATCH`` configurations at once.
 - :func:`end_pose`, :func:`all_poses`, :func:`jacobian`: up to ``SMALL_BATCH`` (128)
   configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`; the end pose in
-  numpy when :func:`floats_ok`, :func:`end_pose_numpy`); above, the elementwise batch-last kernel
+  numpy when :func:`floats_ok`, :func:`end_pose_numpy`, or compiled); above, the elementwise batch-last kernel
   :func:`frames_batch_last`, in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`).
 - :func:`frames_batch_last`: up to ``FRAMES_NUMPY_BATCH`` (32) CPU configurations without
   autograd, the 4x4 products in numpy; above, the elementwise kernel.
@@ -502,11 +504,12 @@ def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:
 def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (a single one: ``q.numel() == n``) -> its end pose
     ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), or by the
-    same recursion compiled (:func:`iiwa_torch.compiled.numba_kernels.end_pose`) when enabled; not checked.
+    same recursion compiled (:func:`iiwa_torch.compiled.numba_kernels.end_poses`, which takes
+    any number of configurations) when enabled; not checked.
     For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
     tensor outside autograd. Its latency is a fraction of any torch kernel's."""
     if compiled.ENABLED:
-        return _from_one(compiled.kernels().end_pose(*g.float_arrays, _float64(q)), q)
+        return by_kernel(compiled.kernels().end_poses, g, q, (4, 4))
     (x, y, z, p), _ = _frames_floats(g, q, keep_axes=False)
     rows = [x[0], y[0], z[0], p[0], x[1], y[1], z[1], p[1], x[2], y[2], z[2], p[2], 0.0, 0.0, 0.0, 1.0]
     return torch.from_numpy(np.array(rows, dtype=_NUMPY_DTYPES[q.dtype]).reshape(*q.shape[:-1], 4, 4))
@@ -514,10 +517,11 @@ def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
 
 def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
-    :func:`jacobian`, computed in Python floats (or compiled: :func:`iiwa_torch.compiled.numba_kernels.jacobian`),
-    not checked; for :func:`floats_ok` inputs. Column i is ``[z_i x (p_e - p_i); z_i]``."""
+    :func:`jacobian`, computed in Python floats (or compiled, any number of configurations:
+    :func:`iiwa_torch.compiled.numba_kernels.jacobians`), not checked; for :func:`floats_ok`
+    inputs. Column i is ``[z_i x (p_e - p_i); z_i]``."""
     if compiled.ENABLED:
-        return _from_one(compiled.kernels().jacobian(*g.float_arrays, _float64(q)), q)
+        return by_kernel(compiled.kernels().jacobians, g, q, (6, g.n_joints))
     (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q, keep_axes=True)
     columns = []
     for (z0, z1, z2), (p0, p1, p2) in axes:
@@ -527,17 +531,17 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
 
 
-def _float64(q: Tensor) -> np.ndarray:
-    """A CPU tensor's values as a flat float64 numpy array (a view when they already are)."""
-    return (q.detach() if q.requires_grad else q).numpy().reshape(-1).astype(np.float64, copy=False)
-
-
-def _from_one(out: np.ndarray, q: Tensor) -> Tensor:
-    """A compiled kernel's float64 result ``out (...)`` for one configuration ``q (..., n)`` -> a
-    tensor in ``q``'s dtype with ``q``'s leading dims (all 1) in front (indexing: cheaper than a reshape)."""
+def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
+    """``kernel(*g.float_arrays, q (b, n))``, a compiled kernel of :mod:`iiwa_torch.compiled.numba_kernels`
+    (float64, C-ordered rows), on ``q (..., n)`` (:func:`floats_ok`, not checked) -> ``(..., *shape)``
+    in ``q``'s dtype, a new tensor outside autograd."""
+    x = (q.detach() if q.requires_grad else q).numpy()
+    if x.ndim != 2 or x.dtype != np.float64 or not x.flags.c_contiguous:
+        x = np.ascontiguousarray(x.reshape(-1, x.shape[-1]), dtype=np.float64)
+    out = kernel(*g.float_arrays, x)
     if q.dtype != torch.float64:
         out = out.astype(np.float32)
-    return torch.from_numpy(out[(None,) * (q.ndim - 1)])
+    return torch.from_numpy(out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape))
 
 
 def floats_ok(q: Tensor) -> bool:
@@ -564,7 +568,9 @@ def end_pose_matmul(g: Geometry, q: Tensor) -> Tensor:
     4x4 products (any batch size). On the CPU with nothing to differentiate (:func:`floats_ok`):
     one configuration in Python floats, more in numpy (:func:`end_pose_numpy`)."""
     if floats_ok(q):
-        return end_pose_floats(g, q) if q.shape[0] == 1 else torch.from_numpy(end_pose_numpy(g, q))
+        if q.shape[0] == 1 or compiled.ENABLED:  # one in Python floats, or any number compiled
+            return end_pose_floats(g, q)
+        return torch.from_numpy(end_pose_numpy(g, q))
     product = torch.mm if q.shape[0] == 1 else torch.bmm
     return reduce(product, _link_matrices(g, q, end=True)).view(q.shape[0], 4, 4)
 
@@ -718,7 +724,7 @@ def jacobian(g: Geometry, q: Tensor) -> Tensor:
     on the CPU with nothing to differentiate (:func:`floats_ok`), one configuration in Python
     floats, up to ``SMALL_BATCH`` in numpy."""
     if q.shape[0] <= SMALL_BATCH and floats_ok(q):
-        return jacobian_floats(g, q) if q.shape[0] == 1 else jacobian_numpy(g, q)
+        return jacobian_floats(g, q) if q.shape[0] == 1 or compiled.ENABLED else jacobian_numpy(g, q)
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
     z = z.unbind(1)
     rows = (*_cross(z, (end - origin).unbind(1)), *z)  # 6 x (n, b)

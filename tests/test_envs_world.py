@@ -239,6 +239,20 @@ def test_observed_clearances_match_brute_force_and_finite_differences():
         np.testing.assert_allclose(gradient[:, :, i], fd, atol=2e-4)
 
 
+def test_clearance_rows_of_one_env_are_its_column_of_a_batch():
+    """One CPU env's clearance rows (numpy ops) equal its column of a batch's (torch ops), to the
+    rounding between capsule_clearance's closed form for one configuration and autograd's."""
+    env = IiwaReachVecEnv(4, "IiwaReach-v0", seed=8, start="random", observe_clearance=True)
+    env.reset()
+    task, state = env.task, env._state
+    rows = task._clearance_rows(state)
+    assert (rows[: len(CAPS.names)] < 1.0).any()  # some capsule near something: gradient rows not all zero
+    for i in range(4):
+        one = task._clearance_rows(state._replace(q=state.q[:, i : i + 1].contiguous()))
+        assert one.dtype == rows.dtype
+        torch.testing.assert_close(one[:, 0], rows[:, i], atol=1e-6, rtol=0)
+
+
 def test_observed_clearances_with_obstacles_single_and_vector_env_alike():
     single = gym.make("IiwaReachObstacles-v0", observe_clearance=True)
     vector = IiwaReachVecEnv(1, "IiwaReachObstacles-v0", seed=5, observe_clearance=True)

@@ -7,12 +7,13 @@ chain.fk and so3.pose_error, and its joints against the chain's float64 limits.
 
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import robots, so3
+from iiwa_torch import compiled, robots, so3
 from iiwa_torch.collision import World
-from iiwa_torch.ik import small, solve
+from iiwa_torch.ik import gradient, small, solve
 
 CHAINS = {"iiwa14": robots.iiwa14(), "puma560": robots.puma560(), "planar3r": robots.planar3r()}
 
@@ -114,6 +115,27 @@ def test_q0_rest_and_options(monkeypatch, dtype):
     assert bool(only_q0.success.all())
 
 
+@pytest.mark.parametrize("with_q0", [False, True])
+def test_round_width_changes_no_answer(monkeypatch, with_q0):
+    """The numpy rounds with seeds side by side or one seed per round (as the compiled kernels
+    run them; test_compiled.py holds those to this): the same answers bit for bit, as a problem's
+    answer is its lowest-numbered converged seed; one seed per round spends fewer iterations.
+    Out-of-reach targets and few iterations make later seeds run."""
+    monkeypatch.setattr(compiled, "ENABLED", False)
+    chain = CHAINS["iiwa14"]
+    target, q = targets(chain, 30, 13, torch.float64, "pose")
+    target[:3, :3, 3] *= 3.0
+    q0 = q + 0.3 if with_q0 else None
+    options = dict(iterations=6, seeds=5)
+    wide = solve(chain, target, q0, **options)
+    with monkeypatch.context() as m:
+        m.setattr(small, "round_width", lambda *args: 1)
+        narrow = solve(chain, target, q0, **options)
+    assert torch.equal(wide.q, narrow.q) and torch.equal(wide.success, narrow.success)
+    assert bool((narrow.iterations <= wide.iterations).all()) and (narrow.iterations < wide.iterations).any()
+    assert not wide.success[:3].any() and int(wide.success.sum()) > 20
+
+
 def test_shapes_and_iterations(monkeypatch):
     chain = CHAINS["iiwa14"]
     target, _ = targets(chain, 6, 5, torch.float64, "pose")
@@ -190,3 +212,18 @@ def test_default_pool_is_cached_per_geometry():
         with torch.no_grad():
             chain.limits.mul_(0.9)  # a new geometry: the pool is drawn again within the new limits
     assert bool(chain.within_limits(solve(chain, target).q).all())
+
+
+@pytest.mark.parametrize("mode", ["pose", "position"])
+def test_seed_ranks_in_numpy_as_in_torch(mode):
+    """The pool's distances to the targets and their ranks by the numpy path's arrays (the small
+    path's) and by torch tensors (the batched loop's): the same formula, the same ranks."""
+    chain = CHAINS["iiwa14"]
+    pool = chain.random_q(64, generator=torch.Generator().manual_seed(14), dtype=torch.float32)
+    features = gradient.pool_features(chain, pool, mode)
+    target, _ = targets(chain, 20, 15, torch.float32, mode)
+    by_torch = gradient.pool_distance(chain, pool, target, mode, features)
+    by_numpy = gradient.pool_distance(chain, pool, target.numpy(), mode, tuple(x.numpy() for x in features))
+    assert isinstance(by_numpy, np.ndarray) and np.allclose(by_numpy, by_torch.numpy(), atol=1e-5, rtol=0)
+    for count in (1, 5):
+        assert np.array_equal(gradient.seed_ranks(by_numpy, count), gradient.seed_ranks(by_torch, count).numpy())

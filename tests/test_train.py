@@ -76,7 +76,9 @@ def test_short_run_writes_checkpoint_and_final_model(tmp_path, algo, flags, step
     assert state["num_timesteps"] >= steps
     evaluations = json.loads((run / "evaluations.json").read_text())
     assert evaluations[0]["steps"] == 0 and evaluations[-1]["steps"] >= steps
-    assert all(0.0 <= e["success"] <= 1.0 and e["median_distance"] > 0 for e in evaluations)
+    # >= 0: the goals and the arm's position come from the same FK kernel, so an arm at its goal's
+    # configuration is at distance 0 exactly
+    assert all(0.0 <= e["success"] <= 1.0 and e["median_distance"] >= 0 for e in evaluations)
     config = yaml.safe_load((run / "config.yaml").read_text())
     assert config["algo"] == algo and config["hyperparams"]["n_timesteps"] == steps
     assert list(tb for tb in (run / "tb").rglob("events.out.tfevents*")), "no TensorBoard log"

@@ -15,7 +15,7 @@ import numpy as np
 
 from .. import collision
 
-__all__ = ["end_pose", "into_limits", "jacobian", "lm_round", "own_clearance", "pose_errors"]
+__all__ = ["end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds", "own_clearance", "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
@@ -74,21 +74,23 @@ def _jacobian_columns(pose, Z, P, J):
 
 
 @_jit
-def end_pose(table, base, tool, modified, q):
-    """One configuration ``q (n,)`` -> its end pose ``(4, 4)``, as :func:`_frames`."""
-    pose = np.empty((4, 4))
-    _frames(table, base, tool, modified, q, pose, np.empty((0, 3)), np.empty((0, 3)))
-    return pose
+def end_poses(table, base, tool, modified, q):
+    """Configurations ``q (b, n)`` -> their end poses ``(b, 4, 4)``, as :func:`_frames`."""
+    out, none = np.empty((q.shape[0], 4, 4)), np.empty((0, 3))
+    for k in range(q.shape[0]):
+        _frames(table, base, tool, modified, q[k], out[k], none, none)
+    return out
 
 
 @_jit
-def jacobian(table, base, tool, modified, q):
-    """One configuration ``q (n,)`` -> its Jacobian ``(6, n)`` (linear rows first, world frame)."""
-    n = table.shape[0]
-    pose, Z, P, J = np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3)), np.empty((6, n))
-    _frames(table, base, tool, modified, q, pose, Z, P)
-    _jacobian_columns(pose, Z, P, J)
-    return J
+def jacobians(table, base, tool, modified, q):
+    """Configurations ``q (b, n)`` -> their Jacobians ``(b, 6, n)`` (linear rows first, world frame)."""
+    b, n = q.shape
+    out, pose, Z, P = np.empty((b, 6, n)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
+    for k in range(b):
+        _frames(table, base, tool, modified, q[k], pose, Z, P)
+        _jacobian_columns(pose, Z, P, out[k])
+    return out
 
 
 @_jit
@@ -315,6 +317,31 @@ def lm_round(table, base, tool, modified, q, problem, number, pos, rot, rest, lo
                 left -= not active[k]
         if not left:
             break
+
+
+@_jit
+def lm_rounds(table, base, tool, modified, pool, order, first, pos, rot, rest, lo, hi, opts, counts, best_q, best_E,
+              used):  # fmt: skip
+    """Every round of seeds of ``b = best_q.shape[0]`` problems, one seed per problem a round:
+    ``first (b, n)`` (q0; 0 rows: none), then the pool ``(P, n)`` entries of ranks ``order (ranks, b)``,
+    until a problem converges or runs out of its ``counts[3]`` seeds; the rest as :func:`lm_round`.
+    Mirrors :meth:`iiwa_torch.ik.small._Problems.run` with rounds one seed wide."""
+    b, n = best_q.shape
+    shift = 1 if first.shape[0] else 0
+    remaining = np.arange(b)
+    for k in range(counts[3]):
+        s = remaining.shape[0]
+        if not s:
+            break
+        q = np.empty((s, n))
+        for j in range(s):
+            p = remaining[j]
+            q[j] = first[p] if k < shift else pool[order[k - shift, p]]
+            if k == 0:  # until a better one is found, a problem's answer is its first seed
+                best_q[p] = q[j]
+        lm_round(table, base, tool, modified, q, remaining, np.full(s, k), pos, rot, rest, lo, hi, opts, counts,
+                 best_q, best_E, used)  # fmt: skip
+        remaining = remaining[best_E[remaining] >= 0]
 
 
 # ---------------------------------------------------------------------- the arm-angle sweep of iiwa_solve

@@ -312,10 +312,13 @@ def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str, featu
     """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
     squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
     less terms that are the same for every pool entry. ``features``: the pool's
-    :func:`pool_features`, if computed already."""
+    :func:`pool_features`, if computed already. Numpy ``target`` and ``features`` in give a
+    numpy array, by the same formula."""
     sq, twice_feat = pool_features(chain, pool, mode) if features is None else features
-    feat_target = torch.cat([target[:, :3, 3], 0.3 * target[:, :3, :3].flatten(1)], 1) if mode == "pose" else target
-    return sq - twice_feat @ feat_target.T
+    if mode == "pose":
+        cat = np.concatenate if isinstance(target, np.ndarray) else torch.cat
+        target = cat([target[:, :3, 3], 0.3 * target[:, :3, :3].reshape(target.shape[0], 9)], 1)
+    return sq - twice_feat @ target.T
 
 
 def pool_features(chain: DHChain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
@@ -329,7 +332,9 @@ def pool_features(chain: DHChain, pool: Tensor, mode: str) -> tuple[Tensor, Tens
 
 def seed_ranks(distance: Tensor, count: int) -> Tensor:
     """``(count, b)``: the indices of the ``count`` pool entries nearest each target, nearest
-    first, from :func:`pool_distance` ``(pool, b)``."""
+    first, from :func:`pool_distance` ``(pool, b)`` (a numpy array in: a numpy array out)."""
+    if isinstance(distance, np.ndarray):
+        return distance.argmin(0)[None] if count == 1 else distance.argsort(0, kind="stable")[:count]
     return distance.argmin(0, keepdim=True) if count == 1 else distance.topk(count, 0, largest=False).indices
 
 

@@ -3,12 +3,13 @@
 For a batch of ``SMALL_BATCH`` targets or fewer, on the CPU, with no world and nothing to
 differentiate (:func:`applies`), :func:`~iiwa_torch.ik.solve` runs its Levenberg-Marquardt
 iteration here in numpy (float64) instead of torch, or up to ``COMPILED_BATCH`` targets in
-compiled code (:func:`iiwa_torch.compiled.numba_kernels.lm_round`, when enabled): the same
-seeds (the same pool, drawn from the same generator, in the same order), the same rounds of
-seeds side by side, damping schedule, free steps and projection into the limits,
-convergence checks and choice of answer, with the end pose and Jacobian of
-:func:`~iiwa_torch.kinematics.pose_jacobian_numpy`. A torch op costs several microseconds
-however small its tensors, a numpy op about one, and an iteration takes a few dozen ops.
+compiled code (:func:`iiwa_torch.compiled.numba_kernels.lm_rounds`, when enabled): the same
+seeds (the same pool, drawn from the same generator, in the same order), damping schedule,
+free steps and projection into the limits, convergence checks and choice of answer, with the
+end pose and Jacobian of :func:`~iiwa_torch.kinematics.pose_jacobian_numpy`. A torch op costs
+several microseconds however small its tensors, a numpy op about one, and an iteration takes a
+few dozen ops. The numpy rounds run seeds side by side as the batched loop does; the compiled
+ones one seed per problem (see :meth:`_Problems.run`), which changes the work, not the answers.
 The layout is batch first: ``(slots, ...)``, a slot being one seed of one problem.
 :func:`track_small` runs the gradient method of :func:`~iiwa_torch.trajectory.track` (one
 such solve per pose) in one call.
@@ -23,7 +24,7 @@ import torch
 
 from .. import compiled
 from ..dh import DHChain
-from ..kinematics import floats_ok, pose_jacobian_numpy
+from ..kinematics import end_pose_matmul, floats_ok, pose_jacobian_numpy
 from .gradient import (
     DAMP_DOWN,
     DAMP_UP,
@@ -90,7 +91,7 @@ class _Problems:
     float64, the rest posture ``rest (b, n)`` or None, limits ``lo, hi (n,)``, the options of
     :func:`~iiwa_torch.ik.solve`, and the answers so far: ``q (b, n)``, key ``E (b,)``
     (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``; the
-    options again as :func:`iiwa_torch.compiled.numba_kernels.lm_round` takes them
+    options again as :func:`iiwa_torch.compiled.numba_kernels.lm_rounds` takes them
     (``kernel_options``, ``kernel_counts``). ``work``: the dtype the batched loop would iterate
     in, which sets the smallest damping and the rounding ``eps``."""
 
@@ -177,12 +178,42 @@ class _Problems:
         first_done = np.where(lowest < 0, lowest + self.seeds, self.seeds)  # lowest converged seed
         return (~done & (number < first_done[problem])).nonzero()[0]
 
-    def run_round(self, q, problem, number) -> None:
-        """The LM iterations of one round of seeds ``q (s, n)``; compiled
-        (:func:`iiwa_torch.compiled.numba_kernels.lm_round`) when enabled."""
+    def run(self, pool, order, first) -> None:
+        """Every round of seeds: each remaining problem tries its next seeds (``first (b, n)``, q0,
+        if given, then the pool ``(P, n)`` entries of ranks ``order (ranks, b)``), side by side to
+        fill ``MIN_BATCH`` slots as the batched loop does, until it converges or runs out of seeds.
+        Compiled: one call of :func:`iiwa_torch.compiled.numba_kernels.lm_rounds`, whose rounds take
+        one seed per problem (a compiled slot costs the same alone as beside others, so a later seed
+        runs only if the earlier ones failed; the answers do not depend on the width)."""
+        b, n = self.q.shape
         if compiled.ENABLED:
-            self.run_compiled(q, problem, number)
+            none = np.empty((0, n))  # an absent input: no rows
+            rot = np.empty((0, 3, 3)) if self.rot is None else self.rot
+            rest = none if self.rest is None else np.ascontiguousarray(self.rest)
+            order = np.empty((0, b), dtype=np.int64) if order is None else order
+            pool, first = (none if x is None else x for x in (pool, first))
+            compiled.kernels().lm_rounds(*self.g.float_arrays, pool, order, first, self.pos, rot, rest, self.lo,
+                                         self.hi, self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
             return
+        shift = 0 if first is None else 1
+        remaining, next_seed = np.arange(b), 0
+        while remaining.size and next_seed < self.seeds:
+            width = round_width(self.seeds, next_seed, remaining.size)
+            problem = np.concatenate([remaining] * width)  # slot -> problem (np.tile: the same, slower)
+            number = np.repeat(np.arange(next_seed, next_seed + width), remaining.size)
+            ranks = None if order is None else order[max(next_seed, shift) - shift : next_seed + width - shift]
+            q = pool[ranks[:, remaining].reshape(-1)] if ranks is not None else None  # pool seeds, seed-major
+            if next_seed < shift:  # q0 first
+                q = first[remaining] if q is None else np.concatenate([first[remaining], q])
+            if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
+                self.q[:] = q[:b]
+            self.run_round(q, problem, number)
+            next_seed += width
+            remaining = remaining[self.E[remaining] >= 0]
+
+    def run_round(self, q, problem, number) -> None:
+        """The LM iterations of one round of seeds ``q (s, n)``, slot ``k`` a seed of problem
+        ``problem[k]`` with seed number ``number[k]``."""
         pos, rot = self.pos[problem], None if self.rot is None else self.rot[problem]
         rest = None if self.rest is None else self.rest[problem]
         J, e, E, pos_err, rot_err = self.evaluate(q, pos, rot)
@@ -207,14 +238,6 @@ class _Problems:
                 break
 
 
-    def run_compiled(self, q, problem, number) -> None:
-        """:meth:`run_round` by :func:`iiwa_torch.compiled.numba_kernels.lm_round`."""
-        rot = np.empty((0, 3, 3)) if self.rot is None else self.rot
-        rest = np.empty((0, q.shape[1])) if self.rest is None else np.ascontiguousarray(self.rest)
-        compiled.kernels().lm_round(*self.g.float_arrays, q, problem, number, self.pos, rot, rest,
-                          self.lo, self.hi, self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
-
-
 _NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
 _CACHE: WeakKeyDictionary = WeakKeyDictionary()  # Geometry -> {key: value}
 
@@ -235,11 +258,11 @@ def _limits(chain: DHChain, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]
 
 def _pool(chain: DHChain, size: int, generator, work: torch.dtype, mode: str):
     """The seed pool as :func:`~iiwa_torch.ik.solve` draws it (``generator`` None: a fresh one
-    seeded with 0) -> the pool ``(size, n)`` in ``work``, its :func:`pool_features` and the
-    pool in float64 numpy."""
+    seeded with 0) -> the pool ``(size, n)`` in float64 and its :func:`pool_features` in
+    ``work``, numpy arrays."""
     generator = torch.Generator().manual_seed(0) if generator is None else generator
     pool = chain.random_q(size, generator=generator, dtype=work)
-    return pool, pool_features(chain, pool, mode), pool.double().numpy()
+    return pool.double().numpy(), tuple(x.numpy() for x in pool_features(chain, pool, mode))
 
 
 def solve_small(
@@ -251,7 +274,7 @@ def solve_small(
     the remaining options of :func:`~iiwa_torch.ik.solve` (``seeds`` resolved)."""
     dtype, n, seeds = target.dtype, chain.n_joints, options["seeds"]
     batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
-    flat = target.reshape(-1, *target.shape[len(batch) :])
+    flat = target.detach().numpy().reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
     lo, hi = _limits(chain, dtype)
     first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64).numpy(), lo, hi)
@@ -260,35 +283,26 @@ def solve_small(
     if seeds > shift:
         size = max(POOL, seeds)
         if generator is None:  # a fresh generator seeded with 0 draws the same pool every time
-            pool_t, features, pool = _cached(chain, work, (size, mode), lambda: _pool(chain, size, None, work, mode))
+            pool, features = _cached(chain, work, (size, mode), lambda: _pool(chain, size, None, work, mode))
         else:
-            pool_t, features, pool = _pool(chain, size, generator, work, mode)
-        distance = pool_distance(chain, pool_t, flat.to(work), mode, features)
-        order = seed_ranks(distance, seeds - shift).numpy()  # (ranks, b)
-    flat = flat.double().numpy()
+            pool, features = _pool(chain, size, generator, work, mode)
+        # numpy's product runs on OpenBLAS's own threads above 2^18 multiply-adds (some 340 targets),
+        # whose wake-up on a busy machine can cost milliseconds; torch's keeps to torch's threads
+        xp = (lambda x: x) if b <= 256 else torch.from_numpy
+        distance = pool_distance(chain, pool, xp(flat.astype(_NUMPY[work])), mode, tuple(map(xp, features)))
+        order = np.asarray(seed_ranks(distance, seeds - shift))  # (ranks, b)
+    flat = flat.astype(np.float64, copy=False)
     # contiguous copies: the compiled kernels are typed (and compiled) for C-ordered arrays
     pos, rot = (np.ascontiguousarray(flat), None) if mode == "position" else (flat[:, :3, 3].copy(),
                                                                             flat[:, :3, :3].copy())
     rest = None if rest is None else rest.double().numpy()
     problems = _Problems(chain, pos, rot, rest, lo, hi, options, work)
-    remaining, next_seed = np.arange(b), 0
-    while remaining.size and next_seed < seeds:
-        width = round_width(seeds, next_seed, remaining.size)
-        problem = np.concatenate([remaining] * width)  # slot -> problem (np.tile: the same, slower)
-        number = np.repeat(np.arange(next_seed, next_seed + width), remaining.size)
-        ranks = order[max(next_seed, shift) - shift : next_seed + width - shift] if seeds > shift else order
-        q = pool[ranks[:, remaining].reshape(-1)] if ranks is not None else None  # pool seeds, seed-major
-        if next_seed < shift:  # q0 first
-            q = first[remaining] if q is None else np.concatenate([first[remaining], q])
-        if next_seed == 0:  # until a better one is found, a problem's answer is its first seed
-            problems.q[:] = q[:b]
-        problems.run_round(q, problem, number)
-        next_seed += width
-        remaining = remaining[problems.E[remaining] >= 0]
+    problems.run(pool, order, first)
     out_dtype = _NUMPY[dtype]
-    q_out = torch.from_numpy(problems.q.astype(out_dtype, copy=False).reshape(*batch, n))
-    # errors and success from the public chain.fk of the answer, as the batched path's
-    pose = chain.fk(q_out).numpy().reshape(b, 4, 4).astype(np.float64, copy=False)
+    q_flat = torch.from_numpy(problems.q.astype(out_dtype, copy=False))
+    # errors and success from the answer's end pose by chain.fk's kernel for these (the batched path
+    # calls chain.fk; its input checks are moot on the kernels' own answers)
+    pose = end_pose_matmul(chain.geometry(dtype), q_flat).numpy().astype(np.float64, copy=False)
     if compiled.ENABLED:
         rot_in = np.empty((0, 3, 3)) if rot is None else rot
         pos_err, rot_err = compiled.kernels().pose_errors(pose, pos, rot_in, problems.eps)
@@ -298,7 +312,7 @@ def solve_small(
     pos_err, rot_err = (x.astype(out_dtype, copy=False) for x in (pos_err, rot_err))
     success, pos_err, rot_err, used = (torch.from_numpy(x.reshape(batch)) for x in (success, pos_err, rot_err,
                                                                                     problems.used))  # fmt: skip
-    return IKResult(q_out, success, pos_err, rot_err, used)
+    return IKResult(q_flat.reshape(*batch, n), success, pos_err, rot_err, used)
 
 
 def track_small(chain: DHChain, poses: torch.Tensor, q0: torch.Tensor, *, pos_tol: float, rot_tol: float,
@@ -320,15 +334,11 @@ def track_small(chain: DHChain, poses: torch.Tensor, q0: torch.Tensor, *, pos_to
                "pos_tol": pos_tol, "rot_tol": rot_tol}  # fmt: skip
     lo, hi = _limits(chain, dtype)
     problems = _Problems(chain, pos[0], rot[0], rest, lo, hi, options, work)
-    b = pos.shape[1]
-    problem, number = np.arange(b), np.zeros(b, dtype=np.int64)
-    q = np.empty((steps, b, n), dtype=_NUMPY[dtype])
+    q = np.empty((steps, pos.shape[1], n), dtype=_NUMPY[dtype])
     previous = broadcast_q(start, chain, batch, "q0", torch.float64).numpy()
     for k in range(steps):  # sequential by nature: each step starts from the last
         problems.aim(pos[k], rot[k])
-        first = into_limits(previous, lo, hi)
-        problems.q[:] = first
-        problems.run_round(first, problem, number)
+        problems.run(None, None, into_limits(previous, lo, hi))
         q[k] = problems.q
         previous = q[k].astype(np.float64)
     return torch.from_numpy(q).transpose(0, 1).reshape(*batch, steps, n)
