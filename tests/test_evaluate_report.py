@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 POLICY = ROOT / "train" / "policies" / "ppo_iiwa_reach"
 README_ROWS = {
     "policy": "policy (50 closed-loop steps)",
+    "controller": "controller: DLS step + damper alone (no network)",
     "analytic_ik": "analytic IK (arm-angle sweep, with the floor)",
     "gradient_ik": "gradient IK (with the floor)",
 }
@@ -74,6 +75,7 @@ def test_readme_comparison_row_is_what_the_shipped_command_prints(tmp_path):
         goals = make_goal_set(config["env_id"], 1000, 0, env_kwargs)
         metrics, data = {}, {}
         metrics["policy"], data["policy"] = ev.run_policy(goals, model, vec_normalize, task.robot)
+        metrics["controller"], _ = ev.run_policy(goals, ev.controller_alone(model), vec_normalize, task.robot)
         for name in ("analytic_ik", "gradient_ik"):
             metrics[name], _ = ev.run_ik(name, goals, task.robot, data["policy"]["home"], task.dt, ev.ik_world(task))
     finally:
