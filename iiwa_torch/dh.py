@@ -27,9 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from . import compiled
+from . import compiled, so3
 from . import kinematics as kin
-from . import so3
 from .checks import as_point, check_finite, check_float_tensor, check_nonnegative
 from .kinematics import Frame, Geometry
 
