@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import compiled, robots
+from iiwa_torch import collision, compiled, robots
 from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import analytic, gradient, small, solve
 
@@ -98,6 +98,24 @@ def test_one_configuration_shortcut(shape):
                     method(x)
     huge = torch.full(shape, 1e308, dtype=torch.float64)
     assert chain._plain_one(huge) is None and torch.isfinite(chain.fk(huge)).all()
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["iiwa14", "puma560", "lrmate200ic"])
+def test_capsule_clearance_of_one_configuration(monkeypatch, name):
+    """collision.capsule_clearance of one CPU configuration against the floor (three heights, or
+    none) and itself: the compiled kernel gives the Python-float closed form's distances and
+    gradients bit for bit (the same operations in the same order), in float64 and float32."""
+    chain = getattr(robots, name)()
+    capsules = collision.robot_capsules(chain)
+    q = chain.random_q(20, generator=torch.Generator().manual_seed(2))
+    for i in range(q.shape[0]):
+        for floor in (None, 0.0, -0.1):
+            for x in (q[i : i + 1], q[i].float()):
+                call = lambda: collision.capsule_clearance(chain, x, collision.World(floor=floor), capsules)  # noqa: B023,E731
+                (d1, g1), (d0, g0) = both_ways(monkeypatch, call)
+                assert d1.dtype == d0.dtype == x.dtype and d1.shape == d0.shape and g1.shape == g0.shape
+                assert torch.equal(d1, d0) and torch.equal(g1, g0), (name, i, floor)
 
 
 @needs_numba
