@@ -15,7 +15,8 @@ import numpy as np
 
 from .. import collision
 
-__all__ = ["capsule_clearance", "end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds", "own_clearance", "pose_errors"]
+__all__ = ["capsule_clearance", "end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds", "own_clearance",
+           "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
