@@ -864,13 +864,17 @@ def capsule_clearance(
     one in no pair gets ``inf`` and a zero gradient. For controllers that keep each link clear
     (e.g. a velocity damper: ``gradient[k] . dq >= -xi (distance[k] - d_safe)``). Neither output
     is differentiable further. The gradient is autograd's, but for one CPU configuration with no
-    obstacle but the floor the closed form in Python floats (:func:`_capsule_clearance_floats`)."""
+    obstacle but the floor the closed form in Python floats (:func:`_capsule_clearance_floats`), or
+    compiled (:func:`iiwa_torch.compiled.numba_kernels.capsule_clearance`) when enabled."""
     world, capsules = _resolve(chain, q, world, capsules)
     if q.numel() == chain.n_joints and q.is_cpu and not world.tensors():  # one configuration, floor and self
-        distance, gradient = _capsule_clearance_floats(chain, q, world.floor, capsules)
+        if compiled.ENABLED:
+            distance, gradient = _capsule_clearance_compiled(chain, q, world.floor, capsules)
+        else:
+            distance, gradient = (np.array(x) for x in _capsule_clearance_floats(chain, q, world.floor, capsules))
         dtype = np.float32 if q.dtype == torch.float32 else np.float64
-        return (torch.from_numpy(np.array(distance, dtype=dtype).reshape(*q.shape[:-1], -1)),
-                torch.from_numpy(np.array(gradient, dtype=dtype).reshape(*q.shape[:-1], -1, chain.n_joints)))
+        return (torch.from_numpy(distance.astype(dtype, copy=False).reshape(*q.shape[:-1], -1)),
+                torch.from_numpy(gradient.astype(dtype, copy=False).reshape(*q.shape[:-1], -1, chain.n_joints)))
     with torch.enable_grad():
         x = q.detach().requires_grad_(True)
         d = pairwise_clearance(chain, x, world, capsules)
@@ -934,6 +938,23 @@ def _capsule_clearance_floats(
             low = a if a[2] <= end[2] else end
             offer(k, low[2] - (r + floor), along(k, low, (0.0, 0.0, 1.0)))
     return [d for d, _ in best], [g for _, g in best]
+
+
+def _capsule_clearance_compiled(
+    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_capsule_clearance_floats` by its compiled kernel: distances ``(K,)`` (m) and gradients
+    ``(K, n)`` (m/rad), float64 arrays."""
+    tables, n = capsules._numpy_tables(), chain.n_joints
+    k = len(capsules.names)
+    distance, gradient = np.empty(k), np.empty((k, n))
+    x = np.ascontiguousarray(q.detach().reshape(n).numpy(), dtype=np.float64)
+    floors = tables["floor"] if floor is not None else tables["floor"][:0]
+    compiled.kernels().capsule_clearance(*chain.geometry().float_arrays, x, tables["frames"], tables["local"],
+                                         tables["first"], tables["second"], tables["pair_radius"], floors,
+                                         tables["floor_radius"], 0.0 if floor is None else float(floor), distance,
+                                         gradient)
+    return distance, gradient
 
 
 def _plain_path(chain: DHChain, q: Tensor, world: World, capsules: Capsules):

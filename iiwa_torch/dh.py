@@ -23,11 +23,12 @@ import math
 from collections.abc import Sequence
 from enum import Enum
 
+import numpy as np
 import torch
 from torch import nn
 
+from . import compiled, so3
 from . import kinematics as kin
-from . import so3
 from .checks import as_point, check_finite, check_float_tensor, check_nonnegative
 from .kinematics import Frame, Geometry
 
@@ -124,6 +125,7 @@ class DHChain(nn.Module):
         self.name = name
         self.joint_names = tuple(names)
         self._q_shape = f"(..., {n})"  # the shape check_q names
+        self._one_shapes = ((n,), (1, n))  # one configuration's shapes, for _plain_one
         self.register_buffer("dh", dh)
         self.register_buffer("limits", lim)
         self.register_buffer("base", _as_matrix(base, "base"))
@@ -208,6 +210,26 @@ class DHChain(nn.Module):
             )
         check_finite(q, name)
 
+    def _plain_one(self, q) -> np.ndarray | None:
+        """The common case of ``fk``/``jacobian`` checked at a fraction of :meth:`check_q`'s cost:
+        ``q``'s values as a ``(1, n)`` float64 array (a view) if the compiled kernels are on and
+        ``q`` is one finite configuration, ``(n,)`` or ``(1, n)``, a plain contiguous float64
+        CPU tensor without ``requires_grad``, on a CPU chain; else ``None``, and the caller runs
+        :meth:`check_q` and its ordinary path, which raises for every bad input. Finite: the
+        Python sum of the n values is (a NaN or inf makes it NaN or inf; an overflow of huge
+        finite values only sends ``q`` to the ordinary path)."""
+        if not (compiled.ENABLED and type(q) is Tensor and q.dtype is torch.float64 and q.is_cpu
+                and not q.requires_grad and q.is_contiguous() and q.shape in self._one_shapes
+                and self._buffers["dh"].is_cpu):  # fmt: skip
+            return None
+        try:
+            x = q.numpy()
+        except (RuntimeError, TypeError):  # no storage to read (torch.func.vmap): check_q says so
+            return None
+        if not math.isfinite(sum(x.tolist() if x.ndim == 1 else x[0].tolist())):
+            return None
+        return x[None] if x.ndim == 1 else x
+
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
         self.check_q(q)
@@ -276,6 +298,9 @@ class DHChain(nn.Module):
         through the few ops of the small-batch kernel costs less (at batch 1, half the
         instructions of the closed form).
         """
+        x = self._plain_one(q)
+        if x is not None:
+            return kin.one_by_kernel(compiled.kernels().end_poses, self.geometry(torch.float64), x, q.ndim)
         self.check_q(q)
         g = self.geometry(q.dtype)
         if q.numel() == self.n_joints and kin.floats_ok(q):
@@ -312,6 +337,9 @@ class DHChain(nn.Module):
         autograd. The axis of joint i is the z axis of frame i - 1 (standard DH) or of
         frame i (modified DH), and that frame's origin lies on it.
         """
+        x = self._plain_one(q)
+        if x is not None:
+            return kin.one_by_kernel(compiled.kernels().jacobians, self.geometry(torch.float64), x, q.ndim)
         self.check_q(q)
         g = self.geometry(q.dtype)
         if q.numel() == self.n_joints and kin.floats_ok(q):

@@ -544,6 +544,13 @@ def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
     return torch.from_numpy(out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape))
 
 
+def one_by_kernel(kernel, g: Geometry, x: np.ndarray, ndim: int) -> Tensor:
+    """:func:`by_kernel` for one float64 configuration already in numpy, ``x (1, n)`` (from a
+    ``(1, n)`` tensor if ``ndim`` is 2, else ``(n,)``) -> ``(1, *shape)`` or ``(*shape)``, float64."""
+    out = kernel(*g.float_arrays, x)
+    return torch.from_numpy(out if ndim == 2 else out[0])
+
+
 def floats_ok(q: Tensor) -> bool:
     """Whether one configuration ``q`` may take :func:`end_pose_floats` and :func:`jacobian_floats`:
     on the CPU with nothing to differentiate (no ``requires_grad`` under grad mode)."""

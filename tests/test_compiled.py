@@ -9,6 +9,7 @@ in test_dh.py and test_ik_small.py. Without numba installed only the fallback te
 import importlib.util
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import compiled, robots
+from iiwa_torch import collision, compiled, robots
 from iiwa_torch.dh import DHChain
 from iiwa_torch.ik import analytic, gradient, small, solve
 
@@ -70,6 +71,51 @@ def test_fk_and_jacobian_of_a_few_configurations(monkeypatch, name, dtype):
             assert fast.dtype == slow.dtype == dtype and fast.shape == slow.shape
             tol = 1e-6 if dtype == torch.float32 else 1e-14
             assert torch.allclose(fast, slow, atol=tol, rtol=0), (method.__name__, (fast - slow).abs().max())
+
+
+@needs_numba
+@pytest.mark.parametrize("shape", [(7,), (1, 7)])
+def test_one_configuration_shortcut(shape):
+    """fk/jacobian of one plain float64 configuration skip check_q (DHChain._plain_one): the same
+    numbers, bit for bit, as the checked path (taken by a Parameter), the chain's current buffers
+    (load_state_dict), and the same errors: a NaN or inf makes the Python sum of q NaN or inf, so q
+    goes to check_q; huge finite values whose sum overflows go there too, and pass."""
+    chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
+    q = chain.random_q(1, generator=torch.Generator().manual_seed(5)).reshape(shape)
+    assert chain._plain_one(q) is not None
+    for method in (chain.fk, chain.jacobian):
+        assert torch.equal(method(q), method(torch.nn.Parameter(q, requires_grad=False)))
+    other = robots.iiwa7()
+    chain.load_state_dict(other.state_dict())
+    assert torch.equal(chain.fk(q), other.fk(torch.nn.Parameter(q, requires_grad=False)))
+    for bad in (math.nan, math.inf, -math.inf):
+        for j in (0, 6):
+            x = q.clone()
+            x.view(-1)[j] = bad
+            index = (j,) if len(shape) == 1 else (0, j)
+            for method in (chain.fk, chain.jacobian):
+                with pytest.raises(ValueError, match=re.escape(f"q contains NaN or inf (first at index {index})")):
+                    method(x)
+    huge = torch.full(shape, 1e308, dtype=torch.float64)
+    assert chain._plain_one(huge) is None and torch.isfinite(chain.fk(huge)).all()
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["iiwa14", "puma560", "lrmate200ic"])
+def test_capsule_clearance_of_one_configuration(monkeypatch, name):
+    """collision.capsule_clearance of one CPU configuration against the floor (three heights, or
+    none) and itself: the compiled kernel gives the Python-float closed form's distances and
+    gradients bit for bit (the same operations in the same order), in float64 and float32."""
+    chain = getattr(robots, name)()
+    capsules = collision.robot_capsules(chain)
+    q = chain.random_q(20, generator=torch.Generator().manual_seed(2))
+    for i in range(q.shape[0]):
+        for floor in (None, 0.0, -0.1):
+            for x in (q[i : i + 1], q[i].float()):
+                call = lambda: collision.capsule_clearance(chain, x, collision.World(floor=floor), capsules)  # noqa: B023,E731
+                (d1, g1), (d0, g0) = both_ways(monkeypatch, call)
+                assert d1.dtype == d0.dtype == x.dtype and d1.shape == d0.shape and g1.shape == g0.shape
+                assert torch.equal(d1, d0) and torch.equal(g1, g0), (name, i, floor)
 
 
 @needs_numba

@@ -75,6 +75,8 @@ def numpy_ok(*tensors: torch.Tensor) -> bool:
 def shrink(u, xp=torch):
     """``u (..., n)`` (tensor, or numpy array with ``xp=numpy``) divided by ``max(1, max_i |u_i|)``: into
     ``[-1, 1]`` with its direction kept."""
+    if xp is np:  # the ufuncs themselves: np.amax and clip wrap them in a few microseconds of Python
+        return u / np.maximum(np.maximum.reduce(abs(u), -1), 1.0)[..., None]
     return u / xp.amax(abs(u), -1)[..., None].clip(min=1.0)
 
 
@@ -264,17 +266,21 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     def _constants(self, xp) -> tuple:
         """``max_step``, ``damping_sq`` and the chain's lower and upper limits, float64, in ``xp``'s arrays."""
-        values = self.max_step, self.damping_sq, self.chain.limits  # the chain's buffers are float64
-        max_step, damping_sq, (lower, upper) = values if xp is torch else (v.numpy() for v in values)
-        return max_step, damping_sq, lower, upper
+        # _buffers, not attributes: nn.Module's attribute lookup costs more than the rest (several calls a step)
+        buffers = self._buffers
+        max_step, damping_sq, limits = buffers["max_step"], buffers["damping_sq"], self.chain._buffers["limits"]
+        if xp is not torch:  # the chain's buffers are float64
+            max_step, damping_sq, limits = max_step.numpy(), damping_sq.numpy(), limits.numpy()
+        return max_step, damping_sq, limits[0], limits[1]
 
     def squared_dampings(self, error):
         """``error (B, k)`` (tensor or numpy array) -> the squared dampings ``(B, L)`` (m^2),
         ``(lambda + c |e|)^2`` with ``c = error_damping``."""
         xp = np if isinstance(error, np.ndarray) else torch
         damping_sq = self._constants(xp)[1]  # (L,)
-        if not self.error_damping:
-            return xp.broadcast_to(damping_sq, (error.shape[0], damping_sq.shape[0]))
+        if not self.error_damping:  # numpy: a copy (np.broadcast_to costs several microseconds)
+            return damping_sq[None].repeat(error.shape[0], 0) if xp is np else \
+                damping_sq.expand(error.shape[0], damping_sq.shape[0])
         size = xp.sqrt((error * error).sum(-1))[:, None]  # (B, 1)
         return (xp.sqrt(damping_sq) + self.error_damping * size) ** 2
 

@@ -15,7 +15,8 @@ import numpy as np
 
 from .. import collision
 
-__all__ = ["end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds", "own_clearance", "pose_errors"]
+__all__ = ["capsule_clearance", "end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds", "own_clearance",
+           "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
@@ -29,15 +30,26 @@ def _turn(u0, u1, u2, v0, v1, v2, c, s):
     return c * u0 + s * v0, c * u1 + s * v1, c * u2 + s * v2, c * v0 - s * u0, c * v1 - s * u1, c * v2 - s * u2
 
 
+@_inline
+def _store_frame(f, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
+    """A frame's axes and origin into the rows of ``f (4, 3)``."""
+    f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2] = x0, x1, x2, y0, y1, y2
+    f[2, 0], f[2, 1], f[2, 2], f[3, 0], f[3, 1], f[3, 2] = z0, z1, z2, p0, p1, p2
+
+
 @_jit
-def _frames(table, base, tool, modified, q, pose, Z, P):
-    """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)`` and, if ``Z`` has ``n``
-    rows, joint i's axis into ``Z[i]`` and a point on it into ``P[i]`` (both ``(n, 3)``).
-    Mirrors :func:`iiwa_torch.kinematics._frames_floats` (the frame recursion in Python floats),
-    which skips zero lengths and an identity tool: adding those zero terms changes no value."""
+def _frames(table, base, tool, modified, q, pose, Z, P, F):
+    """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)``; if ``Z`` has ``n`` rows,
+    joint i's axis into ``Z[i]`` and a point on it into ``P[i]`` (both ``(n, 3)``); if ``F`` has
+    ``n + 1`` rows, the base and every link frame (no tool) into ``F (n + 1, 4, 3)``, each as its
+    x, y, z axes and origin. Mirrors :func:`iiwa_torch.kinematics._frames_floats` (the frame
+    recursion in Python floats), which skips zero lengths and an identity tool: adding those zero
+    terms changes no value."""
     x0, x1, x2, y0, y1, y2 = base[0, 0], base[1, 0], base[2, 0], base[0, 1], base[1, 1], base[2, 1]
     z0, z1, z2, p0, p1, p2 = base[0, 2], base[1, 2], base[2, 2], base[0, 3], base[1, 3], base[2, 3]
-    keep = Z.shape[0] > 0
+    keep, every = Z.shape[0] > 0, F.shape[0] > 0
+    if every:
+        _store_frame(F[0], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
     for i in range(table.shape[0]):
         a, ca, sa, d, offset = table[i, 0], table[i, 1], table[i, 2], table[i, 3], table[i, 4]
         if modified:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
@@ -50,6 +62,8 @@ def _frames(table, base, tool, modified, q, pose, Z, P):
         if not modified:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
             p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
             y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
+        if every:
+            _store_frame(F[i + 1], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
     for k in range(4):  # column k of the tool, (u, v, w), in the world: u x + v y + w z
         u, v, w = tool[0, k], tool[1, k], tool[2, k]
         pose[0, k], pose[1, k] = u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1
@@ -78,7 +92,7 @@ def end_poses(table, base, tool, modified, q):
     """Configurations ``q (b, n)`` -> their end poses ``(b, 4, 4)``, as :func:`_frames`."""
     out, none = np.empty((q.shape[0], 4, 4)), np.empty((0, 3))
     for k in range(q.shape[0]):
-        _frames(table, base, tool, modified, q[k], out[k], none, none)
+        _frames(table, base, tool, modified, q[k], out[k], none, none, np.empty((0, 4, 3)))
     return out
 
 
@@ -88,7 +102,7 @@ def jacobians(table, base, tool, modified, q):
     b, n = q.shape
     out, pose, Z, P = np.empty((b, 6, n)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
     for k in range(b):
-        _frames(table, base, tool, modified, q[k], pose, Z, P)
+        _frames(table, base, tool, modified, q[k], pose, Z, P, np.empty((0, 4, 3)))
         _jacobian_columns(pose, Z, P, out[k])
     return out
 
@@ -136,7 +150,7 @@ def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
     Mirrors :meth:`iiwa_torch.ik.small._Problems.evaluate`."""
     table, base, tool, modified = arrays
     pose, Z, P, J6 = scratch
-    _frames(table, base, tool, modified, q, pose, Z, P)
+    _frames(table, base, tool, modified, q, pose, Z, P, np.empty((0, 4, 3)))
     _jacobian_columns(pose, Z, P, J6)
     pos_err, rot_err = _pose_error(pose, pos, rot, has_rot, eps, e)
     m, n = J.shape
@@ -738,3 +752,68 @@ def own_clearance(q, table, base, modified, frames, local, first, second, pair_r
                 best[j] = min(best[j], min(e[2, j], e[2, j] + e[5, j]) - offset)
         for j in range(m):
             out[row + j] = best[j]
+
+
+@_inline
+def _along(F, axis, frame, x0, x1, x2, u0, u1, u2, out, sign):
+    """``out += sign * u . d x / dq`` for the point ``x`` fixed in link frame ``frame``: joint j
+    moves it by ``z_j x (x - p_j)`` (axis and origin of ``F[j + axis]``), j < ``frame``."""
+    for j in range(frame):
+        z0, z1, z2, p0, p1, p2 = F[j + axis, 2, 0], F[j + axis, 2, 1], F[j + axis, 2, 2], F[j + axis, 3, 0], \
+            F[j + axis, 3, 1], F[j + axis, 3, 2]
+        l0, l1, l2 = x0 - p0, x1 - p1, x2 - p2
+        out[j] += sign * (u0 * (z1 * l2 - z2 * l1) + u1 * (z2 * l0 - z0 * l2) + u2 * (z0 * l1 - z1 * l0))
+
+
+@_jit
+def capsule_clearance(table, base, tool, modified, q, frames, local, first, second, pair_radius, floor, floor_radius,
+                      height, distance, gradient):
+    """One configuration ``q (n,)`` -> each capsule's smallest signed distance (m) to itself and the
+    floor into ``distance (K,)`` and its gradient (m/rad) into ``gradient (K, n)`` (``inf`` and
+    zeros for a capsule in no pair); the capsules as in :func:`own_clearance`. Mirrors
+    :func:`iiwa_torch.collision._capsule_clearance_floats`: the same closest points, the same
+    envelope-theorem gradients, the same order of comparisons."""
+    n, k_all = q.shape[0], frames.shape[0]
+    F, pose, none = np.empty((n + 1, 4, 3)), np.empty((4, 4)), np.empty((0, 3))
+    _frames(table, base, tool, modified, q, pose, none, none, F)
+    ends = np.empty((k_all, 6))  # per capsule: start point, start-to-end vector
+    for k in range(k_all):
+        f = frames[k]
+        u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
+        u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
+        for r in range(3):  # each end point: p + u x + v y + w z
+            x, y, z, p = F[f, 0, r], F[f, 1, r], F[f, 2, r], F[f, 3, r]
+            start = p + u0 * x + v0 * y + w0 * z
+            ends[k, r] = start
+            ends[k, 3 + r] = p + u1 * x + v1 * y + w1 * z - start
+    axis = 1 if modified else 0  # joint j turns about frame j's z (standard DH) or frame j + 1's
+    candidate = np.empty(n)
+    for k in range(k_all):
+        distance[k] = np.inf
+        gradient[k, :] = 0.0
+    for pair in range(first.shape[0]):
+        i, j, radius = first[pair], second[pair], pair_radius[pair, 0]
+        a, b = ends[i], ends[j]
+        r0, r1, r2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+        a0, a1, a2, b0, b1, b2 = a[3], a[4], a[5], b[3], b[4], b[5]
+        s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
+                        a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
+        w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+        norm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        u0, u1, u2 = (w0 / norm, w1 / norm, w2 / norm) if norm > 0 else (0.0, 0.0, 0.0)
+        candidate[:] = 0.0
+        _along(F, axis, frames[i], a[0] + s * a0, a[1] + s * a1, a[2] + s * a2, u0, u1, u2, candidate, 1.0)
+        _along(F, axis, frames[j], b[0] + t * b0, b[1] + t * b1, b[2] + t * b2, u0, u1, u2, candidate, -1.0)
+        for k in (i, j):
+            if norm - radius < distance[k]:
+                distance[k] = norm - radius
+                gradient[k, :] = candidate
+    for c in range(floor.shape[0]):
+        k, e = floor[c], ends[floor[c]]
+        low = 0 if e[2] <= e[2] + e[5] else 1  # the lower end point
+        x0, x1, x2 = (e[0], e[1], e[2]) if low == 0 else (e[0] + e[3], e[1] + e[4], e[2] + e[5])
+        value = x2 - (floor_radius[c, 0] + height)
+        if value < distance[k]:
+            distance[k] = value
+            gradient[k, :] = 0.0
+            _along(F, axis, frames[k], x0, x1, x2, 0.0, 0.0, 1.0, gradient[k], 1.0)
