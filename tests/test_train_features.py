@@ -113,9 +113,9 @@ def test_step_bound_clip_clips_each_joint_where_shrink_keeps_the_direction():
         JointGoalExtractor(_space(), max_step=MAX_STEP, step_bound="scale")
 
 
-@pytest.mark.parametrize("value", [-0.1, float("nan"), True, "1"])
+@pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf"), True, "1"])
 def test_error_damping_must_be_a_non_negative_number(value):
-    with pytest.raises(ValueError, match="error_damping must be a number >= 0"):
+    with pytest.raises(ValueError, match="error_damping must be a finite number >= 0"):
         JointGoalExtractor(_space(), max_step=MAX_STEP, error_damping=value)
 
 

@@ -13,6 +13,7 @@ Because the difference is computed inside the network, it stays correct when HER
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -238,8 +239,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
                 raise ValueError(f"clearance_rows {list(clearance_rows)} lie outside the observation ({obs_dim})")
         if isinstance(limit_rounds, bool) or not isinstance(limit_rounds, int) or limit_rounds < 0:
             raise ValueError(f"limit_rounds must be an int >= 0, got {limit_rounds!r}")
-        if isinstance(error_damping, bool) or not isinstance(error_damping, (int, float)) or not error_damping >= 0:
-            raise ValueError(f"error_damping must be a number >= 0, got {error_damping!r}")
+        if isinstance(error_damping, bool) or not isinstance(error_damping, (int, float)) \
+                or not 0 <= error_damping < math.inf:
+            raise ValueError(f"error_damping must be a finite number >= 0, got {error_damping!r}")
         self.error_damping = float(error_damping)
         if step_bound not in STEP_BOUNDS:
             raise ValueError(f"step_bound must be one of {STEP_BOUNDS}, got {step_bound!r}")
@@ -284,11 +286,11 @@ class JointGoalExtractor(GoalDeltaExtractor):
         size = xp.sqrt((error * error).sum(-1))[:, None]  # (B, 1)
         return (xp.sqrt(damping_sq) + self.error_damping * size) ** 2
 
-    def _dls_solver(self, jac, error):
-        """``free (B, L, nj)`` (0 or 1) or None -> the DLS steps ``(B, L, nj)`` (rad) per damping for
-        ``jac (B, k, nj)`` and ``error (B, k)``, the held joints' columns of ``J`` counted as zero."""
+    def _dls_solver(self, jac, error, damping):
+        """``free (B, L, nj)`` (0 or 1) or None -> the DLS steps ``(B, L, nj)`` (rad) per squared damping
+        ``damping (B, L)`` for ``jac (B, k, nj)`` and ``error (B, k)``, the held joints' columns of ``J``
+        counted as zero."""
         b, m, n = jac.shape
-        damping = self.squared_dampings(error)  # (B, L)
         size = damping.shape[1]
         if isinstance(jac, np.ndarray):
             return lambda free: dls_step_numpy(jac[:, None], error[:, None], damping, free)  # (B, L, nj)
@@ -306,15 +308,16 @@ class JointGoalExtractor(GoalDeltaExtractor):
         """Steps in actions ``u (..., nj)`` brought into ``[-1, 1]`` as ``step_bound`` says."""
         return u.clip(-1.0, 1.0) if self.step_bound == "clip" else shrink(u, xp)
 
-    def bounded_step(self, q, jac, error):
+    def bounded_step(self, q, jac, error, damping_sq=None):
         """The DLS step per damping in actions, bounded into ``[-1, 1]`` (``step_bound``): ``q (B, nj)``
-        rad, ``jac (B, k, nj)``, ``error (B, k)`` (float64 tensors, or numpy arrays) -> ``(B, L, nj)``.
+        rad, ``jac (B, k, nj)``, ``error (B, k)`` (float64 tensors, or numpy arrays), ``damping_sq (B, L)``
+        (:meth:`squared_dampings` of ``error`` if None) -> ``(B, L, nj)``.
         With ``limit_rounds``, a joint that the step would push past its limit is held still and the step
         solved again without it, up to that many times (the arm's other joints then carry the motion,
         instead of the step being clamped at the limit)."""
         xp = np if isinstance(q, np.ndarray) else torch
         max_step, _, lower, upper = self._constants(xp)
-        solve = self._dls_solver(jac, error)
+        solve = self._dls_solver(jac, error, self.squared_dampings(error) if damping_sq is None else damping_sq)
         dq = solve(None)  # (B, L, nj) rad
         if self.limit_rounds:
             free = xp.ones_like(dq)
@@ -351,9 +354,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
         k = e.shape[-1]
         w = self.orientation_weight
         jp = jac[..., :3, :] if k == 3 else xp.concatenate([jac[..., :3, :], w * jac[..., 3:, :]], -2)
-        u = self.bounded_step(q, jp, e)  # (B, L, nj) in actions
+        damping_sq = self.squared_dampings(e)  # (B, L)
+        u = self.bounded_step(q, jp, e, damping_sq)  # (B, L, nj) in actions
         if self.avoidance is not None:
-            damping_sq = self.squared_dampings(e)
             u = velocity_damper(u * max_step, jp, damping_sq, *clearance, **self.avoidance) / max_step
             u = self._bounded(u, xp)
         distance = xp.sqrt((e * e).sum(-1))[:, None]  # (B, 1)
