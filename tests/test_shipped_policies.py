@@ -78,9 +78,10 @@ def _episodes(config: dict, act, seeds, dtype) -> tuple[list, list]:
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 @pytest.mark.parametrize("name", ["ppo_iiwa_reach", "ppo_iiwa_reach_pose", "ppo_iiwa_reach_obstacles"])
-def test_one_env_rollouts_equal_those_of_the_batched_paths(name, dtype, monkeypatch):
+def test_one_env_rollouts_equal_those_of_the_batched_paths(name, dtype, monkeypatch, small_kernel):
     """One env's step and the policy on one observation take the small-batch paths (the clearance
-    rows' closed-form gradients in float64, the features extractor and the action head in numpy).
+    rows' closed-form gradients in float64, the features extractor compiled or in numpy: ``small_kernel``,
+    the action head in numpy).
     The same episodes on the batched paths (the clearance of a batch of two copies, by autograd in
     the state's dtype; the network in torch): with a float64 state every observation and action
     agrees to 1e-12; with the default float32 state the first observation to float32 rounding and

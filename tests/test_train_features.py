@@ -327,11 +327,13 @@ def _observations(rows: int, goal_dim: int, dtype, rng) -> dict[str, torch.Tenso
 @pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping, step_bound", [
     (3, False, 0, 0.0, "shrink"), (3, True, 0, 0.0, "shrink"), (3, True, 3, 0.0, "shrink"),
     (9, False, 3, 0.0, "shrink"), (9, True, 3, 0.0, "shrink"), (9, True, 3, 1.0, "clip")])
-def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, step_bound, monkeypatch):
-    """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy; with NUMPY_ROWS = 0 the same
-    observations take the torch path. Float64 observations: every feature agrees to 1e-12 (the
-    DLS and damper solves by LU instead of Cholesky, the Jacobian and the pose goals' rotation error
-    computed another way); float32 ones (the env's): to the last bit of float32."""
+def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, step_bound, monkeypatch,
+                                          small_kernel):
+    """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy (with numba, by one compiled
+    kernel: ``small_kernel``); with NUMPY_ROWS = 0 the same observations take the torch path. Float64
+    observations: every feature agrees to 1e-12 (the DLS and damper solves by LU or by unrolled Cholesky
+    instead of LAPACK's, the Jacobian and the pose goals' rotation error computed another way); float32
+    ones (the env's): to the last bit of float32."""
     import train.features
     from train.features import NUMPY_ROWS
 
@@ -344,8 +346,10 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
     held = 0
     for rows, dtype in cases:
         obs = _observations(rows, goal_dim, dtype, rng)
-        with monkeypatch.context() as patch:  # the numpy path takes no torch Jacobian
+        with monkeypatch.context() as patch:  # the numpy path takes no torch Jacobian; the kernel, no numpy path
             patch.setattr(ext.chain, "jacobian", None)
+            if small_kernel == "compiled":
+                patch.setattr(ext, "joint_features", None)
             fast = ext(obs)
         with monkeypatch.context() as patch:
             patch.setattr(train.features, "NUMPY_ROWS", 0)

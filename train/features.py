@@ -22,8 +22,8 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from envs.goals import decode_pose_goal
+from iiwa_torch import compiled, so3
 from iiwa_torch import kinematics as kin
-from iiwa_torch import so3
 from iiwa_torch.ik.dls import dls_step_batch_last, dls_step_numpy
 
 
@@ -377,9 +377,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
         return self._features(q, observations)
 
     def _features(self, q, observations: dict):
-        """:meth:`forward` from ``q (B, nj)``, on tensors or numpy arrays."""
+        """:meth:`forward` from ``q (B, nj)``, on tensors or numpy arrays (with numba, numpy arrays by
+        one compiled kernel: :func:`train.features_kernel.features`, the same formulas)."""
         xp = np if isinstance(q, np.ndarray) else torch
-        base = self.goal_features(observations, xp)
         obs, nj = observations["observation"], self.nj
         desired, achieved = observations["desired_goal"], observations["achieved_goal"]
         error = desired[:, :3] - achieved[:, :3]
@@ -389,6 +389,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
                     if xp is np else _rotation_error(desired, achieved)
                 error = xp.concatenate([error.astype(np.float64) if xp is np else error.double(),
                                         self.orientation_weight * rotation], -1)
+            if xp is np and compiled.ENABLED:
+                return self._compiled_features(q, observations, error)
+            base = self.goal_features(observations, xp)
             clearance, damper = None, []
             if self.avoidance is not None:
                 start, k = self.clearance_rows
@@ -401,6 +404,21 @@ class JointGoalExtractor(GoalDeltaExtractor):
         parts = [joint, *damper]
         parts = [p.astype(base.dtype) for p in parts] if xp is np else [p.to(base.dtype) for p in parts]
         return xp.concatenate([base, *parts], -1)
+
+    def _compiled_features(self, q: np.ndarray, observations: dict[str, np.ndarray], error: np.ndarray) -> np.ndarray:
+        """:meth:`_features` on numpy arrays, by :func:`train.features_kernel.features` (imported, numba
+        with it, on the first call)."""
+        from train.features_kernel import features
+
+        max_step, damping_sq, lower, upper = self._constants(np)
+        avoidance, (start, k) = self.avoidance, self.clearance_rows or (0, 0)
+        damper = np.empty(0) if avoidance is None else \
+            np.array([avoidance["xi"], avoidance["safe"], avoidance["influence"]])
+        arrays = (np.ascontiguousarray(observations[key]) for key in ("observation", "achieved_goal", "desired_goal"))
+        return features(*arrays, np.ascontiguousarray(error, dtype=np.float64), q.astype(np.float64),
+                        self._buffers["inv_scales"].numpy()[:, 0], max_step, damping_sq, lower, upper,
+                        self.error_damping, self.step_bound == "clip", self.limit_rounds, self.orientation_weight,
+                        damper, start, k, *self.chain.geometry().float_arrays)
 
 
 def _rotation_error(desired: torch.Tensor, achieved: torch.Tensor) -> torch.Tensor:

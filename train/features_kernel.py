@@ -1,0 +1,231 @@
+"""The numba kernel of :class:`train.features.JointGoalExtractor`'s features on a few rows (importing
+this module imports numba; the extractor imports it on its first small-batch call when
+:data:`iiwa_torch.compiled.ENABLED`).
+
+One policy step in one env computes the goal deltas, a Jacobian, a few DLS solves, the velocity
+damper's Hildreth sweeps and the damper's constraints: some fifty numpy calls of about a
+microsecond each, where the arithmetic itself takes a fraction of one. :func:`features` restates
+the extractor's numpy path (``JointGoalExtractor._features``) row by row in one compiled call;
+``tests/test_train_features.py`` holds the two together. Linear solves are by Cholesky (the
+matrices are symmetric positive definite) where numpy's are by LU: the same values to rounding.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from iiwa_torch.compiled.numba_kernels import jacobians
+
+__all__ = ["features"]
+
+_jit = numba.njit(cache=True, error_model="numpy")
+
+
+@_jit
+def _cholesky_solve(A, rhs, out):
+    """``A (m, m)`` symmetric positive definite (lower triangle read; overwritten by its factor)
+    and ``rhs (r, m)`` -> ``out (r, m)``: each row ``x`` of ``out`` solves ``A x = rhs row``."""
+    m = A.shape[0]
+    for j in range(m):
+        pivot = A[j, j]
+        for k in range(j):
+            pivot -= A[j, k] * A[j, k]
+        A[j, j] = math.sqrt(pivot)
+        for i in range(j + 1, m):
+            entry = A[i, j]
+            for k in range(j):
+                entry -= A[i, k] * A[j, k]
+            A[i, j] = entry / A[j, j]
+    for r in range(rhs.shape[0]):
+        for i in range(m):  # L y = b
+            entry = rhs[r, i]
+            for k in range(i):
+                entry -= A[i, k] * out[r, k]
+            out[r, i] = entry / A[i, i]
+        for i in range(m - 1, -1, -1):  # L^T x = y
+            entry = out[r, i]
+            for k in range(i + 1, m):
+                entry -= A[k, i] * out[r, k]
+            out[r, i] = entry / A[i, i]
+
+
+@_jit
+def _dls(jp, e, damping_sq, free, dq, A, y):
+    """``dq (nj,) = J^T (J_free J^T + damping_sq I)^-1 e``, zero at held joints (``free`` 0), for
+    ``jp (k, nj)``, ``e (1, k)``: ``iiwa_torch.ik.dls.dls_step_numpy``; ``A (k, k)``, ``y (1, k)`` scratch."""
+    k, nj = jp.shape
+    for r in range(k):
+        for c in range(r + 1):
+            total = 0.0
+            for j in range(nj):
+                total += jp[r, j] * free[j] * jp[c, j]
+            A[r, c] = total
+        A[r, r] += damping_sq
+    _cholesky_solve(A, e, y)
+    for j in range(nj):
+        total = 0.0
+        for r in range(k):
+            total += jp[r, j] * y[0, r]
+        dq[j] = total * free[j]
+
+
+@_jit
+def _bound(u, clip):
+    """Steps in actions ``u (nj,)`` into ``[-1, 1]`` in place: clipped joint by joint, or shrunk
+    (``train.features.shrink``)."""
+    if clip:
+        for j in range(u.shape[0]):
+            u[j] = min(max(u[j], -1.0), 1.0)
+        return
+    largest = 1.0
+    for j in range(u.shape[0]):
+        largest = max(largest, abs(u[j]))
+    for j in range(u.shape[0]):
+        u[j] = u[j] / largest
+
+
+@_jit
+def _hildreth(x, normal, scaled, bound, sweeps):
+    """``train.features.hildreth`` on one row, in place on ``x (nj,)``: ``normal``, ``scaled (K, nj)``,
+    ``bound (K,)``."""
+    K, nj = normal.shape
+    curvature, multiplier = np.empty(K), np.zeros(K)
+    acting = np.zeros(K, dtype=np.bool_)
+    for k in range(K):
+        total = 0.0
+        for j in range(nj):
+            total += normal[k, j] * scaled[k, j]
+            acting[k] = acting[k] or scaled[k, j] != 0.0
+        curvature[k] = max(total, 1e-12)
+    for _ in range(sweeps):
+        moved = False
+        for k in range(K):
+            if not acting[k]:
+                continue
+            total = 0.0
+            for j in range(nj):
+                total += normal[k, j] * x[j]
+            change = max((bound[k] - total) / curvature[k], -multiplier[k])
+            multiplier[k] += change
+            for j in range(nj):
+                x[j] += scaled[k, j] * change
+            moved = moved or change != 0.0
+        if not moved:
+            break
+
+
+@_jit
+def features(observation, achieved, desired, e, q, inv_scales, max_step, damping_sq, lower, upper, error_damping,
+             clip, limit_rounds, orientation_weight, damper, clearance_start, K, table, base, tool, modified):
+    """The extractor's features ``(B, F)`` in ``observation``'s dtype.
+
+    ``observation (B, O)``, ``achieved``, ``desired (B, G)`` as observed; ``e (B, k)`` float64, the
+    error (position, then the weighted rotation error for pose goals, k = 6); ``q (B, nj)`` rad;
+    ``inv_scales (S,)`` in the goals' dtype; ``max_step``, ``lower``, ``upper (nj,)``, ``damping_sq
+    (L,)`` float64; ``error_damping``, ``orientation_weight`` floats, ``clip`` (else shrink),
+    ``limit_rounds`` int; ``damper (3,)`` = ``xi, safe, influence`` or empty (no avoidance), with the
+    ``K`` capsules' rows from column ``clearance_start`` of ``observation``; the chain's ``float_arrays``."""
+    B, width_obs = observation.shape
+    G, S, k = desired.shape[1], inv_scales.shape[0], e.shape[1]
+    nj, L = q.shape[1], damping_sq.shape[0]
+    avoid = damper.shape[0] > 0
+    K = K if avoid else 0
+    width = width_obs + (2 + S) * G + (L + 2) * nj + 1 + K * (nj + 1)
+    out = np.empty((B, width), dtype=observation.dtype)
+    jac = jacobians(table, base, tool, modified, q)
+    jp, A, y = np.empty((k, nj)), np.empty((k, k)), np.empty((1, k))
+    dq, free, step = np.empty(nj), np.empty(nj), np.empty(nj)
+    normal, scaled, bound = np.zeros((K, nj)), np.empty((K, nj)), np.empty(K)
+    H, row = np.empty((nj, nj)), np.empty((1, k))
+    for b in range(B):
+        # the goal features: observation, both goals, clip(delta / s, -1, 1) per scale (goals' dtype)
+        col = 0
+        for j in range(width_obs):
+            out[b, col] = observation[b, j]
+            col += 1
+        for j in range(G):
+            out[b, col], out[b, col + G] = achieved[b, j], desired[b, j]
+            col += 1
+        col += G
+        for s in range(S):
+            for j in range(G):
+                out[b, col] = min(max((desired[b, j] - achieved[b, j]) * inv_scales[s], -1.0), 1.0)
+                col += 1
+        # the task Jacobian: position rows, then the weighted rotation rows for pose goals
+        for r in range(k):
+            weight = 1.0 if r < 3 else orientation_weight
+            for j in range(nj):
+                jp[r, j] = weight * jac[b, r, j]
+        size = 0.0
+        for r in range(k):
+            size += e[b, r] * e[b, r]
+            row[0, r] = e[b, r]
+        size = math.sqrt(size)
+        if avoid:  # the damper's constraints (train.features.damper_constraints)
+            xi, safe, influence = damper[0], damper[1], damper[2]
+            for c in range(K):
+                distance = float(observation[b, clearance_start + c])
+                near = distance < influence
+                bound[c] = -xi * (distance - safe) if near else -1.0
+                for j in range(nj):
+                    normal[c, j] = float(observation[b, clearance_start + K + c * nj + j]) if near else 0.0
+        for lam in range(L):
+            d = damping_sq[lam] if error_damping == 0.0 else (math.sqrt(damping_sq[lam]) + error_damping * size) ** 2
+            # the bounded DLS step (JointGoalExtractor.bounded_step), its limit rounds
+            free[:] = 1.0
+            _dls(jp, row, d, free, dq, A, y)
+            for _ in range(limit_rounds):
+                for j in range(nj):
+                    step[j] = dq[j] / max_step[j]
+                _bound(step, clip)
+                blocked = False
+                for j in range(nj):
+                    move = step[j] * max_step[j]
+                    end = q[b, j] + move
+                    if free[j] > 0 and ((end > upper[j] and move > 0) or (end < lower[j] and move < 0)):
+                        free[j], blocked = 0.0, True
+                if not blocked:
+                    break
+                _dls(jp, row, d, free, dq, A, y)
+            for j in range(nj):
+                step[j] = dq[j] / max_step[j]
+            _bound(step, clip)
+            if avoid:  # the velocity damper in the metric J^T J + d I (train.features.velocity_damper)
+                for r in range(nj):
+                    for c in range(r + 1):
+                        total = 0.0
+                        for i in range(k):
+                            total += jp[i, r] * jp[i, c]
+                        H[r, c] = total
+                    H[r, r] += d
+                _cholesky_solve(H, normal, scaled)
+                for j in range(nj):
+                    step[j] *= max_step[j]
+                _hildreth(step, normal, scaled, bound, 5)
+                for j in range(nj):
+                    step[j] /= max_step[j]
+                _bound(step, clip)
+            for j in range(nj):
+                out[b, col] = step[j]
+                col += 1
+        for j in range(nj):  # J^T e / |e|, then the place within the limits
+            total = 0.0
+            for r in range(k):
+                total += jp[r, j] * e[b, r]
+            out[b, col] = total / max(size, 1e-6)
+            out[b, col + nj] = 2.0 * (q[b, j] - lower[j]) / (upper[j] - lower[j]) - 1.0
+            col += 1
+        col += nj
+        out[b, col] = size
+        col += 1
+        for c in range(K):  # the damper's constraints in actions, then their bounds
+            for j in range(nj):
+                out[b, col] = normal[c, j] * max_step[j]
+                col += 1
+        for c in range(K):
+            out[b, col] = bound[c]
+            col += 1
+    return out
