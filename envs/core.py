@@ -233,11 +233,15 @@ class ReachTask:
         (m, :func:`iiwa_torch.collision.capsule_clearance`), then its gradient ``(K, nj)`` (m/rad),
         both read as ``CLEARANCE_RANGE`` and zeros where the capsule is farther than that."""
         world = self.world
-        # the envs step in inference mode, whose tensors autograd cannot record: copies made outside it
-        with torch.inference_mode(False):
-            q, block = state.q.T.clone(), state.obstacles.clone() if world.slots else None
-            distance, gradient = capsule_clearance(self.robot, q, obstacle_world(block, world.floor), world.capsules)
-        xp = NUMPY if q.shape[0] == 1 and self.device.type == "cpu" else TORCH  # as step's
+        xp = NUMPY if state.q.shape[1] == 1 and self.device.type == "cpu" else TORCH  # as step's
+        q = state.q.T
+        if xp is NUMPY and not world.slots:  # one env, the floor and itself: a closed form, no autograd
+            distance, gradient = capsule_clearance(self.robot, q, world.world_of(None), world.capsules)
+        else:  # the envs step in inference mode, whose tensors autograd cannot record: copies made outside it
+            with torch.inference_mode(False):
+                q, block = q.clone(), state.obstacles.clone() if world.slots else None
+                distance, gradient = capsule_clearance(self.robot, q, obstacle_world(block, world.floor),
+                                                       world.capsules)
         distance, gradient = xp.of(distance), xp.of(gradient)
         near = distance < CLEARANCE_RANGE
         gradient = xp.where(near[..., None], gradient, 0.0)
