@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from iiwa_torch import kinematics as kin
-from iiwa_torch.collision import capsule_clearance
+from iiwa_torch.collision import capsule_clearance, capsule_clearance_of_one
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
 
@@ -234,19 +234,19 @@ class ReachTask:
         both read as ``CLEARANCE_RANGE`` and zeros where the capsule is farther than that."""
         world = self.world
         xp = NUMPY if state.q.shape[1] == 1 and self.device.type == "cpu" else TORCH  # as step's
-        q = state.q.T
-        if xp is NUMPY and not world.slots:  # one env, the floor and itself: a closed form, no autograd
-            distance, gradient = capsule_clearance(self.robot, q, world.world_of(None), world.capsules)
+        if xp is NUMPY and not world.slots:  # one env, the floor and itself: a closed form (float64 inside)
+            dtype = state.q.numpy().dtype
+            distance, gradient = (x[None].astype(dtype, copy=False) for x in capsule_clearance_of_one(
+                self.robot, state.q, world.floor, world.capsules))
         else:  # the envs step in inference mode, whose tensors autograd cannot record: copies made outside it
             with torch.inference_mode(False):
-                q, block = q.clone(), state.obstacles.clone() if world.slots else None
-                distance, gradient = capsule_clearance(self.robot, q, obstacle_world(block, world.floor),
-                                                       world.capsules)
-        distance, gradient = xp.of(distance), xp.of(gradient)
+                q, block = state.q.T.clone(), state.obstacles.clone() if world.slots else None
+                distance, gradient = (xp.of(x) for x in capsule_clearance(
+                    self.robot, q, obstacle_world(block, world.floor), world.capsules))
         near = distance < CLEARANCE_RANGE
         gradient = xp.where(near[..., None], gradient, 0.0)
         return xp.tensor(xp.concatenate([xp.where(near, distance, CLEARANCE_RANGE).T,
-                                         gradient.reshape(q.shape[0], -1).T], 0))
+                                         gradient.reshape(distance.shape[0], -1).T], 0))
 
     # ------------------------------------------------------------------ what the callers read
     @property

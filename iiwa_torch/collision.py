@@ -37,6 +37,7 @@ __all__ = [
     "Clearances",
     "World",
     "capsule_clearance",
+    "capsule_clearance_of_one",
     "check_world",
     "clearance",
     "clearance_of_frames",
@@ -868,10 +869,7 @@ def capsule_clearance(
     compiled (:func:`iiwa_torch.compiled.numba_kernels.capsule_clearance`) when enabled."""
     world, capsules = _resolve(chain, q, world, capsules)
     if q.numel() == chain.n_joints and q.is_cpu and not world.tensors():  # one configuration, floor and self
-        if compiled.ENABLED:
-            distance, gradient = _capsule_clearance_compiled(chain, q, world.floor, capsules)
-        else:
-            distance, gradient = (np.array(x) for x in _capsule_clearance_floats(chain, q, world.floor, capsules))
+        distance, gradient = capsule_clearance_of_one(chain, q, world.floor, capsules)
         dtype = np.float32 if q.dtype == torch.float32 else np.float64
         return (torch.from_numpy(distance.astype(dtype, copy=False).reshape(*q.shape[:-1], -1)),
                 torch.from_numpy(gradient.astype(dtype, copy=False).reshape(*q.shape[:-1], -1, chain.n_joints)))
@@ -889,6 +887,19 @@ def capsule_clearance(
         (gradient,) = torch.autograd.grad(distance, x, one_hot.expand(k, *distance.shape), is_grads_batched=True,
                                           allow_unused=True, materialize_grads=True)
     return distance.detach(), gradient.movedim(0, -2)
+
+
+def capsule_clearance_of_one(
+    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`capsule_clearance` of one CPU configuration ``q`` (n numbers, nothing to differentiate)
+    against itself and the floor at ``floor`` (m; ``None``: none), unchecked: for callers that built
+    every argument themselves (the envs' single env) -> distances ``(K,)`` (m) and gradients ``(K, n)``
+    (m/rad), float64 numpy arrays. Compiled when enabled, else in Python floats."""
+    if compiled.ENABLED:
+        return _capsule_clearance_compiled(chain, q, floor, capsules)
+    distance, gradient = _capsule_clearance_floats(chain, q, floor, capsules)
+    return np.array(distance), np.array(gradient)
 
 
 def _capsule_clearance_floats(

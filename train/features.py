@@ -103,10 +103,12 @@ def hildreth(x, normal, scaled, bound, sweeps: int = 5):
 
 def _hildreth(x, normal, scaled, bound, sweeps: int, xp):
     """:func:`hildreth` on torch tensors or numpy arrays (``xp``: ``torch`` or ``numpy``)."""
-    curvature = (normal * scaled).sum(-1).clip(min=1e-12)  # (..., K)
     acting = range(normal.shape[-2])
     if xp is np:  # a constraint whose scaled normal is zero in every row never moves x: skipped
         acting = np.flatnonzero(scaled.any(-1).reshape(-1, normal.shape[-2]).any(0))
+        if not acting.size:
+            return x
+    curvature = (normal * scaled).sum(-1).clip(min=1e-12)  # (..., K)
     multipliers = {k: xp.zeros_like(curvature[..., 0]) for k in acting}  # Lagrange's, >= 0
     for _ in range(sweeps):
         moved = xp is torch  # numpy: stop after a sweep that moved nothing (the next would repeat it)
