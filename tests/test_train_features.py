@@ -344,6 +344,46 @@ def test_null_space_centering_moves_a_joint_away_from_its_limit_without_moving_t
     assert checked >= 5
 
 
+def test_last_joint_twist_is_the_turn_about_the_last_joints_axis():
+    """A rotation error ``Rot(s, beta) Rot(z, alpha)`` with ``s`` perpendicular to the last joint's axis ``z``
+    (a swing after a twist) has the twist ``alpha``, whatever the swing; the centering step then centres the
+    last joint on ``q_n + alpha`` and leaves the others as they are."""
+    from iiwa_torch import so3
+
+    chain = iiwa14()
+    rng = np.random.default_rng(8)
+    w = 0.2
+    ext = JointGoalExtractor(_space(goal_dim=9), "iiwa14", MAX_STEP, orientation_weight=w, null_space_centering=2.0,
+                             centering_twist=True)
+    lower, upper = chain.limits.numpy()
+    q = torch.as_tensor(rng.uniform(lower, upper, (6, 7)))
+    jac = chain.jacobian(q)
+    z = jac[:, 3:, -1].numpy()
+    s = np.cross(z, rng.normal(size=(6, 3)))
+    s /= np.linalg.norm(s, axis=1, keepdims=True)
+    alpha = np.array([0.0, 0.3, -1.2, 2.5, -3.0, 3.1])
+    beta = np.array([0.0, 0.0, 0.4, -1.0, 2.0, 0.1])
+    turn = so3.exp(torch.as_tensor(s * beta[:, None])) @ so3.exp(torch.as_tensor(z * alpha[:, None]))
+    error = torch.cat([torch.zeros(6, 3, dtype=torch.float64), w * so3.log(turn)], 1)
+    jw = torch.cat([jac[:, :3], w * jac[:, 3:]], 1)
+    for xp_in in (lambda t: t, lambda t: t.numpy()):
+        phi = ext.last_joint_twist(xp_in(jw), xp_in(error))
+        np.testing.assert_allclose(np.asarray(phi), alpha, atol=1e-9)
+    shifted = q.clone()
+    shifted[:, -1] += torch.as_tensor(alpha)
+    torch.testing.assert_close(ext.centering_step(q, torch.as_tensor(alpha)), ext.centering_step(shifted))
+    torch.testing.assert_close(ext.centering_step(q, torch.as_tensor(alpha))[:, :-1], ext.centering_step(q)[:, :-1])
+
+
+def test_centering_twist_needs_pose_goals_and_centering():
+    with pytest.raises(ValueError, match="centering_twist needs pose goals"):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, null_space_centering=1.0, centering_twist=True)
+    with pytest.raises(ValueError, match="centering_twist needs pose goals"):
+        JointGoalExtractor(_space(goal_dim=9), max_step=MAX_STEP, centering_twist=True)
+    with pytest.raises(ValueError, match="centering_twist must be True or False"):
+        JointGoalExtractor(_space(goal_dim=9), max_step=MAX_STEP, null_space_centering=1.0, centering_twist=1)
+
+
 @pytest.mark.parametrize("value", [-0.1, math.inf, math.nan, True, "1"])
 def test_null_space_centering_must_be_a_non_negative_number(value):
     with pytest.raises(ValueError, match="null_space_centering must be a finite number >= 0"):
@@ -390,7 +430,7 @@ def _observations(rows: int, goal_dim: int, dtype, rng) -> dict[str, torch.Tenso
 @pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping, step_bound, centering", [
     (3, False, 0, 0.0, "shrink", 0.0), (3, True, 0, 0.0, "shrink", 0.0), (3, True, 3, 0.0, "shrink", 0.0),
     (9, False, 3, 0.0, "shrink", 0.0), (9, True, 3, 0.0, "shrink", 0.0), (9, True, 3, 1.0, "clip", 0.0),
-    (3, False, 0, 0.0, "shrink", 1.0), (9, True, 3, 1.0, "clip", 3.0)])
+    (3, False, 0, 0.0, "shrink", 1.0), (9, True, 3, 1.0, "clip", 3.0), (9, True, 3, 1.0, "clip", "twist")])
 def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, step_bound, centering,
                                           monkeypatch):
     """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy; with NUMPY_ROWS = 0 the same
@@ -405,7 +445,8 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
     ext = JointGoalExtractor(_space(21 + 4 * 8, goal_dim), "iiwa14", MAX_STEP, dampings=(0.1, 0.03),
                              orientation_weight=0.2, clearance_rows=(21, 4), limit_rounds=limit_rounds,
                              error_damping=error_damping, step_bound=step_bound,
-                             null_space_centering=centering, **kwargs)
+                             null_space_centering=2.0 if centering == "twist" else centering,
+                             centering_twist=centering == "twist", **kwargs)
     cases = [(rows, dtype) for rows in (1, 2, 7, NUMPY_ROWS) for dtype in (torch.float64, torch.float32)] * 3
     held = 0
     for rows, dtype in cases:

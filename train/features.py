@@ -203,6 +203,10 @@ class JointGoalExtractor(GoalDeltaExtractor):
             middle of their ranges inside the Jacobian's null space (:meth:`centering_step`, at ``k``
             times full speed at a limit; :meth:`bounded_step`), so the redundant arm keeps away from the
             joint limits where the pose task has local minima; 0: off.
+        centering_twist: with ``null_space_centering`` and pose goals, the last joint is centred on
+            where the rotation error would take it, ``q_n + phi`` (:meth:`last_joint_twist`), instead of
+            on ``q_n``: a goal that the arm's present branch reaches only past that joint's limit moves
+            the other joints early, while they can still carry the turn.
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
@@ -212,7 +216,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
                  dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5,
                  clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None,
                  limit_rounds: int = 0, error_damping: float = 0.0, step_bound: str = "shrink",
-                 null_space_centering: float = 0.0):
+                 null_space_centering: float = 0.0, centering_twist: bool = False):
         from iiwa_torch.robots import PRESETS
 
         super().__init__(observation_space, scales)
@@ -255,6 +259,11 @@ class JointGoalExtractor(GoalDeltaExtractor):
                 or not 0 <= null_space_centering < math.inf:
             raise ValueError(f"null_space_centering must be a finite number >= 0, got {null_space_centering!r}")
         self.null_space_centering = float(null_space_centering)
+        if not isinstance(centering_twist, bool):
+            raise ValueError(f"centering_twist must be True or False, got {centering_twist!r}")
+        if centering_twist and (goal_dim != 9 or not null_space_centering):
+            raise ValueError("centering_twist needs pose goals (9 numbers) and null_space_centering > 0")
+        self.centering_twist = centering_twist
         self.limit_rounds = limit_rounds
         self.avoidance = None if avoidance is None else {key: float(v) for key, v in avoidance.items()}
         self.clearance_rows = None if clearance_rows is None else tuple(int(c) for c in clearance_rows)
@@ -333,11 +342,17 @@ class JointGoalExtractor(GoalDeltaExtractor):
             dq = dq0 + J^T (J J^T + lambda^2 I)^-1 (e - J dq0) = J^+ e + (I - J^+ J) dq0
 
         (``J^+`` the damped pseudo-inverse): ``dq0`` projected onto the Jacobian's null space, with
-        the share ``lambda^2 / (sigma^2 + lambda^2)`` of each singular direction ``sigma`` let through."""
+        the share ``lambda^2 / (sigma^2 + lambda^2)`` of each singular direction ``sigma`` let through
+        (the exact projection, a tiny damping in ``J^+`` of this term alone, did worse on the pose env:
+        far from the goal the damped one also steers the arm's motion towards mid-range).
+        With ``centering_twist`` (pose goals, ``k = 6``) the centering step is that of
+        ``q_n + phi`` for the last joint (:meth:`last_joint_twist`)."""
         xp = np if isinstance(q, np.ndarray) else torch
         max_step, _, lower, upper = self._constants(xp)
         solver = self._dls_solver(jac, self.squared_dampings(error) if damping_sq is None else damping_sq)
-        prior = self.centering_step(q) if self.null_space_centering else None  # (B, nj) rad
+        prior = None  # (B, nj) rad
+        if self.null_space_centering:
+            prior = self.centering_step(q, self.last_joint_twist(jac, error) if self.centering_twist else None)
 
         def solve(free):
             if prior is None:
@@ -358,8 +373,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
                 dq = solve(free)
         return self._bounded(dq / max_step, xp)
 
-    def centering_step(self, q):
-        """The secondary task of ``null_space_centering = k``: ``q (B, nj)`` rad (tensor or numpy array) ->
+    def centering_step(self, q, twist=None):
+        """The secondary task of ``null_space_centering = k``: ``q (B, nj)`` rad (tensor or numpy array) and
+        ``twist (B,)`` rad or None (added to the last joint's angle before its place is taken) ->
         ``dq0 = -k p |p| max_step`` ``(B, nj)`` rad, ``p = 2 (q - lower) / (upper - lower) - 1`` each joint's
         place within its limits: no push at mid-range, ``k`` times full speed towards the middle at a
         limit. It is ``-S grad H`` for ``H(q) = sum_i |p_i|^3 / 3`` and ``S = diag(k max_step_i (upper_i -
@@ -369,8 +385,24 @@ class JointGoalExtractor(GoalDeltaExtractor):
         quadratic one (which did no better on the pose env)."""
         xp = np if isinstance(q, np.ndarray) else torch
         max_step, _, lower, upper = self._constants(xp)
+        if twist is not None:
+            q = xp.concatenate([q[:, :-1], (q[:, -1] + twist)[:, None]], -1)
         place = 2.0 * (q - lower) / (upper - lower) - 1.0
         return -self.null_space_centering * max_step * place * abs(place)
+
+    def last_joint_twist(self, jac, error):
+        """How far the last joint would turn to remove the rotation error alone: ``jac (B, 6, nj)`` (rows
+        ``[J_p; w J_r]``), ``error (B, 6)`` (``[e_p; w e_r]``, ``e_r = theta u`` the rotation vector) ->
+        the twist ``phi (B,)`` (rad, in ``(-pi, pi]``) of the swing-twist decomposition of the rotation
+        ``exp(e_r)`` about the last joint's axis ``z`` (the last column of ``J_r``, a unit vector):
+        ``phi = 2 atan2(sin(theta / 2) u.z, cos(theta / 2))``, the angle of the part of the rotation
+        about ``z``. Tensors or numpy arrays."""
+        xp = np if isinstance(jac, np.ndarray) else torch
+        rotation, axis = error[:, 3:], jac[:, 3:, -1]  # w e_r, w z
+        size = xp.sqrt((rotation * rotation).sum(-1))  # w theta
+        along = (rotation * axis).sum(-1) / (size * xp.sqrt((axis * axis).sum(-1))).clip(min=1e-300)  # u.z
+        half = size / (2.0 * self.orientation_weight)
+        return 2.0 * xp.arctan2(xp.sin(half) * along, xp.cos(half))
 
     def joint_features(self, q, error, clearance: tuple | None = None):
         """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
