@@ -7,6 +7,8 @@ system ``[J_p; lambda I] dq = [e; 0]`` (the same minimiser, solved another way),
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -287,6 +289,107 @@ def test_limit_rounds_hold_the_joints_a_step_would_push_past_a_limit():
     assert checked >= 10
 
 
+def test_null_space_centering_is_the_damped_least_squares_step_towards_the_centering_step():
+    """``null_space_centering = k``: the step minimises ``|J_p dq - e|^2 + lambda^2 |dq - dq0|^2`` with
+    ``dq0 = -k p |p| max_step`` (numpy's lstsq on ``[J_p; lambda I] dq = [e; lambda dq0]``, J_p by finite
+    differences, p each joint's place within its limits), and a small step comes out unbounded."""
+    chain = iiwa14()
+    rng = np.random.default_rng(6)
+    lower, upper = chain.limits.numpy()
+    lam, k = 0.1, 0.5
+    ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(lam,), null_space_centering=k)
+    for _ in range(5):
+        q = rng.uniform(lower, upper)
+        jp = _fd_position_jacobian(q)
+        error = rng.normal(size=3) * 0.003
+        place = 2 * (q - lower) / (upper - lower) - 1
+        dq0 = -k * place * np.abs(place) * np.array(MAX_STEP)
+        step = ext.bounded_step(*(torch.as_tensor(x)[None] for x in (q, jp, error)))[0, 0].numpy() * MAX_STEP
+        expected = np.linalg.lstsq(np.vstack([jp, lam * np.eye(7)]), np.concatenate([error, lam * dq0]),
+                                   rcond=None)[0]
+        assert np.abs(expected / MAX_STEP).max() < 1  # not bounded: the minimiser itself
+        np.testing.assert_allclose(step, expected, atol=1e-9)
+        np.testing.assert_allclose(ext.centering_step(torch.as_tensor(q)[None])[0].numpy(), dq0, atol=1e-15)
+
+
+def test_null_space_centering_moves_a_joint_away_from_its_limit_without_moving_the_hand():
+    """At the goal (``e = 0``) and a small damping, the pose step is the centering step projected onto the
+    Jacobian's null space: it changes neither the position nor the orientation to first order
+    (``|J dq| <= 1e-3 |J| |dq0|``), and, with the other joints near mid-range, it moves a
+    joint at its upper or lower limit back inside (each joint the 1-D self-motion moves at all)."""
+    chain = iiwa14()
+    rng = np.random.default_rng(7)
+    lower, upper = chain.limits.numpy()
+    w = 0.2
+    ext = JointGoalExtractor(_space(goal_dim=9), "iiwa14", MAX_STEP, dampings=(1e-4,), orientation_weight=w,
+                             null_space_centering=1.0, step_bound="clip")
+    checked = 0
+    for i in range(7):
+        for side in (lower, upper):
+            q = rng.uniform(-0.3, 0.3, 7)
+            q[3] = -0.6  # the elbow bent: away from the stretched arm's singularity
+            q[i] = side[i] - np.sign(side[i]) * 1e-3
+            qt = torch.as_tensor(q)[None]
+            jac = chain.jacobian(qt)
+            jw = torch.cat([jac[:, :3], w * jac[:, 3:]], 1)  # (1, 6, 7)
+            null = torch.linalg.svd(jw[0]).Vh[-1].numpy()
+            step = ext.bounded_step(qt, jw, torch.zeros(1, 6, dtype=torch.float64))[0, 0].numpy() * MAX_STEP
+            push = np.linalg.norm(ext.centering_step(qt)[0].numpy())  # |dq0|
+            assert np.linalg.norm(jw[0].numpy() @ step) <= 1e-3 * np.linalg.norm(jw[0].numpy(), 2) * push
+            assert np.linalg.norm(step - null * (null @ step)) <= 1e-3 * push  # along the null space
+            if abs(null[i]) < 0.1:  # a joint the self-motion hardly moves here (joint 4 never moves in it)
+                continue
+            checked += 1
+            assert -np.sign(side[i]) * step[i] > 0.01 * MAX_STEP[i], (i, step)
+    assert checked >= 5
+
+
+def test_last_joint_twist_is_the_turn_about_the_last_joints_axis():
+    """A rotation error ``Rot(s, beta) Rot(z, alpha)`` with ``s`` perpendicular to the last joint's axis ``z``
+    (a swing after a twist) has the twist ``alpha``, whatever the swing; the centering step then centres the
+    last joint on ``q_n + alpha`` and leaves the others as they are."""
+    from iiwa_torch import so3
+
+    chain = iiwa14()
+    rng = np.random.default_rng(8)
+    w = 0.2
+    ext = JointGoalExtractor(_space(goal_dim=9), "iiwa14", MAX_STEP, orientation_weight=w, null_space_centering=2.0,
+                             centering_twist=True)
+    lower, upper = chain.limits.numpy()
+    q = torch.as_tensor(rng.uniform(lower, upper, (6, 7)))
+    jac = chain.jacobian(q)
+    z = jac[:, 3:, -1].numpy()
+    s = np.cross(z, rng.normal(size=(6, 3)))
+    s /= np.linalg.norm(s, axis=1, keepdims=True)
+    alpha = np.array([0.0, 0.3, -1.2, 2.5, -3.0, 3.1])
+    beta = np.array([0.0, 0.0, 0.4, -1.0, 2.0, 0.1])
+    turn = so3.exp(torch.as_tensor(s * beta[:, None])) @ so3.exp(torch.as_tensor(z * alpha[:, None]))
+    error = torch.cat([torch.zeros(6, 3, dtype=torch.float64), w * so3.log(turn)], 1)
+    jw = torch.cat([jac[:, :3], w * jac[:, 3:]], 1)
+    for xp_in in (lambda t: t, lambda t: t.numpy()):
+        phi = ext.last_joint_twist(xp_in(jw), xp_in(error))
+        np.testing.assert_allclose(np.asarray(phi), alpha, atol=1e-9)
+    shifted = q.clone()
+    shifted[:, -1] += torch.as_tensor(alpha)
+    torch.testing.assert_close(ext.centering_step(q, torch.as_tensor(alpha)), ext.centering_step(shifted))
+    torch.testing.assert_close(ext.centering_step(q, torch.as_tensor(alpha))[:, :-1], ext.centering_step(q)[:, :-1])
+
+
+def test_centering_twist_needs_pose_goals_and_centering():
+    with pytest.raises(ValueError, match="centering_twist needs pose goals"):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, null_space_centering=1.0, centering_twist=True)
+    with pytest.raises(ValueError, match="centering_twist needs pose goals"):
+        JointGoalExtractor(_space(goal_dim=9), max_step=MAX_STEP, centering_twist=True)
+    with pytest.raises(ValueError, match="centering_twist must be True or False"):
+        JointGoalExtractor(_space(goal_dim=9), max_step=MAX_STEP, null_space_centering=1.0, centering_twist=1)
+
+
+@pytest.mark.parametrize("value", [-0.1, math.inf, math.nan, True, "1"])
+def test_null_space_centering_must_be_a_non_negative_number(value):
+    with pytest.raises(ValueError, match="null_space_centering must be a finite number >= 0"):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, null_space_centering=value)
+
+
 def test_limit_rounds_must_be_a_count():
     with pytest.raises(ValueError, match="limit_rounds must be an int >= 0"):
         JointGoalExtractor(_space(), max_step=MAX_STEP, limit_rounds=-1)
@@ -324,16 +427,17 @@ def _observations(rows: int, goal_dim: int, dtype, rng) -> dict[str, torch.Tenso
             "desired_goal": goal(desired).to(dtype)}
 
 
-@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping, step_bound", [
-    (3, False, 0, 0.0, "shrink"), (3, True, 0, 0.0, "shrink"), (3, True, 3, 0.0, "shrink"),
-    (9, False, 3, 0.0, "shrink"), (9, True, 3, 0.0, "shrink"), (9, True, 3, 1.0, "clip")])
-def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, step_bound, monkeypatch,
-                                          small_kernel):
+@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping, step_bound, centering", [
+    (3, False, 0, 0.0, "shrink", 0.0), (3, True, 0, 0.0, "shrink", 0.0), (3, True, 3, 0.0, "shrink", 0.0),
+    (9, False, 3, 0.0, "shrink", 0.0), (9, True, 3, 0.0, "shrink", 0.0), (9, True, 3, 1.0, "clip", 0.0),
+    (3, False, 0, 0.0, "shrink", 1.0), (9, True, 3, 1.0, "clip", 3.0), (9, True, 3, 1.0, "clip", "twist")])
+def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, step_bound, centering,
+                                          monkeypatch, small_kernel):
     """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy (with numba, by one compiled
-    kernel: ``small_kernel``); with NUMPY_ROWS = 0 the same observations take the torch path. Float64
-    observations: every feature agrees to 1e-12 (the DLS and damper solves by LU or by unrolled Cholesky
-    instead of LAPACK's, the Jacobian and the pose goals' rotation error computed another way); float32
-    ones (the env's): to the last bit of float32."""
+    kernel where it restates the options: ``small_kernel``); with NUMPY_ROWS = 0 the same observations
+    take the torch path. Float64 observations: every feature agrees to 1e-12 (the DLS and damper solves
+    by LU or by unrolled Cholesky instead of LAPACK's, the Jacobian and the pose goals' rotation error
+    computed another way); float32 ones (the env's): to the last bit of float32."""
     import train.features
     from train.features import NUMPY_ROWS
 
@@ -341,14 +445,16 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
     kwargs = {"avoidance": {"xi": 0.3, "safe": 0.005, "influence": 0.1}} if avoidance else {}
     ext = JointGoalExtractor(_space(21 + 4 * 8, goal_dim), "iiwa14", MAX_STEP, dampings=(0.1, 0.03),
                              orientation_weight=0.2, clearance_rows=(21, 4), limit_rounds=limit_rounds,
-                             error_damping=error_damping, step_bound=step_bound, **kwargs)
+                             error_damping=error_damping, step_bound=step_bound,
+                             null_space_centering=2.0 if centering == "twist" else centering,
+                             centering_twist=centering == "twist", **kwargs)
     cases = [(rows, dtype) for rows in (1, 2, 7, NUMPY_ROWS) for dtype in (torch.float64, torch.float32)] * 3
     held = 0
     for rows, dtype in cases:
         obs = _observations(rows, goal_dim, dtype, rng)
         with monkeypatch.context() as patch:  # the numpy path takes no torch Jacobian; the kernel, no numpy path
             patch.setattr(ext.chain, "jacobian", None)
-            if small_kernel == "compiled":
+            if small_kernel == "compiled" and not centering:
                 patch.setattr(ext, "joint_features", None)
             fast = ext(obs)
         with monkeypatch.context() as patch:
