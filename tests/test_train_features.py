@@ -454,7 +454,7 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
         obs = _observations(rows, goal_dim, dtype, rng)
         with monkeypatch.context() as patch:  # the numpy path takes no torch Jacobian; the kernel, no numpy path
             patch.setattr(ext.chain, "jacobian", None)
-            if small_kernel == "compiled" and not centering:
+            if small_kernel == "compiled":
                 patch.setattr(ext, "joint_features", None)
             fast = ext(obs)
         with monkeypatch.context() as patch:

@@ -464,7 +464,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
                     if xp is np else _rotation_error(desired, achieved)
                 error = xp.concatenate([error.astype(np.float64) if xp is np else error.double(),
                                         self.orientation_weight * rotation], -1)
-            if xp is np and compiled.ENABLED and not self.null_space_centering:  # the options the kernel restates
+            if xp is np and compiled.ENABLED:
                 return self._compiled_features(q, observations, error)
             base = self.goal_features(observations, xp)
             clearance, damper = None, []
@@ -493,7 +493,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         return features(*arrays, np.ascontiguousarray(error, dtype=np.float64), q.astype(np.float64),
                         self._buffers["inv_scales"].numpy()[:, 0], max_step, damping_sq, lower, upper,
                         self.error_damping, self.step_bound == "clip", self.limit_rounds, self.orientation_weight,
-                        damper, start, k, *self.chain.geometry().float_arrays)
+                        self.null_space_centering, self.centering_twist, damper, start, k,
+                        *self.chain.geometry().float_arrays)
 
 
 def _rotation_error(desired: torch.Tensor, achieved: torch.Tensor) -> torch.Tensor:

@@ -53,10 +53,17 @@ def _cholesky_solve(A, rhs, out):
 
 
 @_jit
-def _dls(jp, e, damping_sq, free, dq, A, y):
-    """``dq (nj,) = J^T (J_free J^T + damping_sq I)^-1 e``, zero at held joints (``free`` 0), for
-    ``jp (k, nj)``, ``e (1, k)``: ``iiwa_torch.ik.dls.dls_step_numpy``; ``A (k, k)``, ``y (1, k)`` scratch."""
+def _dls(jp, e, damping_sq, free, prior, dq, A, y):
+    """``dq (nj,) = held + J^T (J_free J^T + damping_sq I)^-1 (e - J held)``, ``held = prior * free``, zero
+    at held joints (``free`` 0) but for their ``held``, for ``jp (k, nj)``, ``e (1, k)``, ``prior (nj,)`` (the
+    preferred step, zeros without centering): ``iiwa_torch.ik.dls.dls_step_numpy`` as
+    ``JointGoalExtractor.bounded_step`` calls it; ``A (k, k)``, ``y (2, k)`` scratch."""
     k, nj = jp.shape
+    for r in range(k):
+        total = 0.0
+        for j in range(nj):
+            total += prior[j] * free[j] * jp[r, j]
+        y[1, r] = e[0, r] - total
     for r in range(k):
         for c in range(r + 1):
             total = 0.0
@@ -64,12 +71,12 @@ def _dls(jp, e, damping_sq, free, dq, A, y):
                 total += jp[r, j] * free[j] * jp[c, j]
             A[r, c] = total
         A[r, r] += damping_sq
-    _cholesky_solve(A, e, y)
+    _cholesky_solve(A, y[1:], y[:1])
     for j in range(nj):
         total = 0.0
         for r in range(k):
             total += jp[r, j] * y[0, r]
-        dq[j] = total * free[j]
+        dq[j] = prior[j] * free[j] + total * free[j]
 
 
 @_jit
@@ -119,14 +126,16 @@ def _hildreth(x, normal, scaled, bound, sweeps):
 
 @_jit
 def features(observation, achieved, desired, e, q, inv_scales, max_step, damping_sq, lower, upper, error_damping,
-             clip, limit_rounds, orientation_weight, damper, clearance_start, K, table, base, tool, modified):
+             clip, limit_rounds, orientation_weight, centering, twist, damper, clearance_start, K, table, base, tool,
+             modified):
     """The extractor's features ``(B, F)`` in ``observation``'s dtype.
 
     ``observation (B, O)``, ``achieved``, ``desired (B, G)`` as observed; ``e (B, k)`` float64, the
     error (position, then the weighted rotation error for pose goals, k = 6); ``q (B, nj)`` rad;
     ``inv_scales (S,)`` in the goals' dtype; ``max_step``, ``lower``, ``upper (nj,)``, ``damping_sq
     (L,)`` float64; ``error_damping``, ``orientation_weight`` floats, ``clip`` (else shrink),
-    ``limit_rounds`` int; ``damper (3,)`` = ``xi, safe, influence`` or empty (no avoidance), with the
+    ``limit_rounds`` int; ``centering`` (``null_space_centering``, 0: none) and ``twist``
+    (``centering_twist``); ``damper (3,)`` = ``xi, safe, influence`` or empty (no avoidance), with the
     ``K`` capsules' rows from column ``clearance_start`` of ``observation``; the chain's ``float_arrays``."""
     B, width_obs = observation.shape
     G, S, k = desired.shape[1], inv_scales.shape[0], e.shape[1]
@@ -136,8 +145,8 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
     width = width_obs + (2 + S) * G + (L + 2) * nj + 1 + K * (nj + 1)
     out = np.empty((B, width), dtype=observation.dtype)
     jac = jacobians(table, base, tool, modified, q)
-    jp, A, y = np.empty((k, nj)), np.empty((k, k)), np.empty((1, k))
-    dq, free, step = np.empty(nj), np.empty(nj), np.empty(nj)
+    jp, A, y = np.empty((k, nj)), np.empty((k, k)), np.empty((2, k))
+    dq, free, step, prior = np.empty(nj), np.empty(nj), np.empty(nj), np.zeros(nj)
     normal, scaled, bound = np.zeros((K, nj)), np.empty((K, nj)), np.empty(K)
     H, row = np.empty((nj, nj)), np.empty((1, k))
     for b in range(B):
@@ -164,6 +173,21 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
             size += e[b, r] * e[b, r]
             row[0, r] = e[b, r]
         size = math.sqrt(size)
+        if centering:  # the preferred step (JointGoalExtractor.centering_step, last_joint_twist)
+            phi = 0.0
+            if twist:
+                spin, size_axis = 0.0, 0.0
+                for r in range(3):
+                    spin += row[0, 3 + r] * jp[3 + r, nj - 1]
+                    size_axis += jp[3 + r, nj - 1] * jp[3 + r, nj - 1]
+                size_rot = math.sqrt(row[0, 3] ** 2 + row[0, 4] ** 2 + row[0, 5] ** 2)
+                along = spin / max(size_rot * math.sqrt(size_axis), 1e-300)
+                half = size_rot / (2.0 * orientation_weight)
+                phi = 2.0 * math.atan2(math.sin(half) * along, math.cos(half))
+            for j in range(nj):
+                angle = q[b, j] + phi if j == nj - 1 else q[b, j]
+                place = 2.0 * (angle - lower[j]) / (upper[j] - lower[j]) - 1.0
+                prior[j] = -centering * max_step[j] * place * abs(place)
         if avoid:  # the damper's constraints (train.features.damper_constraints)
             xi, safe, influence = damper[0], damper[1], damper[2]
             for c in range(K):
@@ -176,7 +200,7 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
             d = damping_sq[lam] if error_damping == 0.0 else (math.sqrt(damping_sq[lam]) + error_damping * size) ** 2
             # the bounded DLS step (JointGoalExtractor.bounded_step), its limit rounds
             free[:] = 1.0
-            _dls(jp, row, d, free, dq, A, y)
+            _dls(jp, row, d, free, prior, dq, A, y)
             for _ in range(limit_rounds):
                 for j in range(nj):
                     step[j] = dq[j] / max_step[j]
@@ -189,7 +213,7 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
                         free[j], blocked = 0.0, True
                 if not blocked:
                     break
-                _dls(jp, row, d, free, dq, A, y)
+                _dls(jp, row, d, free, prior, dq, A, y)
             for j in range(nj):
                 step[j] = dq[j] / max_step[j]
             _bound(step, clip)
