@@ -455,6 +455,8 @@ EXEMPT = {
     "iiwa_torch.collision:CLEARANCE_NUMPY_BATCH": "a constant",
     "iiwa_torch.collision:clearance_of_frames": "documented unchecked kernel of one configuration (the single env's "
     "step); clearance is the checked entry and runs it",
+    "iiwa_torch.collision:capsule_clearance_of_one": "documented unchecked kernel of one configuration (the single "
+    "env's clearance rows); capsule_clearance is the checked entry and runs it",
     "iiwa_torch.collision:obstacle_clearance_of_frames": "documented unchecked kernel of one configuration (the "
     "single env's obstacle draws); pairwise_clearance is the checked entry",
     "iiwa_torch.collision:solids_numpy": "converts an already validated World",

@@ -110,6 +110,28 @@ def test_a_save_cut_short_leaves_the_previous_checkpoint_newest(run_copy):
     assert sorted(p.name for p in run.checkpoint_root.iterdir()) == ["step_000000000400", "step_000000000800"]
 
 
+def test_ctrl_c_during_a_save_is_held_until_the_checkpoint_is_complete(run_copy):
+    """A Ctrl-C that arrives while the replay buffer is written (inside torch's zip writer it would abort
+    the process) is held: the checkpoint is completed and renamed, then the interrupt is raised."""
+    import signal
+
+    run = RunDir(run_copy)
+    model, _, _ = ev.load_policy(run_copy)
+    model.num_timesteps = 600
+    save = model.save_replay_buffer
+
+    def interrupted(path):
+        signal.raise_signal(signal.SIGINT)
+        save(path)
+
+    model.save_replay_buffer = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        run.save_checkpoint(model, {"num_timesteps": 600, "elapsed": 0.0, "evaluations": []})
+    assert run.latest_checkpoint().name == "step_000000000600"
+    assert (run.latest_checkpoint() / "replay_buffer.pkl").is_file()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
     from train.run_dir import atomic_save
 

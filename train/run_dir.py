@@ -21,6 +21,8 @@ import fcntl
 import json
 import os
 import shutil
+import signal
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -52,6 +54,26 @@ def atomic_save(path: Path, save: Callable[[Path], Any]) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def signals_held() -> Iterator[None]:
+    """Ctrl-C (SIGINT) and SIGTERM held while the block runs (a save) and delivered when it ends: an
+    interrupt raised inside torch's zip writer (C++) aborts the process instead of stopping the run
+    with its checkpoint. Signals reach only the main thread, so elsewhere this holds nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in held}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        if caught:
+            signal.raise_signal(caught[0])
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -194,19 +216,20 @@ class RunDir:
         tmp = final.with_name(f".tmp_{final.name}")
         for stale in final.parent.glob(".tmp_*"):  # saves cut short; only the lock holder saves
             shutil.rmtree(stale, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        model.save(tmp / "model.zip")
-        vec_normalize = model.get_vec_normalize_env()
-        if vec_normalize is not None:
-            vec_normalize.save(str(tmp / "vecnormalize.pkl"))
-        if replay_buffer and getattr(model, "replay_buffer", None) is not None:
-            model.save_replay_buffer(tmp / "replay_buffer.pkl")
-        (tmp / "state.json").write_text(json.dumps(state, indent=1))  # last: marks the folder complete
-        for f in tmp.iterdir():
-            with open(f, "rb") as fh:
-                os.fsync(fh.fileno())
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
+        with signals_held():
+            tmp.mkdir(parents=True)
+            model.save(tmp / "model.zip")
+            vec_normalize = model.get_vec_normalize_env()
+            if vec_normalize is not None:
+                vec_normalize.save(str(tmp / "vecnormalize.pkl"))
+            if replay_buffer and getattr(model, "replay_buffer", None) is not None:
+                model.save_replay_buffer(tmp / "replay_buffer.pkl")
+            (tmp / "state.json").write_text(json.dumps(state, indent=1))  # last: marks the folder complete
+            for f in tmp.iterdir():
+                with open(f, "rb") as fh:
+                    os.fsync(fh.fileno())
+            shutil.rmtree(final, ignore_errors=True)
+            os.replace(tmp, final)
 
     def save_checkpoint(self, model, state: dict[str, Any], keep: int = 2) -> Path:
         """Model, normaliser, replay buffer (off-policy) and ``state.json`` into ``checkpoints/step_<N>``,
@@ -254,7 +277,8 @@ class RunDir:
 
     def save_final(self, model) -> None:
         """The finished run's ``model.zip`` (and ``vecnormalize.pkl``) next to ``config.yaml``."""
-        atomic_save(self.path / "model.zip", model.save)
-        vec_normalize = model.get_vec_normalize_env()
-        if vec_normalize is not None:
-            atomic_save(self.path / "vecnormalize.pkl", lambda tmp: vec_normalize.save(str(tmp)))
+        with signals_held():
+            atomic_save(self.path / "model.zip", model.save)
+            vec_normalize = model.get_vec_normalize_env()
+            if vec_normalize is not None:
+                atomic_save(self.path / "vecnormalize.pkl", lambda tmp: vec_normalize.save(str(tmp)))
