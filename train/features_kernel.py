@@ -7,7 +7,8 @@ damper's Hildreth sweeps and the damper's constraints: some fifty numpy calls of
 microsecond each, where the arithmetic itself takes a fraction of one. :func:`features` restates
 the extractor's numpy path (``JointGoalExtractor._features``) row by row in one compiled call;
 ``tests/test_train_features.py`` holds the two together. Linear solves are by Cholesky (the
-matrices are symmetric positive definite) where numpy's are by LU: the same values to rounding.
+matrices are symmetric positive definite; :func:`iiwa_torch.compiled.numba_kernels.cholesky_solve`, the
+LM rounds' solve) where numpy's are by LU: the same values to rounding.
 """
 
 from __future__ import annotations
@@ -17,53 +18,26 @@ import math
 import numba
 import numpy as np
 
-from iiwa_torch.compiled.numba_kernels import jacobians
+from iiwa_torch.compiled.numba_kernels import cholesky_solve, jacobians
 
 __all__ = ["features"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
-
-
-@_jit
-def _cholesky_solve(A, rhs, out):
-    """``A (m, m)`` symmetric positive definite (lower triangle read; overwritten by its factor)
-    and ``rhs (r, m)`` -> ``out (r, m)``: each row ``x`` of ``out`` solves ``A x = rhs row``."""
-    m = A.shape[0]
-    for j in range(m):
-        pivot = A[j, j]
-        for k in range(j):
-            pivot -= A[j, k] * A[j, k]
-        A[j, j] = math.sqrt(pivot)
-        for i in range(j + 1, m):
-            entry = A[i, j]
-            for k in range(j):
-                entry -= A[i, k] * A[j, k]
-            A[i, j] = entry / A[j, j]
-    for r in range(rhs.shape[0]):
-        for i in range(m):  # L y = b
-            entry = rhs[r, i]
-            for k in range(i):
-                entry -= A[i, k] * out[r, k]
-            out[r, i] = entry / A[i, i]
-        for i in range(m - 1, -1, -1):  # L^T x = y
-            entry = out[r, i]
-            for k in range(i + 1, m):
-                entry -= A[k, i] * out[r, k]
-            out[r, i] = entry / A[i, i]
+_TINY = float(np.finfo(np.float64).tiny)  # the torch path's pivot floor (never reached: damping > 0)
 
 
 @_jit
 def _dls(jp, e, damping_sq, free, prior, dq, A, y):
     """``dq (nj,) = held + J^T (J_free J^T + damping_sq I)^-1 (e - J held)``, ``held = prior * free``, zero
-    at held joints (``free`` 0) but for their ``held``, for ``jp (k, nj)``, ``e (1, k)``, ``prior (nj,)`` (the
+    at held joints (``free`` 0) but for their ``held``, for ``jp (k, nj)``, ``e (k,)``, ``prior (nj,)`` (the
     preferred step, zeros without centering): ``iiwa_torch.ik.dls.dls_step_numpy`` as
-    ``JointGoalExtractor.bounded_step`` calls it; ``A (k, k)``, ``y (2, k)`` scratch."""
+    ``JointGoalExtractor.bounded_step`` calls it; ``A (k, k)``, ``y (k, 1)`` scratch."""
     k, nj = jp.shape
     for r in range(k):
         total = 0.0
         for j in range(nj):
             total += prior[j] * free[j] * jp[r, j]
-        y[1, r] = e[0, r] - total
+        y[r, 0] = e[r] - total
     for r in range(k):
         for c in range(r + 1):
             total = 0.0
@@ -71,11 +45,11 @@ def _dls(jp, e, damping_sq, free, prior, dq, A, y):
                 total += jp[r, j] * free[j] * jp[c, j]
             A[r, c] = total
         A[r, r] += damping_sq
-    _cholesky_solve(A, y[1:], y[:1])
+    cholesky_solve(A, y, 1, _TINY)
     for j in range(nj):
         total = 0.0
         for r in range(k):
-            total += jp[r, j] * y[0, r]
+            total += jp[r, j] * y[r, 0]
         dq[j] = prior[j] * free[j] + total * free[j]
 
 
@@ -145,10 +119,10 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
     width = width_obs + (2 + S) * G + (L + 2) * nj + 1 + K * (nj + 1)
     out = np.empty((B, width), dtype=observation.dtype)
     jac = jacobians(table, base, tool, modified, q)
-    jp, A, y = np.empty((k, nj)), np.empty((k, k)), np.empty((2, k))
+    jp, A, y = np.empty((k, nj)), np.empty((k, k)), np.empty((k, 1))
     dq, free, step, prior = np.empty(nj), np.empty(nj), np.empty(nj), np.zeros(nj)
     normal, scaled, bound = np.zeros((K, nj)), np.empty((K, nj)), np.empty(K)
-    H, row = np.empty((nj, nj)), np.empty((1, k))
+    H, row, columns = np.empty((nj, nj)), np.empty(k), np.empty((nj, K))
     for b in range(B):
         # the goal features: observation, both goals, clip(delta / s, -1, 1) per scale (goals' dtype)
         col = 0
@@ -171,16 +145,16 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
         size = 0.0
         for r in range(k):
             size += e[b, r] * e[b, r]
-            row[0, r] = e[b, r]
+            row[r] = e[b, r]
         size = math.sqrt(size)
         if centering:  # the preferred step (JointGoalExtractor.centering_step, last_joint_twist)
             phi = 0.0
             if twist:
                 spin, size_axis = 0.0, 0.0
                 for r in range(3):
-                    spin += row[0, 3 + r] * jp[3 + r, nj - 1]
+                    spin += row[3 + r] * jp[3 + r, nj - 1]
                     size_axis += jp[3 + r, nj - 1] * jp[3 + r, nj - 1]
-                size_rot = math.sqrt(row[0, 3] ** 2 + row[0, 4] ** 2 + row[0, 5] ** 2)
+                size_rot = math.sqrt(row[3] ** 2 + row[4] ** 2 + row[5] ** 2)
                 along = spin / max(size_rot * math.sqrt(size_axis), 1e-300)
                 half = size_rot / (2.0 * orientation_weight)
                 phi = 2.0 * math.atan2(math.sin(half) * along, math.cos(half))
@@ -225,7 +199,13 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
                             total += jp[i, r] * jp[i, c]
                         H[r, c] = total
                     H[r, r] += d
-                _cholesky_solve(H, normal, scaled)
+                for c in range(K):
+                    for j in range(nj):
+                        columns[j, c] = normal[c, j]
+                cholesky_solve(H, columns, K, _TINY)
+                for c in range(K):
+                    for j in range(nj):
+                        scaled[c, j] = columns[j, c]
                 for j in range(nj):
                     step[j] *= max_step[j]
                 _hildreth(step, normal, scaled, bound, 5)

@@ -15,8 +15,8 @@ import numpy as np
 
 from .. import collision
 
-__all__ = ["capsule_clearance", "end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds", "own_clearance",
-           "pose_errors"]
+__all__ = ["capsule_clearance", "cholesky_solve", "end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds",
+           "own_clearance", "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
@@ -178,6 +178,31 @@ def into_limits(x, lo, hi):
 
 
 @_inline
+def cholesky_solve(A, y, k, floor):
+    """Solve ``A x = y`` in place for the first ``k`` columns of ``y (m, >= k)``, ``A (m, m)`` symmetric
+    positive definite (its lower triangle read, then overwritten by the Cholesky factor), pivots
+    floored at ``floor`` (as :func:`~iiwa_torch.ik.dls.cholesky_solve_batch_last`)."""
+    m = A.shape[0]
+    for j in range(m):  # Cholesky A = L L^T in the lower triangle, then L L^T x = y
+        for c in range(j):
+            A[j, j] -= A[j, c] * A[j, c]
+        A[j, j] = math.sqrt(max(A[j, j], floor))
+        for r in range(j + 1, m):
+            for c in range(j):
+                A[r, j] -= A[r, c] * A[j, c]
+            A[r, j] /= A[j, j]
+    for t in range(k):
+        for r in range(m):
+            for c in range(r):
+                y[r, t] -= A[r, c] * y[c, t]
+            y[r, t] /= A[r, r]
+        for r in range(m - 1, -1, -1):
+            for c in range(r + 1, m):
+                y[r, t] -= A[c, r] * y[c, t]
+            y[r, t] /= A[r, r]
+
+
+@_inline
 def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest, opts, limits, lo, hi, work):
     """One LM step of one slot, in place on its ``q (n,)``, ``J (m, n)``, ``e (m,)``; returns the
     new ``E``, position and rotation errors and damping (the old ones but the damping if the
@@ -211,23 +236,7 @@ def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest,
             for i in range(n):
                 s += J[r, i] * pull[i]
             y[r, 1] = s
-    for j in range(m):  # Cholesky A = L L^T in the lower triangle, then L L^T y = rhs
-        for c in range(j):
-            A[j, j] -= A[j, c] * A[j, c]
-        A[j, j] = math.sqrt(max(A[j, j], lam_min))
-        for r in range(j + 1, m):
-            for c in range(j):
-                A[r, j] -= A[r, c] * A[j, c]
-            A[r, j] /= A[j, j]
-    for t in range(k):
-        for r in range(m):
-            for c in range(r):
-                y[r, t] -= A[r, c] * y[c, t]
-            y[r, t] /= A[r, r]
-        for r in range(m - 1, -1, -1):
-            for c in range(r + 1, m):
-                y[r, t] -= A[c, r] * y[c, t]
-            y[r, t] /= A[r, r]
+    cholesky_solve(A, y, k, lam_min)
     for i in range(n):
         dq0 = dq1 = 0.0
         for r in range(m):
