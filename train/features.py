@@ -386,11 +386,16 @@ class JointGoalExtractor(GoalDeltaExtractor):
         (IEEE Trans. Systems, Man, and Cybernetics 7(12), 1977), flatter near mid-range than his
         quadratic one (which did no better on the pose env)."""
         xp = np if isinstance(q, np.ndarray) else torch
-        max_step, _, lower, upper = self._constants(xp)
         if twist is not None:
             q = xp.concatenate([q[:, :-1], (q[:, -1] + twist)[:, None]], -1)
-        place = 2.0 * (q - lower) / (upper - lower) - 1.0
-        return -self.null_space_centering * max_step * place * abs(place)
+        place = self.joint_place(q)
+        return -self.null_space_centering * self._constants(xp)[0] * place * abs(place)
+
+    def joint_place(self, q):
+        """``q (B, nj)`` rad (tensor or numpy array) -> each joint's place within its limits,
+        ``2 (q - lower) / (upper - lower) - 1``: -1 at the lower limit, 1 at the upper."""
+        _, _, lower, upper = self._constants(np if isinstance(q, np.ndarray) else torch)
+        return 2.0 * (q - lower) / (upper - lower) - 1.0
 
     def last_joint_twist(self, jac, error):
         """How far the last joint would turn to remove the rotation error alone: ``jac (B, 6, nj)`` (rows
@@ -425,7 +430,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
             g = self.chain.geometry()  # one row: the float recursion costs a fifth of the 4x4 products
             jac = kin.jacobian_floats(g, torch.from_numpy(q)).numpy() if len(q) == 1 else \
                 kin.pose_jacobian_numpy(g, q)[1]
-        max_step, _, lower, upper = self._constants(xp)
+        max_step = self._constants(xp)[0]
         k = e.shape[-1]
         w = self.orientation_weight
         jp = jac[..., :3, :] if k == 3 else xp.concatenate([jac[..., :3, :], w * jac[..., 3:, :]], -2)
@@ -436,8 +441,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
             u = self._bounded(u, xp)
         distance = xp.sqrt((e * e).sum(-1))[:, None]  # (B, 1)
         grad = (jp.mT @ e[..., None])[..., 0] / distance.clip(min=1e-6)
-        place = 2.0 * (q - lower) / (upper - lower) - 1.0
-        return xp.concatenate([u.reshape(u.shape[0], -1), grad, place, distance], -1)
+        return xp.concatenate([u.reshape(u.shape[0], -1), grad, self.joint_place(q), distance], -1)
 
     def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
         """The features ``(B, features_dim)``; up to ``NUMPY_ROWS`` rows on the CPU with nothing to
