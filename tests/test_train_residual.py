@@ -120,11 +120,11 @@ def test_with_avoidance_the_whole_mean_keeps_the_damper_constraints():
     assert (mean.abs() <= 1.0 + 1e-6).all()
 
 
-def test_one_row_head_in_numpy_equals_the_torch_path(monkeypatch):
-    """At inference on a few rows the head's mean (hildreth, the shrink) runs in numpy: the torch path
-    (NUMPY_ROWS = 0) gives the same means to float32 rounding, row by row, on a batch whose large
-    corrections the damper's constraints have to hold back. The deterministic ``_predict`` is the
-    mode of SB3's Gaussian."""
+def test_one_row_head_in_numpy_equals_the_torch_path(monkeypatch, small_kernel):
+    """At inference on a few rows the head's mean (hildreth, the shrink) runs in numpy, or compiled
+    (``small_kernel``): the torch path (NUMPY_ROWS = 0) gives the same means to float32 rounding, row by
+    row, on a batch whose large corrections the damper's constraints have to hold back. The
+    deterministic ``_predict`` (its own route to the head on few rows) is the mode of SB3's Gaussian."""
     import train.features
     from train.evaluate import load_policy
 

@@ -457,7 +457,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     def _features(self, q, observations: dict):
         """:meth:`forward` from ``q (B, nj)``, on tensors or numpy arrays (with numba, numpy arrays by
-        one compiled kernel: :func:`train.features_kernel.features`, the same formulas)."""
+        one compiled kernel: :func:`train.kernels.features`, the same formulas)."""
         xp = np if isinstance(q, np.ndarray) else torch
         obs, nj = observations["observation"], self.nj
         desired, achieved = observations["desired_goal"], observations["achieved_goal"]
@@ -485,9 +485,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
         return xp.concatenate([base, *parts], -1)
 
     def _compiled_features(self, q: np.ndarray, observations: dict[str, np.ndarray], error: np.ndarray) -> np.ndarray:
-        """:meth:`_features` on numpy arrays, by :func:`train.features_kernel.features` (imported, numba
+        """:meth:`_features` on numpy arrays, by :func:`train.kernels.features` (imported, numba
         with it, on the first call)."""
-        from train.features_kernel import features
+        from train.kernels import features
 
         max_step, damping_sq, lower, upper = self._constants(np)
         avoidance, (start, k) = self.avoidance, self.clearance_rows or (0, 0)

@@ -26,6 +26,7 @@ import torch
 from stable_baselines3.common.policies import MultiInputActorCriticPolicy
 from torch import nn
 
+from iiwa_torch import compiled
 from train.features import JointGoalExtractor, hildreth, numpy_ok, shrink
 
 
@@ -39,8 +40,8 @@ def run_layers(layers: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
 
 class _LatentWithBase(nn.Module):
     """``features -> (cat(latent_pi, base), latent_vf)``: SB3's MLP extractor that also carries the
-    DLS step (``(B, nj)``, in actions), the distance (``(B, 1)``, m) and, with avoidance, the damper's
-    constraints (``(B, K (nj + 1))``) to the action head."""
+    DLS step (``(B, nj)``, in actions), the distance (``(B, 1)``, m) and the damper's constraints
+    (``(B, K (nj + 1))``; ``K = 0`` without avoidance) to the action head."""
 
     def __init__(self, inner: nn.Module, columns: list[tuple[int, int]]):
         super().__init__()
@@ -75,21 +76,30 @@ class _ResidualHead(nn.Module):
         self.linear, self.gate_distance, self.constraints = linear, gate_distance, constraints
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
-        n = self.linear.in_features
+        n, nj = self.linear.in_features, self.linear.out_features
+        parts = (latent[:, n : n + nj], latent[:, n + nj : n + nj + 1], latent[:, n + nj + 1 :])
         if not torch.is_grad_enabled() and numpy_ok(latent):  # a few rows at inference: the rest in numpy
-            correction = self.linear.forward(latent[:, :n]).numpy()
-            return torch.from_numpy(self._mean(latent.numpy(), correction, np))
-        return self._mean(latent, self.linear(latent[:, :n]), torch)
+            return self.mean_numpy(self.linear.forward(latent[:, :n]).numpy(), *(p.numpy() for p in parts))
+        return self._mean(self.linear(latent[:, :n]), *parts, torch)
 
-    def _mean(self, latent, correction, xp):
-        """The mean from ``latent`` and ``correction = linear(latent's first columns) (B, nj)``, tensors or
-        numpy arrays (``xp``)."""
-        n, nj, k = self.linear.in_features, self.linear.out_features, self.constraints
-        step, distance = latent[:, n : n + nj], latent[:, n + nj : n + nj + 1]
+    def mean_numpy(self, correction, step, distance, damper) -> torch.Tensor:
+        """The mean (a tensor) from float32 numpy arrays: ``correction = linear(latent)``, ``step (B, nj)``,
+        ``distance (B, 1)``, ``damper (B, K (nj + 1))`` (``(B, 0)`` without constraints); by
+        :func:`train.kernels.residual_mean` (imported, numba with it, on the first call) when
+        :data:`iiwa_torch.compiled.ENABLED`."""
+        if compiled.ENABLED:
+            from train.kernels import residual_mean
+
+            return torch.from_numpy(residual_mean(step, distance, correction, damper, np.float32(self.gate_distance)))
+        return torch.from_numpy(self._mean(correction, step, distance, damper, np))
+
+    def _mean(self, correction, step, distance, damper, xp):
+        """The mean from ``correction`` and the parts of :meth:`mean_numpy`, tensors or numpy arrays (``xp``)."""
         mean = step + distance / (distance + self.gate_distance) * correction
+        k, nj = self.constraints, step.shape[-1]
         if not k:
             return mean
-        normal, bound = latent[:, n + nj + 1 : n + nj + 1 + k * nj].reshape(-1, k, nj), latent[:, -k:]
+        normal, bound = damper[:, : k * nj].reshape(-1, k, nj), damper[:, k * nj :]
         return shrink(hildreth(mean, normal, normal, bound), xp)
 
 
@@ -115,7 +125,12 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
         whose mode it is (the same tensor)."""
         if not deterministic:
             return super()._predict(observation, deterministic)
-        return self.action_net(self.mlp_extractor.forward_actor(self.extract_features(observation)))
+        features = self.extract_features(observation)
+        if not torch.is_grad_enabled() and numpy_ok(features):  # one env's step: the head's parts, not their concat
+            correction = self.action_net.linear.forward(run_layers(self.mlp_extractor.inner.policy_net, features))
+            x = features.numpy()
+            return self.action_net.mean_numpy(correction.numpy(), *(x[:, a:b] for a, b in self.mlp_extractor.columns))
+        return self.action_net(self.mlp_extractor.forward_actor(features))
 
     def set_training_mode(self, mode: bool) -> None:
         """SB3's, skipped when the policy is in that mode already (``predict`` calls it every step, and
@@ -135,9 +150,7 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
         # wrap the modules already built (same parameters, so the optimizer built above still holds them)
         ext = self.features_extractor
         columns = [ext.step_columns, (ext.distance_column, ext.distance_column + 1)]
-        k = 0
-        if ext.damper_columns is not None:
-            start, k = ext.damper_columns
-            columns.append((start, start + k * (ext.nj + 1)))
+        start, k = ext.damper_columns or (ext.distance_column + 1, 0)  # no constraints: an empty block
+        columns.append((start, start + k * (ext.nj + 1)))
         self.mlp_extractor = _LatentWithBase(self.mlp_extractor, columns)
         self.action_net = _ResidualHead(self.action_net, self.gate_distance, k)

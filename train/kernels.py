@@ -1,14 +1,16 @@
-"""The numba kernel of :class:`train.features.JointGoalExtractor`'s features on a few rows (importing
-this module imports numba; the extractor imports it on its first small-batch call when
-:data:`iiwa_torch.compiled.ENABLED`).
+"""The numba kernels of the residual policy's inference on a few rows (importing this module imports
+numba; :class:`train.features.JointGoalExtractor` and :class:`train.residual.ResidualDLSPolicy` import it
+on their first small-batch call when :data:`iiwa_torch.compiled.ENABLED`).
 
 One policy step in one env computes the goal deltas, a Jacobian, a few DLS solves, the velocity
-damper's Hildreth sweeps and the damper's constraints: some fifty numpy calls of about a
-microsecond each, where the arithmetic itself takes a fraction of one. :func:`features` restates
-the extractor's numpy path (``JointGoalExtractor._features``) row by row in one compiled call;
-``tests/test_train_features.py`` holds the two together. Linear solves are by Cholesky (the
-matrices are symmetric positive definite; :func:`iiwa_torch.compiled.numba_kernels.cholesky_solve`, the
-LM rounds' solve) where numpy's are by LU: the same values to rounding.
+damper's Hildreth sweeps and the damper's constraints, then the action head's gated sum, Hildreth
+again and a shrink: some sixty numpy calls of about a microsecond each, where the arithmetic itself
+takes a fraction of one. :func:`features` restates the extractor's numpy path
+(``JointGoalExtractor._features``) row by row in one compiled call, and :func:`residual_mean` the
+head's (``_ResidualHead``); ``tests/test_train_features.py`` and ``tests/test_train_residual.py`` hold
+them to those paths. Linear solves are by Cholesky (the matrices are symmetric positive definite;
+:func:`iiwa_torch.compiled.numba_kernels.cholesky_solve`, the LM rounds' solve) where numpy's are by LU:
+the same values to rounding.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 
 from iiwa_torch.compiled.numba_kernels import cholesky_solve, jacobians
 
-__all__ = ["features"]
+__all__ = ["features", "residual_mean"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _TINY = float(np.finfo(np.float64).tiny)  # the torch path's pivot floor (never reached: damping > 0)
@@ -232,4 +234,33 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
         for c in range(K):
             out[b, col] = bound[c]
             col += 1
+    return out
+
+
+@_jit
+def residual_mean(step, distance, correction, damper, gate):
+    """``_ResidualHead``'s mean ``(B, nj)`` float32: ``step + d / (d + gate) * correction`` in float32
+    (the numpy path's operations, so the same bits), then, with ``K = damper.shape[1] / (nj + 1)``
+    constraints, Hildreth's sweeps on the damper's constraints and the shrink (in float64, rounded
+    back: the same values to float32 rounding where a constraint acts).
+
+    ``step``, ``correction (B, nj)``, ``distance (B, 1)`` (m), ``damper (B, K nj + K)`` (the normals
+    in actions, then the bounds), float32; ``gate`` (m) a float32."""
+    B, nj = step.shape
+    K = damper.shape[1] // (nj + 1)
+    out = np.empty((B, nj), dtype=np.float32)
+    x, normal, bound = np.empty(nj), np.empty((K, nj)), np.empty(K)
+    for b in range(B):
+        weight = distance[b, 0] / (distance[b, 0] + gate)
+        for j in range(nj):
+            x[j] = step[b, j] + weight * correction[b, j]
+        if K:
+            for c in range(K):
+                for j in range(nj):
+                    normal[c, j] = damper[b, c * nj + j]
+                bound[c] = damper[b, K * nj + c]
+            _hildreth(x, normal, normal, bound, 5)
+            _bound(x, False)
+        for j in range(nj):
+            out[b, j] = x[j]
     return out
