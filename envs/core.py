@@ -81,7 +81,9 @@ class ReachState(NamedTuple):
     goal. achieved: ``(g, n)`` achieved goal at ``q``. t: ``(n,)`` int64 steps taken this
     episode. key: ``(n,)`` int64 random key (from the seed). episode: ``(n,)`` int64 episode
     counter since seeding. obstacles: ``(10 M, n)`` the obstacle block of the observation
-    (:mod:`envs.world`; ``(0, n)`` without obstacles).
+    (:mod:`envs.world`; ``(0, n)`` without obstacles). clearance: ``(K (1 + nj), n)`` the
+    observation's clearance rows at ``q`` (:meth:`ReachTask.clearance_rows`; ``(0, n)`` unless
+    ``observe_clearance``).
     """
 
     q: Tensor
@@ -94,6 +96,7 @@ class ReachState(NamedTuple):
     key: Tensor
     episode: Tensor
     obstacles: Tensor
+    clearance: Tensor
 
 
 class StepResult(NamedTuple):
@@ -140,7 +143,7 @@ class ReachTask:
             drawn, 0: none), in the observation's obstacle block (:mod:`envs.world`).
         observe_clearance: append each capsule's clearance and its joint gradient to the observation
             (after the obstacle block: K distances, m, then K x nj gradients, m/rad; see
-            :meth:`_clearance_rows`), computed once per step, for controllers that keep every link clear.
+            :meth:`clearance_rows`), computed once per step, for controllers that keep every link clear.
         home: start posture for ``start="home"`` (default :data:`iiwa_torch.robots.IIWA_HOME` for 7 joints,
             else zeros; it must lie within the limits).
         dtype: float dtype of the state (observations are always float32).
@@ -221,32 +224,33 @@ class ReachTask:
             if not bool(self.world.clearance(self.arm.home[None]) > 0):
                 raise ValueError(f"home {self.arm.home.tolist()} collides with the floor or the arm itself")
         block = 0 if self.world is None else self.world.block_size
-        sensed = self._clearance_rows if observe_clearance else None
-        self.transport = Transport(self.arm.n_joints, self.goals.size, dtype, self.device, block, sensed,
-                                   len(self.world.capsules.names) * (1 + self.arm.n_joints) if sensed else 0)
+        sensed = len(self.world.capsules.names) * (1 + self.arm.n_joints) if observe_clearance else 0
+        self.transport = Transport(self.arm.n_joints, self.goals.size, dtype, self.device, block, sensed)
         #: ``(nj,)`` rad per step at ``|a| = 1``
         self.max_step = self.arm.max_step
         self._home_goal = self.goal_of(self.arm.home[:, None])  # (g, 1): every episode from home starts there
 
-    def _clearance_rows(self, state: ReachState) -> Tensor:
-        """The observation's clearance rows of a state, ``(K (1 + nj), n)``: each capsule's clearance
-        (m, :func:`iiwa_torch.collision.capsule_clearance`), then its gradient ``(K, nj)`` (m/rad),
-        both read as ``CLEARANCE_RANGE`` and zeros where the capsule is farther than that."""
+    def clearance_rows(self, q: Tensor, obstacles: Tensor) -> tuple[Tensor, Tensor]:
+        """Joint angles ``(nj, n)`` and the obstacle block ``(10 M, n)`` -> the observation's clearance rows
+        ``(K (1 + nj), n)`` in ``q``'s dtype: each capsule's clearance (m,
+        :func:`iiwa_torch.collision.capsule_clearance`), then its gradient ``(K, nj)`` (m/rad), both read
+        as ``CLEARANCE_RANGE`` and zeros where the capsule is farther than that; and whether each
+        configuration collides ``(n,)`` (its least capsule clearance below 0: the world's clearance)."""
         world = self.world
-        xp = NUMPY if state.q.shape[1] == 1 and self.device.type == "cpu" else TORCH  # as step's
+        xp = NUMPY if q.shape[1] == 1 and self.device.type == "cpu" else TORCH  # as step's
         if xp is NUMPY and not world.slots:  # one env, the floor and itself: a closed form (float64 inside)
-            dtype = state.q.numpy().dtype
+            dtype = q.numpy().dtype
             distance, gradient = (x[None].astype(dtype, copy=False) for x in capsule_clearance_of_one(
-                self.robot, state.q, world.floor, world.capsules))
+                self.robot, q, world.floor, world.capsules))
         else:  # the envs step in inference mode, whose tensors autograd cannot record: copies made outside it
             with torch.inference_mode(False):
-                q, block = state.q.T.clone(), state.obstacles.clone() if world.slots else None
+                block = obstacles.clone() if world.slots else None
                 distance, gradient = (xp.of(x) for x in capsule_clearance(
-                    self.robot, q, obstacle_world(block, world.floor), world.capsules))
+                    self.robot, q.T.clone(), obstacle_world(block, world.floor), world.capsules))
         near = distance < CLEARANCE_RANGE
         gradient = xp.where(near[..., None], gradient, 0.0)
-        return xp.tensor(xp.concatenate([xp.where(near, distance, CLEARANCE_RANGE).T,
-                                         gradient.reshape(distance.shape[0], -1).T], 0))
+        rows = [xp.where(near, distance, CLEARANCE_RANGE).T, gradient.reshape(distance.shape[0], -1).T]
+        return xp.tensor(xp.concatenate(rows, 0)), xp.tensor((distance < 0).any(-1))
 
     # ------------------------------------------------------------------ what the callers read
     @property
@@ -343,6 +347,7 @@ class ReachTask:
         goal = _first_found(n, draw_goal, lambda: start_goal["all"], self.device) if world is not None \
             else draw_goal(torch.arange(n, device=self.device), 0)[1]
         q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
+        clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
         return ReachState(
             q=q,
             cos_q=torch.cos(q),
@@ -354,6 +359,7 @@ class ReachTask:
             key=key,
             episode=episode,
             obstacles=obstacles,
+            clearance=clearance,
         )
 
     def step(self, state: ReachState, action: Tensor) -> tuple[ReachState, StepResult]:
@@ -370,16 +376,19 @@ class ReachTask:
         cos_t, sin_t = torch.cos(q_t), torch.sin(q_t)  # torch's on both paths: one env's equal a batch's
         world = self.world
         block = state.obstacles if world is not None and world.slots else None
-        collision = None
+        collision, clearance = None, state.clearance
+        if self.observe_clearance:  # the rows' capsule clearances say whether it collides
+            clearance, collision = self.clearance_rows(q_t, state.obstacles)
+            collision = xp.of(collision)
         if xp is NUMPY:  # one env: its frames once, in Python floats, for the goal and the clearance
             g = self.robot.geometry(self.dtype)
             frames = kin.frames_floats(g, q_t)
             achieved = self.goals.goal_of_frame(kin.tool_frame_floats(g, frames[-1]), self.dtype)
-            if world is not None:
+            if world is not None and collision is None:
                 collision = np.array([world.clearance_of_frames(frames, block) < 0])
         else:
             achieved = self.goal_of(q_t, (cos_t, sin_t))
-            if world is not None:  # one clearance call for the batch
+            if world is not None and collision is None:  # one clearance call for the batch
                 collision = world.clearance(q_t.T, block) < 0
         observed = (achieved, state.goal) if self.dtype == torch.float32 else (achieved.float(), state.goal.float())
         # the reward of the goals as observed, in float32
@@ -391,7 +400,7 @@ class ReachTask:
             terminated = terminated | collision
         truncated = xp.zeros_like(success) if self.max_episode_steps is None else t >= self.max_episode_steps
         new = ReachState(q_t, cos_t, sin_t, xp.tensor(velocity), state.goal, achieved, xp.tensor(t), state.key,
-                         state.episode, state.obstacles)
+                         state.episode, state.obstacles, clearance)
         result = (reward, terminated, truncated, success, dist, angle, collision)
         return new, StepResult(*(None if x is None else xp.tensor(x) for x in result))
 
@@ -438,7 +447,7 @@ class ReachTask:
             fresh = self._new_episodes(state.key[idx], state.episode[idx] + 1)
             # q and what follows from it, velocity and t were created by this step: update them in
             # place; goal and episode are the caller's tensors: copy them.
-            for name in ("q", "cos_q", "sin_q", "velocity", "achieved", "t"):
+            for name in ("q", "cos_q", "sin_q", "velocity", "achieved", "t", "clearance"):
                 mine = getattr(state, name)
                 mine.index_copy_(mine.ndim - 1, idx, getattr(fresh, name))
             state = state._replace(

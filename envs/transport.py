@@ -9,7 +9,6 @@ the envs' observation dicts are views of its numpy transpose.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -43,23 +42,20 @@ class Transition(NamedTuple):
 
 class Transport:
     """Conversions for a task of ``n_joints`` joints, goals of ``goal_size`` numbers and an
-    obstacle block of ``obstacle_size`` numbers whose state is in ``dtype`` on ``device``;
-    ``clearance_rows`` (state -> ``(clearance_size, n)``, or None) computes the observation's
-    clearance rows."""
+    obstacle block of ``obstacle_size`` numbers and ``clearance_size`` clearance rows (the state's
+    ``clearance``) whose state is in ``dtype`` on ``device``."""
 
     def __init__(self, n_joints: int, goal_size: int, dtype: torch.dtype, device: torch.device,
-                 obstacle_size: int = 0, clearance_rows: Callable | None = None, clearance_size: int = 0) -> None:
+                 obstacle_size: int = 0, clearance_size: int = 0) -> None:
         self.n_joints, self.goal_size, self.dtype, self.device = n_joints, goal_size, dtype, device
-        self.obstacle_size, self.clearance_rows, self.clearance_size = obstacle_size, clearance_rows, clearance_size
+        self.obstacle_size, self.clearance_size = obstacle_size, clearance_size
         #: length of ``observation``: cos q, sin q, joint velocity (normalised), obstacles, clearances, achieved goal
         self.observation_size = 3 * n_joints + obstacle_size + clearance_size + goal_size
         #: rows of :meth:`observe`: the observation, then the desired goal
         self.packed_size = self.observation_size + goal_size
 
     def _rows(self, state) -> list[Tensor]:
-        block = [state.obstacles] if self.obstacle_size else []
-        if self.clearance_rows is not None:
-            block.append(self.clearance_rows(state).to(state.q.dtype))
+        block = ([state.obstacles] if self.obstacle_size else []) + ([state.clearance] if self.clearance_size else [])
         return [state.cos_q, state.sin_q, state.velocity, *block, state.achieved, state.goal]
 
     def observe(self, state) -> Tensor:

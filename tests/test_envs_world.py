@@ -245,12 +245,32 @@ def test_clearance_rows_of_one_env_are_its_column_of_a_batch():
     env = IiwaReachVecEnv(4, "IiwaReach-v0", seed=8, start="random", observe_clearance=True)
     env.reset()
     task, state = env.task, env._state
-    rows = task._clearance_rows(state)
+    rows = task.clearance_rows(state.q, state.obstacles)[0]
     assert (rows[: len(CAPS.names)] < 1.0).any()  # some capsule near something: gradient rows not all zero
     for i in range(4):
-        one = task._clearance_rows(state._replace(q=state.q[:, i : i + 1].contiguous()))
+        one = task.clearance_rows(state.q[:, i : i + 1].contiguous(), state.obstacles[:, i : i + 1])[0]
         assert one.dtype == rows.dtype
         torch.testing.assert_close(one[:, 0], rows[:, i], atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("env_id", ["IiwaReach-v0", "IiwaReachObstacles-v0"])
+def test_collision_flag_of_the_clearance_rows_is_the_worlds(env_id):
+    """With observed clearances the step's collision flag comes from the rows' capsule clearances: on
+    random configurations (some through the floor, the arm or an obstacle) it is ``world.clearance(q) < 0``
+    (the pairwise minimum, another function), for a batch and for one env."""
+    n = 512
+    env = IiwaReachVecEnv(n, env_id, seed=3, observe_clearance=True)
+    env.reset()
+    task = env.task
+    q = task.arm.configurations(torch.rand(n, 7, dtype=task.dtype, generator=torch.Generator().manual_seed(0)))
+    obstacles = env._state.obstacles
+    expected = task.world.clearance(q, obstacles if task.world.slots else None) < 0
+    assert int(expected.sum()) >= 10
+    assert torch.equal(task.clearance_rows(q.T.contiguous(), obstacles)[1], expected)
+    some = torch.cat([expected.nonzero()[:8, 0], (~expected).nonzero()[:8, 0]])
+    for i in some.tolist():
+        one = task.clearance_rows(q[i : i + 1].T.contiguous(), obstacles[:, i : i + 1])[1]
+        assert bool(one[0]) == bool(expected[i])
 
 
 def test_observed_clearances_with_obstacles_single_and_vector_env_alike():
