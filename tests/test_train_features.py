@@ -289,6 +289,74 @@ def test_limit_rounds_hold_the_joints_a_step_would_push_past_a_limit():
     assert checked >= 10
 
 
+def test_limit_hold_limit_moves_a_held_joint_onto_its_limit():
+    """As above, each arm 1 mrad inside a joint's upper limit with an error pushing it out: with
+    ``limit_hold = "limit"`` that joint steps onto its limit (1 mrad) and the others take the damped
+    least-squares step (numpy's ``lstsq``) for the rest of the error, ``e - J_i 1e-3``."""
+    chain = iiwa14()
+    rng = np.random.default_rng(5)
+    lower, upper = chain.limits.numpy()
+    ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,), limit_rounds=3, step_bound="clip",
+                             limit_hold="limit")
+    checked = 0
+    for _ in range(30):
+        q = rng.uniform(lower, upper)
+        i = rng.integers(7)
+        q[i] = upper[i] - 1e-3
+        jp = _fd_position_jacobian(q)
+        if np.linalg.norm(jp[:, i]) < 1e-2:
+            continue
+        error = jp[:, i] * 0.05 / np.linalg.norm(jp[:, i])
+        free = np.arange(7) != i
+        stacked = np.vstack([jp[:, free], 0.1 * np.eye(6)])
+        dq = np.linalg.lstsq(stacked, np.concatenate([error - jp[:, i] * 1e-3, np.zeros(6)]), rcond=None)[0]
+        expected = np.zeros(7)
+        expected[free], expected[i] = dq, 1e-3
+        expected = np.clip(expected / MAX_STEP, -1, 1) * MAX_STEP
+        if np.any(q + expected > upper) or np.any(q + expected < lower):  # another joint would be held too
+            continue
+        qt, et, jt = torch.as_tensor(q)[None], torch.as_tensor(error)[None], torch.as_tensor(jp)[None]
+        step = ext.bounded_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
+        if step[i] == 0 and np.all(q + step <= upper):  # the first round held nothing (i not pushed out)
+            continue
+        checked += 1
+        assert np.all(q + step <= upper + 1e-12) and np.all(q + step >= lower - 1e-12)
+        np.testing.assert_allclose(step, expected, atol=1e-9)
+    assert checked >= 10
+
+
+def test_clip_guard_keeps_a_descent_direction():
+    """DLS steps beyond full speed on random arms (6-row Jacobians): ``clip_guard = c`` gives the clipped
+    step when its first-order progress ``e . J dq`` is at least ``c`` times the shrunk step's, else the
+    shrunk one, so the step always descends (a clipped step alone sometimes does not)."""
+    chain = iiwa14()
+    rng = np.random.default_rng(9)
+    q = torch.as_tensor(rng.uniform(*chain.limits.numpy(), (400, 7)))
+    jac = chain.jacobian(q)
+    error = torch.as_tensor(rng.normal(size=(400, 6)) * 0.05)
+    guarded = JointGoalExtractor(_space(goal_dim=9), "iiwa14", MAX_STEP, dampings=(0.01, 0.03), step_bound="clip",
+                                 clip_guard=0.5)
+    clipped = JointGoalExtractor(_space(goal_dim=9), "iiwa14", MAX_STEP, dampings=(0.01, 0.03), step_bound="clip")
+    shrunk = JointGoalExtractor(_space(goal_dim=9), "iiwa14", MAX_STEP, dampings=(0.01, 0.03))
+    u, a, b = (ext.bounded_step(q, jac, error) for ext in (guarded, clipped, shrunk))
+    progress = lambda v: ((jac @ (v * torch.as_tensor(MAX_STEP)).mT).mT * error[:, None]).sum(-1)  # (B, L)
+    use_shrunk = progress(a) < 0.5 * progress(b)
+    assert torch.equal(u, torch.where(use_shrunk[..., None], b, a))
+    assert bool((progress(b) > 0).all()) and bool((progress(u) >= 0.5 * progress(b) - 1e-12).all())
+    assert 0 < int(use_shrunk.sum()) < use_shrunk.numel() and bool((progress(a) < 0).any())
+    assert float(u.abs().max()) <= 1.0
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"limit_hold": "edge"}, "limit_hold must be one of"),
+    ({"step_bound": "clip", "clip_guard": 1.5}, "clip_guard must be a number in"),
+    ({"step_bound": "clip", "clip_guard": True}, "clip_guard must be a number in"),
+    ({"clip_guard": 0.3}, "clip_guard needs step_bound: clip")])
+def test_limit_hold_and_clip_guard_bad_options(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        JointGoalExtractor(_space(), max_step=MAX_STEP, **kwargs)
+
+
 def test_null_space_centering_is_the_damped_least_squares_step_towards_the_centering_step():
     """``null_space_centering = k``: the step minimises ``|J_p dq - e|^2 + lambda^2 |dq - dq0|^2`` with
     ``dq0 = -k p |p| max_step`` (numpy's lstsq on ``[J_p; lambda I] dq = [e; lambda dq0]``, J_p by finite
@@ -427,12 +495,14 @@ def _observations(rows: int, goal_dim: int, dtype, rng) -> dict[str, torch.Tenso
             "desired_goal": goal(desired).to(dtype)}
 
 
-@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping, step_bound, centering", [
-    (3, False, 0, 0.0, "shrink", 0.0), (3, True, 0, 0.0, "shrink", 0.0), (3, True, 3, 0.0, "shrink", 0.0),
-    (9, False, 3, 0.0, "shrink", 0.0), (9, True, 3, 0.0, "shrink", 0.0), (9, True, 3, 1.0, "clip", 0.0),
-    (3, False, 0, 0.0, "shrink", 1.0), (9, True, 3, 1.0, "clip", 3.0), (9, True, 3, 1.0, "clip", "twist")])
+@pytest.mark.parametrize("goal_dim, avoidance, limit_rounds, error_damping, step_bound, centering, extra", [
+    (3, False, 0, 0.0, "shrink", 0.0, {}), (3, True, 0, 0.0, "shrink", 0.0, {}), (3, True, 3, 0.0, "shrink", 0.0, {}),
+    (9, False, 3, 0.0, "shrink", 0.0, {}), (9, True, 3, 0.0, "shrink", 0.0, {}), (9, True, 3, 1.0, "clip", 0.0, {}),
+    (3, False, 0, 0.0, "shrink", 1.0, {}), (9, True, 3, 1.0, "clip", 3.0, {}), (9, True, 3, 1.0, "clip", "twist", {}),
+    (3, False, 3, 0.0, "shrink", 0.0, {"limit_hold": "limit"}), (3, True, 0, 0.0, "clip", 0.0, {"clip_guard": 0.3}),
+    (9, True, 3, 1.0, "clip", "twist", {"limit_hold": "limit", "clip_guard": 0.3})])
 def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, error_damping, step_bound, centering,
-                                          monkeypatch, small_kernel):
+                                          extra, monkeypatch, small_kernel):
     """Up to NUMPY_ROWS rows without autograd the extractor runs in numpy (with numba, by one compiled
     kernel where it restates the options: ``small_kernel``); with NUMPY_ROWS = 0 the same observations
     take the torch path. Float64 observations: every feature agrees to 1e-12 (the DLS and damper solves
@@ -443,6 +513,7 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
 
     rng = np.random.default_rng(11)
     kwargs = {"avoidance": {"xi": 0.3, "safe": 0.005, "influence": 0.1}} if avoidance else {}
+    kwargs.update(extra)
     ext = JointGoalExtractor(_space(21 + 4 * 8, goal_dim), "iiwa14", MAX_STEP, dampings=(0.1, 0.03),
                              orientation_weight=0.2, clearance_rows=(21, 4), limit_rounds=limit_rounds,
                              error_damping=error_damping, step_bound=step_bound,
@@ -465,10 +536,10 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
             torch.testing.assert_close(fast, slow, rtol=0, atol=1e-12)
         else:
             torch.testing.assert_close(fast, slow, rtol=2.0 ** -23, atol=1e-12)
-        if limit_rounds:
+        if limit_rounds and extra.get("limit_hold", "still") == "still":
             steps = slow[:, ext.step_columns[0] : ext.step_columns[1]].double() * torch.as_tensor(MAX_STEP)
             q = torch.atan2(obs["observation"][:, 7:14], obs["observation"][:, :7]).double()
             at_limit = q[:-1] >= iiwa14().limits[1] - 1e-6  # the last row's error is zero: no step at all
             held += int((steps[:-1][at_limit] == 0).sum())
-    if limit_rounds:
+    if limit_rounds and extra.get("limit_hold", "still") == "still":
         assert held > 0  # some joints at their limits were held by the limit rounds

@@ -62,6 +62,7 @@ class GoalDeltaExtractor(BaseFeaturesExtractor):
 
 
 STEP_BOUNDS = ("shrink", "clip")  # JointGoalExtractor's step_bound
+LIMIT_HOLDS = ("still", "limit")  # JointGoalExtractor's limit_hold
 
 NUMPY_ROWS = 16  # up to this many rows on the CPU with nothing to differentiate, in numpy
 
@@ -209,6 +210,15 @@ class JointGoalExtractor(GoalDeltaExtractor):
             where the rotation error would take it, ``q_n + phi`` (:meth:`last_joint_twist`), instead of
             on ``q_n``: a goal that the arm's present branch reaches only past that joint's limit moves
             the other joints early, while they can still carry the turn.
+        limit_hold: with ``limit_rounds``, where a held joint goes: ``"still"``, nowhere; ``"limit"``, onto
+            the limit it would have passed (the other joints' step solved for the rest of the error). A
+            joint held still short of its limit leaves the step a fixed point wherever the other joints
+            alone cannot lower the error: the arm stalls there, within a step of the limit.
+        clip_guard: ``c`` in ``[0, 1]`` or None (off), with ``step_bound = "clip"``: a clipped step whose
+            first-order progress ``e . J dq`` is below ``c`` times the shrunk step's is shrunk instead
+            (:meth:`bounded_by_progress`). Clipping some joints of a large step turns its direction and
+            can leave it no descent at all (the arm then stalls, above all where the velocity damper
+            takes away the rest); shrinking keeps the DLS direction, a descent direction.
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
@@ -218,7 +228,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
                  dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5,
                  clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None,
                  limit_rounds: int = 0, error_damping: float = 0.0, step_bound: str = "shrink",
-                 null_space_centering: float = 0.0, centering_twist: bool = False):
+                 null_space_centering: float = 0.0, centering_twist: bool = False, limit_hold: str = "still",
+                 clip_guard: float | None = None):
         from iiwa_torch.robots import PRESETS
 
         super().__init__(observation_space, scales)
@@ -266,6 +277,16 @@ class JointGoalExtractor(GoalDeltaExtractor):
         if centering_twist and (goal_dim != 9 or not null_space_centering):
             raise ValueError("centering_twist needs pose goals (9 numbers) and null_space_centering > 0")
         self.centering_twist = centering_twist
+        if limit_hold not in LIMIT_HOLDS:
+            raise ValueError(f"limit_hold must be one of {LIMIT_HOLDS}, got {limit_hold!r}")
+        self.limit_hold = limit_hold
+        if clip_guard is not None:
+            if isinstance(clip_guard, bool) or not isinstance(clip_guard, (int, float)) or not 0 <= clip_guard <= 1:
+                raise ValueError(f"clip_guard must be a number in [0, 1] or None, got {clip_guard!r}")
+            if step_bound != "clip":
+                raise ValueError("clip_guard needs step_bound: clip")
+            clip_guard = float(clip_guard)
+        self.clip_guard = clip_guard
         self.limit_rounds = limit_rounds
         self.avoidance = None if avoidance is None else {key: float(v) for key, v in avoidance.items()}
         self.clearance_rows = None if clearance_rows is None else tuple(int(c) for c in clearance_rows)
@@ -330,13 +351,27 @@ class JointGoalExtractor(GoalDeltaExtractor):
         """Steps in actions ``u (..., nj)`` brought into ``[-1, 1]`` as ``step_bound`` says."""
         return u.clip(-1.0, 1.0) if self.step_bound == "clip" else shrink(u, xp)
 
+    def bounded_by_progress(self, u, jac, error):
+        """Steps in actions ``u (B, L, nj)`` brought into ``[-1, 1]`` as ``step_bound`` says, but with
+        ``clip_guard = c``, each clipped step whose first-order progress ``e . J dq`` (``dq = u max_step``;
+        ``jac (B, k, nj)``, ``error (B, k)``) is below ``c`` times the shrunk step's is shrunk instead."""
+        xp = np if isinstance(u, np.ndarray) else torch
+        if self.clip_guard is None:
+            return self._bounded(u, xp)
+        clipped, shrunk = u.clip(-1.0, 1.0), shrink(u, xp)
+        gain = (jac * error[..., None]).sum(-2) * self._constants(xp)[0]  # (B, nj): J^T e max_step
+        behind = (clipped * gain[:, None]).sum(-1) < self.clip_guard * (shrunk * gain[:, None]).sum(-1)  # (B, L)
+        return xp.where(behind[..., None], shrunk, clipped)
+
     def bounded_step(self, q, jac, error, damping_sq=None):
         """The DLS step per damping in actions, bounded into ``[-1, 1]`` (``step_bound``): ``q (B, nj)``
         rad, ``jac (B, k, nj)``, ``error (B, k)`` (float64 tensors, or numpy arrays), ``damping_sq (B, L)``
         (:meth:`squared_dampings` of ``error`` if None) -> ``(B, L, nj)``.
         With ``limit_rounds``, a joint that the step would push past its limit is held still and the step
         solved again without it, up to that many times (the arm's other joints then carry the motion,
-        instead of the step being clamped at the limit).
+        instead of the step being clamped at the limit); with ``limit_hold = "limit"`` the held joint goes
+        onto its limit, the others solving for the rest of the error.
+        The steps are bounded by :meth:`bounded_by_progress` (``clip_guard``).
         With ``null_space_centering``, each solve is the damped least-squares step towards the preferred
         step ``dq0 =`` :meth:`centering_step` (``dq0`` of the held joints: 0), the minimiser of
         ``|J dq - e|^2 + lambda^2 |dq - dq0|^2``:
@@ -356,24 +391,30 @@ class JointGoalExtractor(GoalDeltaExtractor):
         if self.null_space_centering:
             prior = self.centering_step(q, self.last_joint_twist(jac, error) if self.centering_twist else None)
 
-        def solve(free):
-            if prior is None:
+        def solve(free, hold=None):  # hold (B, L, nj) rad: the held joints' steps (limit_hold "limit")
+            held = None if prior is None else prior[:, None] if free is None else prior[:, None] * free
+            if hold is not None:
+                held = hold if held is None else held + hold
+            if held is None:
                 return solver(free, error)
-            held = prior[:, None] if free is None else prior[:, None] * free  # (B, 1 or L, nj)
             return held + solver(free, error[:, None] - (held[..., None, :] * jac[:, None]).sum(-1))
 
         dq = solve(None)  # (B, L, nj) rad
         if self.limit_rounds:
             free = xp.ones_like(dq)
+            hold = xp.zeros_like(dq) if self.limit_hold == "limit" else None
             for _ in range(self.limit_rounds):
-                step = self._bounded(dq / max_step, xp) * max_step
+                step = self.bounded_by_progress(dq / max_step, jac, error) * max_step
                 end = q[:, None] + step
                 blocked = ((end > upper) & (step > 0)) | ((end < lower) & (step < 0))
                 if not bool((blocked & (free > 0)).any()):
                     break
+                if hold is not None:  # onto the limit it would pass
+                    room = xp.where(step > 0, upper - q[:, None], lower - q[:, None])
+                    hold = xp.where(blocked & (free > 0), room, hold)
                 free = free * ~blocked
-                dq = solve(free)
-        return self._bounded(dq / max_step, xp)
+                dq = solve(free, hold)
+        return self.bounded_by_progress(dq / max_step, jac, error)
 
     def centering_step(self, q, twist=None):
         """The secondary task of ``null_space_centering = k``: ``q (B, nj)`` rad (tensor or numpy array) and
@@ -497,7 +538,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         return features(*arrays, np.ascontiguousarray(error, dtype=np.float64), q.astype(np.float64),
                         self._buffers["inv_scales"].numpy()[:, 0], max_step, damping_sq, lower, upper,
                         self.error_damping, self.step_bound == "clip", self.limit_rounds, self.orientation_weight,
-                        self.null_space_centering, self.centering_twist, damper, start, k,
+                        self.null_space_centering, self.centering_twist, self.clip_guard is not None,
+                        self.clip_guard or 0.0, self.limit_hold == "limit", damper, start, k,
                         *self.chain.geometry().float_arrays)
 
 

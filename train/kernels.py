@@ -29,16 +29,17 @@ _TINY = float(np.finfo(np.float64).tiny)  # the torch path's pivot floor (never 
 
 
 @_jit
-def _dls(jp, e, damping_sq, free, prior, dq, A, y):
-    """``dq (nj,) = held + J^T (J_free J^T + damping_sq I)^-1 (e - J held)``, ``held = prior * free``, zero
-    at held joints (``free`` 0) but for their ``held``, for ``jp (k, nj)``, ``e (k,)``, ``prior (nj,)`` (the
-    preferred step, zeros without centering): ``iiwa_torch.ik.dls.dls_step_numpy`` as
-    ``JointGoalExtractor.bounded_step`` calls it; ``A (k, k)``, ``y (k, 1)`` scratch."""
+def _dls(jp, e, damping_sq, free, prior, hold, dq, A, y):
+    """``dq (nj,) = held + J^T (J_free J^T + damping_sq I)^-1 (e - J held)``, ``held = prior * free + hold``,
+    zero at held joints (``free`` 0) but for their ``held``, for ``jp (k, nj)``, ``e (k,)``, ``prior (nj,)``
+    (the preferred step, zeros without centering), ``hold (nj,)`` (the held joints' steps, zeros but with
+    ``limit_hold = "limit"``): ``iiwa_torch.ik.dls.dls_step_numpy`` as ``JointGoalExtractor.bounded_step``
+    calls it; ``A (k, k)``, ``y (k, 1)`` scratch."""
     k, nj = jp.shape
     for r in range(k):
         total = 0.0
         for j in range(nj):
-            total += prior[j] * free[j] * jp[r, j]
+            total += (prior[j] * free[j] + hold[j]) * jp[r, j]
         y[r, 0] = e[r] - total
     for r in range(k):
         for c in range(r + 1):
@@ -52,7 +53,7 @@ def _dls(jp, e, damping_sq, free, prior, dq, A, y):
         total = 0.0
         for r in range(k):
             total += jp[r, j] * y[r, 0]
-        dq[j] = prior[j] * free[j] + total * free[j]
+        dq[j] = prior[j] * free[j] + hold[j] + total * free[j]
 
 
 @_jit
@@ -68,6 +69,27 @@ def _bound(u, clip):
         largest = max(largest, abs(u[j]))
     for j in range(u.shape[0]):
         u[j] = u[j] / largest
+
+
+@_jit
+def _bound_guarded(u, clip, guarded, guard, gain, shrunk):
+    """``train.features.JointGoalExtractor.bounded_by_progress`` on one step ``u (nj,)``, in place: clipped
+    (or shrunk) by :func:`_bound`, but with ``guarded``, a clipped step whose progress ``gain . u`` (``gain =
+    J^T e max_step``) is below ``guard`` times the shrunk step's is shrunk instead; ``shrunk (nj,)`` scratch."""
+    if not guarded:
+        _bound(u, clip)
+        return
+    for j in range(u.shape[0]):
+        shrunk[j] = u[j]
+    _bound(shrunk, False)
+    _bound(u, True)
+    ahead, behind = 0.0, 0.0
+    for j in range(u.shape[0]):
+        ahead += u[j] * gain[j]
+        behind += shrunk[j] * gain[j]
+    if ahead < guard * behind:
+        for j in range(u.shape[0]):
+            u[j] = shrunk[j]
 
 
 @_jit
@@ -102,8 +124,8 @@ def _hildreth(x, normal, scaled, bound, sweeps):
 
 @_jit
 def features(observation, achieved, desired, e, q, inv_scales, max_step, damping_sq, lower, upper, error_damping,
-             clip, limit_rounds, orientation_weight, centering, twist, damper, clearance_start, K, table, base, tool,
-             modified):
+             clip, limit_rounds, orientation_weight, centering, twist, guarded, guard, hold_at_limit, damper,
+             clearance_start, K, table, base, tool, modified):
     """The extractor's features ``(B, F)`` in ``observation``'s dtype.
 
     ``observation (B, O)``, ``achieved``, ``desired (B, G)`` as observed; ``e (B, k)`` float64, the
@@ -111,7 +133,8 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
     ``inv_scales (S,)`` in the goals' dtype; ``max_step``, ``lower``, ``upper (nj,)``, ``damping_sq
     (L,)`` float64; ``error_damping``, ``orientation_weight`` floats, ``clip`` (else shrink),
     ``limit_rounds`` int; ``centering`` (``null_space_centering``, 0: none) and ``twist``
-    (``centering_twist``); ``damper (3,)`` = ``xi, safe, influence`` or empty (no avoidance), with the
+    (``centering_twist``); ``guarded`` (``clip_guard`` set) and ``guard`` (its value); ``hold_at_limit``
+    (``limit_hold == "limit"``); ``damper (3,)`` = ``xi, safe, influence`` or empty (no avoidance), with the
     ``K`` capsules' rows from column ``clearance_start`` of ``observation``; the chain's ``float_arrays``."""
     B, width_obs = observation.shape
     G, S, k = desired.shape[1], inv_scales.shape[0], e.shape[1]
@@ -123,6 +146,7 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
     jac = jacobians(table, base, tool, modified, q)
     jp, A, y = np.empty((k, nj)), np.empty((k, k)), np.empty((k, 1))
     dq, free, step, prior = np.empty(nj), np.empty(nj), np.empty(nj), np.zeros(nj)
+    hold, gain, shrunk = np.zeros(nj), np.empty(nj), np.empty(nj)
     normal, scaled, bound = np.zeros((K, nj)), np.empty((K, nj)), np.empty(K)
     H, row, columns = np.empty((nj, nj)), np.empty(k), np.empty((nj, K))
     for b in range(B):
@@ -149,6 +173,11 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
             size += e[b, r] * e[b, r]
             row[r] = e[b, r]
         size = math.sqrt(size)
+        for j in range(nj):  # J^T e max_step: the first-order progress of a step in actions (clip_guard)
+            total = 0.0
+            for r in range(k):
+                total += jp[r, j] * e[b, r]
+            gain[j] = total * max_step[j]
         if centering:  # the preferred step (JointGoalExtractor.centering_step, last_joint_twist)
             phi = 0.0
             if twist:
@@ -176,23 +205,26 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
             d = damping_sq[lam] if error_damping == 0.0 else (math.sqrt(damping_sq[lam]) + error_damping * size) ** 2
             # the bounded DLS step (JointGoalExtractor.bounded_step), its limit rounds
             free[:] = 1.0
-            _dls(jp, row, d, free, prior, dq, A, y)
+            hold[:] = 0.0
+            _dls(jp, row, d, free, prior, hold, dq, A, y)
             for _ in range(limit_rounds):
                 for j in range(nj):
                     step[j] = dq[j] / max_step[j]
-                _bound(step, clip)
+                _bound_guarded(step, clip, guarded, guard, gain, shrunk)
                 blocked = False
                 for j in range(nj):
                     move = step[j] * max_step[j]
                     end = q[b, j] + move
                     if free[j] > 0 and ((end > upper[j] and move > 0) or (end < lower[j] and move < 0)):
                         free[j], blocked = 0.0, True
+                        if hold_at_limit:  # onto the limit it would pass
+                            hold[j] = (upper[j] if move > 0 else lower[j]) - q[b, j]
                 if not blocked:
                     break
-                _dls(jp, row, d, free, prior, dq, A, y)
+                _dls(jp, row, d, free, prior, hold, dq, A, y)
             for j in range(nj):
                 step[j] = dq[j] / max_step[j]
-            _bound(step, clip)
+            _bound_guarded(step, clip, guarded, guard, gain, shrunk)
             if avoid:  # the velocity damper in the metric J^T J + d I (train.features.velocity_damper)
                 for r in range(nj):
                     for c in range(r + 1):
