@@ -173,3 +173,60 @@ def test_controller_alone_is_the_dls_step_and_leaves_the_model_as_it_was():
     assert not np.allclose(before, step.numpy(), atol=1e-3)
     np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], before)
     assert controller_alone(SimpleNamespace(policy=object())) is None
+
+
+def test_keep_progress_keeps_the_dls_steps_first_order_progress(small_kernel):
+    """``keep_progress``: the head's mean has a first-order progress ``g . mean`` (``g = J^T e / |e|`` in
+    actions) of at least the DLS step's where it needs no shrink into [-1, 1], and never a negative one
+    (on 256 random head inputs with random corrections); without it the same corrections slow some
+    approaches. The one-row paths (numpy or compiled: ``small_kernel``) give the batch's means, on the
+    head and on the whole policy (64 arms after random motion)."""
+    from stable_baselines3 import PPO
+
+    rng = np.random.default_rng(3)
+    n, nj = 256, 7
+    step = rng.uniform(-0.3, 0.3, (n, nj))
+    distance, gradient = rng.uniform(0.005, 0.5, (n, 1)), rng.normal(size=(n, nj))
+    bias = torch.from_numpy(rng.uniform(-0.5, 0.5, nj).astype(np.float32))
+    means = {}
+    for keep in (True, False):
+        hp = tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, "n_envs": 64, "policy_kwargs": {
+            **HP["policy_kwargs"], "keep_progress": keep}, "env_kwargs": {"terminate_on_success": False},
+            "features_extractor_kwargs": {"scales": [0.3, 0.03, 0.003], "dampings": [0.1, 0.01]}})
+        kwargs = tr.algo_kwargs("ppo", hp)
+        policy = kwargs.pop("policy")
+        venv = tr.build_venv("IiwaReach-v0", hp, 0)
+        model = PPO(policy, venv, device="cpu", seed=0, **kwargs)
+        head = model.policy.action_net
+        parts = [rng.normal(size=(n, head.linear.in_features)), step, distance] + ([gradient] if keep else [])
+        latent = torch.from_numpy(np.concatenate(parts, -1).astype(np.float32))
+        with torch.no_grad():
+            head.linear.bias.copy_(bias)
+            means[keep] = head(latent).double()
+            torch.testing.assert_close(torch.cat([head(latent[i : i + 1]) for i in range(n)]).double(), means[keep],
+                                       rtol=0, atol=1e-5)
+            obs = venv.reset()
+            for _ in range(5):
+                obs, *_ = venv.step(rng.uniform(-1, 1, (64, nj)).astype(np.float32))
+            x = model.policy.obs_to_tensor(obs)[0]
+            rows = torch.cat([model.policy._predict({k: v[i : i + 1] for k, v in x.items()}, True) for i in range(64)])
+            torch.testing.assert_close(rows, model.policy._predict(x, True), rtol=0, atol=1e-5)
+    g = torch.from_numpy(gradient) * model.policy.features_extractor.max_step
+    base = (g * torch.from_numpy(step)).sum(-1)
+    ahead = {keep: (g * mean).sum(-1) for keep, mean in means.items()}
+    unshrunk = means[True].abs().amax(-1) < 1 - 1e-6
+    assert unshrunk.sum() >= 50
+    assert bool((ahead[True][unshrunk] >= base[unshrunk] - 1e-5).all())
+    assert bool((ahead[True][base > 0] >= -1e-6).all())
+    assert bool((ahead[False] < base - 1e-3).sum() >= 50)
+
+
+def test_keep_progress_must_be_a_bool():
+    from stable_baselines3 import PPO
+
+    bad = {**HP, "policy_kwargs": {**HP["policy_kwargs"], "keep_progress": 1}}
+    hp = tr.load_hyperparams("ppo", "IiwaReach-v0", bad)
+    kwargs = tr.algo_kwargs("ppo", hp)
+    policy = kwargs.pop("policy")
+    with pytest.raises(ValueError, match="keep_progress must be True or False"):
+        PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)

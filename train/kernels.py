@@ -270,27 +270,36 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
 
 
 @_jit
-def residual_mean(step, distance, correction, damper, gate):
+def residual_mean(step, distance, correction, damper, gradient, ahead_scale, gate):
     """``_ResidualHead``'s mean ``(B, nj)`` float32: ``step + d / (d + gate) * correction`` in float32
-    (the numpy path's operations, so the same bits), then, with ``K = damper.shape[1] / (nj + 1)``
-    constraints, Hildreth's sweeps on the damper's constraints and the shrink (in float64, rounded
+    (the numpy path's operations, so the same bits), then, with constraints (``K = damper.shape[1] /
+    (nj + 1)`` of the damper, and the progress constraint ``a . x >= a . step``, ``a = gradient *
+    ahead_scale``, when ``ahead_scale`` is not empty), Hildreth's sweeps and the shrink (in float64, rounded
     back: the same values to float32 rounding where a constraint acts).
 
-    ``step``, ``correction (B, nj)``, ``distance (B, 1)`` (m), ``damper (B, K nj + K)`` (the normals
-    in actions, then the bounds), float32; ``gate`` (m) a float32."""
+    ``step``, ``correction``, ``gradient (B, nj)`` (``(B, 0)`` without progress constraint), ``distance
+    (B, 1)`` (m), ``damper (B, K nj + K)`` (the normals in actions, then the bounds), ``ahead_scale (nj,)``
+    or ``(0,)``, float32; ``gate`` (m) a float32."""
     B, nj = step.shape
     K = damper.shape[1] // (nj + 1)
+    P = 1 if ahead_scale.shape[0] else 0
     out = np.empty((B, nj), dtype=np.float32)
-    x, normal, bound = np.empty(nj), np.empty((K, nj)), np.empty(K)
+    x, normal, bound = np.empty(nj), np.empty((P + K, nj)), np.empty(P + K)
     for b in range(B):
         weight = distance[b, 0] / (distance[b, 0] + gate)
         for j in range(nj):
             x[j] = step[b, j] + weight * correction[b, j]
-        if K:
+        if P + K:
+            if P:
+                total = 0.0
+                for j in range(nj):
+                    normal[0, j] = float(gradient[b, j]) * float(ahead_scale[j])
+                    total += normal[0, j] * float(step[b, j])
+                bound[0] = total
             for c in range(K):
                 for j in range(nj):
-                    normal[c, j] = damper[b, c * nj + j]
-                bound[c] = damper[b, K * nj + c]
+                    normal[P + c, j] = damper[b, c * nj + j]
+                bound[P + c] = damper[b, K * nj + c]
             _hildreth(x, normal, normal, bound, 5)
             _bound(x, False)
         for j in range(nj):

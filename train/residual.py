@@ -68,38 +68,51 @@ class _LatentWithBase(nn.Module):
 
 
 class _ResidualHead(nn.Module):
-    """``cat(latent (B, L), step (B, nj), d (B, 1)[, normal (B, K nj), bound (B, K)])`` -> the action
-    mean ``step + d / (d + s) * linear(latent)``, kept within the K constraints if given."""
+    """``cat(latent (B, L), step (B, nj), d (B, 1), normal (B, K nj), bound (B, K), gradient (B, nj or 0))``
+    -> the action mean ``step + d / (d + s) * linear(latent)``, kept within the K damper constraints and,
+    with ``max_step`` (``(nj,)`` rad per action, for ``keep_progress``), the constraint
+    ``g . mean >= g . step`` (``g = gradient * max_step``: ``J^T e`` in actions, so the first-order
+    progress towards the goal is at least the DLS step's)."""
 
-    def __init__(self, linear: nn.Linear, gate_distance: float, constraints: int = 0):
+    def __init__(self, linear: nn.Linear, gate_distance: float, constraints: int = 0,
+                 max_step: torch.Tensor | None = None):
         super().__init__()
         self.linear, self.gate_distance, self.constraints = linear, gate_distance, constraints
+        self.register_buffer("ahead_scale", None if max_step is None else max_step.float(), persistent=False)
 
     def forward(self, latent: torch.Tensor) -> torch.Tensor:
-        n, nj = self.linear.in_features, self.linear.out_features
-        parts = (latent[:, n : n + nj], latent[:, n + nj : n + nj + 1], latent[:, n + nj + 1 :])
+        n, nj, k = self.linear.in_features, self.linear.out_features, self.constraints
+        end = n + nj + 1 + k * (nj + 1)
+        parts = (latent[:, n : n + nj], latent[:, n + nj : n + nj + 1], latent[:, n + nj + 1 : end], latent[:, end:])
         if not torch.is_grad_enabled() and numpy_ok(latent):  # a few rows at inference: the rest in numpy
             return self.mean_numpy(self.linear.forward(latent[:, :n]).numpy(), *(p.numpy() for p in parts))
         return self._mean(self.linear(latent[:, :n]), *parts, torch)
 
-    def mean_numpy(self, correction, step, distance, damper) -> torch.Tensor:
+    def mean_numpy(self, correction, step, distance, damper, gradient) -> torch.Tensor:
         """The mean (a tensor) from float32 numpy arrays: ``correction = linear(latent)``, ``step (B, nj)``,
-        ``distance (B, 1)``, ``damper (B, K (nj + 1))`` (``(B, 0)`` without constraints); by
-        :func:`train.kernels.residual_mean` (imported, numba with it, on the first call) when
-        :data:`iiwa_torch.compiled.ENABLED`."""
+        ``distance (B, 1)``, ``damper (B, K (nj + 1))`` (``(B, 0)`` without constraints), ``gradient (B, nj)``
+        (``(B, 0)`` without ``max_step``); by :func:`train.kernels.residual_mean` (imported, numba with it, on
+        the first call) when :data:`iiwa_torch.compiled.ENABLED`."""
         if compiled.ENABLED:
             from train.kernels import residual_mean
 
-            return torch.from_numpy(residual_mean(step, distance, correction, damper, np.float32(self.gate_distance)))
-        return torch.from_numpy(self._mean(correction, step, distance, damper, np))
+            scale = np.empty(0, np.float32) if self.ahead_scale is None else self.ahead_scale.numpy()
+            return torch.from_numpy(residual_mean(step, distance, correction, damper, gradient, scale,
+                                                  np.float32(self.gate_distance)))
+        return torch.from_numpy(self._mean(correction, step, distance, damper, gradient, np))
 
-    def _mean(self, correction, step, distance, damper, xp):
+    def _mean(self, correction, step, distance, damper, gradient, xp):
         """The mean from ``correction`` and the parts of :meth:`mean_numpy`, tensors or numpy arrays (``xp``)."""
         mean = step + distance / (distance + self.gate_distance) * correction
         k, nj = self.constraints, step.shape[-1]
-        if not k:
+        normal, bound = damper[:, : k * nj].reshape(step.shape[0], k, nj), damper[:, k * nj :]
+        if self.ahead_scale is not None:  # the progress constraint first, then the damper's
+            ahead = gradient * (self.ahead_scale if xp is torch else self.ahead_scale.numpy())
+            normal = xp.concatenate([ahead[:, None], normal], 1)
+            bound = xp.concatenate([(ahead * step).sum(-1, keepdims=True) if xp is np else
+                                    (ahead * step).sum(-1, keepdim=True), bound], 1)
+        if not normal.shape[1]:
             return mean
-        normal, bound = damper[:, : k * nj].reshape(-1, k, nj), damper[:, k * nj :]
         return shrink(hildreth(mean, normal, normal, bound), xp)
 
 
@@ -111,13 +124,18 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
 
     Args:
         gate_distance: ``s`` (m, > 0): the correction is halved at this distance to the goal.
+        keep_progress: keep the mean's first-order progress towards the goal, ``e . J dq``, at least the
+            DLS step's (one more constraint of the head's Hildreth projection): the correction may turn
+            the step, never slow its approach.
         *args, **kwargs: those of ``MultiInputActorCriticPolicy``.
     """
 
-    def __init__(self, *args, gate_distance: float = 0.01, **kwargs):
+    def __init__(self, *args, gate_distance: float = 0.01, keep_progress: bool = False, **kwargs):
         if isinstance(gate_distance, bool) or not isinstance(gate_distance, (int, float)) or not gate_distance > 0:
             raise ValueError(f"gate_distance must be a positive number (m), got {gate_distance!r}")
-        self.gate_distance = float(gate_distance)
+        if not isinstance(keep_progress, bool):
+            raise ValueError(f"keep_progress must be True or False, got {keep_progress!r}")
+        self.gate_distance, self.keep_progress = float(gate_distance), keep_progress
         super().__init__(*args, **kwargs)
 
     def _predict(self, observation, deterministic: bool = False) -> torch.Tensor:
@@ -139,7 +157,8 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
             super().set_training_mode(mode)
 
     def _get_constructor_parameters(self) -> dict:
-        return {**super()._get_constructor_parameters(), "gate_distance": self.gate_distance}
+        return {**super()._get_constructor_parameters(), "gate_distance": self.gate_distance,
+                "keep_progress": self.keep_progress}
 
     def _build(self, lr_schedule) -> None:
         super()._build(lr_schedule)  # builds mlp_extractor, action_net, value_net and the optimizer
@@ -152,5 +171,8 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
         columns = [ext.step_columns, (ext.distance_column, ext.distance_column + 1)]
         start, k = ext.damper_columns or (ext.distance_column + 1, 0)  # no constraints: an empty block
         columns.append((start, start + k * (ext.nj + 1)))
+        gradient = ext.distance_column - 2 * ext.nj  # J^T e / |e|, the features' column after the steps
+        columns.append((gradient, gradient + ext.nj) if self.keep_progress else (gradient, gradient))
         self.mlp_extractor = _LatentWithBase(self.mlp_extractor, columns)
-        self.action_net = _ResidualHead(self.action_net, self.gate_distance, k)
+        self.action_net = _ResidualHead(self.action_net, self.gate_distance, k,
+                                        ext.max_step if self.keep_progress else None)
