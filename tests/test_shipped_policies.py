@@ -85,7 +85,10 @@ def test_one_env_rollouts_equal_those_of_the_batched_paths(name, dtype, monkeypa
     The same episodes on the batched paths (the clearance of a batch of two copies, by autograd in
     the state's dtype; the network in torch): with a float64 state every observation and action
     agrees to 1e-12; with the default float32 state the first observation to float32 rounding and
-    the rest, where the policy feeds those roundings back over 50 steps, to 1e-4 (measured: 7e-6)."""
+    the rest, where the policy feeds those roundings back over 50 steps, to 1e-4 (measured: 7e-6). A head
+    that projects every action (``keep_progress``: Hildreth's float32 sums, in another order on each
+    path) feeds back float32 rounding with a float64 state too: 1e-4 after the first observation
+    (measured: 2.7e-5)."""
     import envs.core
     import train.features
     from iiwa_torch import collision
@@ -106,6 +109,8 @@ def test_one_env_rollouts_equal_those_of_the_batched_paths(name, dtype, monkeypa
     slow = _episodes(config, act, seeds, state_dtype)
     assert len(fast[1]) == len(slow[1]) >= len(seeds) * 10
     first, rest = (1e-12, 1e-12) if dtype == "float64" else (1e-6, 1e-4)
+    if getattr(model.policy, "keep_progress", False):  # a projection at every step: float32 sums' rounding
+        rest = 1e-4
     for step, (a, b) in enumerate(zip(fast[0], slow[0])):
         for key in a:
             np.testing.assert_allclose(a[key], b[key], rtol=0, atol=first if step == 0 else rest)
