@@ -253,24 +253,30 @@ def test_avoidance_needs_the_clearance_rows():
                            avoidance={"xi": 2.0, "safe": 0.02, "influence": 0.15})
 
 
-def test_limit_rounds_hold_the_joints_a_step_would_push_past_a_limit():
-    """Each arm starts 1 mrad inside a random joint's upper limit, with an error whose plain DLS step
-    pushes that joint out; with ``limit_rounds`` the step keeps every joint within its limits and is the
-    damped least-squares step (numpy's ``lstsq``, finite-difference Jacobian) over the other joints."""
-    chain = iiwa14()
+def _arms_at_an_upper_limit(count: int = 30):
+    """Random arms (seed 5), each 1 mrad inside a random joint ``i``'s upper limit, with a 5 cm position
+    error along that joint's own motion (it pushes the joint out) -> ``(q, i, J_p, error)``; joints that
+    hardly move the point (joint 7 never does) are skipped. ``J_p`` by finite differences."""
     rng = np.random.default_rng(5)
-    lower, upper = chain.limits.numpy()
-    ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,), limit_rounds=3)
-    plain = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,))
-    checked = 0
-    for _ in range(30):
+    lower, upper = iiwa14().limits.numpy()
+    for _ in range(count):
         q = rng.uniform(lower, upper)
         i = rng.integers(7)
         q[i] = upper[i] - 1e-3
         jp = _fd_position_jacobian(q)
-        if np.linalg.norm(jp[:, i]) < 1e-2:  # a joint that hardly moves the point (joint 7 never does)
-            continue
-        error = jp[:, i] * 0.05 / np.linalg.norm(jp[:, i])  # along joint i's own motion: pushes it up
+        if np.linalg.norm(jp[:, i]) >= 1e-2:
+            yield q, i, jp, jp[:, i] * 0.05 / np.linalg.norm(jp[:, i])
+
+
+def test_limit_rounds_hold_the_joints_a_step_would_push_past_a_limit():
+    """Each arm starts 1 mrad inside a random joint's upper limit, with an error whose plain DLS step
+    pushes that joint out; with ``limit_rounds`` the step keeps every joint within its limits and is the
+    damped least-squares step (numpy's ``lstsq``, finite-difference Jacobian) over the other joints."""
+    lower, upper = iiwa14().limits.numpy()
+    ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,), limit_rounds=3)
+    plain = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,))
+    checked = 0
+    for q, i, jp, error in _arms_at_an_upper_limit():
         qt, et, jt = torch.as_tensor(q)[None], torch.as_tensor(error)[None], torch.as_tensor(jp)[None]
         before = plain.bounded_step(qt, jt, et)[0, 0].numpy() * MAX_STEP
         if not q[i] + before[i] > upper[i]:
@@ -293,20 +299,11 @@ def test_limit_hold_limit_moves_a_held_joint_onto_its_limit():
     """As above, each arm 1 mrad inside a joint's upper limit with an error pushing it out: with
     ``limit_hold = "limit"`` that joint steps onto its limit (1 mrad) and the others take the damped
     least-squares step (numpy's ``lstsq``) for the rest of the error, ``e - J_i 1e-3``."""
-    chain = iiwa14()
-    rng = np.random.default_rng(5)
-    lower, upper = chain.limits.numpy()
+    lower, upper = iiwa14().limits.numpy()
     ext = JointGoalExtractor(_space(), "iiwa14", MAX_STEP, dampings=(0.1,), limit_rounds=3, step_bound="clip",
                              limit_hold="limit")
     checked = 0
-    for _ in range(30):
-        q = rng.uniform(lower, upper)
-        i = rng.integers(7)
-        q[i] = upper[i] - 1e-3
-        jp = _fd_position_jacobian(q)
-        if np.linalg.norm(jp[:, i]) < 1e-2:
-            continue
-        error = jp[:, i] * 0.05 / np.linalg.norm(jp[:, i])
+    for q, i, jp, error in _arms_at_an_upper_limit():
         free = np.arange(7) != i
         stacked = np.vstack([jp[:, free], 0.1 * np.eye(6)])
         dq = np.linalg.lstsq(stacked, np.concatenate([error - jp[:, i] * 1e-3, np.zeros(6)]), rcond=None)[0]
