@@ -296,6 +296,8 @@ class JointGoalExtractor(GoalDeltaExtractor):
         self.nj = nj
         #: columns of the output holding the DLS step (in actions) at the first damping
         self.step_columns = (self._features_dim, self._features_dim + nj)
+        #: columns of ``J^T e / |e|`` (m), after the steps of every damping
+        self.gradient_columns = (self._features_dim + len(dampings) * nj, self._features_dim + (len(dampings) + 1) * nj)
         self._features_dim += (len(dampings) + 2) * nj + 1
         #: the column of the distance |e| (m)
         self.distance_column = self._features_dim - 1

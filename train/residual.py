@@ -109,8 +109,7 @@ class _ResidualHead(nn.Module):
         if self.ahead_scale is not None:  # the progress constraint first, then the damper's
             ahead = gradient * (self.ahead_scale if xp is torch else self.ahead_scale.numpy())
             normal = xp.concatenate([ahead[:, None], normal], 1)
-            bound = xp.concatenate([(ahead * step).sum(-1, keepdims=True) if xp is np else
-                                    (ahead * step).sum(-1, keepdim=True), bound], 1)
+            bound = xp.concatenate([(ahead * step).sum(-1)[:, None], bound], 1)
         if not normal.shape[1]:
             return mean
         return shrink(hildreth(mean, normal, normal, bound), xp)
@@ -171,8 +170,8 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
         columns = [ext.step_columns, (ext.distance_column, ext.distance_column + 1)]
         start, k = ext.damper_columns or (ext.distance_column + 1, 0)  # no constraints: an empty block
         columns.append((start, start + k * (ext.nj + 1)))
-        gradient = ext.distance_column - 2 * ext.nj  # J^T e / |e|, the features' column after the steps
-        columns.append((gradient, gradient + ext.nj) if self.keep_progress else (gradient, gradient))
+        gradient = ext.gradient_columns
+        columns.append(gradient if self.keep_progress else (gradient[0], gradient[0]))  # unused: an empty block
         self.mlp_extractor = _LatentWithBase(self.mlp_extractor, columns)
         self.action_net = _ResidualHead(self.action_net, self.gate_distance, k,
                                         ext.max_step if self.keep_progress else None)
