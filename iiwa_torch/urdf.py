@@ -1,6 +1,8 @@
-"""Export a :class:`~iiwa_torch.dh.DHChain` to URDF, so other tools load the same robot.
+"""URDF both ways: :func:`to_urdf` writes a :class:`~iiwa_torch.dh.DHChain` so other tools load
+the same robot; :func:`read_urdf` reads the serial path between two links of any URDF as plain
+float64 data (:class:`UrdfPath`).
 
-Links are ``base_link``, ``link1`` ... ``linkN`` (link i carries DH frame i) and
+Export: links are ``base_link``, ``link1`` ... ``linkN`` (link i carries DH frame i) and
 ``tool0`` (the end effector). Revolute joint i sits where DH rotates about z:
 
 - standard DH: its origin is the previous link's constant part ``Tz(d) Tx(a) Rx(alpha)``
@@ -13,20 +15,27 @@ have no visuals and a token inertia (kinematics only).
 
 from __future__ import annotations
 
+import math
+import os
+from dataclasses import dataclass
+from xml.etree import ElementTree
 from xml.sax.saxutils import quoteattr
 
 import torch
 
 from .dh import Convention, DHChain
 from .kinematics import elementary_transform
-from .so3 import matrix_to_rpy
+from .so3 import matrix_to_rpy, rpy_to_matrix
 
-__all__ = ["to_urdf"]
+__all__ = ["UrdfJoint", "UrdfPath", "read_urdf", "to_urdf"]
+
+MOVABLE = ("revolute", "continuous", "prismatic")
+_JOINT_ELEMENTS = ("origin", "parent", "child", "axis", "limit", "mimic")  # the kinematic ones
 
 
 def _origin(matrix: torch.Tensor) -> str:
-    xyz = " ".join(f"{v:.12g}" for v in matrix[:3, 3].tolist())
-    rpy = " ".join(f"{v:.12g}" for v in matrix_to_rpy(matrix[:3, :3]).tolist())
+    xyz = " ".join(repr(v) for v in matrix[:3, 3].tolist())
+    rpy = " ".join(repr(v) for v in matrix_to_rpy(matrix[:3, :3]).tolist())
     return f'<origin xyz="{xyz}" rpy="{rpy}"/>'
 
 
@@ -55,8 +64,8 @@ def to_urdf(chain: DHChain, name: str | None = None) -> str:
         lines.append(
             f'  <joint name={quoteattr(joint)} type="revolute">'
             f'<parent link="{links[i]}"/><child link="{links[i + 1]}"/>{_origin(origin)}'
-            f'<axis xyz="0 0 1"/><limit lower="{lower[i]:.12g}" upper="{upper[i]:.12g}" '
-            f'effort="100" velocity="{speeds[i]:.12g}"/></joint>'
+            f'<axis xyz="0 0 1"/><limit lower="{lower[i]!r}" upper="{upper[i]!r}" '
+            f'effort="100" velocity="{speeds[i]!r}"/></joint>'
         )
     tool = carry @ chain.tool.detach().cpu().to(torch.float64)
     lines.append(
@@ -65,3 +74,220 @@ def to_urdf(chain: DHChain, name: str | None = None) -> str:
     )
     lines.append("</robot>")
     return "\n".join(lines) + "\n"
+
+
+Matrix = tuple[tuple[float, float, float, float], ...]  # 4x4, row-major
+
+
+@dataclass(frozen=True)
+class UrdfJoint:
+    """One movable joint of a :class:`UrdfPath`.
+
+    ``origin``: 4x4 from the previous movable joint's child link (``base_link`` for the first) to
+    this joint's frame at q = 0, fixed joints in between folded in. ``axis``: unit vector in this
+    joint's frame. ``lower``/``upper`` in rad (m for prismatic), infinite for continuous;
+    ``velocity`` in rad/s (m/s), None if not given or 0.
+    """
+
+    name: str
+    kind: str  # "revolute", "continuous" or "prismatic"
+    origin: Matrix
+    axis: tuple[float, float, float]
+    lower: float
+    upper: float
+    velocity: float | None
+    child: str
+
+
+@dataclass(frozen=True)
+class UrdfPath:
+    """The serial path of a URDF from ``base_link`` to ``end_link``: its movable ``joints`` in
+    order, ``tool`` the 4x4 from the last one's child link to ``end_link`` (fixed joints), and
+    ``links`` the joints' child links."""
+
+    robot: str
+    base_link: str
+    end_link: str
+    joints: tuple[UrdfJoint, ...]
+    tool: Matrix
+    links: tuple[str, ...]
+
+
+def _document(source: str | os.PathLike) -> str | bytes:
+    if isinstance(source, str) and source.lstrip().startswith("<"):
+        return source
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"source must be a URDF file path or URDF XML text, got {type(source).__name__}")
+    path = os.fspath(source)
+    if not os.path.isfile(path):
+        raise ValueError(f"source: no URDF file at {path!r} (pass a file path or the XML text itself)")
+    with open(path, "rb") as file:  # bytes: the parser reads the encoding declaration itself
+        return file.read()
+
+
+def _kinematic_xml(document: str | bytes) -> str:
+    """The robot's links (names only) and joints (their kinematic elements only): transmissions,
+    gazebo blocks, visuals and the like go, so a parser strict about them cannot fail on them."""
+    try:
+        robot = ElementTree.fromstring(document)
+    except ElementTree.ParseError as err:
+        raise ValueError(f"source is not well-formed XML: {err}") from None
+    if robot.tag != "robot":
+        raise ValueError(f"source must be a URDF, whose root element is <robot>, got <{robot.tag}>")
+    kept = ElementTree.Element("robot", robot.attrib)
+    for element in robot:
+        if element.tag == "link":
+            ElementTree.SubElement(kept, "link", element.attrib)
+        elif element.tag == "joint":
+            joint = ElementTree.SubElement(kept, "joint", element.attrib)
+            joint.extend(child for child in element if child.tag in _JOINT_ELEMENTS)
+    return ElementTree.tostring(kept, encoding="unicode")
+
+
+def _transform(origin, joint: str) -> torch.Tensor:
+    """``(4, 4)`` float64 of a parsed ``<origin>`` (identity if absent)."""
+    xyz, rpy = (origin.xyz, origin.rpy) if origin is not None else ((0.0,) * 3, (0.0,) * 3)
+    if not all(map(math.isfinite, (*xyz, *rpy))):
+        raise ValueError(f"joint {joint!r}: origin must be finite, got xyz={xyz}, rpy={rpy}")
+    matrix = torch.eye(4, dtype=torch.float64)
+    matrix[:3, :3] = rpy_to_matrix(torch.tensor(rpy, dtype=torch.float64))
+    matrix[:3, 3] = torch.tensor(xyz, dtype=torch.float64)
+    return matrix
+
+
+def _rows(matrix: torch.Tensor) -> Matrix:
+    return tuple(map(tuple, matrix.tolist()))
+
+
+def _movable(joint, origin: torch.Tensor) -> UrdfJoint:
+    """A parsed revolute/continuous/prismatic joint, its origin already folded."""
+    axis = tuple(joint.axis) if joint.axis is not None else (1.0, 0.0, 0.0)  # URDF's default
+    norm = math.hypot(*axis)
+    if not (math.isfinite(norm) and norm > 0):
+        raise ValueError(f"joint {joint.name!r}: axis must be a nonzero finite vector, got {axis}")
+    limit = joint.limit
+    if joint.type == "continuous":
+        lower, upper = -math.inf, math.inf
+    elif limit is None:
+        raise ValueError(f"joint {joint.name!r} is {joint.type} and has no <limit> (URDF requires one)")
+    else:
+        lower, upper = limit.lower, limit.upper
+        if not (math.isfinite(lower) and math.isfinite(upper) and lower <= upper):
+            raise ValueError(f"joint {joint.name!r}: limits must be finite with lower <= upper, got {lower}, {upper}")
+    velocity = limit.velocity if limit is not None else None
+    if velocity is not None and not (velocity >= 0 and math.isfinite(velocity)):
+        raise ValueError(f"joint {joint.name!r}: velocity limit must be finite and >= 0, got {velocity}")
+    return UrdfJoint(
+        name=joint.name,
+        kind=joint.type,
+        origin=_rows(origin),
+        axis=tuple(v / norm for v in axis),
+        lower=lower,
+        upper=upper,
+        velocity=velocity or None,
+        child=joint.child,
+    )
+
+
+def _known_link(name, argument: str, links: list[str]) -> str:
+    if not isinstance(name, str):
+        raise TypeError(f"{argument} must be a link name (str) or None, got {type(name).__name__}")
+    if name not in links:
+        shown = ", ".join(links[:6]) + (", ..." if len(links) > 6 else "")
+        raise ValueError(f"{argument} {name!r} is not a link of this URDF (links: {shown})")
+    return name
+
+
+def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link: str | None = None) -> UrdfPath:
+    """The serial path of a URDF from ``base_link`` to ``end_link``, in float64 Python floats.
+
+    ``source``: a ``.urdf`` file path, or the XML text (a str starting with ``<``). The tree is
+    parsed by pytorch_kinematics' URDF parser (the ``urdf`` extra), after dropping the elements
+    that do not describe kinematics; the numbers are read exactly (no float32 chain).
+    ``base_link`` defaults to the root link, ``end_link`` to the only leaf below ``base_link``.
+    Fixed joints on the path are folded into the next joint's origin (or the tool); joints off
+    the path are ignored. Raises ``ValueError`` for a malformed file, unknown links, an
+    ``end_link`` not below ``base_link``, a floating, planar or mimic joint on the path, a zero
+    axis, or a path without movable joints.
+    """
+    kinematic = _kinematic_xml(_document(source))
+    try:
+        from pytorch_kinematics.urdf_parser_py.urdf import URDF
+    except ModuleNotFoundError as err:
+        raise ModuleNotFoundError(
+            f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'", name=err.name
+        ) from err
+    try:
+        robot = URDF.from_xml_string(kinematic)
+    except Exception as err:  # the parser raises its ParseError, AssertionError or a bare Exception
+        raise ValueError(f"source is not a valid URDF: {err}") from None
+
+    links = [link.name for link in robot.links]
+    parent_joint, children = {}, {name: [] for name in links}  # child link -> joint; link -> child links
+    for joint in robot.joints:
+        for name in (joint.parent, joint.child):
+            if name not in children:
+                raise ValueError(f"joint {joint.name!r} names link {name!r}, which the URDF does not declare")
+        if joint.child in parent_joint:
+            raise ValueError(
+                f"link {joint.child!r} is the child of two joints, {parent_joint[joint.child].name!r} "
+                f"and {joint.name!r}: a URDF is a tree"
+            )
+        parent_joint[joint.child] = joint
+        children[joint.parent].append(joint.child)
+    roots = [name for name in links if name not in parent_joint]
+    if len(roots) != 1:
+        raise ValueError(f"a URDF has one root link (no parent joint), this one has {len(roots)}: {roots}")
+
+    def below(top: str) -> list[str]:  # top and every link under it, depth first
+        found, stack = [], [top]
+        while stack:
+            found.append(stack.pop())
+            stack.extend(reversed(children[found[-1]]))
+        return found
+
+    tree = below(roots[0])
+    if len(tree) != len(links):
+        cut = sorted(set(links) - set(tree))
+        raise ValueError(f"links {cut} hang off a cycle of joints, not off the root {roots[0]!r}: a URDF is a tree")
+    base = roots[0] if base_link is None else _known_link(base_link, "base_link", links)
+    if end_link is None:
+        leaves = [name for name in below(base) if not children[name]]
+        if len(leaves) != 1:
+            raise ValueError(
+                f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(leaves)}); "
+                "pass end_link= to choose one"
+            )
+        end = leaves[0]
+    else:
+        end = _known_link(end_link, "end_link", links)
+
+    path, link = [], end
+    while link != base:
+        if link not in parent_joint:
+            raise ValueError(f"end_link {end!r} is not below base_link {base!r}")
+        path.append(parent_joint[link])
+        link = parent_joint[link].parent
+    carry, joints = torch.eye(4, dtype=torch.float64), []  # carry: fixed transforms waiting for a joint
+    for joint in reversed(path):
+        if joint.mimic is not None:
+            raise ValueError(f"joint {joint.name!r} mimics {joint.mimic.joint!r}: mimic joints are not supported")
+        if joint.type not in (*MOVABLE, "fixed"):
+            raise ValueError(
+                f"joint {joint.name!r} between {base!r} and {end!r} is {joint.type}; "
+                f"supported are {', '.join(MOVABLE)} and fixed joints"
+            )
+        carry = carry @ _transform(joint.origin, joint.name)
+        if joint.type != "fixed":
+            joints.append(_movable(joint, carry))
+            carry = torch.eye(4, dtype=torch.float64)
+    if not joints:
+        raise ValueError(f"no movable joint between base_link {base!r} and end_link {end!r}")
+    return UrdfPath(
+        robot=robot.name or "",
+        base_link=base,
+        end_link=end,
+        joints=tuple(joints),
+        tool=_rows(carry),
+        links=tuple(j.child for j in joints),
+    )

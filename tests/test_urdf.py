@@ -26,10 +26,10 @@ def test_pinocchio_reproduces_fk(chain):
     for qi in q.numpy():
         pin.framesForwardKinematics(model, data, qi)
         got.append(data.oMf[frame].homogeneous.copy())
-    # 12 significant digits in the file
-    np.testing.assert_allclose(np.stack(got), chain.fk(q).numpy(), atol=1e-10)
-    np.testing.assert_allclose(model.lowerPositionLimit, chain.limits[0].numpy(), atol=1e-11)
-    np.testing.assert_allclose(model.upperPositionLimit, chain.limits[1].numpy(), atol=1e-11)
+    # the file's numbers round-trip float64 exactly
+    np.testing.assert_allclose(np.stack(got), chain.fk(q).numpy(), atol=1e-12)
+    np.testing.assert_array_equal(model.lowerPositionLimit, chain.limits[0].numpy())
+    np.testing.assert_array_equal(model.upperPositionLimit, chain.limits[1].numpy())
 
 
 def test_joint_names_and_speeds_exported():
