@@ -220,7 +220,7 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
     try:
         robot = URDF.from_xml_string(kinematic)
     except Exception as err:  # the parser raises its ParseError, AssertionError or a bare Exception
-        raise ValueError(f"source is not a valid URDF: {err}") from None
+        raise ValueError(f"source is not a valid URDF: {err}".replace("\n", " ")) from None
 
     links = [link.name for link in robot.links]
     parent_joint, children = {}, {name: [] for name in links}  # child link -> joint; link -> child links
