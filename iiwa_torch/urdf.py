@@ -198,6 +198,43 @@ def _known_link(name, argument: str, links: list[str]) -> str:
     return name
 
 
+def _below(top: str, children: dict[str, list[str]]) -> list[str]:
+    """``top`` and every link under it, depth first."""
+    found, stack = [], [top]
+    while stack:
+        found.append(stack.pop())
+        stack.extend(reversed(children[found[-1]]))
+    return found
+
+
+def _tree(links: list[str], joints: list) -> tuple[str, dict, dict[str, list[str]]]:
+    """The root link, each link's parent joint and each link's child links of a parsed URDF,
+    checked to be one tree of uniquely named links and joints."""
+    for kind, names in (("link", links), ("joint", [joint.name for joint in joints])):
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice:
+            raise ValueError(f"{kind} names must be unique, got {twice} more than once")
+    parent_joint, children = {}, {name: [] for name in links}
+    for joint in joints:
+        for name in (joint.parent, joint.child):
+            if name not in children:
+                raise ValueError(f"joint {joint.name!r} names link {name!r}, which the URDF does not declare")
+        if joint.child in parent_joint:
+            raise ValueError(
+                f"link {joint.child!r} is the child of two joints, {parent_joint[joint.child].name!r} "
+                f"and {joint.name!r}: a URDF is a tree"
+            )
+        parent_joint[joint.child] = joint
+        children[joint.parent].append(joint.child)
+    roots = [name for name in links if name not in parent_joint]
+    if len(roots) != 1:
+        raise ValueError(f"a URDF has one root link (no parent joint), this one has {len(roots)}: {roots}")
+    cut = set(links) - set(_below(roots[0], children))
+    if cut:
+        raise ValueError(f"links {sorted(cut)} hang off a cycle of joints, not off the root {roots[0]!r}")
+    return roots[0], parent_joint, children
+
+
 def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link: str | None = None) -> UrdfPath:
     """The serial path of a URDF from ``base_link`` to ``end_link``, in float64 Python floats.
 
@@ -223,36 +260,10 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
         raise ValueError(f"source is not a valid URDF: {err}".replace("\n", " ")) from None
 
     links = [link.name for link in robot.links]
-    parent_joint, children = {}, {name: [] for name in links}  # child link -> joint; link -> child links
-    for joint in robot.joints:
-        for name in (joint.parent, joint.child):
-            if name not in children:
-                raise ValueError(f"joint {joint.name!r} names link {name!r}, which the URDF does not declare")
-        if joint.child in parent_joint:
-            raise ValueError(
-                f"link {joint.child!r} is the child of two joints, {parent_joint[joint.child].name!r} "
-                f"and {joint.name!r}: a URDF is a tree"
-            )
-        parent_joint[joint.child] = joint
-        children[joint.parent].append(joint.child)
-    roots = [name for name in links if name not in parent_joint]
-    if len(roots) != 1:
-        raise ValueError(f"a URDF has one root link (no parent joint), this one has {len(roots)}: {roots}")
-
-    def below(top: str) -> list[str]:  # top and every link under it, depth first
-        found, stack = [], [top]
-        while stack:
-            found.append(stack.pop())
-            stack.extend(reversed(children[found[-1]]))
-        return found
-
-    tree = below(roots[0])
-    if len(tree) != len(links):
-        cut = sorted(set(links) - set(tree))
-        raise ValueError(f"links {cut} hang off a cycle of joints, not off the root {roots[0]!r}: a URDF is a tree")
-    base = roots[0] if base_link is None else _known_link(base_link, "base_link", links)
+    root, parent_joint, children = _tree(links, robot.joints)
+    base = root if base_link is None else _known_link(base_link, "base_link", links)
     if end_link is None:
-        leaves = [name for name in below(base) if not children[name]]
+        leaves = [name for name in _below(base, children) if not children[name]]
         if len(leaves) != 1:
             raise ValueError(
                 f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(leaves)}); "

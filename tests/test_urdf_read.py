@@ -250,6 +250,8 @@ ERRORS = {  # (URDF, read_urdf's arguments, message)
     "two roots": (_robot(J, "abc"), {"end_link": "b"}, "one root link .* 2: \\['a', 'c'\\]"),
     "two parents": (_robot(J + _joint("k", "c", "b"), "abc"), {}, "'b' is the child of two joints, 'j' and 'k'"),
     "cycle": (_robot(J + _joint("k", "c", "d") + _joint("l", "d", "c"), "abcd"), {}, "cycle"),
+    "same link twice": (_robot(J, "abb"), {}, r"link names must be unique, got \['b'\] more than once"),
+    "same joint twice": (_robot(J + _joint("j", "b", "c"), "abc"), {}, r"joint names must be unique, got \['j'\]"),
     "bad joint type": (_robot(_joint("j", "a", "b", "hinge"), "ab"), {}, "not a valid URDF: .*Invalid joint type"),
     "bad number": (_robot(_joint("j", "a", "b", extra='<origin xyz="0 x 0"/>'), "ab"), {}, "not a valid URDF"),
     "nan origin": (_robot(_joint("j", "a", "b", extra=f'<origin xyz="0 nan 0"/>{LIMIT}'), "ab"), {}, "origin must be"),
