@@ -8,15 +8,15 @@ from __future__ import annotations
 
 import importlib
 
-__all__ = ["Convention", "DHChain", "collision", "robots", "so3"]
+__all__ = ["Chain", "Convention", "DHChain", "JointKind", "collision", "robots", "so3"]
 __version__ = "0.1.0"
 
-_FROM_DH = {"Convention", "DHChain"}
+_HOMES = {"Chain": ".chain", "JointKind": ".chain", "Convention": ".dh", "DHChain": ".dh"}
 
 
 def __getattr__(name: str):
-    if name in _FROM_DH:
-        return getattr(importlib.import_module(".dh", __name__), name)
+    if name in _HOMES:
+        return getattr(importlib.import_module(_HOMES[name], __name__), name)
     if name in __all__:
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

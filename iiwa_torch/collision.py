@@ -1,7 +1,7 @@
 """Capsule models of the presets, obstacle worlds and differentiable clearance (signed distance).
 
 A robot is a set of K capsules (a segment and a radius), each fixed in one of the frames
-``DHChain.fk_all`` returns. :func:`clearance` is the smallest signed distance in metres
+``Chain.fk_all`` returns. :func:`clearance` is the smallest signed distance in metres
 (negative when two shapes overlap) over the self-collision pairs and the capsule-obstacle
 pairs; :func:`pairwise_clearance` returns every distance with the names of its pair.
 Sizes and sources of the capsules, the formulas and the references they are tested
@@ -27,6 +27,7 @@ from torch import Tensor
 
 from . import compiled
 from . import kinematics as kin
+from .chain import Chain
 from .checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
 from .dh import DHChain
 from .so3 import check_rigid
@@ -403,7 +404,7 @@ class Capsules:
     @classmethod
     def build(
         cls,
-        chain: DHChain,
+        chain: Chain,
         names,
         frames,
         points,
@@ -446,12 +447,12 @@ def _describe(x) -> str:
 
 
 def self_collision_pairs(
-    chain: DHChain, capsules: Capsules, samples: int = 4096, seed: int = 0
+    chain: Chain, capsules: Capsules, samples: int = 4096, seed: int = 0
 ) -> tuple[tuple[int, int], ...]:
     """Pairs worth checking: every ``(i, j)`` except neighbours in the list (``j = i + 1``, the
     links on either side of a joint) and pairs that overlap in every one of ``samples``
     uniform in-limit configurations (drawn with ``seed``): those touch by construction."""
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     check_instance(capsules, Capsules, "capsules")
     check_positive(samples, "samples", integer=True)
     check_nonnegative(seed, "seed", integer=True)
@@ -468,7 +469,7 @@ def self_collision_pairs(
     return tuple(pair for pair, ok in zip(candidates, keep) if ok)
 
 
-def _capsule_segments(chain: DHChain, capsules: Capsules, q: Tensor) -> tuple[Tensor, Tensor]:
+def _capsule_segments(chain: Chain, capsules: Capsules, q: Tensor) -> tuple[Tensor, Tensor]:
     """``q (..., n)`` -> each capsule's start point and start-to-end vector in the world frame,
     component first, ``(3, K, B)`` each over the ``B`` flattened configurations (this layout
     keeps every elementwise op of the distance kernels contiguous). A fixed number of tensor
@@ -514,8 +515,12 @@ def robot_capsules(chain: DHChain) -> Capsules:
     are in docs/collision.md. The base capsule is not checked against the floor it stands on;
     the planar arm lies in the z = 0 plane, so its default world has no floor. Self pairs:
     every pair but neighbours in the list (no other pair overlaps in every posture). Built
-    once per chain name and DH table, then shared (the model is frozen)."""
-    check_instance(chain, DHChain, "chain")
+    once per chain name and DH table, then shared (the model is frozen). Another arm (a URDF
+    chain) has no preset model: pass ``capsules=`` to the functions that take one."""
+    check_instance(chain, Chain, "chain")
+    if not isinstance(chain, DHChain):
+        raise ValueError(f"chain {chain.name!r} is not a DH preset, so it has no preset capsule model; build a "
+                         "collision.Capsules for it and pass capsules=")
     dh = chain.dh.tolist()
     key = (chain.name, tuple(map(tuple, dh)))  # all the model depends on; it is frozen, so shared
     if key not in _MODELS:
@@ -706,7 +711,7 @@ class Clearances:
     pairs: tuple[tuple[str, str], ...]
 
 
-def _check_query(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> None:
+def _check_query(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> None:
     chain.check_q(q)
     if max(capsules.frames) > chain.n_joints:
         raise ValueError(f"capsules use frames {capsules.frames} but the chain has {chain.n_joints + 1} frames")
@@ -718,9 +723,9 @@ def _check_query(chain: DHChain, q: Tensor, world: World, capsules: Capsules) ->
             )
 
 
-def _resolve(chain: DHChain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:
+def _resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:
     """The query's world and capsules (defaults filled in), all arguments checked."""
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     capsules = robot_capsules(chain) if capsules is None else capsules
     world = World(floor=capsules.floor_height) if world is None else world
     check_instance(capsules, Capsules, "capsules")
@@ -730,7 +735,7 @@ def _resolve(chain: DHChain, q: Tensor, world: World | None, capsules: Capsules 
 
 
 def _distances(
-    chain: DHChain, q: Tensor, world: World, capsules: Capsules, cull: bool = False
+    chain: Chain, q: Tensor, world: World, capsules: Capsules, cull: bool = False
 ) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
     """The robot's own distances (self pairs, then floor) ``(P, B)`` over the flattened batch,
     the other obstacles' ``(..., M)`` blocks, and every pair's names in that order, for
@@ -823,7 +828,7 @@ def _where(mask: Tensor) -> list[int]:
 
 
 def pairwise_clearance(
-    chain: DHChain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
+    chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
 ) -> Clearances:
     """Every checked distance for ``q (..., n)``: the self pairs, then capsule-floor,
     -wall, -sphere, -box, -capsule (see :class:`Clearances`). ``world=None`` is the
@@ -835,7 +840,7 @@ def pairwise_clearance(
     return Clearances(distance=distance, pairs=tuple(labels))
 
 
-def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: Capsules | None = None) -> Tensor:
+def clearance(chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None) -> Tensor:
     """Smallest signed distance, metres: ``q (..., n) -> (...)``, over the checked self pairs and
     capsule-obstacle pairs (arguments as :func:`pairwise_clearance`). Differentiable in ``q``
     and the obstacles' tensors. On the CPU with nothing to differentiate, the same formulas
@@ -856,7 +861,7 @@ def clearance(chain: DHChain, q: Tensor, world: World | None = None, capsules: C
 
 
 def capsule_clearance(
-    chain: DHChain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
+    chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
 ) -> tuple[Tensor, Tensor]:
     """Each capsule's smallest signed distance and its gradient: ``q (..., n)`` ->
     ``distance (..., K)`` (m) and ``gradient (..., K, n)`` (m/rad), for the K capsules in
@@ -890,7 +895,7 @@ def capsule_clearance(
 
 
 def capsule_clearance_of_one(
-    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
+    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`capsule_clearance` of one CPU configuration ``q`` (n numbers, nothing to differentiate)
     against itself and the floor at ``floor`` (m; ``None``: none), unchecked: for callers that built
@@ -903,7 +908,7 @@ def capsule_clearance_of_one(
 
 
 def _capsule_clearance_floats(
-    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
+    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
 ) -> tuple[list[float], list[list[float]]]:
     """:func:`capsule_clearance` of one CPU configuration against the floor and itself, in Python
     floats: each capsule's distance ``K`` (m) and gradient ``K x n`` (m/rad). A distance is ``|w| - r``
@@ -912,10 +917,10 @@ def _capsule_clearance_floats(
     point fixed in its capsule's frame, so ``dx/dq_j = z_j x (x - p_j)`` over the joints that move that
     frame (the same value the autograd of the batched formulas gives)."""
     n, table = chain.n_joints, capsules._float_table()
-    frames = kin.frames_floats(chain.geometry(), q)  # the base, then the link frames
+    geometry = chain.geometry()
+    frames, axes = kin.frames_axes_floats(geometry, q)  # the base, then the link frames; each joint's (z, p)
+    slides = [prismatic for prismatic, _, _ in geometry.joints]
     start, direction = _capsule_ends_floats(frames, capsules)
-    axis = 1 if chain.geometry().modified else 0  # joint j turns about frame j's z (standard DH) or frame j + 1's
-    axes = [frames[j + axis][2:] for j in range(n)]
     frame_of = [f for f, _, _ in table["points"]]
     best: list[tuple[float, list[float]]] = [(math.inf, [0.0] * n)] * len(frame_of)
 
@@ -924,6 +929,9 @@ def _capsule_clearance_floats(
         out = [0.0] * n
         for j in range(frame_of[k]):
             (z0, z1, z2), (p0, p1, p2) = axes[j]
+            if slides[j]:  # a prismatic joint moves the point along its axis
+                out[j] = u[0] * z0 + u[1] * z1 + u[2] * z2
+                continue
             l0, l1, l2 = point[0] - p0, point[1] - p1, point[2] - p2
             out[j] = u[0] * (z1 * l2 - z2 * l1) + u[1] * (z2 * l0 - z0 * l2) + u[2] * (z0 * l1 - z1 * l0)
         return out
@@ -952,7 +960,7 @@ def _capsule_clearance_floats(
 
 
 def _capsule_clearance_compiled(
-    chain: DHChain, q: Tensor, floor: float | None, capsules: Capsules
+    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_capsule_clearance_floats` by its compiled kernel: distances ``(K,)`` (m) and gradients
     ``(K, n)`` (m/rad), float64 arrays."""
@@ -968,7 +976,7 @@ def _capsule_clearance_compiled(
     return distance, gradient
 
 
-def _plain_path(chain: DHChain, q: Tensor, world: World, capsules: Capsules):
+def _plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
     """The function :func:`clearance` hands checked arguments with nothing to differentiate on the
     CPU to, or ``None`` for its torch path: :func:`_clearance_numpy` up to ``CLEARANCE_NUMPY_BATCH``
     configurations (no walls or obstacle capsules), :func:`_clearance_compiled` above (numba
@@ -986,14 +994,14 @@ def _plain_path(chain: DHChain, q: Tensor, world: World, capsules: Capsules):
     return _clearance_numpy if capsules.pairs or floor or solids else None
 
 
-def _clearance_compiled(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
+def _clearance_compiled(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """:func:`clearance` of a CPU batch against itself and the floor by the compiled kernel
     (:func:`iiwa_torch.compiled.numba_kernels.own_clearance`, float64 inside); not differentiable."""
     tables = capsules._numpy_tables()
-    table, base, _, modified = chain.geometry().float_arrays
+    transforms, params, base, _ = chain.geometry().float_arrays
     floor = tables["floor"] if world.floor is not None else tables["floor"][:0]
     out = np.empty(q.shape[:-1])
-    compiled.kernels().own_clearance(q.detach().reshape(-1, chain.n_joints).numpy(), table, base, modified,
+    compiled.kernels().own_clearance(q.detach().reshape(-1, chain.n_joints).numpy(), transforms, params, base,
                                      tables["frames"], tables["local"], tables["first"], tables["second"],
                                      tables["pair_radius"], floor, tables["floor_radius"],
                                      0.0 if world.floor is None else float(world.floor), out.reshape(-1))
@@ -1136,7 +1144,7 @@ def obstacle_clearance_of_frames(capsules: Capsules, frames: list[tuple], sphere
     return solid
 
 
-def _clearance_numpy(chain: DHChain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
+def _clearance_numpy(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """:func:`clearance` of a small CPU batch in numpy float64: a few dozen numpy ops, each a
     fraction of a torch op's overhead. Self pairs, floor, spheres and boxes; not differentiable."""
     tables = capsules._numpy_tables()

@@ -1,8 +1,8 @@
-"""Forward-kinematics kernels of a Denavit-Hartenberg chain: pure functions over a :class:`Geometry`.
+"""Forward-kinematics kernels of any serial chain: pure functions over a :class:`Geometry`.
 
-A :class:`Geometry` is one frozen snapshot of a chain's table, base, tool and limits in one
-dtype and device: Python-float constants for the kernels' code paths and the derived tensors
-they multiply by. :class:`~iiwa_torch.dh.DHChain` derives it from its buffers and rebuilds it
+A :class:`Geometry` is one frozen snapshot of a chain's joint transforms, base, tool and limits
+in one dtype and device: Python-float constants for the kernels' code paths and the derived
+tensors they multiply by. :class:`~iiwa_torch.chain.Chain` derives it from its buffers and rebuilds it
 whenever they change, so a kernel never sees stale geometry; every function here takes it as
 its first argument and has no other state.
 
@@ -24,8 +24,8 @@ Which kernel runs (``b`` configurations):
 - :class:`EndPoseFunction`: ``fk`` above 128 configurations under autograd, whose backward is
   ``J^T`` times the pose gradient's twist (:func:`pose_vjp`) instead of a replay of the ops.
 
-:func:`reference_fk` is the plain definition, a product of ``4x4`` DH link matrices, that
-every fast path is tested against.
+:func:`reference_fk` is the plain definition for DH tables, a product of ``4x4`` DH link
+matrices, that every fast path is tested against (URDF chains are held to pinocchio).
 
 The batch-last API (for hot loops that keep configurations in the last dimension: IK, envs):
 :func:`frames_batch_last`, :func:`tool_frame_batch_last`, :func:`position_batch_last`, each
@@ -55,6 +55,7 @@ __all__ = [
     "Geometry",
     "all_poses",
     "blockwise",
+    "dh_transforms",
     "elementary_transform",
     "end_pose",
     "end_pose_floats",
@@ -62,6 +63,7 @@ __all__ = [
     "end_pose_numpy",
     "floats_ok",
     "frames_batch_last",
+    "frames_axes_floats",
     "frames_floats",
     "frames_numpy",
     "jacobian",
@@ -96,6 +98,12 @@ def _snap_angle(angle: float, tol: float) -> float:
     return k * (math.pi / 2) if abs(angle - k * (math.pi / 2)) < tol else angle
 
 
+def _snap_matrix(m: Tensor, tol: float) -> Tensor:
+    """``m`` with entries within ``tol`` of 0 or +-1 set to it (rounding noise of exact rotations)."""
+    near = torch.round(m)
+    return torch.where(((m - near).abs() < tol) & (near.abs() <= 1), near, m)
+
+
 def elementary_transform(rot_axis: str, angle: float = 0.0, shift: tuple[float, float, float] = (0.0, 0.0, 0.0)):
     """``(4, 4)`` float64: a rotation by ``angle`` (rad) about ``rot_axis`` (``"x"`` or ``"z"``),
     then the translation ``shift`` (m); cos/sin of multiples of pi/2 are exact."""
@@ -109,51 +117,82 @@ def elementary_transform(rot_axis: str, angle: float = 0.0, shift: tuple[float, 
     return m
 
 
-def _link_coefficients(dh: Tensor, modified: bool) -> Tensor:
-    """``(n, 3, 16)``: ``A_i = cos(theta_i) C0 + sin(theta_i) C1 + C2`` with constant ``C_k``."""
+def dh_transforms(dh: Tensor, modified: bool) -> tuple[Tensor, Tensor]:
+    """A DH table ``(n, 4)`` of rows ``(a, alpha, d, offset)`` -> each joint's constant transforms
+    ``before, after (n, 4, 4)`` (see :class:`Geometry`): ``I`` and ``Tz(d) Tx(a) Rx(alpha)``
+    (standard), or ``Rx(alpha) Tx(a)`` and ``Tz(d)`` (modified); the offsets stay apart. Twists
+    within a few ulps (of the table's dtype) of a multiple of pi/2 are taken as that multiple: a
+    float32 table's pi/2 is pi/2, as in the float64 table it came from."""
+    snap = 32 * torch.finfo(dh.dtype).eps
+    before, after = [], []
+    for a, alpha, d, _ in dh.tolist():
+        alpha = _snap_angle(alpha, snap)
+        twist, lift = elementary_transform("x", alpha, (a, 0.0, 0.0)), elementary_transform("z", 0.0, (0.0, 0.0, d))
+        before.append(twist if modified else torch.eye(4, dtype=torch.float64))
+        after.append(lift if modified else lift @ twist)
+    return torch.stack(before), torch.stack(after)
+
+
+def _link_coefficients(before: Tensor, after: Tensor, prismatic: Sequence[bool]) -> Tensor:
+    """``(n, 3, 16)``: each link ``before_i M(theta_i) after_i`` as ``f0 C0 + f1 C1 + C2`` with
+    constant ``C_k``: ``(f0, f1) = (cos theta, sin theta)`` for a revolute joint (``M = Rz``), and
+    ``(theta, anything)`` for a prismatic one (``M = Tz``, ``C1 = 0``)."""
     rz_cos = torch.diag(torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64))
     rz_sin = torch.zeros(4, 4, dtype=torch.float64)
     rz_sin[0, 1], rz_sin[1, 0] = -1.0, 1.0
     rz_one = torch.diag(torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=torch.float64))
+    tz_unit = torch.zeros(4, 4, dtype=torch.float64)
+    tz_unit[2, 3] = 1.0
+    eye, zero = torch.eye(4, dtype=torch.float64), torch.zeros(4, 4, dtype=torch.float64)
     coeffs = []
-    for a, alpha, d, _ in dh.tolist():
-        if modified:  # [Rx(alpha) Tx(a)] . Rz(theta) . [Tz(d)]
-            before, after = elementary_transform("x", alpha, (a, 0.0, 0.0)), elementary_transform("z", 0.0, (0, 0, d))
-            terms = [before @ m @ after for m in (rz_cos, rz_sin, rz_one)]
-        else:  # Rz(theta) . [Tz(d) Tx(a) Rx(alpha)]
-            after = elementary_transform("z", 0.0, (0.0, 0.0, d)) @ elementary_transform("x", alpha, (a, 0.0, 0.0))
-            terms = [m @ after for m in (rz_cos, rz_sin, rz_one)]
-        coeffs.append(torch.stack([t.reshape(16) for t in terms]))
+    for b, a, slides in zip(before, after, prismatic):
+        terms = (tz_unit, zero, eye) if slides else (rz_cos, rz_sin, rz_one)
+        coeffs.append(torch.stack([(b @ m @ a).reshape(16) for m in terms]))
     return torch.stack(coeffs)
+
+
+def _columns(m: Tensor) -> tuple[tuple[float, float, float], ...]:
+    """A ``(4, 4)`` transform's rotation columns then translation, as 3-tuples of Python floats."""
+    return tuple(map(tuple, m[:3].T.tolist()))
 
 
 @dataclass(frozen=True, eq=False)
 class Geometry:
     """A chain's geometry in one dtype and device, as the kernels use it (build with :meth:`build`).
 
-    Floats: ``steps`` holds ``(a, cos alpha, sin alpha, d)`` per joint; ``tool_columns`` the
-    tool's rotation columns then its translation; ``base_rows`` the base's top three rows.
-    Tensors (``dtype``, the buffers' device): ``base (4, 4)``, ``limits (2, n)``, the small-batch
-    kernel's ``A_i = cos C0 + sin C1 + C2`` coefficients ``link_trig (n, 2, 16)``,
-    ``link_const (n, 1, 16)`` (``end_*``: the base folded into the first link, the tool into the
-    last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``, ``offsets (n, 1)``,
-    ``offset_trig (2, n, 1)`` their cos and sin; ``end_numpy`` the numpy copies of
-    ``trig_phase, end_trig, end_const`` on the CPU (else ``None``), ``link_numpy`` those of
-    ``trig_phase, link_trig, link_const``, the base and the tool ``(4, 4)``; ``float_arrays`` the
-    float64 numpy table ``(n, 5)`` of ``(a, cos alpha, sin alpha, d, offset)``, base and tool
-    ``(4, 4)``, and whether the convention is modified: the arguments of :mod:`iiwa_torch.compiled.numba_kernels`.
+    Any serial chain is ``base . prod_i [before_i M_i(q_i + offset_i) after_i] . tool``, with
+    ``M_i`` a rotation about z (revolute joint) or a translation along z (prismatic), and the
+    link frame ``i`` the product up to ``after_i``. Joint i moves about the z axis of the frame
+    ``link_{i-1} before_i``, through its origin.
+
+    Floats: ``joints`` holds per joint ``(prismatic, before, after)``, the transforms as
+    :func:`_columns` or ``None`` where they are the identity; ``tool_columns`` the tool's columns;
+    ``base_rows`` the base's top three rows. Tensors (``dtype``, the buffers' device):
+    ``base (4, 4)``, ``before (n, 4, 4)``, ``limits (2, n)`` (may be infinite), ``draw_limits (2, n)`` (finite: an
+    infinite side becomes one turn, -pi or pi), the small-batch kernel's link coefficients
+    ``link_trig (n, 2, 16)``, ``link_const (n, 1, 16)`` (``end_*``: the base folded into the first
+    link, the tool into the last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``,
+    ``offsets (n, 1)``, ``offset_trig (2, n, 1)`` their cos and sin, ``prismatic (n, 1)`` bool;
+    ``before_numpy (n, 4, 4)``; ``end_numpy`` the numpy copies of ``trig_phase, end_trig,
+    end_const`` on the CPU (else ``None``), ``link_numpy`` those of ``trig_phase, link_trig,
+    link_const``, the base and the tool ``(4, 4)``; ``float_arrays`` the float64 numpy arrays
+    ``transforms (n, 2, 4, 4)`` (before, after), ``params (n, 4)`` (offset, prismatic, before is
+    not the identity, after is not), base and tool ``(4, 4)``: the arguments of
+    :mod:`iiwa_torch.compiled.numba_kernels`.
     """
 
-    modified: bool
-    steps: tuple[tuple[float, float, float, float], ...]
+    joints: tuple[tuple[bool, tuple | None, tuple | None], ...]
     offset_list: tuple[float, ...]
     has_base: bool
     has_tool: bool
     has_offsets: bool
+    has_prismatic: bool
     tool_columns: tuple[tuple[float, float, float], ...]
     base_rows: tuple[tuple[float, float, float, float], ...]
     base: Tensor
+    before: Tensor
     limits: Tensor
+    draw_limits: Tensor
     link_trig: Tensor
     link_const: Tensor
     end_trig: Tensor
@@ -161,43 +200,52 @@ class Geometry:
     trig_phase: Tensor
     offsets: Tensor
     offset_trig: Tensor
+    prismatic: Tensor
+    before_numpy: np.ndarray
     end_numpy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     link_numpy: tuple[np.ndarray, ...] | None
-    float_arrays: tuple[np.ndarray, np.ndarray, np.ndarray, bool]
+    float_arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
     @property
     def n_joints(self) -> int:
-        return len(self.steps)
+        return len(self.joints)
 
     @classmethod
     def build(
-        cls, dh: Tensor, base: Tensor, tool: Tensor, limits: Tensor, modified: bool, dtype: torch.dtype
+        cls, before: Tensor, after: Tensor, prismatic: Sequence[bool], offsets: Tensor, base: Tensor, tool: Tensor,
+        limits: Tensor, dtype: torch.dtype,
     ) -> Geometry:
-        """From a chain's buffers: ``dh (n, 4)``, ``base``, ``tool (4, 4)``, ``limits (2, n)``,
-        in any float dtype, on one device; the tensors of the result are in ``dtype`` there.
-        Twists and offsets within a few ulps (of the buffers' dtype) of a multiple of pi/2 are
-        taken as that multiple: a float32 table's pi/2 is pi/2, as in the float64 table it came from."""
-        device = dh.device
-        snap = 32 * torch.finfo(dh.dtype).eps
-        dh, base, tool = (t.detach().cpu().to(torch.float64) for t in (dh, base, tool))
-        dh = torch.tensor([[a, _snap_angle(al, snap), d, _snap_angle(o, snap)] for a, al, d, o in dh.tolist()],
-                          dtype=torch.float64).reshape(-1, 4)
+        """From a chain's joint transforms ``before, after (n, 4, 4)``, joint kinds, ``offsets (n,)``,
+        ``base``, ``tool (4, 4)`` and ``limits (2, n)``, in any float dtype, on one device; the
+        tensors of the result are in ``dtype`` there. Entries and offsets within a few ulps (of
+        the inputs' dtype) of 0, +-1 or a multiple of pi/2 are snapped to it, so a float32 copy of
+        a DH table's pi/2 twists gives the exact zeros the kernels skip."""
+        device = limits.device
+        snap = 32 * torch.finfo(before.dtype).eps
+        before, after, base, tool = (_snap_matrix(t.detach().cpu().to(torch.float64), snap)
+                                     for t in (before, after, base, tool))
+        offsets = torch.tensor([_snap_angle(o, snap) for o in offsets.tolist()], dtype=torch.float64)
+        prismatic = tuple(bool(p) for p in prismatic)
         eye = torch.eye(4, dtype=torch.float64)
-        n = dh.shape[0]
-        links = _link_coefficients(dh, modified).view(n, 3, 4, 4)
+        n = before.shape[0]
+        links = _link_coefficients(before, after, prismatic).view(n, 3, 4, 4)
         end = links.clone()
         end[0] = base @ end[0]
         end[-1] = end[-1] @ tool
         links, end = links.reshape(n, 3, 16), end.reshape(n, 3, 16)
-        offsets = dh[:, 3]
         phase = offsets[:, None] + torch.tensor([math.pi / 2, 0.0], dtype=torch.float64)
+        lim = limits.detach().cpu().to(torch.float64)
+        draw = torch.stack([lim[0].clamp(min=-math.pi), lim[1].clamp(max=math.pi)])
+        draw = torch.where(torch.isinf(lim), draw, lim)
 
         def put(t: Tensor) -> Tensor:
             return t.contiguous().to(device=device, dtype=dtype)
 
         tensors = {
             "base": put(base),
-            "limits": limits.detach().to(dtype),
+            "before": put(before),
+            "limits": put(lim),
+            "draw_limits": put(draw),
             "link_trig": put(links[:, :2]),
             "link_const": put(links[:, 2:]),
             "end_trig": put(end[:, :2]),
@@ -205,6 +253,7 @@ class Geometry:
             "trig_phase": put(phase[:, None]),
             "offsets": put(offsets[:, None]),
             "offset_trig": put(torch.stack([offsets.cos(), offsets.sin()])[..., None]),
+            "prismatic": torch.tensor(prismatic, device=device)[:, None],
         }
         end_numpy = link_numpy = None
         if device.type == "cpu":
@@ -212,20 +261,24 @@ class Geometry:
             link_numpy = (*(tensors[k].numpy() for k in ("trig_phase", "link_trig", "link_const", "base")),
                           tool.to(dtype).numpy())
         offset_list = tuple(offsets.tolist())
-        steps = tuple((a, _exact(math.cos(al)), _exact(math.sin(al)), d) for a, al, d, _ in dh.tolist())
-        table = np.array([(*step, offset) for step, offset in zip(steps, offset_list)], dtype=np.float64)
+        plain = [(not torch.equal(b, eye), not torch.equal(a, eye)) for b, a in zip(before, after)]
+        joints = tuple((p, _columns(b) if keep_b else None, _columns(a) if keep_a else None)
+                       for p, b, a, (keep_b, keep_a) in zip(prismatic, before, after, plain))
+        params = np.array([(o, p, kb, ka) for o, p, (kb, ka) in zip(offset_list, prismatic, plain)], dtype=np.float64)
         return cls(
-            modified=modified,
-            steps=steps,
+            joints=joints,
             offset_list=offset_list,
             has_base=not torch.equal(base, eye),
             has_tool=not torch.equal(tool, eye),
             has_offsets=any(offset_list),
-            tool_columns=tuple(map(tuple, tool[:3].T.tolist())),
+            has_prismatic=any(prismatic),
+            tool_columns=_columns(tool),
             base_rows=tuple(map(tuple, base[:3].tolist())),
+            before_numpy=before.to(dtype).numpy(),
             end_numpy=end_numpy,
             link_numpy=link_numpy,
-            float_arrays=(table.reshape(n, 5), base.numpy().copy(), tool.numpy().copy(), modified),
+            float_arrays=(torch.stack([before, after], 1).numpy().copy(), params.reshape(n, 4), base.numpy().copy(),
+                          tool.numpy().copy()),
             **tensors,
         )
 
@@ -264,16 +317,6 @@ def _rotate_z(x: Tensor, y: Tensor, c: Tensor, s: Tensor) -> tuple[Tensor, Tenso
     return torch.addcmul(c * x, s, y), torch.addcmul(c * y, s, x, value=-1)
 
 
-def _rotate_x(y, z, ca: float, sa: float):
-    """Rotate the frame axes y, z about its own x by a constant angle (cosine ca, sine sa).
-    With ``-sa``, it rotates the y, z coordinates of points instead. Tensors or floats."""
-    if ca == 0.0:  # alpha = +-pi/2: a swap and a sign flip
-        return (z, -y) if sa > 0 else (-z, y)
-    if sa == 0.0:  # alpha = 0 or pi
-        return (y, z) if ca > 0 else (-y, -z)
-    return ca * y + sa * z, ca * z - sa * y
-
-
 def _rotate_point_z(x, y, c, s) -> tuple:
     """The x, y coordinates of points rotated about z by the angle with cosine c and sine s:
     ``(c x - s y, s x + c y)``. ``x`` and ``y`` are tensors or floats (a point on the z axis
@@ -300,6 +343,34 @@ def _combine(vectors: Sequence[Tensor], coefficients: Sequence[float], start: Te
     return out
 
 
+def _transform(frame: Frame, columns) -> Frame:
+    """A frame ``(x, y, z, p)``, each ``(3, b)``, times a constant transform given by its
+    :func:`_columns`: each new axis a combination of the old ones, zero terms skipped (a twist of
+    pi/2 is a swap and a sign flip)."""
+    axes = frame[:3]
+    return (*(_combine(axes, column) for column in columns[:3]), _combine(axes, columns[3], start=frame[3]))
+
+
+def _map_point(columns, v) -> tuple:
+    """The point ``v`` (3 coordinates, tensors or Python floats) mapped by a constant transform
+    given by its :func:`_columns`; coordinates stay floats while they can, zero terms cost nothing."""
+    out = []
+    for j in range(3):
+        acc = columns[3][j]
+        for k in range(3):
+            c = columns[k][j]
+            if c == 0.0:
+                continue
+            if isinstance(acc, Tensor) and isinstance(v[k], Tensor):
+                acc = torch.add(acc, v[k], alpha=c)
+            elif isinstance(acc, float) and acc == 0.0:
+                acc = v[k] if c == 1.0 else v[k] * c
+            else:
+                acc = acc + (v[k] if c == 1.0 else v[k] * c)
+        out.append(acc)
+    return tuple(out)
+
+
 def _cross(u, v) -> tuple[Tensor, Tensor, Tensor]:
     """Cross product of vectors given by their components ``u[0..2]``, ``v[0..2]`` (tensors that
     broadcast): six elementwise ops on contiguous rows, several times faster here than
@@ -317,59 +388,58 @@ def _cross(u, v) -> tuple[Tensor, Tensor, Tensor]:
 # Batch last keeps every elementwise op contiguous.
 
 
-def _cos_sin(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
-    """``q (n, b)`` -> cosine and sine of the joint angles plus offsets, each ``(n, b)`` contiguous.
+def _joint_trig(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """``q (n, b)`` -> the joint variables ``theta = q + offset`` and their cosine and sine, each
+    ``(n, b)`` contiguous (a prismatic joint's rows of cosine and sine go unused).
 
     ``trig``: the caller's cosine and sine of ``q`` itself, reused (rotated by the offsets
     if the chain has any) instead of computed again."""
+    theta = (q + g.offsets).contiguous() if g.has_offsets else q
     if trig is None:
-        theta = (q + g.offsets).contiguous()
-        return torch.cos(theta), torch.sin(theta)
+        return theta, torch.cos(theta), torch.sin(theta)
     c, s = trig
     if not g.has_offsets:
-        return c, s
+        return theta, c, s
     co, so = g.offset_trig  # cos(q + o) = c co - s so, sin(q + o) = s co + c so
-    return torch.addcmul(c * co, s, so, value=-1), torch.addcmul(s * co, c, so)
+    return theta, torch.addcmul(c * co, s, so, value=-1), torch.addcmul(s * co, c, so)
 
 
 def frames_batch_last(g: Geometry, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
-    """The elementwise kernel, batch last: ``q (n, b)`` joint angles (not checked) ->
+    """The elementwise kernel, batch last: ``q (n, b)`` joint variables (not checked) ->
     ``(frames, axes)``. ``frames`` holds ``(x, y, z, p)``, the axis columns and the origin of a
     frame, each ``(3, b)``, for the base and every link if ``keep`` (else only the last link);
     ``axes`` holds ``(z_i, p_i)``, joint i's axis and a point on it (if ``keep``). The tool is
     not applied (:func:`tool_frame_batch_last`). The moving frame's axes are rotated with
-    elementwise multiply-adds over the whole batch; the constant twists (``alpha`` of 0 or
-    +-pi/2) are swaps and sign flips; no 4x4 products. Up to ``FRAMES_NUMPY_BATCH`` CPU
-    configurations with nothing to differentiate (:func:`floats_ok`), the same frames come from
-    the 4x4 products in numpy instead (fewer ops, each cheaper: about 0.7x the time for 8)."""
+    elementwise multiply-adds over the whole batch; the constant transforms skip their zero
+    terms; no 4x4 products. Up to ``FRAMES_NUMPY_BATCH`` CPU configurations with nothing to
+    differentiate (:func:`floats_ok`), the same frames come from the 4x4 products in numpy instead
+    (fewer ops, each cheaper: about 0.7x the time for 8)."""
     if q.shape[1] <= FRAMES_NUMPY_BATCH and floats_ok(q):
         return _frames_batch_last_numpy(g, q, keep)
-    c, s = _cos_sin(g, q)
-    x, y, z, p = g.base[:3, :, None].expand(3, 4, q.shape[1]).unbind(1)  # each (3, b)
-    frames, axes = [(x, y, z, p)], []
-    modified = g.modified
-    for i, (a, ca, sa, d) in enumerate(g.steps):
-        if modified:
-            y, z = _rotate_x(y, z, ca, sa)
-            p = torch.add(p, x, alpha=a) if a else p
+    theta, c, s = _joint_trig(g, q)
+    frame = tuple(g.base[:3, :, None].expand(3, 4, q.shape[1]).unbind(1))  # (x, y, z, p), each (3, b)
+    frames, axes = [frame], []
+    for i, (prismatic, before, after) in enumerate(g.joints):
+        if before is not None:
+            frame = _transform(frame, before)
+        x, y, z, p = frame
         if keep:
             axes.append((z, p))
-        x, y = _rotate_z(x, y, c[i], s[i])
-        p = torch.add(p, z, alpha=d) if d else p
-        if not modified:
-            p = torch.add(p, x, alpha=a) if a else p
-            y, z = _rotate_x(y, z, ca, sa)
+        if prismatic:
+            p = torch.addcmul(p, z, theta[i])
+        else:
+            x, y = _rotate_z(x, y, c[i], s[i])
+        frame = (x, y, z, p)
+        if after is not None:
+            frame = _transform(frame, after)
         if keep:
-            frames.append((x, y, z, p))
-    return (frames if keep else [(x, y, z, p)]), axes
+            frames.append(frame)
+    return (frames if keep else [frame]), axes
 
 
 def tool_frame_batch_last(g: Geometry, frame: Frame) -> Frame:
     """The last link frame ``(x, y, z, p)``, each ``(3, b)``, -> the end-effector (tool) frame."""
-    if not g.has_tool:
-        return frame
-    axes, columns = frame[:3], g.tool_columns
-    return (*(_combine(axes, column) for column in columns[:3]), _combine(axes, columns[3], start=frame[3]))
+    return _transform(frame, g.tool_columns) if g.has_tool else frame
 
 
 def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
@@ -387,39 +457,40 @@ def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | No
     return position_horner(g, q, trig)
 
 
-def _carry_tool_point(g: Geometry, c, s) -> tuple:
-    """Horner's scheme: the tool point carried through ``A_n, ..., A_1`` from the end of the
-    chain. ``c``, ``s``: per joint, the cosine and sine of its angle (rows of ``b``, or Python
-    floats for one configuration) -> the point's three coordinates before the base transform.
+def _carry_tool_point(g: Geometry, theta, c, s) -> tuple:
+    """Horner's scheme: the tool point carried through the links ``n, ..., 1`` from the end of the
+    chain. ``theta``, ``c``, ``s``: per joint, its variable and their cosine and sine (rows of
+    ``b``, or Python floats for one configuration) -> the point's three coordinates before the
+    base transform.
 
     Per joint, a rotation of the point's coordinates instead of a rotation of three frame
     axes: about a third of the elementwise work of :func:`frames_batch_last`. Coordinates
     stay Python floats while they are constant (the tool point on the last axes), so those
     joints cost nothing."""
-    v0, v1, v2 = g.tool_columns[3]
-    standard = not g.modified
-    for i, (a, ca, sa, d) in reversed(list(enumerate(g.steps))):
-        if standard:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
-            v1, v2 = _rotate_x(v1, v2, ca, -sa)
-            v0 = v0 + a if a else v0
-        v2 = v2 + d if d else v2
-        v0, v1 = _rotate_point_z(v0, v1, c[i], s[i])
-        if not standard:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
-            v0 = v0 + a if a else v0
-            v1, v2 = _rotate_x(v1, v2, ca, -sa)
-    return v0, v1, v2
+    v = g.tool_columns[3]
+    for i, (prismatic, before, after) in reversed(list(enumerate(g.joints))):
+        if after is not None:
+            v = _map_point(after, v)
+        if prismatic:
+            v = (v[0], v[1], v[2] + theta[i])
+        else:
+            v = (*_rotate_point_z(v[0], v[1], c[i], s[i]), v[2])
+        if before is not None:
+            v = _map_point(before, v)
+    return v
 
 
 def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """``q (n, b)`` -> ``(3, b)`` end-effector positions, elementwise (Horner's scheme from the
     tool point back), in blocks of ``POSITION_BLOCK`` configurations that keep the working set
     in cache. Any batch size; :func:`position_batch_last` uses it above ``SMALL_BATCH``."""
-    c, s = _cos_sin(g, q, trig)
+    theta, c, s = _joint_trig(g, q, trig)
     blocks = []
     for i in range(0, q.shape[1], POSITION_BLOCK):
-        cb, sb = c[:, i : i + POSITION_BLOCK], s[:, i : i + POSITION_BLOCK]
+        block = slice(i, i + POSITION_BLOCK)
+        tb, cb, sb = theta[:, block], c[:, block], s[:, block]
         blocks.append(torch.stack([v if isinstance(v, Tensor) else cb[0].new_full(cb[0].shape, v)
-                                   for v in _carry_tool_point(g, cb, sb)]))
+                                   for v in _carry_tool_point(g, tb, cb, sb)]))
     point = blocks[0] if len(blocks) == 1 else torch.cat(blocks, 1)
     if not g.has_base:
         return point
@@ -430,21 +501,19 @@ def _position_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``(n, 1)`` -> its ``(3, 1)`` position, computed in Python floats
     (double precision): fewer instructions than even one chain of small numpy products."""
     theta = [t + offset for (t,), offset in zip(q.tolist(), g.offset_list)]
-    point = _carry_tool_point(g, [math.cos(t) for t in theta], [math.sin(t) for t in theta])
+    point = _carry_tool_point(g, theta, [math.cos(t) for t in theta], [math.sin(t) for t in theta])
     if g.has_base:
         point = [row[3] + row[0] * point[0] + row[1] * point[1] + row[2] * point[2] for row in g.base_rows]
     return torch.from_numpy(np.array(point, dtype=_NUMPY_DTYPES[q.dtype]).reshape(3, 1))
 
 
 # ---------------------------------------------------------------------- one configuration, Python floats
-def _turn_x_floats(y0, y1, y2, z0, z1, z2, ca: float, sa: float) -> tuple[float, ...]:
-    """:func:`_rotate_x` on frame axes ``y``, ``z`` given by their components (floats)."""
-    if ca == 0.0:  # alpha = +-pi/2: a swap and a sign flip
-        return (z0, z1, z2, -y0, -y1, -y2) if sa > 0 else (-z0, -z1, -z2, y0, y1, y2)
-    if sa == 0.0:
-        return (y0, y1, y2, z0, z1, z2) if ca > 0 else (-y0, -y1, -y2, -z0, -z1, -z2)
-    return (ca * y0 + sa * z0, ca * y1 + sa * z1, ca * y2 + sa * z2,
-            ca * z0 - sa * y0, ca * z1 - sa * y1, ca * z2 - sa * y2)  # fmt: skip
+def _transform_floats(frame: tuple, columns) -> tuple:
+    """:func:`_transform` on one frame ``(x, y, z, p)`` of 3-tuples of Python floats."""
+    (x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2) = frame
+    out = [(u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1, u * x2 + v * y2 + w * z2) for u, v, w in columns]
+    o0, o1, o2 = out[3]
+    return out[0], out[1], out[2], (p0 + o0, p1 + o1, p2 + o2)
 
 
 def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool, frames: list | None = None) -> tuple[tuple, list[tuple]]:
@@ -454,42 +523,34 @@ def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool, frames: list | None 
     ``keep_axes``, the joint axes ``[(z_i, p_i)]``; appends the base and every link frame (no
     tool), ``(x, y, z, p)`` each, to ``frames`` if given. Scalars throughout: no array op at all."""
     (x0, y0, z0, p0), (x1, y1, z1, p1), (x2, y2, z2, p2) = g.base_rows
-    axes, modified, cos, sin = [], g.modified, math.cos, math.sin
+    frame = ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2))
+    axes = []
     if frames is not None:
-        frames.append(((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)))
-    for t, offset, (a, ca, sa, d) in zip(q.reshape(-1).tolist(), g.offset_list, g.steps):
-        if modified:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
-            y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
-            if a:
-                p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+        frames.append(frame)
+    for t, offset, (prismatic, before, after) in zip(q.reshape(-1).tolist(), g.offset_list, g.joints):
+        if before is not None:
+            frame = _transform_floats(frame, before)
+        x, y, z, p = frame
         if keep_axes:
-            axes.append(((z0, z1, z2), (p0, p1, p2)))
-        c, s = cos(t + offset), sin(t + offset)
-        x0, x1, x2, y0, y1, y2 = (c * x0 + s * y0, c * x1 + s * y1, c * x2 + s * y2,
-                                  c * y0 - s * x0, c * y1 - s * x1, c * y2 - s * x2)  # fmt: skip
-        if d:
-            p0, p1, p2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
-        if not modified:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
-            if a:
-                p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
-            y0, y1, y2, z0, z1, z2 = _turn_x_floats(y0, y1, y2, z0, z1, z2, ca, sa)
+            axes.append((z, p))
+        t += offset
+        if prismatic:
+            p = (p[0] + t * z[0], p[1] + t * z[1], p[2] + t * z[2])
+        else:
+            c, s = math.cos(t), math.sin(t)
+            x, y = tuple(c * u + s * v for u, v in zip(x, y)), tuple(c * v - s * u for u, v in zip(x, y))
+        frame = (x, y, z, p)
+        if after is not None:
+            frame = _transform_floats(frame, after)
         if frames is not None:
-            frames.append(((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2)))
-    return tool_frame_floats(g, ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2))), axes
+            frames.append(frame)
+    return tool_frame_floats(g, frame), axes
 
 
 def tool_frame_floats(g: Geometry, frame: tuple) -> tuple:
     """The last link frame ``(x, y, z, p)``, 3-tuples of Python floats (:func:`frames_floats`'s
     last), -> the end-effector (tool) frame, the same four 3-tuples."""
-    if not g.has_tool:
-        return frame
-    (x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2) = frame
-    end = [  # column k of the tool, (u, v, w), in the world: u x + v y + w z (plus p for the origin)
-        (u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1, u * x2 + v * y2 + w * z2)
-        for u, v, w in g.tool_columns
-    ]
-    o0, o1, o2 = end[3]
-    return end[0], end[1], end[2], (p0 + o0, p1 + o1, p2 + o2)
+    return _transform_floats(frame, g.tool_columns) if g.has_tool else frame
 
 
 def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:
@@ -499,6 +560,13 @@ def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:
     frames: list[tuple] = []
     _frames_floats(g, q, False, frames)
     return frames
+
+
+def frames_axes_floats(g: Geometry, q: Tensor) -> tuple[list[tuple], list[tuple]]:
+    """:func:`frames_floats` and the joint axes ``[(z_i, p_i)]`` (3-tuples) of the same pass."""
+    frames: list[tuple] = []
+    _, axes = _frames_floats(g, q, True, frames)
+    return frames, axes
 
 
 def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
@@ -519,12 +587,15 @@ def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
     """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
     :func:`jacobian`, computed in Python floats (or compiled, any number of configurations:
     :func:`iiwa_torch.compiled.numba_kernels.jacobians`), not checked; for :func:`floats_ok`
-    inputs. Column i is ``[z_i x (p_e - p_i); z_i]``."""
+    inputs. Column i is ``[z_i x (p_e - p_i); z_i]`` (revolute) or ``[z_i; 0]`` (prismatic)."""
     if compiled.ENABLED:
         return by_kernel(compiled.kernels().jacobians, g, q, (6, g.n_joints))
     (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q, keep_axes=True)
     columns = []
-    for (z0, z1, z2), (p0, p1, p2) in axes:
+    for ((z0, z1, z2), (p0, p1, p2)), (prismatic, _, _) in zip(axes, g.joints):
+        if prismatic:
+            columns.append((z0, z1, z2, 0.0, 0.0, 0.0))
+            continue
         l0, l1, l2 = e0 - p0, e1 - p1, e2 - p2
         columns.append((z1 * l2 - z2 * l1, z2 * l0 - z0 * l2, z0 * l1 - z1 * l0, z0, z1, z2))
     out = np.array(columns, dtype=_NUMPY_DTYPES[q.dtype]).T  # (6, n)
@@ -558,15 +629,29 @@ def floats_ok(q: Tensor) -> bool:
 
 
 # ---------------------------------------------------------------------- batch first, small batches
+def _link_features(g: Geometry, q):
+    """``q (b, n)``, a tensor or a numpy array -> ``(n, b, 2)``: the coefficients ``(f0, f1)`` of
+    each link in :func:`_link_coefficients`: ``(cos, sin)`` of ``q + offset``, or for a prismatic
+    joint ``q + offset`` itself."""
+    if isinstance(q, Tensor):
+        trig = torch.sin(q.T.unsqueeze(-1) + g.trig_phase)  # (n, b, 2): cos, sin
+        return torch.where(g.prismatic[..., None], (q.T + g.offsets).unsqueeze(-1), trig) if g.has_prismatic else trig
+    phase = g.end_numpy[0]
+    trig = np.sin(q.T[:, :, None] + phase)
+    if g.has_prismatic:
+        trig = np.where(g.prismatic.numpy()[..., None], q.T[:, :, None] + phase[..., 1:], trig)
+    return trig
+
+
 def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
     """``(b, n)`` -> the n link transforms ``A_i``, each ``(b, 4, 4)``, or ``(4, 4)`` if b is 1
     (``mm`` on matrices costs half of ``bmm`` on a batch of one). With ``end``, the base is
     folded into the first and the tool into the last. Each ``A_i`` is linear in the cosine
-    and sine of its angle, so one batched product with constant coefficients builds them all."""
+    and sine of its angle (or in a prismatic joint's travel), so one batched product with
+    constant coefficients builds them all."""
     n, b = g.n_joints, q.shape[0]
-    trig = torch.sin(q.T.unsqueeze(-1) + g.trig_phase)  # (n, b, 2): cos, sin
     coeffs, const = (g.end_trig, g.end_const) if end else (g.link_trig, g.link_const)
-    links = torch.baddbmm(const, trig, coeffs)  # (n, b, 16)
+    links = torch.baddbmm(const, _link_features(g, q), coeffs)  # (n, b, 16)
     return links.view(n, 4, 4).unbind(0) if b == 1 else links.view(n, b, 4, 4).unbind(0)
 
 
@@ -586,24 +671,30 @@ def end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
     """``q (b, n)`` on the CPU -> ``(b, 4, 4)`` end poses: the products of :func:`end_pose_matmul`
     in numpy, whose per-op overhead is a fraction of torch's (a batch of 10: about half the
     time). Not differentiable: for :func:`floats_ok` inputs."""
-    phase, coeffs, const = g.end_numpy
-    trig = np.sin(q.numpy().T[:, :, None] + phase)  # (n, b, 2): cos, sin
-    return reduce(np.matmul, (const + trig @ coeffs).reshape(g.n_joints, -1, 4, 4))
+    _, coeffs, const = g.end_numpy
+    return reduce(np.matmul, (const + _link_features(g, q.numpy()) @ coeffs).reshape(g.n_joints, -1, 4, 4))
 
 
 def frames_numpy(g: Geometry, q: np.ndarray) -> np.ndarray:
     """``q (b, n)``, a numpy array in ``g``'s dtype (``g`` on the CPU) -> ``(n + 1, b, 4, 4)``:
     the base and every link frame (no tool), the 4x4-product kernel (:func:`_link_matrices`,
     :func:`_frames_matmul`) in numpy."""
-    phase, coeffs, const, base, _ = g.link_numpy
+    _, coeffs, const, base, _ = g.link_numpy
     b, n = q.shape
-    trig = np.sin(q.T[:, :, None] + phase)  # (n, b, 2): cos, sin
-    links = (const + trig @ coeffs).reshape(n, b, 4, 4)
+    links = (const + _link_features(g, q) @ coeffs).reshape(n, b, 4, 4)
     frames = np.empty((n + 1, b, 4, 4), dtype=links.dtype)  # filled in place: np.stack costs as much as the products
     frames[0] = base
     for i in range(n):
         np.matmul(frames[i], links[i], out=frames[i + 1])
     return frames
+
+
+def _axis_frames_numpy(g: Geometry, frames: np.ndarray) -> np.ndarray:
+    """:func:`frames_numpy`'s ``(n + 1, b, 4, 4)`` -> ``(n, b, 4, 4)``: each joint's frame
+    ``link_{i-1} before_i``, whose z axis is the joint's axis and whose origin lies on it."""
+    if all(before is None for _, before, _ in g.joints):
+        return frames[:-1]
+    return frames[:-1] @ g.before_numpy[:, None]
 
 
 def _frames_batch_last_numpy(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
@@ -615,12 +706,8 @@ def _frames_batch_last_numpy(g: Geometry, q: Tensor, keep: bool) -> tuple[list[F
     out = [tuple(f.unbind(1)) for f in torch.from_numpy(top).unbind(0)]
     if not keep:
         return out, []
-    if not g.modified:  # joint i turns about frame i - 1's z axis, through its origin
-        return out, [(f[2], f[3]) for f in out[:-1]]
-    # modified: frame i's z axis, through the point the elementwise kernel takes (origin - d_i z_i)
-    d = np.array([step[3] for step in g.steps], dtype=top.dtype)[:, None, None]
-    points = torch.from_numpy(top[1:, :, 3] - d * top[1:, :, 2]).unbind(0)
-    return out, [(f[2], p) for f, p in zip(out[1:], points)]
+    axes = np.ascontiguousarray(_axis_frames_numpy(g, frames)[:, :, :3, 2:].transpose(0, 2, 3, 1))  # (n, 3, 2, b)
+    return out, [tuple(a.unbind(1)) for a in torch.from_numpy(axes).unbind(0)]
 
 
 def jacobian_numpy(g: Geometry, q: Tensor) -> Tensor:
@@ -636,7 +723,7 @@ def pose_jacobian_numpy(g: Geometry, q: np.ndarray) -> tuple[np.ndarray, np.ndar
     pass of the 4x4-product kernel's link frames in numpy."""
     b, n = q.shape
     frames = frames_numpy(g, q)
-    axes = frames[1:] if g.modified else frames[:-1]  # (n, b, 4, 4)
+    axes = _axis_frames_numpy(g, frames)  # (n, b, 4, 4)
     end = frames[-1] @ g.link_numpy[4]  # (b, 4, 4)
     out = np.empty((b, 6, n), dtype=frames.dtype)
     z = out[:, 3:]
@@ -644,6 +731,10 @@ def pose_jacobian_numpy(g: Geometry, q: np.ndarray) -> tuple[np.ndarray, np.ndar
     lever = end[:, :3, 3, None] - axes[:, :, :3, 3].transpose(1, 2, 0)  # (b, 3, n)
     for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
         np.subtract(z[:, i] * lever[:, j], z[:, j] * lever[:, i], out=out[:, r])
+    if g.has_prismatic:  # a sliding joint moves the end along its axis and turns nothing
+        slides = g.prismatic.numpy()[:, 0]
+        out[:, :3, slides] = z[:, :, slides]
+        out[:, 3:, slides] = 0.0
     return end, out
 
 
@@ -664,9 +755,13 @@ def _axes(g: Geometry, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``(b, n)`` -> joint axes ``z (n, 3, b)``, a point on each ``(n, 3, b)`` and the end
     position ``(3, b)``: what the Jacobian needs, without stacking whole frames."""
     if q.shape[0] <= SMALL_BATCH:
-        frames = _frames_matmul(g, q)[:, :, :3].permute(0, 2, 3, 1)  # (n + 1, 3, 4, b), a view
-        axes = frames[1:] if g.modified else frames[:-1]
-        return axes[:, :, 2], axes[:, :, 3], tool_frame_batch_last(g, frames[-1].unbind(1))[3]
+        frames = _frames_matmul(g, q)
+        axes = frames[:-1]
+        if any(before is not None for _, before, _ in g.joints):
+            axes = axes @ g.before[:, None]
+        axes = axes[:, :, :3].permute(0, 2, 3, 1)  # (n, 3, 4, b)
+        last = frames[-1, :, :3].permute(1, 2, 0).unbind(1)
+        return axes[:, :, 2], axes[:, :, 3], tool_frame_batch_last(g, last)[3]
     frames, axes = frames_batch_last(g, q.T)
     z, origin = (torch.stack(column) for column in zip(*axes))
     return z, origin, tool_frame_batch_last(g, frames[-1])[3]
@@ -712,18 +807,26 @@ def all_poses(g: Geometry, q: Tensor) -> Tensor:
     return _poses(torch.stack([torch.stack(f, 1) for f in frames], 0))
 
 
+def _prismatic_rows(g: Geometry, revolute: Tensor, sliding: Tensor) -> Tensor:
+    """Rows ``(n, ...)`` of a per-joint quantity: ``sliding``'s for prismatic joints, else ``revolute``'s."""
+    if not g.has_prismatic:
+        return revolute
+    return torch.where(g.prismatic.reshape(-1, *([1] * (revolute.ndim - 1))), sliding, revolute)
+
+
 def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
     """The backward pass of :func:`end_pose`: angles ``(b, n)``, their end poses ``(b, 4, 4)`` and
     the gradient of a loss with respect to those poses -> its gradient ``(b, n)`` with
     respect to the angles, computed batch last:
     ``dL/dq_i = z_i . ((p_e - p_i) x g + w)``, with ``g = dL/dp`` and ``w = sum_k R[:, k] x G[:, k]``
-    (``G = dL/dR``) the axial vector of ``R G^T``."""
+    (``G = dL/dR``) the axial vector of ``R G^T``; ``z_i . g`` for a prismatic joint."""
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
     gt = grad[:, :3].permute(1, 2, 0).contiguous()  # (3, 4, b): rows of dL/dT, batch last
     w = [c.sum(0) for c in _cross(pose[:, :3, :3].permute(1, 2, 0), gt[:, :3])]  # sum over columns k
     moment = [m + wc for m, wc in zip(_cross(end, gt[:, 3]), w)]  # (p_e x g + w), each (b,)
     z, lever_x_g = z.unbind(1), _cross(origin.unbind(1), gt[:, 3])  # each (n, b)
-    return sum(zc * (mc - pc) for zc, mc, pc in zip(z, moment, lever_x_g)).T
+    turning = sum(zc * (mc - pc) for zc, mc, pc in zip(z, moment, lever_x_g))
+    return _prismatic_rows(g, turning, sum(zc * gc for zc, gc in zip(z, gt[:, 3]))).T
 
 
 def jacobian(g: Geometry, q: Tensor) -> Tensor:
@@ -733,9 +836,9 @@ def jacobian(g: Geometry, q: Tensor) -> Tensor:
     if q.shape[0] <= SMALL_BATCH and floats_ok(q):
         return jacobian_floats(g, q) if q.shape[0] == 1 or compiled.ENABLED else jacobian_numpy(g, q)
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
-    z = z.unbind(1)
-    rows = (*_cross(z, (end - origin).unbind(1)), *z)  # 6 x (n, b)
-    return torch.stack([row.T for row in rows], 1)  # (b, 6, n): the transpose happens in this one copy
+    linear = torch.stack(_cross(z.unbind(1), (end - origin).unbind(1)), 1)  # (n, 3, b)
+    rows = torch.cat([_prismatic_rows(g, linear, z), _prismatic_rows(g, z, torch.zeros_like(z))], 1)  # (n, 6, b)
+    return rows.permute(2, 1, 0).contiguous()  # (b, 6, n)
 
 
 class EndPoseFunction(torch.autograd.Function):

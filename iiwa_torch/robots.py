@@ -1,16 +1,19 @@
-"""Robot presets: DH chains with their joint limits and speeds (data: docs/robots.md's sources).
+"""Robots: the presets, DH chains with their joint limits and speeds (data: docs/robots.md's
+sources), and :func:`from_urdf` for any serial arm described by a URDF file.
 
-Each function returns a fresh :class:`~iiwa_torch.dh.DHChain` in float64.
+Each function returns a fresh chain in float64.
 """
 
 from __future__ import annotations
 
 import math
+import os
 
+from .chain import Chain
 from .checks import check_nonnegative, check_positive
 from .dh import Convention, DHChain
 
-__all__ = ["iiwa14", "iiwa7", "puma560", "lrmate200ic", "planar3r", "PRESETS", "IIWA_HOME"]
+__all__ = ["iiwa14", "iiwa7", "puma560", "lrmate200ic", "planar3r", "from_urdf", "PRESETS", "IIWA_HOME"]
 
 _PI2 = math.pi / 2
 _IIWA_LIMITS_DEG = (170, 120, 170, 120, 170, 120, 175)
@@ -103,3 +106,34 @@ def planar3r(l1: float = 1.0, l2: float = 1.0, l3: float = 0.5) -> DHChain:
 
 
 PRESETS = {"iiwa14": iiwa14, "iiwa7": iiwa7, "puma560": puma560, "lrmate200ic": lrmate200ic, "planar3r": planar3r}
+
+
+def from_urdf(source: str | os.PathLike, end_link: str | None = None, base_link: str | None = None) -> Chain:
+    """The serial chain from ``base_link`` (default: the tree's root) to ``end_link`` (default: the
+    only leaf) of a URDF file, given as a path or as the XML text (needs the ``urdf`` extra:
+    ``pip install 'iiwa-torch[urdf]'``, whose pytorch-kinematics parses the file).
+
+    Fixed joints are folded into the constant transforms, those past the last movable joint
+    into ``tool``; joints off the path are ignored. The numbers are kept as the file writes them,
+    in float64. Limits and speeds come from the ``<limit>`` elements (a continuous joint has
+    none). ``fk_all`` gives the base link, then the child link of each movable joint. Raises
+    ``ValueError`` naming the problem for a malformed file, an unknown link, a branching tree
+    without ``end_link``, or a floating, planar or mimic joint on the path
+    (:func:`iiwa_torch.urdf.read_urdf`).
+    """
+    from .urdf import read_urdf
+
+    path = read_urdf(source, end_link=end_link, base_link=base_link)
+    joints = path.joints
+    speeds = [j.velocity for j in joints]
+    return Chain(
+        [j.origin for j in joints],
+        [j.axis for j in joints],
+        kinds=[j.kind for j in joints],
+        limits=[[j.lower for j in joints], [j.upper for j in joints]],
+        joint_names=[j.name for j in joints],
+        link_names=list(path.links),
+        tool=path.tool,
+        velocity_limits=None if None in speeds else speeds,
+        name=path.robot,
+    )

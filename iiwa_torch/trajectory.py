@@ -25,9 +25,9 @@ from typing import Literal, get_args
 import torch
 
 from . import so3
+from .chain import Chain
 from .checks import check_choice, check_finite, check_float_tensor, check_instance, check_positive
 from .collision import Capsules, World, check_world, clearance
-from .dh import DHChain
 
 __all__ = [
     "JointTrajectory",
@@ -121,7 +121,7 @@ def jtraj(
     qd0: Tensor | None = None,
     qd1: Tensor | None = None,
     *,
-    chain: DHChain | None = None,
+    chain: Chain | None = None,
     world: World | None = None,
     capsules: Capsules | None = None,
 ) -> JointTrajectory:
@@ -186,7 +186,7 @@ def jtraj(
     return JointTrajectory(q=q, qd=qd, qdd=qdd, min_clearance=lowest)
 
 
-def path_clearance(chain: DHChain, q: Tensor, world: World, capsules: Capsules | None = None) -> Tensor:
+def path_clearance(chain: Chain, q: Tensor, world: World, capsules: Capsules | None = None) -> Tensor:
     """Clearance (m) of every sample of joint paths ``q (..., T, n) -> (..., T)``, against a
     world whose batch shape broadcasts with the paths' ``(...)``. Only the samples are
     checked, not the motion between them."""
@@ -225,7 +225,7 @@ def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
     return torch.cat([top, bottom], -2)
 
 
-def shortest_duration(chain: DHChain, q0: Tensor, q1: Tensor, *, speed_scale: float = 1.0) -> Tensor:
+def shortest_duration(chain: Chain, q0: Tensor, q1: Tensor, *, speed_scale: float = 1.0) -> Tensor:
     """Shortest duration (s) of a rest-to-rest :func:`jtraj` from ``q0`` to ``q1`` ``(..., n)``
     that keeps every joint within ``speed_scale * chain.velocity_limits``: ``(...)``.
 
@@ -238,7 +238,7 @@ def shortest_duration(chain: DHChain, q0: Tensor, q1: Tensor, *, speed_scale: fl
     return (_PEAK_SPEED * (q1 - q0).abs() / vmax).amax(-1)
 
 
-def sampled_duration(chain: DHChain, q: Tensor, *, speed_scale: float = 1.0) -> Tensor:
+def sampled_duration(chain: Chain, q: Tensor, *, speed_scale: float = 1.0) -> Tensor:
     """Shortest duration (s) for a path sampled at evenly spaced times, ``q (..., T, n)``, such
     that no joint's finite-difference speed ``|q[t + 1] - q[t]| / dt`` exceeds
     ``speed_scale * chain.velocity_limits``: ``(...)``, equal to ``(T - 1) dt``.
@@ -253,17 +253,17 @@ def sampled_duration(chain: DHChain, q: Tensor, *, speed_scale: float = 1.0) -> 
     return (q.shape[-2] - 1) * dt
 
 
-def _speed_limits(chain: DHChain, speed_scale: float, dtype: torch.dtype) -> Tensor:
-    check_instance(chain, DHChain, "chain")
+def _speed_limits(chain: Chain, speed_scale: float, dtype: torch.dtype) -> Tensor:
+    check_instance(chain, Chain, "chain")
     if chain.velocity_limits is None:
-        raise ValueError(f"chain {chain.name!r} has no velocity_limits; pass them to DHChain to time-scale")
+        raise ValueError(f"chain {chain.name!r} has no velocity_limits; pass them to Chain to time-scale")
     if isinstance(speed_scale, bool) or not isinstance(speed_scale, (int, float)) or not 0 < speed_scale <= 1:
         raise ValueError(f"speed_scale must be a number in (0, 1], got {speed_scale!r}")
     return speed_scale * chain.velocity_limits.to(dtype)
 
 
 def track(
-    chain: DHChain,
+    chain: Chain,
     poses: Tensor,
     q0: Tensor,
     *,
@@ -305,7 +305,7 @@ def track(
         requires it) and the path's smallest clearance. Check ``max_step``: a large value means
         a branch switch, a swing around an obstacle or a failure along the way.
     """
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     check_choice(method, get_args(Method), "method")
     check_world(world, margin, capsules)
     check_positive(pos_tol, "pos_tol")
@@ -363,7 +363,7 @@ def track(
 
 
 def _gradient_stepper(
-    chain: DHChain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float, world: World | None, margin: float,
+    chain: Chain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float, world: World | None, margin: float,
     capsules: Capsules | None,
 ):
     from .ik import solve
@@ -388,7 +388,7 @@ def _gradient_stepper(
     return step
 
 
-def _nearest(chain: DHChain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _nearest(chain: Chain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Of the candidates ``sol.q (..., B, n)`` (closed-form branches), the one nearest to
     ``q_prev (..., n)``: valid ones first, then reachable ones within the limits (colliding, when
     ``sol`` was checked against a world), then the other reachable ones (clamped). Returns
@@ -406,7 +406,7 @@ def _nearest(chain: DHChain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tenso
     return chain.clamp(q), best, at_best(sol.valid), at_best(sol.reachable & sol.within_limits)
 
 
-def _near_arm_angle(chain: DHChain, pose: Tensor, q_prev: Tensor, world: World | None, margin: float, capsules):
+def _near_arm_angle(chain: Chain, pose: Tensor, q_prev: Tensor, world: World | None, margin: float, capsules):
     """iiwa: the closed-form solution of ``pose (B, 4, 4)`` nearest to ``q_prev (B, 7)`` over
     arm angles near the previous one's: offsets from 1e-6 to pi either side on a log scale,
     then ``_ZOOMS`` finer rounds around the best (0 is in every round, so the pick never gets
@@ -436,7 +436,7 @@ def _near_arm_angle(chain: DHChain, pose: Tensor, q_prev: Tensor, world: World |
 
 
 def _analytic_stepper(
-    chain: DHChain,
+    chain: Chain,
     pos_tol: float,
     rot_tol: float,
     batch: torch.Size,

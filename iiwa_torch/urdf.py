@@ -1,9 +1,12 @@
-"""URDF both ways: :func:`to_urdf` writes a :class:`~iiwa_torch.dh.DHChain` so other tools load
-the same robot; :func:`read_urdf` reads the serial path between two links of any URDF as plain
-float64 data (:class:`UrdfPath`).
+"""URDF both ways: :func:`to_urdf` writes any :class:`~iiwa_torch.chain.Chain` so other tools
+load the same robot; :func:`read_urdf` reads the serial path between two links of any URDF as
+plain float64 data (:class:`UrdfPath`), which :func:`iiwa_torch.robots.from_urdf` makes a chain.
 
-Export: links are ``base_link``, ``link1`` ... ``linkN`` (link i carries DH frame i) and
-``tool0`` (the end effector). Revolute joint i sits where DH rotates about z:
+Export: links are ``base_link``, the chain's ``link_names`` (``link1`` ... ``linkN`` for a DH
+chain) and ``tool0`` (the end effector); a chain read from a URDF keeps its origins and axes
+(the base folded into the first origin), so its link frames survive the round trip. A DH
+chain's revolute joint i sits where DH rotates about z, so its link i is the frame just after
+that rotation (not DH frame i, which is a constant transform further):
 
 - standard DH: its origin is the previous link's constant part ``Tz(d) Tx(a) Rx(alpha)``
   (the base transform for joint 1) times ``Rz(offset)``;
@@ -23,6 +26,7 @@ from xml.sax.saxutils import quoteattr
 
 import torch
 
+from .chain import Chain, JointKind
 from .dh import Convention, DHChain
 from .kinematics import elementary_transform
 from .so3 import matrix_to_rpy, rpy_to_matrix
@@ -44,32 +48,46 @@ def _link(name: str) -> str:
     return f'  <link name="{name}"><inertial><mass value="0.1"/>{inertia}</inertial></link>'
 
 
-def to_urdf(chain: DHChain, name: str | None = None) -> str:
-    """The chain as a URDF document (a string), joint limits and speeds included."""
-    robot = name or chain.name
-    dh = chain.dh.detach().cpu().to(torch.float64)
-    lower, upper = chain.limits.detach().cpu().tolist()
-    speeds = chain.velocity_limits.tolist() if chain.velocity_limits is not None else [10.0] * chain.n_joints
-    links = ["base_link"] + [f"link{i + 1}" for i in range(chain.n_joints)] + ["tool0"]
-    lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(robot)}>"]
-    lines += [_link(link) for link in links]
+def _dh_joints(chain: DHChain) -> tuple[list[torch.Tensor], list[tuple[float, float, float]], torch.Tensor]:
+    """A DH chain's joint origins (z axes), and the transform left after the last joint."""
     carry = chain.base.detach().cpu().to(torch.float64)  # constant transform waiting to be placed
-    for i, ((a, alpha, d, offset), joint) in enumerate(zip(dh.tolist(), chain.joint_names)):
+    origins = []
+    for a, alpha, d, offset in chain.dh.detach().cpu().to(torch.float64).tolist():
         if chain.convention is Convention.STANDARD:
-            origin = carry @ elementary_transform("z", offset)
+            origins.append(carry @ elementary_transform("z", offset))
             carry = elementary_transform("z", 0.0, (0.0, 0.0, d)) @ elementary_transform("x", alpha, (a, 0.0, 0.0))
         else:
-            origin = carry @ elementary_transform("x", alpha, (a, 0.0, 0.0)) @ elementary_transform("z", offset)
+            origins.append(carry @ elementary_transform("x", alpha, (a, 0.0, 0.0)) @ elementary_transform("z", offset))
             carry = elementary_transform("z", 0.0, (0.0, 0.0, d))
+    return origins, [(0.0, 0.0, 1.0)] * chain.n_joints, carry
+
+
+def to_urdf(chain: Chain, name: str | None = None) -> str:
+    """The chain as a URDF document (a string), joint kinds, limits and speeds included, numbers
+    written to round-trip in float64 (``from_urdf(to_urdf(c))`` has ``c``'s frames)."""
+    robot = name or chain.name
+    if isinstance(chain, DHChain):
+        origins, axes, carry = _dh_joints(chain)
+    else:
+        origins = list(chain.origins.detach().cpu().to(torch.float64))
+        origins[0] = chain.base.detach().cpu().to(torch.float64) @ origins[0]
+        axes, carry = [tuple(a) for a in chain.axes.tolist()], torch.eye(4, dtype=torch.float64)
+    lower, upper = chain.limits.detach().cpu().tolist()
+    speeds = chain.velocity_limits.tolist() if chain.velocity_limits is not None else [10.0] * chain.n_joints
+    links = ["base_link", *chain.link_names, "tool0"]
+    lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(robot)}>"]
+    lines += [_link(link) for link in links]
+    for i, (joint, kind, origin, axis) in enumerate(zip(chain.joint_names, chain.kinds, origins, axes)):
+        limit = "" if kind is JointKind.CONTINUOUS else f'lower="{lower[i]!r}" upper="{upper[i]!r}" '
         lines.append(
-            f'  <joint name={quoteattr(joint)} type="revolute">'
-            f'<parent link="{links[i]}"/><child link="{links[i + 1]}"/>{_origin(origin)}'
-            f'<axis xyz="0 0 1"/><limit lower="{lower[i]!r}" upper="{upper[i]!r}" '
+            f'  <joint name={quoteattr(joint)} type="{kind.value}">'
+            f'<parent link={quoteattr(links[i])}/><child link={quoteattr(links[i + 1])}/>{_origin(origin)}'
+            f'<axis xyz="{" ".join(repr(v) for v in axis)}"/><limit {limit}'
             f'effort="100" velocity="{speeds[i]!r}"/></joint>'
         )
     tool = carry @ chain.tool.detach().cpu().to(torch.float64)
     lines.append(
-        f'  <joint name="tool_joint" type="fixed"><parent link="{links[-2]}"/>'
+        f'  <joint name="tool_joint" type="fixed"><parent link={quoteattr(links[-2])}/>'
         f'<child link="tool0"/>{_origin(tool)}</joint>'
     )
     lines.append("</robot>")

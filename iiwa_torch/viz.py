@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .chain import Chain
 from .collision import Capsules, World, pairwise_clearance, robot_capsules
-from .dh import DHChain
 
 __all__ = [
     "draw_chain",
@@ -41,9 +41,9 @@ __all__ = [
 _FRAME_COLOURS = ("tab:red", "tab:green", "tab:blue")  # x, y, z axes of a frame
 
 
-def _as_q(chain: DHChain, q) -> torch.Tensor:
+def _as_q(chain: Chain, q) -> torch.Tensor:
     """Joint angles (tensor, array or list), ``(n,)`` or ``(k, n)`` -> ``(k, n)`` float64 tensor."""
-    q = torch.as_tensor(q, dtype=torch.float64, device=chain.dh.device)
+    q = torch.as_tensor(q, dtype=torch.float64, device=chain.limits.device)
     if q.ndim == 1:
         q = q[None]
     if q.ndim != 2:
@@ -52,7 +52,7 @@ def _as_q(chain: DHChain, q) -> torch.Tensor:
     return q
 
 
-def _points(chain: DHChain, q: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+def _points(chain: Chain, q: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """``(k, n)`` -> frame origins plus the end effector ``(k, n + 2, 3)``, and frame rotations
     ``(k, n + 1, 3, 3)``, as numpy arrays (metres)."""
     with torch.no_grad():
@@ -62,7 +62,7 @@ def _points(chain: DHChain, q: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     return origins.cpu().numpy(), frames[..., :3, :3].cpu().numpy()
 
 
-def draw_chain(ax, chain: DHChain, q, *, frames: bool = False, color=None, alpha: float = 1.0, label=None) -> list:
+def draw_chain(ax, chain: Chain, q, *, frames: bool = False, color=None, alpha: float = 1.0, label=None) -> list:
     """Draw the chain at ``q`` on a 3-D matplotlib axes; return the artists created.
 
     Args:
@@ -97,7 +97,7 @@ def draw_chain(ax, chain: DHChain, q, *, frames: bool = False, color=None, alpha
     return artists
 
 
-def _scene(chain: DHChain, size: tuple[int, int], dpi: int, elev: float, azim: float):
+def _scene(chain: Chain, size: tuple[int, int], dpi: int, elev: float, azim: float):
     """A figure with its own Agg canvas and one 3-D axes, limits fixed to the chain's reach."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -160,7 +160,7 @@ def _to_rgb(canvas) -> np.ndarray:
 
 
 def render_rgb(
-    chain: DHChain,
+    chain: Chain,
     q,
     goal=None,
     size: tuple[int, int] = (480, 480),
@@ -189,7 +189,7 @@ def render_rgb(
     return _to_rgb(canvas)
 
 
-def save_png(chain: DHChain, q, file, **kwargs) -> Path:
+def save_png(chain: Chain, q, file, **kwargs) -> Path:
     """Render with :func:`render_rgb` (same keyword arguments) and write a PNG; returns the path."""
     from PIL import Image
 
@@ -199,7 +199,7 @@ def save_png(chain: DHChain, q, file, **kwargs) -> Path:
 
 
 def animate(
-    chain: DHChain,
+    chain: Chain,
     qs,
     file,
     *,
@@ -327,7 +327,7 @@ def _surface(ax, mesh: np.ndarray, colour, alpha: float, gid: str):
     return surface
 
 
-def _segments(chain: DHChain, capsules: Capsules, q: torch.Tensor) -> np.ndarray:
+def _segments(chain: Chain, capsules: Capsules, q: torch.Tensor) -> np.ndarray:
     """Capsule end points ``(K, 2, 3)`` in the world frame at one configuration, metres."""
     with torch.no_grad():
         frames = chain.fk_all(q)[0, list(capsules.frames)]  # (K, 4, 4)
@@ -336,7 +336,7 @@ def _segments(chain: DHChain, capsules: Capsules, q: torch.Tensor) -> np.ndarray
 
 
 def draw_capsules(
-    ax, chain: DHChain, q, capsules: Capsules | None = None, *, colliding=(), alpha: float = 0.35
+    ax, chain: Chain, q, capsules: Capsules | None = None, *, colliding=(), alpha: float = 0.35
 ) -> list:
     """Draw the capsules at one configuration ``q (n,)`` (radians) as shaded surfaces; return them
     (one per capsule, ``gid = "capsule:<name>"``, in the model's order).
@@ -417,7 +417,7 @@ def _box_corners(world: World) -> np.ndarray:
     return (signs * half[:, None]) @ pose[:, :3, :3].transpose(0, 2, 1) + pose[:, None, :3, 3]
 
 
-def _bounds(chain: DHChain, q: torch.Tensor, world: World, capsules: Capsules) -> np.ndarray:
+def _bounds(chain: Chain, q: torch.Tensor, world: World, capsules: Capsules) -> np.ndarray:
     """Lower and upper corners ``(2, 3)`` of a box holding the capsules, the base, the obstacles and
     the floor's height."""
     ends = _segments(chain, capsules, q)
@@ -459,7 +459,7 @@ def _shade(faces, colour, alpha: float) -> np.ndarray:
 
 
 def plot_world(
-    chain: DHChain,
+    chain: Chain,
     q,
     world: World | None = None,
     capsules: Capsules | None = None,

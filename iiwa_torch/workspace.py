@@ -27,8 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .chain import Chain
 from .checks import as_point, check_instance, check_positive
-from .dh import DHChain
 
 __all__ = [
     "Section",
@@ -168,12 +168,12 @@ def _section(section) -> Section:
         raise ValueError(f"section must be one of {[s.value for s in Section]}, got {section!r}") from None
 
 
-def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e-9) -> Tensor:
+def frame_point(chain: Chain, frame: int, *, trials: int = 64, tol: float = 1e-9) -> Tensor:
     """Origin of frame ``frame`` (0 = base, n = last link, as in ``fk_all``) in end-effector
     coordinates, ``(3,)`` metres, float64; raises ``ValueError`` unless that origin is fixed in
     the end-effector frame (true for the centre of a spherical wrist: frames 5 and 6 of the iiwa).
     """
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     n = chain.n_joints
     if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= n:
         raise ValueError(f"frame must be an integer in 0..{n}, got {frame!r}")
@@ -192,7 +192,7 @@ def frame_point(chain: DHChain, frame: int, *, trials: int = 64, tol: float = 1e
 
 
 def sample_points(
-    chain: DHChain,
+    chain: Chain,
     n: int,
     *,
     point=None,
@@ -201,7 +201,7 @@ def sample_points(
 ) -> Tensor:
     """``(n, 3)`` world positions (m) of ``point`` (``(3,)`` m in the end-effector frame, default
     its origin) at ``n`` configurations drawn uniformly within the joint limits."""
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     check_positive(n, "n", integer=True)
     p = as_point(point)
     q = chain.random_q(n, generator=generator, dtype=dtype)
@@ -225,7 +225,7 @@ def _cell_index(xyz: Tensor, section: Section, lower: tuple[float, ...], shape: 
     return flat
 
 
-def _grid(chain: DHChain, section: Section, h: float, p: Tensor) -> tuple[tuple[float, ...], tuple[int, ...]]:
+def _grid(chain: Chain, section: Section, h: float, p: Tensor) -> tuple[tuple[float, ...], tuple[int, ...]]:
     reach = chain.reach_bound(p) + h
     cells = int(math.ceil(2 * reach / h))
     if section is Section.RZ:
@@ -239,7 +239,7 @@ def _grid(chain: DHChain, section: Section, h: float, p: Tensor) -> tuple[tuple[
 
 
 def occupancy(
-    chain: DHChain,
+    chain: Chain,
     n_samples: int,
     h: float,
     *,
@@ -253,7 +253,7 @@ def occupancy(
     ``h`` (m), processed in blocks of ``block`` configurations; ``counts`` continues an earlier
     result of the same grid (a new object is returned)."""
     section = _section(section)
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     check_positive(h, "h")
     check_positive(n_samples, "n_samples", integer=True)
     check_positive(block, "block", integer=True)
@@ -285,7 +285,7 @@ def _measure(occ: Occupancy) -> tuple[float, float, float]:
 
 
 def volume(
-    chain: DHChain,
+    chain: Chain,
     h: float = 0.01,
     *,
     section: Section | str = Section.XYZ,
@@ -340,7 +340,7 @@ def envelopes(occ: Occupancy, *, axis_gap: int = 4) -> tuple[np.ndarray, np.ndar
 
 
 def extent(
-    chain: DHChain, n_samples: int, *, point=None, block: int = 1 << 20, generator: torch.Generator | None = None
+    chain: Chain, n_samples: int, *, point=None, block: int = 1 << 20, generator: torch.Generator | None = None
 ) -> Extent:
     """Highest, lowest and farthest-from-the-axis sampled points (m), see :class:`Extent`."""
     check_positive(n_samples, "n_samples", integer=True)
@@ -357,11 +357,11 @@ def extent(
     return Extent(z_max, z_min, r_max, n_samples)
 
 
-def dexterity(chain: DHChain, q: Tensor, *, position_only: bool = False) -> Dexterity:
+def dexterity(chain: Chain, q: Tensor, *, position_only: bool = False) -> Dexterity:
     """Manipulability, condition number and smallest singular value of the Jacobian at
     ``q (..., n)`` radians; each ``(...)``. The full 6 x n Jacobian mixes m/rad (linear rows)
     and 1 (angular rows); ``position_only`` uses the 3 linear rows (units m/rad)."""
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     jac = chain.jacobian(q)
     if position_only:
         jac = jac[..., :3, :]
@@ -373,7 +373,7 @@ def dexterity(chain: DHChain, q: Tensor, *, position_only: bool = False) -> Dext
 
 
 def dexterity_map(
-    chain: DHChain,
+    chain: Chain,
     n_samples: int,
     h: float,
     *,
@@ -384,7 +384,7 @@ def dexterity_map(
 ) -> DexterityMap:
     """Mean and max manipulability of ``n_samples`` random configurations, binned by where
     ``point`` lands in the side view (``r``, ``z``) on cells of side ``h`` (m)."""
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     check_positive(h, "h")
     check_positive(n_samples, "n_samples", integer=True)
     check_positive(block, "block", integer=True)
@@ -411,7 +411,7 @@ def dexterity_map(
 
 
 def plot_workspace(
-    chain: DHChain,
+    chain: Chain,
     path,
     *,
     manipulability_path=None,

@@ -25,7 +25,7 @@ from envs.core import ReachTask
 from envs.goals import decode_pose_goal, encode_pose_goal
 from envs.reach import IiwaReachEnv, IiwaReachVectorEnv, goal_env_spaces
 from envs.sb3 import IiwaReachVecEnv
-from iiwa_torch import DHChain, collision, robots, so3, trajectory, workspace
+from iiwa_torch import Chain, DHChain, collision, robots, so3, trajectory, urdf, workspace
 from iiwa_torch.ik import analytic, dls_step, minimize, solve
 
 CHAIN = robots.iiwa14()
@@ -34,6 +34,7 @@ Q = CHAIN.random_q(3, generator=torch.Generator().manual_seed(0))  # (3, 7) floa
 POSE = CHAIN.fk(Q)  # (3, 4, 4)
 PUMA_POSE = PUMA.fk(PUMA.random_q(3, generator=torch.Generator().manual_seed(1)))
 ROT = POSE[:, :3, :3]
+URDF = urdf.to_urdf(CHAIN)
 
 
 @dataclass(frozen=True)
@@ -111,6 +112,39 @@ _TASK_OPTIONS = _tols("dt", "distance_threshold", "orientation_threshold") + (
 
 ENTRIES: dict[str, Entry] = {
     # ------------------------------------------------------------------ the chain
+    "iiwa_torch.robots:from_urdf": Entry(
+        robots.from_urdf,
+        lambda: {"source": URDF},
+        bad=(
+            ("source", "<robot"),
+            ("source", "/no/such.urdf"),
+            ("source", 3),
+            ("end_link", "nope"),
+            ("end_link", 5),
+            ("base_link", "x"),
+        ),
+    ),
+    "iiwa_torch:Chain": Entry(
+        Chain,
+        lambda: {"origins": POSE[:2], "axes": torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
+                 "limits": CHAIN.limits[:, :2], "base": torch.eye(4), "tool": POSE[0]},
+        poses=("base", "tool"),
+        converts_dtype=True,
+        bad=(
+            ("origins", POSE[:2, :3]),
+            ("origins", POSE[:2] * 2),
+            ("axes", torch.zeros(2, 3)),
+            ("axes", torch.ones(3, 3)),
+            ("axes", torch.full((2, 3), math.nan)),
+            ("limits", CHAIN.limits[:, :1]),
+            ("limits", CHAIN.limits[:, :2].flip(0)),
+            ("limits", CHAIN.limits[:, :2].clone().fill_(math.inf)),
+            ("kinds", ["revolute", "spherical"]),
+            ("kinds", ["revolute"]),
+            ("velocity_limits", torch.full((2,), -1.0)),
+            ("name", 3),
+        ),
+    ),
     "iiwa_torch:DHChain": Entry(
         DHChain,
         lambda: {"table": CHAIN.dh, "limits": CHAIN.limits, "base": torch.eye(4), "tool": POSE[0]},
@@ -435,6 +469,7 @@ ENTRIES: dict[str, Entry] = {
 #: Public names that are not entry points a user feeds data to, with the reason.
 EXEMPT = {
     "iiwa_torch:Convention": "an Enum of choice strings (checked where taken)",
+    "iiwa_torch:JointKind": "an Enum of choice strings (checked where taken)",
     "iiwa_torch:collision": "a module",
     "iiwa_torch:robots": "a module",
     "iiwa_torch:so3": "a module",

@@ -125,7 +125,7 @@ def _hildreth(x, normal, scaled, bound, sweeps):
 @_jit
 def features(observation, achieved, desired, e, q, inv_scales, max_step, damping_sq, lower, upper, error_damping,
              clip, limit_rounds, orientation_weight, centering, twist, guarded, guard, hold_at_limit, damper,
-             clearance_start, K, table, base, tool, modified):
+             clearance_start, K, transforms, params, base, tool):
     """The extractor's features ``(B, F)`` in ``observation``'s dtype.
 
     ``observation (B, O)``, ``achieved``, ``desired (B, G)`` as observed; ``e (B, k)`` float64, the
@@ -143,7 +143,7 @@ def features(observation, achieved, desired, e, q, inv_scales, max_step, damping
     K = K if avoid else 0
     width = width_obs + (2 + S) * G + (L + 2) * nj + 1 + K * (nj + 1)
     out = np.empty((B, width), dtype=observation.dtype)
-    jac = jacobians(table, base, tool, modified, q)
+    jac = jacobians(transforms, params, base, tool, q)
     jp, A, y = np.empty((k, nj)), np.empty((k, k)), np.empty((k, 1))
     dq, free, step, prior = np.empty(nj), np.empty(nj), np.empty(nj), np.zeros(nj)
     hold, gain, shrunk = np.zeros(nj), np.empty(nj), np.empty(nj)

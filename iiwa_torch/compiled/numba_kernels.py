@@ -3,7 +3,7 @@
 Each kernel restates a formula of the numpy / Python-float paths, and its docstring names the
 function it mirrors (``tests/test_compiled.py`` holds them together). Everything is float64
 and unchecked: the callers check. A chain enters as the four
-:attr:`~iiwa_torch.kinematics.Geometry.float_arrays` ``table, base, tool, modified``.
+:attr:`~iiwa_torch.kinematics.Geometry.float_arrays` ``transforms, params, base, tool``.
 """
 
 from __future__ import annotations
@@ -37,31 +37,56 @@ def _store_frame(f, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
     f[2, 0], f[2, 1], f[2, 2], f[3, 0], f[3, 1], f[3, 2] = z0, z1, z2, p0, p1, p2
 
 
+@_inline
+def _apply(T, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
+    """A frame (axes x, y, z and origin p) times the constant transform ``T (4, 4)``."""
+    c00, c10, c20, c01, c11, c21 = T[0, 0], T[1, 0], T[2, 0], T[0, 1], T[1, 1], T[2, 1]
+    c02, c12, c22, t0, t1, t2 = T[0, 2], T[1, 2], T[2, 2], T[0, 3], T[1, 3], T[2, 3]
+    return (c00 * x0 + c10 * y0 + c20 * z0, c00 * x1 + c10 * y1 + c20 * z1, c00 * x2 + c10 * y2 + c20 * z2,
+            c01 * x0 + c11 * y0 + c21 * z0, c01 * x1 + c11 * y1 + c21 * z1, c01 * x2 + c11 * y2 + c21 * z2,
+            c02 * x0 + c12 * y0 + c22 * z0, c02 * x1 + c12 * y1 + c22 * z1, c02 * x2 + c12 * y2 + c22 * z2,
+            p0 + (t0 * x0 + t1 * y0 + t2 * z0), p1 + (t0 * x1 + t1 * y1 + t2 * z1),
+            p2 + (t0 * x2 + t1 * y2 + t2 * z2))  # grouped as the float path groups them: the same bits
+
+
+@_inline
+def _joint(transforms, params, i, theta, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, axis):
+    """Link frame ``i - 1`` -> link frame ``i`` through joint i at ``theta = q_i + offset_i``:
+    ``before_i M(theta) after_i`` (identities skipped); joint i's axis and a point on it into
+    ``axis (6,)`` if it has 6 entries."""
+    if params[i, 2]:
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = _apply(transforms[i, 0], x0, x1, x2, y0, y1, y2, z0, z1,
+                                                                z2, p0, p1, p2)
+    if axis.shape[0] == 6:
+        axis[0], axis[1], axis[2], axis[3], axis[4], axis[5] = z0, z1, z2, p0, p1, p2
+    if params[i, 1]:  # prismatic: along z
+        p0, p1, p2 = p0 + theta * z0, p1 + theta * z1, p2 + theta * z2
+    else:
+        x0, x1, x2, y0, y1, y2 = _turn(x0, x1, x2, y0, y1, y2, math.cos(theta), math.sin(theta))
+    if params[i, 3]:
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = _apply(transforms[i, 1], x0, x1, x2, y0, y1, y2, z0, z1,
+                                                                z2, p0, p1, p2)
+    return x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2
+
+
 @_jit
-def _frames(table, base, tool, modified, q, pose, Z, P, F):
+def _frames(transforms, params, base, tool, q, pose, Z, P, F):
     """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)``; if ``Z`` has ``n`` rows,
     joint i's axis into ``Z[i]`` and a point on it into ``P[i]`` (both ``(n, 3)``); if ``F`` has
     ``n + 1`` rows, the base and every link frame (no tool) into ``F (n + 1, 4, 3)``, each as its
     x, y, z axes and origin. Mirrors :func:`iiwa_torch.kinematics._frames_floats` (the frame
-    recursion in Python floats), which skips zero lengths and an identity tool: adding those zero
-    terms changes no value."""
+    recursion in Python floats), which skips zero terms: adding them changes no value."""
     x0, x1, x2, y0, y1, y2 = base[0, 0], base[1, 0], base[2, 0], base[0, 1], base[1, 1], base[2, 1]
     z0, z1, z2, p0, p1, p2 = base[0, 2], base[1, 2], base[2, 2], base[0, 3], base[1, 3], base[2, 3]
     keep, every = Z.shape[0] > 0, F.shape[0] > 0
+    axis = np.empty(6 if keep else 0)
     if every:
         _store_frame(F[0], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
-    for i in range(table.shape[0]):
-        a, ca, sa, d, offset = table[i, 0], table[i, 1], table[i, 2], table[i, 3], table[i, 4]
-        if modified:  # A_i = Rx(alpha) Tx(a) Rz(theta) Tz(d)
-            y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
-            p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
+    for i in range(params.shape[0]):
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = _joint(transforms, params, i, q[i] + params[i, 0], x0, x1,
+                                                                x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, axis)
         if keep:
-            Z[i, 0], Z[i, 1], Z[i, 2], P[i, 0], P[i, 1], P[i, 2] = z0, z1, z2, p0, p1, p2
-        x0, x1, x2, y0, y1, y2 = _turn(x0, x1, x2, y0, y1, y2, math.cos(q[i] + offset), math.sin(q[i] + offset))
-        p0, p1, p2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
-        if not modified:  # A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)
-            p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
-            y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
+            Z[i, 0], Z[i, 1], Z[i, 2], P[i, 0], P[i, 1], P[i, 2] = axis[0], axis[1], axis[2], axis[3], axis[4], axis[5]
         if every:
             _store_frame(F[i + 1], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
     for k in range(4):  # column k of the tool, (u, v, w), in the world: u x + v y + w z
@@ -76,34 +101,37 @@ def _frames(table, base, tool, modified, q, pose, Z, P, F):
 
 
 @_jit
-def _jacobian_columns(pose, Z, P, J):
-    """Column i of ``J (6, n)``: ``[z_i x (p_e - p_i); z_i]``, from :func:`_frames`' axes.
-    Mirrors :func:`iiwa_torch.kinematics.jacobian_floats`."""
+def _jacobian_columns(params, pose, Z, P, J):
+    """Column i of ``J (6, n)``: ``[z_i x (p_e - p_i); z_i]`` (revolute) or ``[z_i; 0]`` (prismatic),
+    from :func:`_frames`' axes. Mirrors :func:`iiwa_torch.kinematics.jacobian_floats`."""
     e0, e1, e2 = pose[0, 3], pose[1, 3], pose[2, 3]
     for i in range(Z.shape[0]):
         z0, z1, z2 = Z[i, 0], Z[i, 1], Z[i, 2]
+        if params[i, 1]:
+            J[0, i], J[1, i], J[2, i], J[3, i], J[4, i], J[5, i] = z0, z1, z2, 0.0, 0.0, 0.0
+            continue
         l0, l1, l2 = e0 - P[i, 0], e1 - P[i, 1], e2 - P[i, 2]
         J[0, i], J[1, i], J[2, i] = z1 * l2 - z2 * l1, z2 * l0 - z0 * l2, z0 * l1 - z1 * l0
         J[3, i], J[4, i], J[5, i] = z0, z1, z2
 
 
 @_jit
-def end_poses(table, base, tool, modified, q):
+def end_poses(transforms, params, base, tool, q):
     """Configurations ``q (b, n)`` -> their end poses ``(b, 4, 4)``, as :func:`_frames`."""
     out, none = np.empty((q.shape[0], 4, 4)), np.empty((0, 3))
     for k in range(q.shape[0]):
-        _frames(table, base, tool, modified, q[k], out[k], none, none, np.empty((0, 4, 3)))
+        _frames(transforms, params, base, tool, q[k], out[k], none, none, np.empty((0, 4, 3)))
     return out
 
 
 @_jit
-def jacobians(table, base, tool, modified, q):
+def jacobians(transforms, params, base, tool, q):
     """Configurations ``q (b, n)`` -> their Jacobians ``(b, 6, n)`` (linear rows first, world frame)."""
     b, n = q.shape
     out, pose, Z, P = np.empty((b, 6, n)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
     for k in range(b):
-        _frames(table, base, tool, modified, q[k], pose, Z, P, np.empty((0, 4, 3)))
-        _jacobian_columns(pose, Z, P, out[k])
+        _frames(transforms, params, base, tool, q[k], pose, Z, P, np.empty((0, 4, 3)))
+        _jacobian_columns(params, pose, Z, P, out[k])
     return out
 
 
@@ -148,10 +176,10 @@ def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
     """``q (n,)`` -> weighted Jacobian into ``J (m, n)`` and weighted error into ``e (m,)`` (m = 6,
     or 3 without ``has_rot``); returns the squared weighted error, position and rotation error.
     Mirrors :meth:`iiwa_torch.ik.small._Problems.evaluate`."""
-    table, base, tool, modified = arrays
+    transforms, params, base, tool = arrays
     pose, Z, P, J6 = scratch
-    _frames(table, base, tool, modified, q, pose, Z, P, np.empty((0, 4, 3)))
-    _jacobian_columns(pose, Z, P, J6)
+    _frames(transforms, params, base, tool, q, pose, Z, P, np.empty((0, 4, 3)))
+    _jacobian_columns(params, pose, Z, P, J6)
     pos_err, rot_err = _pose_error(pose, pos, rot, has_rot, eps, e)
     m, n = J.shape
     for r in range(m):
@@ -255,7 +283,7 @@ def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest,
 
 
 @_jit
-def lm_round(table, base, tool, modified, q, problem, number, pos, rot, rest, lo, hi, opts, counts,
+def lm_round(transforms, params, base, tool, q, problem, number, pos, rot, rest, lo, hi, opts, counts,
              best_q, best_E, used):  # fmt: skip
     """The LM iterations of one round of seeds ``q (s, n)`` (in place), slot ``k`` a seed of
     problem ``problem[k]`` with seed number ``number[k]``; targets ``pos (b, 3)``, ``rot (b, 3, 3)``
@@ -264,7 +292,7 @@ def lm_round(table, base, tool, modified, q, problem, number, pos, rot, rest, lo
     free_steps, seeds. Records each problem's best slot in ``best_q (b, n)``, its key
     ``best_E (b,)`` and iterations ``used (b,)``, in place.
     Mirrors :meth:`iiwa_torch.ik.small._Problems.run_round` and its ``check``."""
-    arrays = (table, base, tool, modified)
+    arrays = (transforms, params, base, tool)
     iterations, check_every, free_steps, seeds = counts[0], counts[1], counts[2], counts[3]
     weight, eps, lam_min, lambda0, pos_tol, rot_tol = opts[0], opts[2], opts[3], opts[4], opts[7], opts[8]
     step_opts = (opts[0], opts[1], opts[2], opts[3], opts[4], opts[5], opts[6])
@@ -343,7 +371,7 @@ def lm_round(table, base, tool, modified, q, problem, number, pos, rot, rest, lo
 
 
 @_jit
-def lm_rounds(table, base, tool, modified, pool, order, first, pos, rot, rest, lo, hi, opts, counts, best_q, best_E,
+def lm_rounds(transforms, params, base, tool, pool, order, first, pos, rot, rest, lo, hi, opts, counts, best_q, best_E,
               used):  # fmt: skip
     """Every round of seeds of ``b = best_q.shape[0]`` problems, one seed per problem a round:
     ``first (b, n)`` (q0; 0 rows: none), then the pool ``(P, n)`` entries of ranks ``order (ranks, b)``,
@@ -362,7 +390,7 @@ def lm_rounds(table, base, tool, modified, pool, order, first, pos, rot, rest, l
             q[j] = first[p] if k < shift else pool[order[k - shift, p]]
             if k == 0:  # until a better one is found, a problem's answer is its first seed
                 best_q[p] = q[j]
-        lm_round(table, base, tool, modified, q, remaining, np.full(s, k), pos, rot, rest, lo, hi, opts, counts,
+        lm_round(transforms, params, base, tool, q, remaining, np.full(s, k), pos, rot, rest, lo, hi, opts, counts,
                  best_q, best_E, used)  # fmt: skip
         remaining = remaining[best_E[remaining] >= 0]
 
@@ -676,7 +704,7 @@ _LANES = 256  # configurations per block: the block's frames and capsules stay i
 
 
 @_jit
-def own_clearance(q, table, base, modified, frames, local, first, second, pair_radius, floor, floor_radius,
+def own_clearance(q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius,
                   height, out):
     """Self and floor clearance of ``q (N, n)`` (float32 or float64; computed in float64) into
     ``out (N,)``, metres: the smallest of ``|x - y| - r`` over the self pairs ``first, second
@@ -701,8 +729,8 @@ def own_clearance(q, table, base, modified, frames, local, first, second, pair_r
         wide = False
         for j in range(m):
             for i in range(last):
-                angle[i, j] = q[row + j, i] + table[i, 4]
-                wide = wide or abs(angle[i, j]) > _SIN_COS_RANGE
+                angle[i, j] = q[row + j, i] + params[i, 0]
+                wide = wide or (abs(angle[i, j]) > _SIN_COS_RANGE and not params[i, 1])
         for i in range(last):
             if wide:
                 for j in range(m):
@@ -715,20 +743,23 @@ def own_clearance(q, table, base, modified, frames, local, first, second, pair_r
                 state[r, j] = base[r % 3, r // 3]
         for f in range(last + 1):
             if f > 0:
-                a, ca, sa, d = table[f - 1, 0], table[f - 1, 1], table[f - 1, 2], table[f - 1, 3]
+                i = f - 1
                 for j in range(m):
                     x0, x1, x2 = state[0, j], state[1, j], state[2, j]
                     y0, y1, y2 = state[3, j], state[4, j], state[5, j]
                     z0, z1, z2 = state[6, j], state[7, j], state[8, j]
                     p0, p1, p2 = state[9, j], state[10, j], state[11, j]
-                    if modified:
-                        y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
-                        p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
-                    x0, x1, x2, y0, y1, y2 = _turn(x0, x1, x2, y0, y1, y2, cs[0, f - 1, j], cs[1, f - 1, j])
-                    p0, p1, p2 = p0 + d * z0, p1 + d * z1, p2 + d * z2
-                    if not modified:
-                        p0, p1, p2 = p0 + a * x0, p1 + a * x1, p2 + a * x2
-                        y0, y1, y2, z0, z1, z2 = _turn(y0, y1, y2, z0, z1, z2, ca, sa)
+                    if params[i, 2]:
+                        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = _apply(transforms[i, 0], x0, x1, x2, y0, y1,
+                                                                                y2, z0, z1, z2, p0, p1, p2)
+                    if params[i, 1]:  # prismatic: along z
+                        t = angle[i, j]
+                        p0, p1, p2 = p0 + t * z0, p1 + t * z1, p2 + t * z2
+                    else:
+                        x0, x1, x2, y0, y1, y2 = _turn(x0, x1, x2, y0, y1, y2, cs[0, i, j], cs[1, i, j])
+                    if params[i, 3]:
+                        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = _apply(transforms[i, 1], x0, x1, x2, y0, y1,
+                                                                                y2, z0, z1, z2, p0, p1, p2)
                     state[0, j], state[1, j], state[2, j] = x0, x1, x2
                     state[3, j], state[4, j], state[5, j] = y0, y1, y2
                     state[6, j], state[7, j], state[8, j] = z0, z1, z2
@@ -764,18 +795,21 @@ def own_clearance(q, table, base, modified, frames, local, first, second, pair_r
 
 
 @_inline
-def _along(F, axis, frame, x0, x1, x2, u0, u1, u2, out, sign):
+def _along(params, Z, P, frame, x0, x1, x2, u0, u1, u2, out, sign):
     """``out += sign * u . d x / dq`` for the point ``x`` fixed in link frame ``frame``: joint j
-    moves it by ``z_j x (x - p_j)`` (axis and origin of ``F[j + axis]``), j < ``frame``."""
+    (axis ``Z[j]`` through ``P[j]``), j < ``frame``, moves it by ``z_j x (x - p_j)``, or by ``z_j``
+    if prismatic."""
     for j in range(frame):
-        z0, z1, z2, p0, p1, p2 = F[j + axis, 2, 0], F[j + axis, 2, 1], F[j + axis, 2, 2], F[j + axis, 3, 0], \
-            F[j + axis, 3, 1], F[j + axis, 3, 2]
+        z0, z1, z2, p0, p1, p2 = Z[j, 0], Z[j, 1], Z[j, 2], P[j, 0], P[j, 1], P[j, 2]
+        if params[j, 1]:
+            out[j] += sign * (u0 * z0 + u1 * z1 + u2 * z2)
+            continue
         l0, l1, l2 = x0 - p0, x1 - p1, x2 - p2
         out[j] += sign * (u0 * (z1 * l2 - z2 * l1) + u1 * (z2 * l0 - z0 * l2) + u2 * (z0 * l1 - z1 * l0))
 
 
 @_jit
-def capsule_clearance(table, base, tool, modified, q, frames, local, first, second, pair_radius, floor, floor_radius,
+def capsule_clearance(transforms, params, base, tool, q, frames, local, first, second, pair_radius, floor, floor_radius,
                       height, distance, gradient):
     """One configuration ``q (n,)`` -> each capsule's smallest signed distance (m) to itself and the
     floor into ``distance (K,)`` and its gradient (m/rad) into ``gradient (K, n)`` (``inf`` and
@@ -783,8 +817,8 @@ def capsule_clearance(table, base, tool, modified, q, frames, local, first, seco
     :func:`iiwa_torch.collision._capsule_clearance_floats`: the same closest points, the same
     envelope-theorem gradients, the same order of comparisons."""
     n, k_all = q.shape[0], frames.shape[0]
-    F, pose, none = np.empty((n + 1, 4, 3)), np.empty((4, 4)), np.empty((0, 3))
-    _frames(table, base, tool, modified, q, pose, none, none, F)
+    F, pose, Z, P = np.empty((n + 1, 4, 3)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
+    _frames(transforms, params, base, tool, q, pose, Z, P, F)
     ends = np.empty((k_all, 6))  # per capsule: start point, start-to-end vector
     for k in range(k_all):
         f = frames[k]
@@ -795,7 +829,6 @@ def capsule_clearance(table, base, tool, modified, q, frames, local, first, seco
             start = p + u0 * x + v0 * y + w0 * z
             ends[k, r] = start
             ends[k, 3 + r] = p + u1 * x + v1 * y + w1 * z - start
-    axis = 1 if modified else 0  # joint j turns about frame j's z (standard DH) or frame j + 1's
     candidate = np.empty(n)
     for k in range(k_all):
         distance[k] = np.inf
@@ -811,8 +844,8 @@ def capsule_clearance(table, base, tool, modified, q, frames, local, first, seco
         norm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
         u0, u1, u2 = (w0 / norm, w1 / norm, w2 / norm) if norm > 0 else (0.0, 0.0, 0.0)
         candidate[:] = 0.0
-        _along(F, axis, frames[i], a[0] + s * a0, a[1] + s * a1, a[2] + s * a2, u0, u1, u2, candidate, 1.0)
-        _along(F, axis, frames[j], b[0] + t * b0, b[1] + t * b1, b[2] + t * b2, u0, u1, u2, candidate, -1.0)
+        _along(params, Z, P, frames[i], a[0] + s * a0, a[1] + s * a1, a[2] + s * a2, u0, u1, u2, candidate, 1.0)
+        _along(params, Z, P, frames[j], b[0] + t * b0, b[1] + t * b1, b[2] + t * b2, u0, u1, u2, candidate, -1.0)
         for k in (i, j):
             if norm - radius < distance[k]:
                 distance[k] = norm - radius
@@ -825,4 +858,4 @@ def capsule_clearance(table, base, tool, modified, q, frames, local, first, seco
         if value < distance[k]:
             distance[k] = value
             gradient[k, :] = 0.0
-            _along(F, axis, frames[k], x0, x1, x2, 0.0, 0.0, 1.0, gradient[k], 1.0)
+            _along(params, Z, P, frames[k], x0, x1, x2, 0.0, 0.0, 1.0, gradient[k], 1.0)

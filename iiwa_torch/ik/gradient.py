@@ -25,9 +25,9 @@ import numpy as np
 import torch
 
 from .. import so3
+from ..chain import Chain
 from ..checks import check_choice, check_finite, check_instance, check_positive
 from ..collision import Capsules, World, check_world, clearance, pairwise_clearance, robot_capsules
-from ..dh import DHChain
 from .dls import dls_step_batch_last
 from .limits import shift_into_limits
 from .result import IKResult
@@ -75,7 +75,7 @@ _COLLIDING_RANK = 100.0  # added to a colliding pool entry's pose distance: clea
 
 
 # ---------------------------------------------------------------------- batch-last kinematics
-def _kinematics(chain: DHChain, q: Tensor, Z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _kinematics(chain: Chain, q: Tensor, Z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``q (n, b)`` -> end axes ``R (3, 3, b)`` (axis x/y/z, component), end position ``p (3, b)``
     and points on the joint axes ``P (3, n, b)``; the joint axes are written into ``Z (3, n, b)``.
     Uses the chain's own batch-last kernel, so no layout change happens inside the loop."""
@@ -103,7 +103,7 @@ class _Obstacles(NamedTuple):
     ``residual``, the LM objective has the clearance residual; else the clearance is only
     checked when a slot's pose has converged."""
 
-    chain: DHChain
+    chain: Chain
     world: World
     batched: bool
     capsules: Capsules
@@ -148,7 +148,7 @@ class _Target:
 
 
 def _evaluate(
-    chain: DHChain, q: Tensor, target: _Target, weight: float
+    chain: Chain, q: Tensor, target: _Target, weight: float
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """``q (n, b)`` -> weighted Jacobian ``J (m, n, b)``, weighted error ``e (m, b)`` (m = 6 or 3,
     one more with obstacles: the clearance residual), squared weighted error ``E (b,)``, position
@@ -180,7 +180,7 @@ def _clearance_row(q: Tensor, obstacles: _Obstacles) -> tuple[Tensor, Tensor]:
 
 
 def clearance_shortfall(
-    chain: DHChain, q: Tensor, world: World, margin: float, capsules: Capsules | None = None
+    chain: Chain, q: Tensor, world: World, margin: float, capsules: Capsules | None = None
 ) -> Tensor:
     """``sum_p max(0, margin + 2 mm - d_p)^2`` over every checked pair's signed distance ``d_p``
     (:func:`~iiwa_torch.collision.pairwise_clearance`): ``q (..., n) -> (...)``, m^2, zero once
@@ -190,7 +190,7 @@ def clearance_shortfall(
 
 
 def _pose_terms(
-    chain: DHChain, q: Tensor, target: _Target, weight: float
+    chain: Chain, q: Tensor, target: _Target, weight: float
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """:func:`_evaluate` for the pose (or position) rows alone."""
     n, b = q.shape
@@ -276,7 +276,7 @@ def _lm_step(chain, state: _LMState, target, weight, limits, rest, rest_gain, la
     )
 
 
-def inner_limits(chain: DHChain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+def inner_limits(chain: Chain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """``(lo, hi)``, each ``(n,)``, the joint limits in ``dtype`` rounded inward, so an angle
     within them is within the chain's float64 limits too (float32 rounding could cross them)."""
     exact = chain.limits
@@ -297,7 +297,7 @@ def into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     return xp.where(fits, shifted, nearer)
 
 
-def broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
+def broadcast_q(value: Tensor, chain: Chain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
     """Check ``value (..., n)`` and broadcast it to ``(prod(batch), n)``."""
     chain.check_q(value, name)
     try:
@@ -308,7 +308,7 @@ def broadcast_q(value: Tensor, chain: DHChain, batch: torch.Size, name: str, dty
         ) from None
 
 
-def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str, features=None) -> Tensor:
+def pool_distance(chain: Chain, pool: Tensor, target: Tensor, mode: str, features=None) -> Tensor:
     """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
     squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
     less terms that are the same for every pool entry. ``features``: the pool's
@@ -321,7 +321,7 @@ def pool_distance(chain: DHChain, pool: Tensor, target: Tensor, mode: str, featu
     return sq - twice_feat @ target.T
 
 
-def pool_features(chain: DHChain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
+def pool_features(chain: Chain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
     """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and twice
     the features ``(pool, 12)`` (position, 0.3 times the rotation; position only: ``(pool, 3)``)."""
     pose = chain.fk(pool)
@@ -395,7 +395,7 @@ def _keep_best(best_q: Tensor, best_E: Tensor, q: Tensor, key: Tensor, problem: 
 
 
 def solve(
-    chain: DHChain,
+    chain: Chain,
     target: Tensor,
     q0: Tensor | None = None,
     *,
@@ -449,7 +449,7 @@ def solve(
             clearance residual in the LM system. ``None``: no collision check.
         margin: the clearance required with a world, metres (>= 0).
         capsules: the robot's capsule model with a world (default
-            :func:`~iiwa_torch.collision.robot_capsules` of the chain; a custom ``DHChain``
+            :func:`~iiwa_torch.collision.robot_capsules` of the chain; a custom ``Chain``
             needs its own).
 
     Returns:
@@ -463,13 +463,13 @@ def solve(
     The solve is not differentiable (it runs under ``torch.no_grad``); use :func:`minimize`
     to optimise through IK.
     """
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
     seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
     check_positive(seeds, "seeds", integer=True)
     batch = _check_target(target, mode, None, None)
-    if target.device != chain.dh.device:
-        raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
+    if target.device != chain.limits.device:
+        raise ValueError(f"target is on {target.device} but the chain is on {chain.limits.device}")
     _check_world(world, margin, target, batch, capsules)
     dtype, device, n = target.dtype, target.device, chain.n_joints
     work = work_dtype(dtype, precision, pos_tol, rot_tol)
@@ -550,7 +550,7 @@ def _check_world(world, margin, target: Tensor, batch: torch.Size, capsules) -> 
     world.check_batch(batch)
 
 
-def _obstacles(chain: DHChain, world: World, margin: float, batch: torch.Size, work: torch.dtype,
+def _obstacles(chain: Chain, world: World, margin: float, batch: torch.Size, work: torch.dtype,
                capsules: Capsules | None) -> _Obstacles:
     """``world`` in the loop's dtype, a batch shape (if any) expanded and flattened to the problems'."""
     batched = len(world.batch_shape) > 0
@@ -580,7 +580,7 @@ def _clear_answers(settings: _Settings, tgt: _Target, rest, pool, distance, answ
     answers.used[redo] += again.used
 
 
-def _with_clearance(chain: DHChain, result: IKResult, world: World, margin: float,
+def _with_clearance(chain: Chain, result: IKResult, world: World, margin: float,
                     capsules: Capsules | None) -> IKResult:
     """``result`` with the clearance of its ``q`` (in the target's dtype); success needs ``>= margin``."""
     d = clearance(chain, result.q, world, capsules)
@@ -591,7 +591,7 @@ class _Settings(NamedTuple):
     """What every round of :func:`solve` shares; ``lo, hi (n, 1)`` the inner joint limits (rad),
     ``lam_min`` the damping floor (m^2), ``free_steps`` the unconstrained steps of each seed."""
 
-    chain: DHChain
+    chain: Chain
     weight: float
     lo: Tensor
     hi: Tensor
@@ -698,7 +698,7 @@ def _check_slots(
 
 
 def ik_result(
-    chain: DHChain, q: Tensor, target: Tensor, mode: str, pos_tol: float, rot_tol: float, iterations: Tensor
+    chain: Chain, q: Tensor, target: Tensor, mode: str, pos_tol: float, rot_tol: float, iterations: Tensor
 ) -> IKResult:
     """Errors and success from the public ``chain.fk`` of the returned ``q``."""
     pose = chain.fk(q)
@@ -715,7 +715,7 @@ def ik_result(
 
 # ---------------------------------------------------------------------- minimize
 def minimize(
-    chain: DHChain,
+    chain: Chain,
     loss: Callable[[Tensor, Tensor], Tensor],
     q0: Tensor,
     *,
@@ -762,7 +762,7 @@ def minimize(
     and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
     seen; ``iterations`` is ``steps`` for every problem.
     """
-    check_instance(chain, DHChain, "chain")
+    check_instance(chain, Chain, "chain")
     check_choice(mode, get_args(Mode), "mode")
     check_choice(optimizer, get_args(Optimizer), "optimizer")
     check_positive(steps, "steps", integer=True)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from .. import compiled
-from ..dh import DHChain
+from ..chain import Chain
 from ..kinematics import end_pose_matmul, floats_ok, pose_jacobian_numpy
 from .gradient import (
     DAMP_DOWN,
@@ -95,7 +95,7 @@ class _Problems:
     (``kernel_options``, ``kernel_counts``). ``work``: the dtype the batched loop would iterate
     in, which sets the smallest damping and the rounding ``eps``."""
 
-    def __init__(self, chain: DHChain, pos, rot, rest, lo, hi, options: dict, work: torch.dtype):
+    def __init__(self, chain: Chain, pos, rot, rest, lo, hi, options: dict, work: torch.dtype):
         self.g = chain.geometry(torch.float64)
         self.rest, self.lo, self.hi = rest, lo, hi
         lam_min, eps = 1e-12 if work == torch.float64 else 1e-6, torch.finfo(work).eps
@@ -242,7 +242,7 @@ _NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
 _CACHE: WeakKeyDictionary = WeakKeyDictionary()  # Geometry -> {key: value}
 
 
-def _cached(chain: DHChain, dtype: torch.dtype, key, make):
+def _cached(chain: Chain, dtype: torch.dtype, key, make):
     """``make()``, computed once per ``key`` and chain geometry in ``dtype``: the geometry is
     rebuilt whenever the chain's buffers change, so the value is computed again then."""
     entries = _CACHE.setdefault(chain.geometry(dtype), {})
@@ -251,12 +251,12 @@ def _cached(chain: DHChain, dtype: torch.dtype, key, make):
     return entries[key]
 
 
-def _limits(chain: DHChain, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+def _limits(chain: Chain, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
     """:func:`~iiwa_torch.ik.gradient.inner_limits` for ``dtype``, as float64 numpy ``(n,)`` each."""
     return _cached(chain, dtype, "limits", lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
 
 
-def _pool(chain: DHChain, size: int, generator, work: torch.dtype, mode: str):
+def _pool(chain: Chain, size: int, generator, work: torch.dtype, mode: str):
     """The seed pool as :func:`~iiwa_torch.ik.solve` draws it (``generator`` None: a fresh one
     seeded with 0) -> the pool ``(size, n)`` in float64 and its :func:`pool_features` in
     ``work``, numpy arrays."""
@@ -266,7 +266,7 @@ def _pool(chain: DHChain, size: int, generator, work: torch.dtype, mode: str):
 
 
 def solve_small(
-    chain: DHChain, target: torch.Tensor, q0, rest, *, mode: str, work: torch.dtype, generator, **options
+    chain: Chain, target: torch.Tensor, q0, rest, *, mode: str, work: torch.dtype, generator, **options
 ) -> IKResult:
     """:func:`~iiwa_torch.ik.solve` for checked inputs that :func:`applies` to: ``target`` as
     given, ``q0`` as given or None, ``rest (b, n)`` in ``work`` (or None), ``work`` the dtype
@@ -315,7 +315,7 @@ def solve_small(
     return IKResult(q_flat.reshape(*batch, n), success, pos_err, rot_err, used)
 
 
-def track_small(chain: DHChain, poses: torch.Tensor, q0: torch.Tensor, *, pos_tol: float, rot_tol: float,
+def track_small(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, *, pos_tol: float, rot_tol: float,
                 rest_gain: float, iterations: int) -> torch.Tensor:
     """The gradient method of :func:`~iiwa_torch.trajectory.track` for checked ``poses (..., T, 4, 4)``
     and ``q0 (..., n)`` of the poses' batch shape that :func:`applies` to: each pose solved as

@@ -1,0 +1,425 @@
+"""Serial chains: one kinematic model for any arm, batched and differentiable.
+
+A chain of ``n`` joints is ``base . prod_i [origin_i . M_i(q_i)] . tool``: joint i sits at the
+constant transform ``origin_i`` from the previous link's frame and moves about (revolute,
+continuous) or along (prismatic) its unit ``axis_i``, given in its own frame, as a URDF file
+says it. The link frame i is the product up to ``M_i``. :class:`Chain` holds these as buffers;
+:class:`~iiwa_torch.dh.DHChain` is the same model read from a Denavit-Hartenberg table, and
+:func:`iiwa_torch.robots.from_urdf` reads one from a URDF file.
+
+The kernels are pure functions in :mod:`iiwa_torch.kinematics` over a frozen
+:class:`~iiwa_torch.kinematics.Geometry` derived from the buffers: each joint's motion is put
+about z (``origin_i R_i . Rz(q_i) . R_i^T``, ``R_i`` turning z onto the axis), so one recursion
+serves every chain. :meth:`Chain.geometry` rebuilds it whenever a buffer changed (``.to()``
+and friends, ``load_state_dict``, an in-place edit), so cached constants never disagree with
+the buffers.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from enum import Enum
+
+import numpy as np
+import torch
+from torch import nn
+
+from . import compiled, so3
+from . import kinematics as kin
+from .checks import as_point, check_finite, check_float_tensor, check_nonnegative
+from .kinematics import Frame, Geometry
+
+__all__ = ["Chain", "JointKind"]
+
+Tensor = torch.Tensor
+
+
+class JointKind(str, Enum):
+    """How a joint moves: about its axis within limits, about it without limits, or along it."""
+
+    REVOLUTE = "revolute"
+    CONTINUOUS = "continuous"
+    PRISMATIC = "prismatic"
+
+
+def as_transform(value, name: str) -> Tensor:
+    """``value`` (``None``: the identity) as a checked ``(4, 4)`` float64 rigid transform."""
+    matrix = torch.eye(4, dtype=torch.float64) if value is None else torch.as_tensor(value, dtype=torch.float64)
+    check_transform(matrix, name)
+    return matrix
+
+
+def check_transform(matrix: Tensor, name: str) -> None:
+    """Raise ``ValueError`` unless ``matrix`` is one ``(4, 4)`` rigid transform."""
+    if matrix.shape != (4, 4):
+        raise ValueError(f"{name} must be a 4x4 homogeneous transform, got shape {tuple(matrix.shape)}")
+    so3.check_rigid(matrix, name, exact_bottom_row=True)
+
+
+def check_limits(lim: Tensor, kinds: Sequence[JointKind]) -> None:
+    """Raise ``ValueError`` unless ``lim (2, n)`` holds lower <= upper per joint, finite except
+    for continuous joints, whose limits are ``(-inf, inf)``."""
+    n = len(kinds)
+    if lim.shape != (2, n):
+        raise ValueError(f"limits must have shape (2, {n}) with lower <= upper, got {tuple(lim.shape)}")
+    if torch.isnan(lim).any():
+        raise ValueError(f"limits must be finite numbers (or infinite for a continuous joint), got {lim.tolist()}")
+    for i, kind in enumerate(kinds):
+        lo, hi = lim[:, i].tolist()
+        if kind is JointKind.CONTINUOUS:
+            if (lo, hi) != (-math.inf, math.inf):
+                raise ValueError(f"joint {i + 1} is continuous: its limits are (-inf, inf), got ({lo}, {hi})")
+        elif not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"limits must be finite (radians or metres) for a {kind.value} joint, "
+                             f"got {lim.tolist()}")
+        elif lo > hi:
+            raise ValueError(f"limits must have shape (2, {n}) with lower <= upper, got lower {lim[0].tolist()}, "
+                             f"upper {lim[1].tolist()}")
+
+
+def z_onto(axis: Tensor) -> Tensor:
+    """A ``(3, 3)`` float64 rotation taking z onto the unit vector ``axis (3,)`` (Rodrigues' formula
+    about ``z x axis``; exact for the coordinate axes)."""
+    c = float(axis[2])
+    if c < -1.0 + 1e-12:  # -z: a half turn about x
+        return torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    v = torch.tensor([-float(axis[1]), float(axis[0]), 0.0], dtype=torch.float64)  # z x axis
+    k = torch.zeros(3, 3, dtype=torch.float64)
+    k[0, 1], k[0, 2], k[1, 0], k[1, 2], k[2, 0], k[2, 1] = -v[2], v[1], v[2], -v[0], -v[1], v[0]
+    return torch.eye(3, dtype=torch.float64) + k + k @ k / (1.0 + c)
+
+
+class Chain(nn.Module):
+    """A serial chain of revolute, continuous and prismatic joints, as a URDF file describes it.
+
+    Args:
+        origins: ``(n, 4, 4)`` each joint's transform from the previous link frame (the base
+            frame for joint 1) at ``q = 0``.
+        axes: ``(n, 3)`` each joint's axis in its own frame (normalised here).
+        kinds: n :class:`JointKind` values or their names (default: all revolute).
+        limits: ``(2, n)`` lower and upper limits, radians or metres (default: +-pi for revolute
+            joints, ``(-inf, inf)`` for continuous ones; prismatic joints need them).
+        joint_names, link_names: n names each (link i is joint i's child).
+        base: ``(4, 4)`` transform from the world to the chain's first frame.
+        tool: ``(4, 4)`` transform from the last link frame to the end effector.
+        velocity_limits: ``(n,)`` maximum joint speeds (rad/s or m/s), if known.
+        name: the robot's name.
+
+    The geometry lives in buffers, so ``.to(device)`` moves it and ``state_dict`` /
+    ``load_state_dict`` carry it; results follow the dtype and device of ``q``. After any change
+    to the buffers (loaded, moved, edited in place) the next call uses the new values, checked
+    again. ``random_q`` and the IK seeds draw a continuous joint within one turn, ``[-pi, pi]``.
+    """
+
+    def __init__(
+        self,
+        origins,
+        axes,
+        *,
+        kinds: Sequence[JointKind | str] | None = None,
+        limits=None,
+        joint_names: Sequence[str] | None = None,
+        link_names: Sequence[str] | None = None,
+        base=None,
+        tool=None,
+        velocity_limits=None,
+        name: str = "chain",
+    ) -> None:
+        super().__init__()
+        origins = torch.as_tensor(origins, dtype=torch.float64)
+        if origins.ndim != 3 or origins.shape[1:] != (4, 4) or origins.shape[0] < 1:
+            raise ValueError(f"origins must have shape (n, 4, 4) with n >= 1, got {tuple(origins.shape)}")
+        n = origins.shape[0]
+        axes = torch.as_tensor(axes, dtype=torch.float64)
+        if axes.shape != (n, 3):
+            raise ValueError(f"axes must have shape ({n}, 3), got {tuple(axes.shape)}")
+        self._setup(n, kinds, limits, joint_names, base, tool, velocity_limits, name)
+        self.link_names = self._names(link_names, "link_names", "link")
+        self.register_buffer("origins", origins)
+        self.register_buffer("axes", axes)
+        self._check_buffers()
+        self.axes = axes / axes.norm(dim=-1, keepdim=True)
+
+    def _setup(self, n, kinds, limits, joint_names, base, tool, velocity_limits, name) -> None:
+        """What every chain has: kinds, names, limits, base, tool, speeds; checked."""
+        try:
+            self.kinds = tuple(JointKind(k) for k in (kinds if kinds is not None else ["revolute"] * n))
+        except ValueError:
+            raise ValueError(f"kinds must be among {[k.value for k in JointKind]}, got {list(kinds)}") from None
+        if len(self.kinds) != n:
+            raise ValueError(f"kinds must have {n} entries, got {len(self.kinds)}")
+        if not isinstance(name, str):
+            raise TypeError(f"name must be a string, got {name!r}")
+        self.name = name
+        self.joint_names = self._names(joint_names, "joint_names", "joint", n)
+        if limits is None:
+            if JointKind.PRISMATIC in self.kinds:
+                raise ValueError("limits are needed for prismatic joints (metres)")
+            bound = [math.inf if k is JointKind.CONTINUOUS else math.pi for k in self.kinds]
+            limits = [[-b for b in bound], bound]
+        lim = torch.as_tensor(limits, dtype=torch.float64)
+        check_limits(lim, self.kinds)
+        self._q_shape = f"(..., {n})"  # the shape check_q names
+        self._one_shapes = ((n,), (1, n))  # one configuration's shapes, for _plain_one
+        self.register_buffer("limits", lim)
+        self.register_buffer("base", as_transform(base, "base"))
+        self.register_buffer("tool", as_transform(tool, "tool"))
+        vel = None if velocity_limits is None else torch.as_tensor(velocity_limits, dtype=torch.float64)
+        if vel is not None and (vel.shape != (n,) or not (vel > 0).all()):
+            raise ValueError(f"velocity_limits must be {n} positive speeds, got {vel.tolist()}")
+        self.register_buffer("velocity_limits", vel)
+        self._geometry: dict[torch.dtype, Geometry] = {}
+        self._stamp: tuple = ()
+        self.register_load_state_dict_post_hook(_after_load)
+
+    def _names(self, names, what: str, stem: str, n: int | None = None) -> tuple[str, ...]:
+        n = self.n_joints if n is None else n
+        out = [f"{stem}{i + 1}" for i in range(n)] if names is None else list(names)
+        if len(out) != n or not all(isinstance(v, str) for v in out):
+            raise ValueError(f"{what} must be {n} strings, got {out!r}")
+        return tuple(out)
+
+    # ------------------------------------------------------------------ geometry
+    def _geometry_buffers(self) -> tuple[Tensor, ...]:
+        """The buffers the geometry is derived from (their changes rebuild it)."""
+        b = self._buffers
+        return b["origins"], b["axes"], b["base"], b["tool"], b["limits"]
+
+    def _joint_transforms(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``before, after (n, 4, 4)`` and ``offsets (n,)``, float64: joint i is
+        ``before_i M(q_i + offset_i) after_i`` with ``M`` about or along z
+        (:class:`~iiwa_torch.kinematics.Geometry`)."""
+        origins, axes = (t.detach().cpu().to(torch.float64) for t in (self.origins, self.axes))
+        n = origins.shape[0]
+        turn = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+        turn[:, :3, :3] = torch.stack([z_onto(a) for a in axes])
+        return origins @ turn, turn.transpose(1, 2), torch.zeros(n, dtype=torch.float64)
+
+    def _buffer_stamp(self) -> tuple:
+        """What identifies the geometry buffers' current contents: each one's version counter
+        (bumped by every in-place write, ``load_state_dict``'s copies too) and storage address
+        (``.data =`` and a new buffer change it)."""
+        buffers = self._geometry_buffers()
+        return tuple(t._version for t in buffers) + tuple(t.data_ptr() for t in buffers)
+
+    def geometry(self, dtype: torch.dtype = torch.float64) -> Geometry:
+        """The chain's :class:`~iiwa_torch.kinematics.Geometry` in ``dtype`` (float32 or float64), on
+        the chain's device: what the kernels of :mod:`iiwa_torch.kinematics` take. Cached, and
+        rebuilt (and the buffers checked again) whenever a geometry buffer changed since."""
+        stamp = self._buffer_stamp()
+        if stamp != self._stamp:
+            self._check_buffers()
+            self._geometry, self._stamp = {}, stamp
+        g = self._geometry.get(dtype)
+        if g is None:
+            if dtype not in (torch.float32, torch.float64):
+                raise TypeError(f"the chain computes in float32 or float64, got {dtype}")
+            before, after, offsets = self._joint_transforms()
+            prismatic = [k is JointKind.PRISMATIC for k in self.kinds]
+            g = Geometry.build(before, after, prismatic, offsets, self.base, self.tool, self.limits, dtype)
+            self._geometry[dtype] = g
+        return g
+
+    def _check_buffers(self) -> None:
+        """The constructor's checks, on the buffers as they are now."""
+        origins, axes = self._buffers["origins"], self._buffers["axes"]
+        n = self.n_joints
+        if origins.shape != (n, 4, 4) or axes.shape != (n, 3):
+            raise ValueError(f"origins and axes must have shapes ({n}, 4, 4) and ({n}, 3), got "
+                             f"{tuple(origins.shape)} and {tuple(axes.shape)}")
+        for i, origin in enumerate(origins):
+            check_transform(origin, f"origins[{i}]")
+        check_finite(axes, "axes")
+        if not (axes.norm(dim=-1) > 1e-9).all():
+            raise ValueError(f"axes must be nonzero vectors, got {axes.tolist()}")
+        self._check_common()
+
+    def _check_common(self) -> None:
+        check_limits(self.limits, self.kinds)
+        check_transform(self.base, "base")
+        check_transform(self.tool, "tool")
+
+    def _apply(self, fn, recurse=True):
+        self._geometry, self._stamp = {}, ()
+        return super()._apply(fn, recurse)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    def extra_repr(self) -> str:
+        head = f"name={self.name!r}, n_joints={self.n_joints}"
+        rows = [f"  {'joint':<16}{'kind':<11}{'axis':<22}{'min':>9}{'max':>9}   (deg or m)"]
+        for name, kind, axis, lo, hi in zip(self.joint_names, self.kinds, self.axes.tolist(), *self.limits.tolist()):
+            scale = 1.0 if kind is JointKind.PRISMATIC else math.degrees(1.0)
+            text = "(" + ", ".join(f"{v:.3g}" for v in axis) + ")"
+            rows.append(f"  {name:<16}{kind.value:<11}{text:<22}{lo * scale:9.1f}{hi * scale:9.1f}")
+        return head + "\n" + "\n".join(rows)
+
+    # ------------------------------------------------------------------ input checks
+    def check_q(self, q: Tensor, name: str = "q") -> None:
+        """Raise a clear ``TypeError``/``ValueError`` unless ``q`` is a finite ``(..., n)`` float32 or
+        float64 tensor on this chain's device, with data (not ``meta``), outside ``torch.func.vmap``
+        (batch with leading dimensions instead: every method takes ``(..., n)``)."""
+        n = self.n_joints
+        check_float_tensor(q, name, self._q_shape)
+        if q.ndim == 0 or q.shape[-1] != n:
+            raise ValueError(f"{name} must have shape {self._q_shape}, got {tuple(q.shape)}")
+        lim = self._buffers["limits"]  # not self.limits: nn.Module's attribute lookup costs a third of this check
+        if not (q.is_cpu and lim.is_cpu) and q.device != lim.device:  # is_cpu: no device object built
+            raise ValueError(
+                f"{name} is on {q.device} but the chain is on {lim.device}; use chain.to({str(q.device)!r})"
+            )
+        check_finite(q, name)
+
+    def _plain_one(self, q) -> np.ndarray | None:
+        """The common case of ``fk``/``jacobian`` checked at a fraction of :meth:`check_q`'s cost:
+        ``q``'s values as a ``(1, n)`` float64 array (a view) if the compiled kernels are on and
+        ``q`` is one finite configuration, ``(n,)`` or ``(1, n)``, a plain contiguous float64
+        CPU tensor without ``requires_grad``, on a CPU chain; else ``None``, and the caller runs
+        :meth:`check_q` and its ordinary path, which raises for every bad input. Finite: the
+        Python sum of the n values is (a NaN or inf makes it NaN or inf; an overflow of huge
+        finite values only sends ``q`` to the ordinary path)."""
+        if not (compiled.ENABLED and type(q) is Tensor and q.dtype is torch.float64 and q.is_cpu
+                and not q.requires_grad and q.is_contiguous() and q.shape in self._one_shapes
+                and self._buffers["limits"].is_cpu):  # fmt: skip
+            return None
+        try:
+            x = q.numpy()
+        except (RuntimeError, TypeError):  # no storage to read (torch.func.vmap): check_q says so
+            return None
+        if not math.isfinite(sum(x.tolist() if x.ndim == 1 else x[0].tolist())):
+            return None
+        return x[None] if x.ndim == 1 else x
+
+    def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
+        """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
+        self.check_q(q)
+        check_nonnegative(tol, "tol")
+        lim = self.geometry(q.dtype).limits
+        return ((q >= lim[0] - tol) & (q <= lim[1] + tol)).all(-1)
+
+    def clamp(self, q: Tensor) -> Tensor:
+        """``(..., n) -> (..., n)``: ``q`` clamped into the joint limits (a new tensor)."""
+        self.check_q(q)
+        lim = self.geometry(q.dtype).limits
+        return torch.maximum(torch.minimum(q, lim[1]), lim[0])
+
+    def reach_bound(self, point=None) -> float:
+        """An upper bound (m) on the distance from the world origin to ``point``, a ``(3,)`` point
+        fixed in the end-effector frame (default: the end effector's origin): the base offset,
+        plus the configuration-independent distances between consecutive frame origins, plus
+        the point's distance from the last link frame's origin; a prismatic joint adds its
+        largest travel."""
+        device = self.limits.device
+        zero = torch.zeros(self.n_joints, dtype=torch.float64, device=device)
+        frames = self.fk_all(zero)  # (n + 1, 4, 4)
+        tip = torch.zeros(4, dtype=torch.float64, device=device)
+        tip[3] = 1.0
+        tip[:3] = as_point(point).to(device)
+        tip = (self.fk(zero) @ tip)[:3]
+        links = (frames[1:, :3, 3] - frames[:-1, :3, 3]).norm(dim=-1).sum()
+        travel = sum(float(self.limits[:, i].abs().max()) for i, k in enumerate(self.kinds) if k is JointKind.PRISMATIC)
+        return float(frames[0, :3, 3].norm() + links + (tip - frames[-1, :3, 3]).norm()) + travel
+
+    def random_q(
+        self, *shape: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
+    ) -> Tensor:
+        """``(*shape, n)`` joint values drawn uniformly within the limits (a continuous joint within
+        ``[-pi, pi]``); ``shape``: non-negative ints, ``dtype``: float32 or float64."""
+        for size in shape:
+            if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+                raise ValueError(f"random_q's shape must be non-negative integers, got {shape}")
+        if dtype not in (torch.float32, torch.float64):
+            raise TypeError(f"random_q's dtype must be float32 or float64, got {dtype!r}")
+        lim = self.geometry(dtype).draw_limits
+        u = torch.rand(*shape, self.n_joints, generator=generator, dtype=dtype, device=lim.device)
+        return lim[0] + u * (lim[1] - lim[0])
+
+    # ------------------------------------------------------------------ batch-last API (unchecked)
+    def frames_batch_last(self, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
+        """For hot loops that keep a batch-last layout (IK): ``q (n, b)``, not checked ->
+        ``(frames, axes)``, the base and link frames as ``(x, y, z, p)`` columns ``(3, b)`` and
+        the joint axes ``(z_i, p_i)``; see :func:`iiwa_torch.kinematics.frames_batch_last`."""
+        return kin.frames_batch_last(self.geometry(q.dtype), q, keep)
+
+    def tool_frame_batch_last(self, frame: Frame) -> Frame:
+        """The last link frame ``(x, y, z, p)`` of :meth:`frames_batch_last`, each ``(3, b)``, ->
+        the end-effector frame (the tool applied), in the same layout."""
+        return kin.tool_frame_batch_last(self.geometry(frame[0].dtype), frame)
+
+    def position_batch_last(self, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
+        """The end-effector position alone, for hot loops that keep a batch-last layout (envs):
+        ``q (n, b)``, not checked -> ``(3, b)``. ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if
+        the caller has them; see :func:`iiwa_torch.kinematics.position_batch_last`."""
+        return kin.position_batch_last(self.geometry(q.dtype), q, trig)
+
+    # ------------------------------------------------------------------ kinematics (checked, batch first)
+    def fk(self, q: Tensor) -> Tensor:
+        """End-effector pose: ``q (..., n)`` (radians, metres for prismatic joints) -> ``(..., 4, 4)``,
+        metres, in the world frame.
+
+        Differentiable. Above 128 configurations the backward pass is ``J(q)^T`` times the
+        pose gradient's twist, not a replay of the forward kernel; up to 128, autograd
+        through the few ops of the small-batch kernel costs less.
+        """
+        x = self._plain_one(q)
+        if x is not None:
+            return kin.one_by_kernel(compiled.kernels().end_poses, self.geometry(torch.float64), x, q.ndim)
+        self.check_q(q)
+        g = self.geometry(q.dtype)
+        if q.numel() == self.n_joints and kin.floats_ok(q):
+            return kin.end_pose_floats(g, q)
+        if q.requires_grad and torch.is_grad_enabled() and q.numel() > kin.SMALL_BATCH * self.n_joints:
+            return kin.EndPoseFunction.apply(q, g)
+        return kin.blockwise(q, self.n_joints, (4, 4), lambda qb: kin.end_pose(g, qb))
+
+    def fk_all(self, q: Tensor) -> Tensor:
+        """Every frame: ``q (..., n) -> (..., n + 1, 4, 4)``: the base, then link frames 1..n (for a
+        DH chain its DH frames, for a URDF chain the child links of its joints, in path order).
+
+        The tool transform is not applied: ``fk(q) == fk_all(q)[..., -1, :, :] @ chain.tool``.
+        """
+        self.check_q(q)
+        g = self.geometry(q.dtype)
+        return kin.blockwise(q, self.n_joints, (self.n_joints + 1, 4, 4), lambda qb: kin.all_poses(g, qb))
+
+    def position(self, q: Tensor) -> Tensor:
+        """End-effector position: ``q (..., n)`` -> ``(..., 3)`` metres, in the world frame.
+
+        Equal to ``fk(q)[..., :3, 3]``; for large batches it computes no rotation matrices
+        (:meth:`position_batch_last`), which makes it 2-3x faster. Differentiable (autograd).
+        """
+        self.check_q(q)
+        g = self.geometry(q.dtype)
+        return kin.position_batch_last(g, q.reshape(-1, self.n_joints).T).T.reshape(*q.shape[:-1], 3)
+
+    def jacobian(self, q: Tensor) -> Tensor:
+        """Geometric Jacobian in the world frame: ``q (..., n) -> (..., 6, n)``.
+
+        Rows 0-2 map joint rates to the end-effector's linear velocity (m/s), rows 3-5 to its
+        angular velocity (rad/s). Column i is ``[z_i x (p_e - p_i); z_i]`` for a revolute joint
+        about the axis ``z_i`` through the point ``p_i``, ``[z_i; 0]`` for a prismatic one,
+        computed from the frames, not by autograd.
+        """
+        x = self._plain_one(q)
+        if x is not None:
+            return kin.one_by_kernel(compiled.kernels().jacobians, self.geometry(torch.float64), x, q.ndim)
+        self.check_q(q)
+        g = self.geometry(q.dtype)
+        if q.numel() == self.n_joints and kin.floats_ok(q):
+            return kin.jacobian_floats(g, q)
+        return kin.blockwise(q, self.n_joints, (6, self.n_joints), lambda qb: kin.jacobian(g, qb))
+
+    def forward(self, q: Tensor) -> Tensor:
+        """Same as :meth:`fk`."""
+        return self.fk(q)
+
+
+def _after_load(chain: Chain, incompatible_keys) -> None:
+    """``load_state_dict`` post-hook: the loaded buffers are checked now and the geometry rebuilt
+    on next use (their version counters would show the change too; this also fails early)."""
+    chain._geometry, chain._stamp = {}, ()
+    chain._check_buffers()

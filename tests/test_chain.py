@@ -1,0 +1,217 @@
+"""Any serial chain: URDF robots against pinocchio (double precision, the same files), every
+kernel path against the others, the iiwa's URDF against its DH preset, and the model itself
+(continuous and prismatic joints, limits, state dict, URDF round trip)."""
+
+import math
+import pathlib
+
+import numpy as np
+import pytest
+import torch
+
+from iiwa_torch import Chain, ik, robots, urdf
+
+pin = pytest.importorskip("pinocchio")
+pytest.importorskip("pytorch_kinematics")
+pybullet_data = pytest.importorskip("pybullet_data")
+DATA = pathlib.Path(pybullet_data.getDataPath())
+F64 = torch.float64
+
+# (file, end_link)
+FILES = {
+    "panda": ("franka_panda/panda.urdf", "panda_hand"),
+    "iiwa": ("kuka_iiwa/model.urdf", None),
+    "xarm6": ("xarm/xarm6_robot.urdf", None),
+}
+
+# Every joint kind, axes off the coordinate axes, fixed joints inside and after the path, a branch
+# off it: written by hand for this test.
+ODD_URDF = """<?xml version="1.0"?>
+<robot name="odd">
+  <link name="root"/><link name="a"/><link name="b"/><link name="c"/><link name="d"/><link name="e"/>
+  <link name="tip"/><link name="side"/>
+  <joint name="j1" type="revolute"><parent link="root"/><child link="a"/>
+    <origin xyz="0.1 -0.2 0.3" rpy="0.3 -0.2 0.1"/><axis xyz="0.2 -0.4 0.9"/>
+    <limit lower="-2" upper="2.5" effort="1" velocity="1.5"/></joint>
+  <joint name="f1" type="fixed"><parent link="a"/><child link="b"/><origin xyz="0 0.05 0.1" rpy="1.1 0 0.4"/></joint>
+  <joint name="j2" type="prismatic"><parent link="b"/><child link="c"/>
+    <origin xyz="0.2 0 0" rpy="0 0.7 0"/><axis xyz="1 1 0"/>
+    <limit lower="-0.1" upper="0.3" effort="1" velocity="0.5"/></joint>
+  <joint name="j3" type="continuous"><parent link="c"/><child link="d"/>
+    <origin xyz="0 0 0.25" rpy="-0.5 0.2 0"/><axis xyz="0 -1 0"/></joint>
+  <joint name="j4" type="revolute"><parent link="d"/><child link="e"/>
+    <origin xyz="0.15 0.1 0" rpy="0 0 -1.3"/><axis xyz="0 0 -1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="2"/></joint>
+  <joint name="f2" type="fixed"><parent link="e"/><child link="tip"/>
+    <origin xyz="0.05 0.02 0.12" rpy="0.2 0.3 0.4"/></joint>
+  <joint name="s" type="revolute"><parent link="b"/><child link="side"/>
+    <axis xyz="1 0 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+</robot>
+"""
+
+
+def _chain(name: str) -> Chain:
+    if name == "odd":
+        return robots.from_urdf(ODD_URDF, end_link="tip")
+    file, end = FILES[name]
+    return robots.from_urdf(DATA / file, end_link=end)
+
+
+def _model(name: str):
+    if name == "odd":
+        return pin.buildModelFromXML(ODD_URDF)
+    return pin.buildModelFromUrdf(str(DATA / FILES[name][0]))
+
+
+def _pinocchio(name: str, chain: Chain, q: np.ndarray, end_link: str):
+    """pinocchio's end pose, link frames (the chain's ``link_names``) and world-aligned Jacobian of
+    ``end_link`` for each row of ``q`` (the chain's joint order); joints off the path at 0."""
+    model = _model(name)
+    data = model.createData()
+    slots = [model.joints[model.getJointId(j)] for j in chain.joint_names]
+    end, links = model.getFrameId(end_link), [model.getFrameId(link) for link in chain.link_names]
+    poses, frames, jacobians = [], [], []
+    for row in q:
+        full = pin.neutral(model)
+        for slot, value in zip(slots, row):
+            if slot.nq == 2:  # continuous: (cos, sin)
+                full[slot.idx_q : slot.idx_q + 2] = math.cos(value), math.sin(value)
+            else:
+                full[slot.idx_q] = value
+        pin.forwardKinematics(model, data, full)
+        pin.updateFramePlacements(model, data)
+        poses.append(data.oMf[end].homogeneous.copy())
+        frames.append(np.stack([data.oMf[f].homogeneous for f in links]))
+        jac = pin.computeFrameJacobian(model, data, full, end, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+        jacobians.append(np.stack([jac[:, slot.idx_v] for slot in slots], 1))
+    return np.stack(poses), np.stack(frames), np.stack(jacobians)
+
+
+def _end_link(name: str, chain: Chain) -> str:
+    return "tip" if name == "odd" else (FILES[name][1] or urdf.read_urdf(DATA / FILES[name][0]).end_link)
+
+
+@pytest.mark.parametrize("name", ["panda", "iiwa", "xarm6", "odd"])
+def test_fk_frames_and_jacobian_match_pinocchio(name):
+    chain = _chain(name)
+    q = chain.random_q(1000, generator=torch.Generator().manual_seed(0))
+    if name == "odd":  # beyond one turn too: continuous joints have no limit
+        q[:, 2] = torch.linspace(-9.0, 9.0, 1000, dtype=F64)
+    pose, frames, jac = _pinocchio(name, chain, q[:300].numpy(), _end_link(name, chain))
+    np.testing.assert_allclose(chain.fk(q[:300]).numpy(), pose, rtol=0, atol=1e-12)
+    all_frames = chain.fk_all(q[:300])
+    np.testing.assert_allclose(all_frames[:, 1:].numpy(), frames, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(all_frames[:, 0].numpy(), np.broadcast_to(np.eye(4), (300, 4, 4)), rtol=0, atol=0)
+    np.testing.assert_allclose(chain.jacobian(q[:300]).numpy(), jac, rtol=0, atol=1e-12)
+    # every batch path (one, small, elementwise, blocks) agrees with the reference at 1e-12
+    pose_all, _, _ = _pinocchio(name, chain, q.numpy(), _end_link(name, chain))
+    for size in (1, 7, 129, 1000):
+        np.testing.assert_allclose(chain.fk(q[:size]).numpy(), pose_all[:size], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(chain.position(q[:size]).numpy(), pose_all[:size, :3, 3], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(chain.fk(q[5]).numpy(), pose_all[5], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["panda", "odd"])
+def test_jacobian_is_the_derivative_and_gradients_check(name):
+    chain = _chain(name)
+    q = chain.random_q(4, generator=torch.Generator().manual_seed(1))
+    jac = chain.jacobian(q)
+    h = 1e-6
+    for i in range(chain.n_joints):
+        step = torch.zeros(chain.n_joints, dtype=F64)
+        step[i] = h
+        plus, minus = chain.fk(q + step), chain.fk(q - step)
+        np.testing.assert_allclose(((plus - minus)[:, :3, 3] / (2 * h)).numpy(), jac[:, :3, i].numpy(), atol=1e-8)
+        spin = (plus[:, :3, :3] - minus[:, :3, :3]) / (2 * h) @ chain.fk(q)[:, :3, :3].transpose(1, 2)  # [w]x
+        w = torch.stack([spin[:, 2, 1], spin[:, 0, 2], spin[:, 1, 0]], -1)
+        np.testing.assert_allclose(w.numpy(), jac[:, 3:, i].numpy(), atol=1e-8)
+    for batch in (3, 200):  # the small-batch ops, and the closed-form backward above 128
+        x = chain.random_q(batch, generator=torch.Generator().manual_seed(2)).requires_grad_()
+        weights = torch.randn(batch, 4, 4, dtype=F64, generator=torch.Generator().manual_seed(3))
+        assert torch.autograd.gradcheck(lambda v, w=weights: (chain.fk(v) * w).sum(), (x,))
+
+
+def test_float32_matches_pytorch_kinematics():
+    pk = pytest.importorskip("pytorch_kinematics")
+    file, end = FILES["panda"]
+    theirs = pk.build_serial_chain_from_urdf((DATA / file).read_bytes(), end)
+    chain = _chain("panda")
+    q = chain.random_q(5000, generator=torch.Generator().manual_seed(4))
+    expected = theirs.forward_kinematics(q.float()).get_matrix()
+    assert (chain.fk(q.float()) - expected).abs().max() < 2e-6  # pk rounds the file's origins to float32
+    assert chain.fk(q.float()).dtype == torch.float32
+
+
+def test_kuka_iiwa_urdf_is_the_iiwa14_preset_up_to_the_flange():
+    """pybullet_data's iiwa and the DH preset: the same joint axes (each up to its sign) and, once
+    the flange offset is matched at q = 0, the same pose for every configuration."""
+    theirs, ours = _chain("iiwa"), robots.iiwa14()
+    zero = torch.zeros(7, dtype=F64)
+    z_theirs, z_ours = theirs.jacobian(zero)[3:], ours.jacobian(zero)[3:]
+    sign = (z_theirs * z_ours).sum(0)
+    np.testing.assert_allclose(sign.abs().numpy(), np.ones(7), atol=1e-12)
+    flange = torch.linalg.inv(theirs.fk(zero)) @ ours.fk(zero)
+    q = ours.random_q(1000, generator=torch.Generator().manual_seed(5))
+    # the file writes pi/2 as 1.57079632679 (5e-12 rad short), which moves the hand by up to 2e-11 m
+    np.testing.assert_allclose((theirs.fk(q * sign) @ flange).numpy(), ours.fk(q).numpy(), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", ["panda", "odd", "iiwa14", "lrmate200ic"])
+def test_urdf_round_trip(name):
+    chain = robots.PRESETS[name]() if name in robots.PRESETS else _chain(name)
+    again = robots.from_urdf(urdf.to_urdf(chain))
+    q = chain.random_q(200, generator=torch.Generator().manual_seed(6))
+    np.testing.assert_allclose(again.fk(q).numpy(), chain.fk(q).numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(again.jacobian(q).numpy(), chain.jacobian(q).numpy(), rtol=0, atol=1e-12)
+    if name not in robots.PRESETS:  # a DH chain's link frames are its DH frames, a URDF's its joint frames
+        np.testing.assert_allclose(again.fk_all(q).numpy(), chain.fk_all(q).numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(again.limits.numpy(), chain.limits.numpy())
+    assert again.joint_names == chain.joint_names and again.kinds == chain.kinds
+
+
+def test_continuous_and_prismatic_joints():
+    chain = _chain("odd")
+    assert [k.value for k in chain.kinds] == ["revolute", "prismatic", "continuous", "revolute"]
+    assert chain.limits[:, 2].tolist() == [-math.inf, math.inf]
+    q = chain.random_q(10_000, generator=torch.Generator().manual_seed(7))
+    assert (q[:, 2].abs() <= math.pi).all() and q[:, 2].abs().max() > 3.1  # one turn, documented
+    far = q.clone()
+    far[:, 2] += 20.0
+    assert chain.within_limits(far).all() and torch.equal(chain.clamp(far)[:, 2], far[:, 2])
+    # a prismatic joint moves the end along its axis, in closed form
+    zero = torch.zeros(4, dtype=F64)
+    slide = zero.clone()
+    slide[1] = 0.2
+    axis = chain.fk_all(zero)[2, :3, :3] @ torch.tensor([1.0, 1.0, 0.0], dtype=F64) / math.sqrt(2)
+    np.testing.assert_allclose((chain.fk(slide) - chain.fk(zero))[:3, 3].numpy(), (0.2 * axis).numpy(), atol=1e-15)
+    with pytest.raises(ValueError, match="prismatic"):
+        Chain(torch.eye(4)[None], [[0.0, 0.0, 1.0]], kinds=["prismatic"])
+
+
+def test_buffers_are_the_truth():
+    chain = _chain("panda")
+    q = chain.random_q(50, generator=torch.Generator().manual_seed(8))
+    pose = chain.fk(q)
+    copy = _chain("panda")
+    with torch.no_grad():
+        copy.origins[0, 2, 3] += 0.5  # raise the arm in place: the next call sees it
+    np.testing.assert_allclose((copy.fk(q) - pose)[:, 2, 3].numpy(), 0.5, atol=1e-12)
+    copy.load_state_dict(chain.state_dict())
+    np.testing.assert_allclose(copy.fk(q).numpy(), pose.numpy(), rtol=0, atol=0)
+    single = chain.to(torch.float32)
+    assert single.fk(q.float()).dtype == torch.float32
+    with pytest.raises(ValueError, match="origins"):
+        bad = _chain("panda")
+        with torch.no_grad():
+            bad.origins[1, :3, :3] *= 2
+        bad.fk(q)
+
+
+def test_gradient_ik_solves_the_panda():
+    panda = _chain("panda")
+    target = panda.fk(panda.random_q(300, generator=torch.Generator().manual_seed(9)))
+    result = ik.solve(panda, target, pos_tol=1e-5, rot_tol=1e-5, generator=torch.Generator().manual_seed(0))
+    assert result.success.float().mean() >= 0.99
+    assert panda.within_limits(result.q).all()
+    reached = panda.fk(result.q[result.success])
+    assert (reached[:, :3, 3] - target[result.success][:, :3, 3]).norm(dim=-1).max() <= 1e-5
