@@ -482,7 +482,6 @@ def _view(args: argparse.Namespace) -> int:
     elif args.policy is not None:
         path, dt, goals = _policy_rollouts(chain, args.policy, args.goals, args.seed)
         _say(f"{args.goals} rollouts of {args.policy}: pick one with the playback panel's path slider")
-    _say(f"viewer of {chain.name} at http://{args.host}:{args.port} (Ctrl-C stops it)")
     viewer.show(
         chain, q, host=args.host, port=args.port, world=world, show_capsules=args.capsules, show_frames=args.frames,
         path=path, dt=dt, goals=goals,
@@ -629,7 +628,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("view", parents=[common], help="browser viewer: joint sliders, pose read-out, IK target")
     p.add_argument("--q", nargs="+", type=float, metavar="Q", help="first configuration (deg unless --rad)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: any free one; busy: the next free)")
     p.add_argument(
         "--world", metavar="JSON",
         help='obstacles: a JSON file or text, e.g. \'{"spheres": [[0.5, 0, 0.5, 0.1]]}\' (keys: docs/viewer.md)',
