@@ -596,7 +596,8 @@ class World:
     capsules: tuple[Tensor, Tensor] | None = None
 
     def __post_init__(self) -> None:
-        if self.floor is not None and not (isinstance(self.floor, (int, float)) and math.isfinite(self.floor)):
+        if self.floor is not None and (isinstance(self.floor, bool) or not isinstance(self.floor, (int, float))
+                                       or not math.isfinite(self.floor)):
             raise ValueError(f"floor must be a finite height in metres or None, got {self.floor!r}")
         first = None
         for kind, (shape_a, shape_b) in _OBSTACLE_DIMS.items():

@@ -24,6 +24,7 @@ import errno
 import ipaddress
 import json
 import math
+import numbers
 import re
 import socket
 import sys
@@ -35,7 +36,7 @@ import numpy as np
 import torch
 
 from . import collision, ik, so3
-from .checks import check_float_tensor, check_positive
+from .checks import check_bool, check_float_tensor, check_positive
 from .dh import Convention, DHChain
 from .ik import analytic
 
@@ -120,11 +121,10 @@ def load_world(spec) -> collision.World:
         bad = [row for row in items if not isinstance(row, (list, tuple)) or len(row) not in widths]
         if bad:
             raise ValueError(f"world: each of {kind} needs {' or '.join(map(str, widths))} numbers, got {bad[0]}")
+        if any(isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) for row in items for v in row):
+            raise ValueError(f"world: {kind} must hold numbers, got {items}")
         width = max(len(row) for row in items)
-        try:
-            return torch.tensor([list(row) + [0.0] * (width - len(row)) for row in items], dtype=_F64)
-        except (TypeError, ValueError):
-            raise ValueError(f"world: {kind} must hold numbers, got {items}") from None
+        return torch.tensor([list(row) + [0.0] * (width - len(row)) for row in items], dtype=_F64)
 
     kwargs = {"floor": spec.get("floor", 0.0)}
     if (s := rows("spheres", (4,))) is not None:
@@ -270,6 +270,8 @@ class Viewer:
             raise TypeError(f"world must be an iiwa_torch.collision.World, got {type(world).__name__}")
         if capsules is not None and not isinstance(capsules, collision.Capsules):
             raise TypeError(f"capsules must be an iiwa_torch.collision.Capsules, got {type(capsules).__name__}")
+        check_bool(show_capsules, "show_capsules")
+        check_bool(show_frames, "show_frames")
         host, loopback = _listen_address(host, port)
         self.chain = chain
         self._lock = threading.RLock()
@@ -335,6 +337,7 @@ class Viewer:
         """Show the arm at ``q (n,)`` radians (within the limits); the sliders and the readout follow,
         and the target gizmo jumps to the new end-effector pose unless ``move_target`` is False."""
         q = self._checked(q)
+        check_bool(move_target, "move_target")
         with self._lock:
             self._q = q
             self._draw(move_target)
@@ -905,6 +908,7 @@ def show(
     Ctrl-C, then stops the server and returns None; with ``block=False`` it returns the
     running :class:`Viewer` (call its ``stop()``).
     """
+    check_bool(block, "block")
     viewer, handed_over = None, False
     try:  # Ctrl-C may come as soon as the page is served, while the scene is still being built
         viewer = Viewer(

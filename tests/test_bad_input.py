@@ -58,6 +58,11 @@ def _counts(*names: str, allow_zero=False) -> tuple:
     return tuple((n, v) for n in names for v in values)
 
 
+def _bools(*names: str) -> tuple:
+    """Values of boolean options whose truthiness must not stand in for True or False."""
+    return tuple((n, v) for n in names for v in ("no", "False", None, 1, 0.0))
+
+
 def _tols(*names: str) -> tuple:
     """Bad values of positive finite tolerances / sizes."""
     return tuple((n, v) for n in names for v in (0.0, -1e-3, math.nan, math.inf, "1e-3"))
@@ -107,6 +112,7 @@ _TASK_OPTIONS = _tols("dt", "distance_threshold", "orientation_threshold") + (
     ("robot", "iiwa14"),
     ("home", torch.full((6,), 0.1)),
     ("home", torch.full((7,), math.nan)),
+    *_bools("terminate_on_success", "observe_clearance"),
 )
 
 ENTRIES: dict[str, Entry] = {
@@ -281,6 +287,7 @@ ENTRIES: dict[str, Entry] = {
         bad=(
             ("floor", math.nan),
             ("floor", "0"),
+            ("floor", True),
             ("walls", torch.zeros(1, 3)),
             ("walls", (torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, dtype=torch.float64))),
             ("walls", (torch.tensor([[1.0, 0, 0]]), torch.tensor([math.nan]))),
@@ -606,6 +613,16 @@ def test_good_input_runs_and_is_finite(key):
 def test_vmap_gets_a_clear_error(fn, arg):
     with pytest.raises(TypeError, match=r"batched by torch.func.vmap.*leading dimensions"):
         torch.func.vmap(fn)(arg)
+
+
+@pytest.mark.parametrize("value", ["no", "True", None, 0, 1, 1.0, np.array(True), torch.tensor(True)])
+def test_check_bool_refuses_what_only_has_a_truthiness(value):
+    from iiwa_torch.checks import check_bool
+
+    check_bool(True, "flag")
+    check_bool(np.False_, "flag")
+    with pytest.raises(TypeError, match="flag must be True or False"):
+        check_bool(value, "flag")
 
 
 @pytest.mark.parametrize("shape", [(), (7,), (1, 7), (2, 1, 3), (8, 8), (65,)])

@@ -298,6 +298,15 @@ def test_moving_the_arm_angle_slider_moves_the_elbow_not_the_hand(chain, viewer)
     viewer.set_ik("gradient")
 
 
+@pytest.mark.parametrize("value", ["no", None, 1, 0.0])
+def test_boolean_options_take_only_booleans(chain, viewer, value):
+    for name in ("show_capsules", "show_frames", "block"):
+        with pytest.raises(TypeError, match=f"{name} must be True or False"):
+            show(chain, port=_free_port(), **{name: value})
+    with pytest.raises(TypeError, match="move_target must be True or False"):
+        viewer.set_q(viewer.q, move_target=value)
+
+
 def test_set_ik_rejects_bad_choices(viewer):
     with pytest.raises(ValueError, match="method"):
         viewer.set_ik("newton")
@@ -354,6 +363,9 @@ def test_load_world_reads_every_kind(tmp_path):
         ({"boxes": [[0, 0, 0, 1, 1]]}, "6 or 9 numbers"),
         ({"spheres": [[0, 0, 0, -1]]}, "radii must be positive"),
         ({"walls": [[0, 0, 0, 1]]}, "nonzero"),
+        ('{"spheres": [[true, 0, 0, true]]}', "spheres must hold numbers"),
+        ({"boxes": [[0, 0, "1", 1, 1, 1]]}, "boxes must hold numbers"),
+        ({"floor": True}, "floor must be a finite height"),
         ("{not json", "invalid JSON"),
         ("no/such/file.json", "neither a JSON object nor an existing file"),
     ],
