@@ -365,7 +365,7 @@ def test_load_world_reads_every_kind(tmp_path):
         ({"walls": [[0, 0, 0, 1]]}, "nonzero"),
         ('{"spheres": [[true, 0, 0, true]]}', "spheres must hold numbers"),
         ({"boxes": [[0, 0, "1", 1, 1, 1]]}, "boxes must hold numbers"),
-        ({"floor": True}, "floor must be a finite height"),
+        ({"floor": True}, "floor must be a height in metres"),
         ("{not json", "invalid JSON"),
         ("no/such/file.json", "neither a JSON object nor an existing file"),
     ],
