@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from iiwa_torch import kinematics as kin
+from iiwa_torch.checks import check_bool
 from iiwa_torch.collision import capsule_clearance, capsule_clearance_of_one
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
@@ -200,8 +201,8 @@ class ReachTask:
             raise ValueError(f"obstacles must be an int in [0, 8], got {obstacles!r}")
         if obstacles and self.collision is CollisionKind.OFF:
             raise ValueError("obstacles need collision checks: use collision='terminate' or 'penalize', not 'off'")
-        if not isinstance(observe_clearance, bool):
-            raise ValueError(f"observe_clearance must be True or False, got {observe_clearance!r}")
+        check_bool(observe_clearance, "observe_clearance")
+        check_bool(terminate_on_success, "terminate_on_success")
         if observe_clearance and self.collision is CollisionKind.OFF:
             raise ValueError("observe_clearance needs collision checks: use collision='terminate' or 'penalize'")
         self.observe_clearance = observe_clearance
@@ -478,10 +479,19 @@ def _first_found(n: int, draw, fallback, device: torch.device) -> Tensor:
 
 
 def _collision_of(info):
-    """The collision flags of an env's ``info`` (see :meth:`ReachTask.compute_reward`), or None."""
+    """The collision flags of an env's ``info`` (see :meth:`ReachTask.compute_reward`), or None;
+    TypeError unless they are booleans."""
     if isinstance(info, dict):
-        return None if "collision" not in info else np.asarray(info["collision"], dtype=bool)
-    if info is None or (isinstance(info, np.ndarray) and info.dtype != object):
+        flags = info.get("collision")
+    elif info is None or (isinstance(info, np.ndarray) and info.dtype != object):
         return None
-    flags = [i.get("collision") for i in info]
-    return None if any(f is None for f in flags) else np.asarray(flags, dtype=bool)
+    else:
+        flags = [i.get("collision") for i in info]
+        if any(f is None for f in flags):
+            return None
+    if flags is None:
+        return None
+    array = np.asarray(flags)
+    if array.dtype != np.bool_:
+        raise TypeError(f"info['collision'] must be a bool or booleans, got {flags!r}")
+    return array

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from iiwa_torch.checks import check_finite
+from iiwa_torch.so3 import check_rigid
 
 from .arrays import NUMPY, TORCH, ArrayOps
 
@@ -46,7 +47,14 @@ def enum_option(kind: type[Enum], value, name: str):
 
 
 def encode_pose_goal(pose: Tensor) -> Tensor:
-    """Poses ``(..., 4, 4)`` -> pose goals ``(..., 9)``: position, rotation columns x and y."""
+    """Rigid poses ``(..., 4, 4)`` (:func:`iiwa_torch.so3.check_rigid`) -> pose goals ``(..., 9)``:
+    position, rotation columns x and y."""
+    check_rigid(pose, "pose")
+    return _encoded(pose)
+
+
+def _encoded(pose: Tensor) -> Tensor:
+    """:func:`encode_pose_goal` without the check, for the FK's own poses at every step."""
     return torch.cat([pose[..., :3, 3], pose[..., :3, 0], pose[..., :3, 1]], -1)
 
 
@@ -63,13 +71,21 @@ def _as_goals(goal, name: str, dtype: torch.dtype) -> Tensor:
 def decode_pose_goal(goal) -> Tensor:
     """Pose goals ``(..., 9)`` (numpy or torch) -> poses ``(..., 4, 4)`` float64.
 
-    The two columns are re-orthonormalised (Gram-Schmidt), as observed goals are float32."""
+    The two columns are re-orthonormalised (Gram-Schmidt), as observed goals are float32; a zero
+    column, or a y column within 1e-6 of x's direction (relative), is a ValueError."""
     g = _as_goals(goal, "goal", torch.float64)
     if g.shape[-1:] != (9,):
         raise ValueError(f"goal must have shape (..., 9) (pose goals), got {tuple(g.shape)}")
-    x = g[..., 3:6] / g[..., 3:6].norm(dim=-1, keepdim=True)
+    x_norm = g[..., 3:6].norm(dim=-1, keepdim=True)
+    x = g[..., 3:6] / x_norm.clamp_min(torch.finfo(torch.float64).tiny)
     y = g[..., 6:9] - (x * g[..., 6:9]).sum(-1, keepdim=True) * x
-    y = y / y.norm(dim=-1, keepdim=True)
+    y_norm = y.norm(dim=-1, keepdim=True)
+    degenerate = (x_norm == 0) | ~(y_norm > 1e-6 * g[..., 6:9].norm(dim=-1, keepdim=True))
+    if g.numel() and bool(degenerate.any()):
+        index = tuple(degenerate.squeeze(-1).nonzero()[0].tolist())
+        raise ValueError(f"goal must hold two non-parallel rotation columns (entries 3:6 and 6:9), got "
+                         f"{g[index].tolist()} at index {index}")  # fmt: skip
+    y = y / y_norm
     rot = torch.stack([x, y, torch.linalg.cross(x, y)], -1)  # (..., 3, 3)
     pose = torch.zeros(*g.shape[:-1], 4, 4, dtype=torch.float64, device=g.device)
     pose[..., :3, :3], pose[..., :3, 3], pose[..., 3, 3] = rot, g[..., :3], 1.0
@@ -116,7 +132,7 @@ class ReachGoals:
         given), or the pose goal."""
         if self.kind is GoalKind.POSITION:
             return chain.position_batch_last(q, trig)
-        return encode_pose_goal(chain.fk(q.T)).T.contiguous()
+        return _encoded(chain.fk(q.T)).T.contiguous()
 
     def goal_of_frame(self, frame: tuple, dtype: torch.dtype) -> Tensor:
         """One end-effector frame ``(x, y, z, p)``, 3-tuples of Python floats

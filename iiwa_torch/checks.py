@@ -71,6 +71,13 @@ def check_instance(value, kind: type, name: str) -> None:
         raise TypeError(f"{name} must be a {kind.__name__}, got {type(value).__name__}")
 
 
+def check_bool(value, name: str) -> None:
+    """Raise ``TypeError`` unless ``value`` is a ``bool`` or a numpy ``bool_`` (never a string, a number
+    or None, whose truthiness would stand in for the answer)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be True or False, got {value!r} ({type(value).__name__})")
+
+
 def check_choice(value, choices: tuple, name: str) -> None:
     """Raise ``ValueError`` unless ``value`` is one of ``choices`` (e.g. ``get_args`` of a ``Literal``)."""
     if value not in choices:

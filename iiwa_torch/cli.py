@@ -192,6 +192,9 @@ def _ik(args: argparse.Namespace) -> int:
     chain = _chain(args)
     position_only = len(args.pose) == 3
     method = args.method or ("gradient" if position_only else "analytic")
+    if args.psi is not None and (method != "analytic" or chain.n_joints != 7):
+        raise _UsageError(f"--psi is the arm angle of the iiwa's analytic IK (7 joints), not of {method} IK "
+                          f"on {chain.name} ({chain.n_joints} joints)")
     if position_only:
         if method == "analytic":
             raise _UsageError("a position-only target (3 numbers) needs --method gradient")
@@ -239,7 +242,7 @@ def _ik_analytic(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tens
     from .ik import analytic
 
     if chain.n_joints == 7:
-        psi = args.psi if args.rad else math.radians(args.psi)
+        psi = 0.0 if args.psi is None else args.psi if args.rad else math.radians(args.psi)
         sol = analytic.iiwa(chain, target, psi)
     elif chain.n_joints == 6:
         sol = analytic.pieper(chain, target)
@@ -271,6 +274,8 @@ def _traj(args: argparse.Namespace) -> int:
         raise _UsageError("give exactly one of --from-q/--from-pose and one of --to-q/--to-pose")
     if args.steps < 2:
         raise _UsageError(f"--steps must be at least 2, got {args.steps}")
+    if args.duration is not None and not 0 < args.duration < math.inf:
+        raise _UsageError(f"--duration must be positive (seconds), got {args.duration:g}")
     if args.csv:
         _writable(args.csv, "--csv")
     if args.gif:
@@ -482,7 +487,6 @@ def _view(args: argparse.Namespace) -> int:
     elif args.policy is not None:
         path, dt, goals = _policy_rollouts(chain, args.policy, args.goals, args.seed)
         _say(f"{args.goals} rollouts of {args.policy}: pick one with the playback panel's path slider")
-    _say(f"viewer of {chain.name} at http://{args.host}:{args.port} (Ctrl-C stops it)")
     viewer.show(
         chain, q, host=args.host, port=args.port, world=world, show_capsules=args.capsules, show_frames=args.frames,
         path=path, dt=dt, goals=goals,
@@ -598,7 +602,7 @@ def _parser() -> argparse.ArgumentParser:
         choices=["analytic", "gradient"],
         help="closed form (all branches) or gradient IK (default: analytic; gradient for x y z)",
     )
-    p.add_argument("--psi", type=float, default=0.0, help="iiwa arm angle for the analytic solver (default 0)")
+    p.add_argument("--psi", type=float, help="iiwa arm angle for the analytic solver (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the gradient solver")
     p.set_defaults(func=_ik, parser=p)
 
@@ -616,8 +620,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=360, help="animation size in pixels")
     p.set_defaults(func=_traj, parser=p)
 
-    p = sub.add_parser("robots", parents=[common], help="list presets, or print one's DH table")
+    p = sub.add_parser("robots", help="list presets, or print one's DH table")
     p.add_argument("name", nargs="?", help="a preset name")
+    p.add_argument("--json", action="store_true", help="print JSON (metres, radians) instead of tables")
     p.set_defaults(func=_robots, parser=p)
 
     p = sub.add_parser("demo", help="FK at the validation pose, batched FK/IK timing, a tracked line")
@@ -629,7 +634,7 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("view", parents=[common], help="browser viewer: joint sliders, pose read-out, IK target")
     p.add_argument("--q", nargs="+", type=float, metavar="Q", help="first configuration (deg unless --rad)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: any free one; busy: the next free)")
     p.add_argument(
         "--world", metavar="JSON",
         help='obstacles: a JSON file or text, e.g. \'{"spheres": [[0.5, 0, 0.5, 0.1]]}\' (keys: docs/viewer.md)',

@@ -575,6 +575,9 @@ def _preset_capsules(chain: DHChain, dh: list[list[float]]) -> Capsules:
 
 # ---------------------------------------------------------------------------- obstacles
 # each kind's per-obstacle dims after M: (first tensor, second tensor)
+#: Largest coordinate, size or offset (m) a World takes: far enough for any arm, near enough that
+#: squared distances stay finite in float32 (beyond ~1e19 m they overflow to inf).
+MAX_EXTENT = 1e6
 _OBSTACLE_DIMS = {"walls": ((3,), ()), "spheres": ((3,), ()), "boxes": ((4, 4), (3,)), "capsules": ((2, 3), ())}
 
 
@@ -591,7 +594,7 @@ class World:
         capsules: ``(points (..., C, 2, 3), radii (..., C))``.
 
     All tensors share one float dtype and device; the batch shapes must broadcast with the
-    batch shape of the joint angles queried.
+    batch shape of the joint angles queried. Every value is within :data:`MAX_EXTENT` (1e6 m).
     """
 
     floor: float | None = 0.0
@@ -601,8 +604,9 @@ class World:
     capsules: tuple[Tensor, Tensor] | None = None
 
     def __post_init__(self) -> None:
-        if self.floor is not None and not (isinstance(self.floor, (int, float)) and math.isfinite(self.floor)):
-            raise ValueError(f"floor must be a finite height in metres or None, got {self.floor!r}")
+        if self.floor is not None and (isinstance(self.floor, bool) or not isinstance(self.floor, (int, float))
+                                       or not abs(self.floor) <= MAX_EXTENT):
+            raise ValueError(f"floor must be a height in metres within {MAX_EXTENT:g} or None, got {self.floor!r}")
         first = None
         for kind, (shape_a, shape_b) in _OBSTACLE_DIMS.items():
             pair = getattr(self, kind)
@@ -628,6 +632,8 @@ class World:
                         f"{label} is {t.dtype} on {t.device} but other obstacles are {first.dtype} on {first.device}"
                     )
                 check_finite(t, label)
+                if t.numel() and float(t.detach().abs().amax()) > MAX_EXTENT:
+                    raise ValueError(f"{label} must be within {MAX_EXTENT:g} m, got {float(t.abs().amax()):g}")
         self._check_values()
 
     def _check_values(self) -> None:

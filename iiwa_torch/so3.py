@@ -13,7 +13,7 @@ import math
 import numpy as np
 import torch
 
-from .checks import check_tensor
+from .checks import all_finite, check_tensor
 
 __all__ = [
     "skew",
@@ -26,6 +26,7 @@ __all__ = [
     "pose_error",
     "check_pose",
     "check_rigid",
+    "check_rotation",
     "RIGID_TOL",
 ]
 
@@ -41,10 +42,14 @@ def skew(v: torch.Tensor) -> torch.Tensor:
 def exp(rotvec: torch.Tensor) -> torch.Tensor:
     """Rotation vector ``(..., 3)`` (radians) -> rotation matrix ``(..., 3, 3)`` (Rodrigues).
 
-    Uses Taylor series for small angles so values and gradients stay finite at zero.
+    Uses Taylor series for small angles so values and gradients stay finite at zero. A vector
+    whose squared norm overflows (beyond ~1e154 rad in float64, 1e19 in float32) is a ValueError.
     """
     check_tensor(rotvec, "rotvec", (3,))
     theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    if not all_finite(theta2):
+        raise ValueError(f"rotvec's squared norm overflows {rotvec.dtype}: its angle has no meaning, got "
+                         f"max |rotvec| {float(rotvec.detach().abs().amax()):g} rad")  # fmt: skip
     small = theta2 < 1e-8
     safe2 = torch.where(small, torch.ones_like(theta2), theta2)
     safe = safe2.sqrt()
@@ -119,9 +124,9 @@ def log(rot: torch.Tensor) -> torch.Tensor:
 
     Goes through the quaternion, so it is stable near the identity (series) and near a
     half turn (no division by ``sin(angle)``). At exactly a half turn the sign of the axis
-    is arbitrary, as it must be.
+    is arbitrary, as it must be. ``rot`` must be a rotation (:func:`check_rotation`).
     """
-    check_tensor(rot, "rot", (3, 3))
+    check_rotation(rot, "rot")
     return _log(rot)
 
 
@@ -172,6 +177,15 @@ def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
 def check_pose(pose: torch.Tensor, name: str = "pose") -> None:
     """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` tensor."""
     check_tensor(pose, name, (4, 4))
+
+
+def check_rotation(rot: torch.Tensor, name: str = "rot") -> None:
+    """Raise ``TypeError``/``ValueError`` unless ``rot`` is a finite float ``(..., 3, 3)`` batch of
+    rotations, within :func:`check_rigid`'s tolerance (checked as poses without translation)."""
+    check_tensor(rot, name, (3, 3))
+    pose = torch.nn.functional.pad(rot.detach(), (0, 1, 0, 1))  # (..., 4, 4), bottom row 0 0 0 0
+    pose[..., 3, 3] = 1.0
+    check_rigid(pose, name)
 
 
 #: Largest deviation a pose may have from a rigid transform, per dtype (see :func:`check_rigid`).
@@ -238,9 +252,10 @@ def pose_error(pose: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, 
     Returns ``(pos_err, rot_err)``, each ``(..., 3)``: ``target_p - pose_p`` (metres) and
     ``log(target_R pose_R^T)`` (radians), the rotation vector that turns ``pose`` into
     ``target``. Both pair with the geometric Jacobian's rows: ``J dq ~ (pos_err, rot_err)``.
+    Both must be rigid (:func:`check_rigid`).
     """
-    check_pose(pose, "pose")
-    check_pose(target, "target")
+    check_rigid(pose, "pose")
+    check_rigid(target, "target")
     if pose.dtype != target.dtype or pose.device != target.device:
         raise ValueError(
             f"pose and target must share dtype and device, got {pose.dtype}/{pose.device} "

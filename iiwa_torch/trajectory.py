@@ -26,7 +26,7 @@ import torch
 
 from . import so3
 from .chain import Chain
-from .checks import check_choice, check_finite, check_float_tensor, check_instance, check_positive
+from .checks import all_finite, check_choice, check_finite, check_float_tensor, check_instance, check_positive
 from .collision import Capsules, World, check_world, clearance
 
 __all__ = [
@@ -138,7 +138,8 @@ def jtraj(
     Returns:
         :class:`JointTrajectory` with ``q, qd, qdd`` each ``(..., T, n)``; boundary
         accelerations are zero. Differentiable in every input. NaN or inf in an input is a
-        ``ValueError`` (as in :func:`ctraj` and :func:`track`).
+        ``ValueError`` (as in :func:`ctraj` and :func:`track`), and so is a duration so short
+        that the velocities or accelerations overflow.
     """
     check_world(world, 0.0, capsules)
     if (world is None) != (chain is None):
@@ -182,6 +183,9 @@ def jtraj(
     q = basis @ coeffs
     qd = d_basis @ coeffs / scale
     qdd = dd_basis @ coeffs / (scale * scale)
+    if not (all_finite(qd) and all_finite(qdd)):
+        raise ValueError(f"t spans {float(duration.min()):g} s, too short for finite velocities and accelerations "
+                         f"in {q0.dtype} (or the motion too large)")  # fmt: skip
     lowest = None if world is None else path_clearance(chain, q, world, capsules).amin(-1)
     return JointTrajectory(q=q, qd=qd, qdd=qdd, min_clearance=lowest)
 

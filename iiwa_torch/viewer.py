@@ -20,8 +20,14 @@ viser is imported here only, never when ``iiwa_torch`` is imported.
 
 from __future__ import annotations
 
+import errno
+import ipaddress
 import json
 import math
+import numbers
+import re
+import socket
+import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +36,7 @@ import numpy as np
 import torch
 
 from . import collision, ik, so3
-from .checks import check_float_tensor, check_positive
+from .checks import check_bool, check_float_tensor, check_positive
 from .dh import Convention, DHChain
 from .ik import analytic
 
@@ -47,6 +53,8 @@ _MIN_SEGMENT = 1e-6  # metres: consecutive frame origins closer than this get no
 _ARM_ANGLES = 72  # analytic IK with a free arm angle: candidates every 5 degrees, plus the current one
 _BRANCH_LABELS = tuple(f"{k} {'+-'[k >> 2 & 1]}{'+-'[k >> 1 & 1]}{'+-'[k & 1]}" for k in range(8))
 OUTCOMES = ("reached", "unreachable", "outside the joint limits", "colliding")
+_LABEL = r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+_HOSTNAME = re.compile(rf"(?:{_LABEL}\.)*{_LABEL}\.?")  # RFC 1123 host name syntax
 
 
 @dataclass(frozen=True)
@@ -113,11 +121,10 @@ def load_world(spec) -> collision.World:
         bad = [row for row in items if not isinstance(row, (list, tuple)) or len(row) not in widths]
         if bad:
             raise ValueError(f"world: each of {kind} needs {' or '.join(map(str, widths))} numbers, got {bad[0]}")
+        if any(isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) for row in items for v in row):
+            raise ValueError(f"world: {kind} must hold numbers, got {items}")
         width = max(len(row) for row in items)
-        try:
-            return torch.tensor([list(row) + [0.0] * (width - len(row)) for row in items], dtype=_F64)
-        except (TypeError, ValueError):
-            raise ValueError(f"world: {kind} must hold numbers, got {items}") from None
+        return torch.tensor([list(row) + [0.0] * (width - len(row)) for row in items], dtype=_F64)
 
     kwargs = {"floor": spec.get("floor", 0.0)}
     if (s := rows("spheres", (4,))) is not None:
@@ -136,6 +143,40 @@ def load_world(spec) -> collision.World:
             raise ValueError(f"world: a wall normal must be nonzero, got {w[:, :3].tolist()}")
         kwargs["walls"] = (w[:, :3] / norm, w[:, 3].contiguous())
     return collision.World(**kwargs)
+
+
+def _listen_address(host, port) -> tuple[str, bool]:
+    """``(host, loopback)``: where the server can listen, checked before viser starts (viser
+    moves on from any port it cannot bind, and waits forever when it binds none).
+
+    ``host`` '' or None means 127.0.0.1; otherwise an IP address or a host name of this machine.
+    ``port`` 0..65535, 0 for any free port; a busy port is left to viser, which takes the next
+    free one. ``loopback`` is False if the server would be reachable from other machines.
+    ValueError/TypeError for a malformed host or port, ValueError when it cannot be listened on.
+    """
+    host = "127.0.0.1" if host is None or host == "" else host
+    if not isinstance(host, str):
+        raise TypeError(f"host must be a str (an IP address or host name), got {type(host).__name__}")
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ValueError(f"port must be an integer in 0..65535 (0: any free port), got {port!r}")
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        if not _HOSTNAME.fullmatch(host) or host.rstrip(".").rsplit(".", 1)[-1].isdigit():
+            raise ValueError(f"host must be an IP address or a host name, got {host!r}") from None
+    try:
+        addresses = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as err:
+        raise ValueError(f"host {host!r} is not known: {err.strerror}") from None
+    for family, kind, proto, _, address in addresses:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server will
+            try:
+                probe.bind(address)
+            except OSError as err:
+                if err.errno != errno.EADDRINUSE:
+                    raise ValueError(f"cannot serve on host {host!r}, port {port}: {err.strerror}") from None
+    return host, all(ipaddress.ip_address(a[4][0]).is_loopback for a in addresses)
 
 
 def _segment_quaternions(direction: np.ndarray) -> np.ndarray:
@@ -195,7 +236,9 @@ class Viewer:
     Args:
         chain: the robot (its float64 buffers are used).
         q: ``(n,)`` initial joint angles in radians, within the limits.
-        host, port: where the server listens (``127.0.0.1``: this machine only).
+        host, port: where the server listens: ``127.0.0.1`` (also for '' or None) is this
+            machine only; any other address warns on stderr, as anyone who reaches the port
+            controls the viewer. Port 0 takes any free port, and a busy one the next free one.
         world: obstacles to draw and to check the clearance against (one set, no batch
             dimension; see :func:`load_world`); None: the capsule model's own floor.
         capsules: the robot's collision model (default: :func:`~iiwa_torch.collision.robot_capsules`
@@ -203,6 +246,7 @@ class Viewer:
         show_capsules, show_frames: draw the collision capsules, every link frame (also
             checkboxes in the panel).
 
+    Attributes ``host`` and ``port`` say where it listens (the port actually bound).
     The state is guarded by a lock: GUI callbacks run on viser's thread pool.
     """
 
@@ -226,6 +270,9 @@ class Viewer:
             raise TypeError(f"world must be an iiwa_torch.collision.World, got {type(world).__name__}")
         if capsules is not None and not isinstance(capsules, collision.Capsules):
             raise TypeError(f"capsules must be an iiwa_torch.collision.Capsules, got {type(capsules).__name__}")
+        check_bool(show_capsules, "show_capsules")
+        check_bool(show_frames, "show_frames")
+        host, loopback = _listen_address(host, port)
         self.chain = chain
         self._lock = threading.RLock()
         self._syncing = False  # set while the viewer writes its own widgets, whose callbacks then do nothing
@@ -256,6 +303,10 @@ class Viewer:
         self._player: threading.Thread | None = None
 
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.host, self.port = host, self.server.get_port()
+        if not loopback:
+            print(f"warning: the viewer on {host} has no login: anyone who can reach port {self.port} controls it",
+                  file=sys.stderr)  # fmt: skip
         try:
             self._build_scene(show_capsules, show_frames)
             self._build_gui(show_capsules, show_frames)
@@ -286,6 +337,7 @@ class Viewer:
         """Show the arm at ``q (n,)`` radians (within the limits); the sliders and the readout follow,
         and the target gizmo jumps to the new end-effector pose unless ``move_target`` is False."""
         q = self._checked(q)
+        check_bool(move_target, "move_target")
         with self._lock:
             self._q = q
             self._draw(move_target)
@@ -849,12 +901,14 @@ def show(
     """Serve the viewer of ``chain`` at ``http://host:port``.
 
     ``q`` is the first configuration (radians, default mid-limits). ``host="0.0.0.0"`` makes
-    it reachable from other machines. ``world``, ``capsules``, ``show_capsules``,
+    it reachable from other machines (with a warning); ``host``, ``port`` as for :class:`Viewer`,
+    which says where the server listens (its ``host`` and ``port``). ``world``, ``capsules``, ``show_capsules``,
     ``show_frames`` as for :class:`Viewer`; ``path`` ``(T, n)`` or ``(B, T, n)``, ``dt`` (s)
     and ``goals`` ``(B, 3)`` as for :meth:`Viewer.set_path`. With ``block=True`` it runs until
     Ctrl-C, then stops the server and returns None; with ``block=False`` it returns the
     running :class:`Viewer` (call its ``stop()``).
     """
+    check_bool(block, "block")
     viewer, handed_over = None, False
     try:  # Ctrl-C may come as soon as the page is served, while the scene is still being built
         viewer = Viewer(
@@ -866,7 +920,8 @@ def show(
         if not block:
             handed_over = True
             return viewer
-        print(f"iiwa-torch viewer of {chain.name} at http://{host}:{port} (Ctrl-C to stop)", flush=True)
+        address = f"[{viewer.host}]" if ":" in viewer.host else viewer.host
+        print(f"iiwa-torch viewer of {chain.name} at http://{address}:{viewer.port} (Ctrl-C to stop)", flush=True)
         threading.Event().wait()
     except KeyboardInterrupt:
         if not block:

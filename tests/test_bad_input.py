@@ -59,6 +59,18 @@ def _counts(*names: str, allow_zero=False) -> tuple:
     return tuple((n, v) for n in names for v in values)
 
 
+def _bools(*names: str) -> tuple:
+    """Values of boolean options whose truthiness must not stand in for True or False."""
+    return tuple((n, v) for n in names for v in ("no", "False", None, 1, 0.0))
+
+
+def _non_rotations(name: str) -> tuple:
+    """Finite ``(3, 3)`` matrices that are not rotations: scaled, a reflection, a shear."""
+    shear = torch.eye(3, dtype=torch.float64)
+    shear[0, 1] = 0.5
+    return tuple((name, m) for m in (2 * ROT, -ROT, shear))
+
+
 def _tols(*names: str) -> tuple:
     """Bad values of positive finite tolerances / sizes."""
     return tuple((n, v) for n in names for v in (0.0, -1e-3, math.nan, math.inf, "1e-3"))
@@ -108,6 +120,7 @@ _TASK_OPTIONS = _tols("dt", "distance_threshold", "orientation_threshold") + (
     ("robot", "iiwa14"),
     ("home", torch.full((6,), 0.1)),
     ("home", torch.full((7,), math.nan)),
+    *_bools("terminate_on_success", "observe_clearance"),
 )
 
 ENTRIES: dict[str, Entry] = {
@@ -184,8 +197,14 @@ ENTRIES: dict[str, Entry] = {
     "iiwa_torch.robots:planar3r": Entry(robots.planar3r, lambda: {}, bad=_tols("l1", "l2", "l3")),
     # ------------------------------------------------------------------ so3
     "iiwa_torch.so3:skew": Entry(so3.skew, lambda: {"v": Q[:, :3]}, tensors=("v",)),
-    "iiwa_torch.so3:exp": Entry(so3.exp, lambda: {"rotvec": Q[:, :3]}, tensors=("rotvec",)),
-    "iiwa_torch.so3:log": Entry(so3.log, lambda: {"rot": ROT}, tensors=("rot",)),
+    "iiwa_torch.so3:exp": Entry(
+        so3.exp, lambda: {"rotvec": Q[:, :3]}, tensors=("rotvec",),
+        bad=(("rotvec", torch.full((3,), 1e300, dtype=torch.float64)), ("rotvec", torch.full((3,), 2e19))),
+    ),  # fmt: skip
+    "iiwa_torch.so3:log": Entry(so3.log, lambda: {"rot": ROT}, tensors=("rot",), bad=_non_rotations("rot")),
+    "iiwa_torch.so3:check_rotation": Entry(
+        so3.check_rotation, lambda: {"rot": ROT}, tensors=("rot",), bad=_non_rotations("rot")
+    ),
     "iiwa_torch.so3:matrix_to_quaternion": Entry(so3.matrix_to_quaternion, lambda: {"rot": ROT}, tensors=("rot",)),
     "iiwa_torch.so3:quaternion_to_matrix": Entry(
         so3.quaternion_to_matrix, lambda: {"quat": Q[:, :4]}, tensors=("quat",), bad=(("quat", torch.zeros(4)),)
@@ -193,7 +212,7 @@ ENTRIES: dict[str, Entry] = {
     "iiwa_torch.so3:matrix_to_rpy": Entry(so3.matrix_to_rpy, lambda: {"rot": ROT}, tensors=("rot",)),
     "iiwa_torch.so3:rpy_to_matrix": Entry(so3.rpy_to_matrix, lambda: {"rpy": Q[:, :3]}, tensors=("rpy",)),
     "iiwa_torch.so3:pose_error": Entry(
-        so3.pose_error, lambda: {"pose": POSE, "target": POSE.flip(0)}, tensors=("pose", "target")
+        so3.pose_error, lambda: {"pose": POSE, "target": POSE.flip(0)}, poses=("pose", "target")
     ),
     "iiwa_torch.so3:check_pose": Entry(so3.check_pose, lambda: {"pose": POSE}, tensors=("pose",)),
     "iiwa_torch.so3:check_rigid": Entry(so3.check_rigid, lambda: {"pose": POSE}, poses=("pose",)),
@@ -271,7 +290,8 @@ ENTRIES: dict[str, Entry] = {
         trajectory.jtraj,
         lambda: {"q0": Q, "q1": Q.flip(0), "t": 5, "qd0": torch.zeros_like(Q)},
         tensors=("q0", "q1", "qd0"),
-        bad=(("t", 1), ("t", 0), ("t", -3), ("t", 2.5), ("t", torch.tensor([0.0, 1.0, 0.5], dtype=torch.float64))),
+        bad=(("t", 1), ("t", 0), ("t", -3), ("t", 2.5), ("t", torch.tensor([0.0, 1.0, 0.5], dtype=torch.float64)),
+             ("t", torch.tensor([0.0, 1e-200], dtype=torch.float64))),  # accelerations overflow
     ),
     "iiwa_torch.trajectory:ctraj": Entry(
         trajectory.ctraj,
@@ -315,6 +335,11 @@ ENTRIES: dict[str, Entry] = {
         bad=(
             ("floor", math.nan),
             ("floor", "0"),
+            ("floor", True),
+            ("floor", -1e200),  # beyond collision.MAX_EXTENT: squared distances would overflow
+            ("spheres", (torch.tensor([[1e200, 0.0, 0.0]], dtype=torch.float64), torch.ones(1, dtype=torch.float64))),
+            ("spheres", (torch.tensor([[0.0, 0.0, 3e19]]), torch.tensor([0.1]))),
+            ("capsules", (torch.zeros(1, 2, 3, dtype=torch.float64), torch.tensor([1e160], dtype=torch.float64))),
             ("walls", torch.zeros(1, 3)),
             ("walls", (torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, dtype=torch.float64))),
             ("walls", (torch.tensor([[1.0, 0, 0]]), torch.tensor([math.nan]))),
@@ -462,8 +487,11 @@ ENTRIES: dict[str, Entry] = {
         bad=(("action", np.zeros((2, 6), dtype=np.float32)), ("action", np.full((2, 7), np.nan, dtype=np.float32))),
     ),
     "envs.goals:decode_pose_goal": Entry(
-        decode_pose_goal, lambda: {"goal": encode_pose_goal(POSE)}, tensors=("goal",), converts_dtype=True
-    ),
+        decode_pose_goal, lambda: {"goal": encode_pose_goal(POSE)}, tensors=("goal",), converts_dtype=True,
+        bad=(("goal", torch.zeros(9)), ("goal", torch.tensor([0.5, 0, 0.5, 1, 0, 0, 0, 0, 0])),
+             ("goal", torch.tensor([0.5, 0, 0.5, 1, 0, 0, 2, 0, 0]))),  # no y column; y along x
+    ),  # fmt: skip
+    "envs.goals:encode_pose_goal": Entry(encode_pose_goal, lambda: {"pose": POSE}, poses=("pose",)),
 }
 
 #: Public names that are not entry points a user feeds data to, with the reason.
@@ -517,8 +545,6 @@ EXEMPT = {
     "envs.goals:RewardKind": "an Enum of choice strings (checked where taken)",
     "envs.goals:ReachGoals": "built by ReachTask from its checked options",
     "envs.goals:enum_option": "the choice check itself",
-    "envs.goals:encode_pose_goal": "encodes the FK's own poses in every step (hot, unchecked); "
-    "goals from users come in through decode_pose_goal and compute_reward",
 }
 
 MODULES = (
@@ -641,6 +667,16 @@ def test_good_input_runs_and_is_finite(key):
 def test_vmap_gets_a_clear_error(fn, arg):
     with pytest.raises(TypeError, match=r"batched by torch.func.vmap.*leading dimensions"):
         torch.func.vmap(fn)(arg)
+
+
+@pytest.mark.parametrize("value", ["no", "True", None, 0, 1, 1.0, np.array(True), torch.tensor(True)])
+def test_check_bool_refuses_what_only_has_a_truthiness(value):
+    from iiwa_torch.checks import check_bool
+
+    check_bool(True, "flag")
+    check_bool(np.False_, "flag")
+    with pytest.raises(TypeError, match="flag must be True or False"):
+        check_bool(value, "flag")
 
 
 @pytest.mark.parametrize("shape", [(), (7,), (1, 7), (2, 1, 3), (8, 8), (65,)])

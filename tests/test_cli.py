@@ -153,6 +153,11 @@ def test_demo_runs(capsys, tmp_path):
         (["traj", "--from-q", *["0"] * 7], "exactly one of"),
         (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--steps", "1"], "at least 2"),
         (["robots", "abb"], "unknown robot"),
+        (["robots", "--robot", "puma560"], "unrecognized arguments: --robot"),  # was ignored: all presets
+        (["ik", "--robot", "puma560", "--pose", "0.5", "0", "0.5", "180", "0", "180", "--psi", "10"], "--psi is"),
+        (["ik", "--pose", "0.5", "0", "0.5", "180", "0", "180", "--method", "gradient", "--psi", "10"], "--psi is"),
+        (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--duration", "0"], "--duration must be positive"),
+        (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--duration", "-1"], "--duration must be positive"),
         (["frobnicate"], "invalid choice"),
     ],
 )
@@ -297,7 +302,11 @@ def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     try:
-        assert f"http://127.0.0.1:{port}" in proc.stdout.readline()  # printed before the server starts
+        line = ""
+        while "Ctrl-C" not in line:  # viser's own banner comes first
+            line = proc.stdout.readline()
+            assert line, "the viewer exited before printing its URL"
+        assert f"http://127.0.0.1:{port} (Ctrl-C" in line
         for _ in range(600):  # wait for the server itself, not for a fixed time
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=1) as page:

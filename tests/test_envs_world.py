@@ -92,6 +92,17 @@ def test_a_step_into_the_floor_is_flagged_and_ends_the_episode():
     assert env.compute_reward(obs["achieved_goal"], obs["desired_goal"], None) == pytest.approx(reward + 1.0)
 
 
+@pytest.mark.parametrize("flag", ["yes", 1, [True, "no"], np.array([1, 0])])
+def test_compute_reward_refuses_collision_flags_that_are_not_booleans(flag):
+    env = gym.make("IiwaReach-v0").unwrapped
+    goal = np.zeros(3, dtype=np.float32)
+    with pytest.raises(TypeError, match=r"info\['collision'\] must be a bool"):
+        env.compute_reward(goal, goal, {"collision": flag})
+    with pytest.raises(TypeError, match=r"info\['collision'\] must be a bool"):
+        env.compute_reward(goal[None], goal[None], [{"collision": flag}])
+    assert env.compute_reward(goal, goal, {"collision": np.True_}) == np.float32(-1.0)  # minus the penalty
+
+
 def test_penalize_keeps_the_episode_going():
     steps = _drive_into_floor(gym.make("IiwaReach-v0", collision="penalize", collision_penalty=0.5), steps=40)
     hits = [s for s in steps if s[4]["collision"]]
@@ -303,5 +314,5 @@ def test_observed_clearances_with_obstacles_single_and_vector_env_alike():
 def test_observe_clearance_needs_a_world():
     with pytest.raises(ValueError, match="observe_clearance needs collision checks"):
         ReachTask(observe_clearance=True, collision="off")
-    with pytest.raises(ValueError, match="observe_clearance must be True or False"):
+    with pytest.raises(TypeError, match="observe_clearance must be True or False"):
         ReachTask(observe_clearance=1)

@@ -445,7 +445,7 @@ def test_centering_twist_needs_pose_goals_and_centering():
         JointGoalExtractor(_space(), max_step=MAX_STEP, null_space_centering=1.0, centering_twist=True)
     with pytest.raises(ValueError, match="centering_twist needs pose goals"):
         JointGoalExtractor(_space(goal_dim=9), max_step=MAX_STEP, centering_twist=True)
-    with pytest.raises(ValueError, match="centering_twist must be True or False"):
+    with pytest.raises(TypeError, match="centering_twist must be True or False"):
         JointGoalExtractor(_space(goal_dim=9), max_step=MAX_STEP, null_space_centering=1.0, centering_twist=1)
 
 

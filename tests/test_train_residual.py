@@ -228,5 +228,5 @@ def test_keep_progress_must_be_a_bool():
     hp = tr.load_hyperparams("ppo", "IiwaReach-v0", bad)
     kwargs = tr.algo_kwargs("ppo", hp)
     policy = kwargs.pop("policy")
-    with pytest.raises(ValueError, match="keep_progress must be True or False"):
+    with pytest.raises(TypeError, match="keep_progress must be True or False"):
         PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)

@@ -85,6 +85,42 @@ def test_resume_with_no_intact_checkpoint_is_a_clear_error(run_copy, capsys):
     assert "no intact checkpoint in" in err and "model.zip is unreadable" not in err.splitlines()[-1]
 
 
+def test_resume_refuses_checkpoints_without_the_normalisation_statistics(run_copy, capsys):
+    """The run normalises observations (sac.yaml: normalize: true): a checkpoint without vecnormalize.pkl
+    would go on with fresh statistics, so it counts as damaged."""
+    assert yaml.safe_load((run_copy / "config.yaml").read_text())["hyperparams"]["normalize"] is True
+    newest, older = RunDir(run_copy).checkpoints()
+    (newest / "vecnormalize.pkl").unlink()
+    assert tr.main(["--resume", "--out", str(run_copy), "--timesteps", "200", "--no-progress-bar"]) == 0
+    out = capsys.readouterr()
+    assert f"{newest / 'vecnormalize.pkl'} is missing (the config says normalize: true)" in out.err
+    assert "from step_000000000200 (the newest intact one, not step_000000000400)" in out.out
+    (older / "vecnormalize.pkl").unlink()
+    err = error_of(capsys, tr.main, ["--resume", "--out", str(run_copy), "--no-progress-bar"])
+    assert "no intact checkpoint in" in err
+
+
+def test_evaluate_refuses_a_normalised_run_without_its_statistics(run_copy, capsys):
+    (run_copy / "vecnormalize.pkl").unlink()
+    err = error_of(capsys, ev.main, ["--model", str(run_copy), "--goals", "4", "--out", str(run_copy / "r")])
+    assert f"{run_copy / 'vecnormalize.pkl'} not found: the config says normalize: true" in err.splitlines()[-1]
+    assert not (run_copy / "r").exists()
+
+
+@pytest.mark.parametrize(("text", "value"), [("maybe", "maybe"), ("'no'", "no"), ("1", 1), ("null", None)])
+def test_normalize_must_be_a_boolean(run_copy, tmp_path, capsys, text, value):
+    err = error_of(capsys, tr.main, sac_run(tmp_path / "new", extra=[f"normalize={text}"]))
+    assert "normalize must be True or False" in err.splitlines()[-1]
+    _edit_config(run_copy, lambda c: c["hyperparams"].update(normalize=value))
+    err = error_of(capsys, ev.main, ["--model", str(run_copy), "--goals", "4", "--out", str(run_copy / "r")])
+    assert "config.yaml: normalize must be True or False" in err.splitlines()[-1]
+
+
+def test_a_non_boolean_env_option_is_a_one_line_error(tmp_path, capsys):
+    err = error_of(capsys, tr.main, sac_run(tmp_path / "new", extra=["env_kwargs={terminate_on_success: 'no'}"]))
+    assert "terminate_on_success must be True or False, got 'no'" in err.splitlines()[-1]
+
+
 class _Interrupted(Exception):
     pass
 

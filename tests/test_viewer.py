@@ -98,6 +98,66 @@ def test_binds_localhost_by_default(viewer):
         pass
 
 
+@pytest.mark.parametrize("host", ["", None])
+def test_an_empty_host_means_localhost(host):
+    v = Viewer(robots.planar3r(), host=host, port=_free_port())
+    try:
+        assert v.host == v.server.get_host() == "127.0.0.1"
+        with socket.create_connection(("127.0.0.1", v.port), timeout=5):
+            pass
+    finally:
+        v.stop()
+
+
+def test_a_busy_port_gives_the_port_actually_bound():
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        v = show(robots.planar3r(), port=port, block=False)
+        try:
+            assert v.port != port
+            assert urllib.request.urlopen(f"http://127.0.0.1:{v.port}/", timeout=5).status == 200
+        finally:
+            v.stop()
+
+
+def test_port_0_takes_a_free_port():
+    v = Viewer(robots.planar3r(), port=0)
+    try:
+        assert v.port > 0
+        assert urllib.request.urlopen(f"http://127.0.0.1:{v.port}/", timeout=5).status == 200
+    finally:
+        v.stop()
+
+
+def test_a_host_reachable_from_other_machines_is_warned_about(capsys):
+    v = Viewer(robots.planar3r(), host="0.0.0.0", port=_free_port())
+    v.stop()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"anyone who can reach port {v.port} controls it" in err
+    Viewer(robots.planar3r(), host="localhost", port=_free_port()).stop()
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(
+    ("host", "port", "error", "message"),
+    [
+        ("127.0.0.1", 99999, ValueError, "port must be an integer in 0..65535"),
+        ("127.0.0.1", -1, ValueError, "port must be an integer in 0..65535"),
+        ("127.0.0.1", 8080.0, ValueError, "port must be an integer"),
+        ("127.0.0.1", True, ValueError, "port must be an integer"),
+        ("999.1.1.1", 8080, ValueError, "host must be an IP address or a host name, got '999.1.1.1'"),
+        ("not a host", 8080, ValueError, "host must be an IP address or a host name"),
+        (8080, 8080, TypeError, "host must be a str"),
+        ("8.8.8.8", 8080, ValueError, "cannot serve on host '8.8.8.8'"),  # not an address of this machine
+    ],
+)
+def test_hosts_and_ports_that_cannot_be_served_are_refused(host, port, error, message):
+    with pytest.raises(error, match=re.escape(message)):
+        Viewer(robots.planar3r(), host=host, port=port)
+
+
 def test_set_q_moves_the_readout_to_fk(chain, viewer):
     gen = torch.Generator().manual_seed(11)
     for q in chain.random_q(3, generator=gen):
@@ -238,6 +298,15 @@ def test_moving_the_arm_angle_slider_moves_the_elbow_not_the_hand(chain, viewer)
     viewer.set_ik("gradient")
 
 
+@pytest.mark.parametrize("value", ["no", None, 1, 0.0])
+def test_boolean_options_take_only_booleans(chain, viewer, value):
+    for name in ("show_capsules", "show_frames", "block"):
+        with pytest.raises(TypeError, match=f"{name} must be True or False"):
+            show(chain, port=_free_port(), **{name: value})
+    with pytest.raises(TypeError, match="move_target must be True or False"):
+        viewer.set_q(viewer.q, move_target=value)
+
+
 def test_set_ik_rejects_bad_choices(viewer):
     with pytest.raises(ValueError, match="method"):
         viewer.set_ik("newton")
@@ -294,6 +363,9 @@ def test_load_world_reads_every_kind(tmp_path):
         ({"boxes": [[0, 0, 0, 1, 1]]}, "6 or 9 numbers"),
         ({"spheres": [[0, 0, 0, -1]]}, "radii must be positive"),
         ({"walls": [[0, 0, 0, 1]]}, "nonzero"),
+        ('{"spheres": [[true, 0, 0, true]]}', "spheres must hold numbers"),
+        ({"boxes": [[0, 0, "1", 1, 1, 1]]}, "boxes must hold numbers"),
+        ({"floor": True}, "floor must be a height in metres"),
         ("{not json", "invalid JSON"),
         ("no/such/file.json", "neither a JSON object nor an existing file"),
     ],
@@ -470,6 +542,24 @@ def test_cli_view_rejects_a_bad_world(capsys):
     assert "4 numbers" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--port", "99999"], "port must be an integer in 0..65535"),
+        (["--port", "-1"], "port must be an integer in 0..65535"),
+        (["--host", "999.1.1.1"], "host must be an IP address"),
+        (["--host", "not a host"], "host must be an IP address"),
+        (["--host", "8.8.8.8"], "cannot serve on host '8.8.8.8'"),
+    ],
+)
+def test_cli_view_refuses_what_it_cannot_serve(capsys, argv, message):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["view", "--robot", "planar3r", *argv])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err.splitlines()[-1]
+
+
 def test_cli_view_rolls_out_the_shipped_policy(chain, shown):
     pytest.importorskip("stable_baselines3")
     policy = Path(__file__).resolve().parents[1] / "train" / "policies" / "ppo_iiwa_reach"
@@ -629,12 +719,12 @@ def test_headless_chromium_draws_the_arm_and_follows_the_sliders(chain):
     assert overlap < 0.5, f"the two configurations look alike (orange overlap {overlap:.2f})"
 
 
-def test_ctrl_c_stops_the_server_cleanly():
-    port = _free_port()
-    code = f"from iiwa_torch import robots, viewer\nviewer.show(robots.planar3r(), port={port})\nprint('stopped')"
+def _serve_then_ctrl_c(argv: list[str]) -> tuple[int, str, int]:
+    """Run ``python argv`` until it prints its viewer's URL, check the page is served there,
+    then send Ctrl-C: ``(exit status, output, port of the URL)``."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     proc = subprocess.Popen(
-        [sys.executable, "-c", code],
+        [sys.executable, *argv],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # a background shell may ignore it
     )  # fmt: skip
@@ -653,15 +743,33 @@ def test_ctrl_c_stops_the_server_cleanly():
         while not any("Ctrl-C to stop" in line for line in lines):
             assert proc.poll() is None and time.monotonic() < deadline, f"the viewer did not start: {lines}"
             time.sleep(0.1)
-        assert urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5).status == 200
+        (url_port,) = {int(m) for line in lines for m in re.findall(r"http://127\.0\.0\.1:(\d+) \(Ctrl-C", line)}
+        assert urllib.request.urlopen(f"http://127.0.0.1:{url_port}/", timeout=5).status == 200
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=20)
         reader.join(timeout=5)
     finally:
         proc.kill()
-    out = "".join(lines)
-    assert proc.returncode == 0, out
-    assert out.rstrip().endswith("stopped"), out
+    return proc.returncode, "".join(lines), url_port
+
+
+def test_ctrl_c_stops_the_server_cleanly():
+    port = _free_port()
+    code = f"from iiwa_torch import robots, viewer\nviewer.show(robots.planar3r(), port={port})\nprint('stopped')"
+    status, out, url_port = _serve_then_ctrl_c(["-c", code])
+    assert status == 0, out
+    assert url_port == port and out.rstrip().endswith("stopped"), out
+
+
+def test_cli_view_prints_the_port_it_serves_on_when_the_one_asked_is_busy():
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        status, out, url_port = _serve_then_ctrl_c(["-m", "iiwa_torch.cli", "view", "--robot", "planar3r",
+                                                     "--port", str(port)])  # fmt: skip
+    assert status == 0, out
+    assert url_port != port, out
 
 
 def test_importing_the_module_does_not_import_viser_or_train():

@@ -62,7 +62,8 @@ FLOAT_TYPES = {"float32": np.float32, "float64": np.float64}
 # ---------------------------------------------------------------------------- loading
 def load_policy(model_dir: Path):
     """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder; ValueError if the
-    config is malformed or the model is not one of its algo for its env."""
+    config is malformed or the model is not one of its algo for its env, FileNotFoundError if a file the
+    config needs is missing (``vecnormalize.pkl`` with ``normalize: true``)."""
     import pickle
 
     from train.run_dir import RunDir, check_model
@@ -80,6 +81,9 @@ def load_policy(model_dir: Path):
     # with its env: SB3 cannot rebuild a HER replay buffer without one
     model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(run.path / "model.zip", env=env, device="cpu")
     vec_normalize = None
+    if config["hyperparams"].get("normalize", False) and not (run.path / "vecnormalize.pkl").exists():
+        raise FileNotFoundError(f"{run.path / 'vecnormalize.pkl'} not found: the config says normalize: true, and "
+                                f"the policy needs its observation statistics")
     if (run.path / "vecnormalize.pkl").exists():
         try:
             with open(run.path / "vecnormalize.pkl", "rb") as f:
@@ -860,7 +864,7 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--compare: {path} not found; expected an evaluations JSON (a run's evaluations.json)")
     try:
         evaluate(args.model, args.goals, args.seed, args.out, args.compare, overrides)
-    except (FileNotFoundError, ValueError) as err:
+    except (FileNotFoundError, ValueError, TypeError) as err:
         p.error(str(err))
     return 0
 

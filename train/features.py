@@ -24,6 +24,7 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from envs.goals import decode_pose_goal
 from iiwa_torch import compiled, so3
 from iiwa_torch import kinematics as kin
+from iiwa_torch.checks import check_bool
 from iiwa_torch.ik.dls import dls_step_batch_last, dls_step_numpy
 
 
@@ -272,8 +273,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
                 or not 0 <= null_space_centering < math.inf:
             raise ValueError(f"null_space_centering must be a finite number >= 0, got {null_space_centering!r}")
         self.null_space_centering = float(null_space_centering)
-        if not isinstance(centering_twist, bool):
-            raise ValueError(f"centering_twist must be True or False, got {centering_twist!r}")
+        check_bool(centering_twist, "centering_twist")
         if centering_twist and (goal_dim != 9 or not null_space_centering):
             raise ValueError("centering_twist needs pose goals (9 numbers) and null_space_centering > 0")
         self.centering_twist = centering_twist

@@ -27,6 +27,7 @@ from stable_baselines3.common.policies import MultiInputActorCriticPolicy
 from torch import nn
 
 from iiwa_torch import compiled
+from iiwa_torch.checks import check_bool
 from train.features import JointGoalExtractor, hildreth, numpy_ok, shrink
 
 
@@ -132,8 +133,7 @@ class ResidualDLSPolicy(MultiInputActorCriticPolicy):
     def __init__(self, *args, gate_distance: float = 0.01, keep_progress: bool = False, **kwargs):
         if isinstance(gate_distance, bool) or not isinstance(gate_distance, (int, float)) or not gate_distance > 0:
             raise ValueError(f"gate_distance must be a positive number (m), got {gate_distance!r}")
-        if not isinstance(keep_progress, bool):
-            raise ValueError(f"keep_progress must be True or False, got {keep_progress!r}")
+        check_bool(keep_progress, "keep_progress")
         self.gate_distance, self.keep_progress = float(gate_distance), keep_progress
         super().__init__(*args, **kwargs)
 

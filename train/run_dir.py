@@ -82,6 +82,8 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def validate_config(config: Any, source: str) -> dict[str, Any]:
     """A run's config dict checked for the keys and values ``train.train`` and ``train.evaluate`` read."""
+    from iiwa_torch.checks import check_bool  # here: torch only after main has set OpenMP's wait policy
+
     if not isinstance(config, dict):
         raise ValueError(f"{source}: expected a mapping with keys {list(CONFIG_KEYS)}, got {type(config).__name__}")
     missing = [k for k in CONFIG_KEYS if k not in config]
@@ -92,6 +94,7 @@ def validate_config(config: Any, source: str) -> dict[str, Any]:
     hp = config["hyperparams"]
     if not isinstance(hp, dict) or not isinstance(hp.get("n_timesteps"), int) or not isinstance(hp.get("n_envs"), int):
         raise ValueError(f"{source}: hyperparams must be a mapping with integer n_timesteps and n_envs, got {hp!r}")
+    check_bool(hp.get("normalize", False), f"{source}: normalize")
     return config
 
 

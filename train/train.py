@@ -76,7 +76,9 @@ def load_hyperparams(algo: str, env_id: str, overrides: dict[str, Any] | None = 
 
 def check_hyperparams(hp: dict[str, Any], env_id: str) -> dict[str, Any]:
     """``hp`` with its step counts as ints and, for the joint features, the env's robot and ``max_step``
-    filled in; ValueError names a bad entry."""
+    filled in; ValueError (TypeError for a non-boolean ``normalize``) names a bad entry."""
+    from iiwa_torch.checks import check_bool  # here: torch only after main has set OpenMP's wait policy
+
     hp = dict(hp)
     for key in ("n_envs", "n_timesteps", "eval_freq", "eval_goals", "checkpoint_freq"):
         value = hp.get(key)
@@ -88,6 +90,7 @@ def check_hyperparams(hp: dict[str, Any], env_id: str) -> dict[str, Any]:
         if not isinstance(value, (int, float)) or isinstance(value, bool) or value <= 0 or int(value) != value:
             raise ValueError(f"{key} must be a positive integer, got {value!r}")
         hp[key] = int(value)
+    check_bool(hp.get("normalize", False), "normalize")
     kind = hp.get("features_extractor", "goal_delta")
     if kind not in _EXTRACTORS:
         raise ValueError(f"features_extractor must be one of {list(_EXTRACTORS)}, got {kind!r}")
@@ -375,6 +378,8 @@ def _load_checkpoint(run: RunDir, ckpt: Path, config: dict[str, Any], verbose: i
     # new episodes after a resume: do not replay the seeds of the first start
     venv = build_venv(env_id, hp, seed + state["num_timesteps"])
     check_model(algo, ckpt / "model.zip", venv.observation_space, venv.action_space)
+    if hp.get("normalize", False) and not (ckpt / "vecnormalize.pkl").exists():  # not fresh statistics
+        raise CheckpointError(f"{ckpt / 'vecnormalize.pkl'} is missing (the config says normalize: true)")
     if (ckpt / "vecnormalize.pkl").exists():
         venv = _load_file(ckpt / "vecnormalize.pkl", lambda p: VecNormalize.load(str(p), venv))
     model = _load_file(ckpt / "model.zip", lambda p: _algo_class(algo).load(
@@ -532,7 +537,7 @@ def main(argv: list[str] | None = None) -> int:
     check_run_args(parser, args)
     try:
         train(args)
-    except (ValueError, FileNotFoundError, FileExistsError, RunLocked) as err:
+    except (ValueError, TypeError, FileNotFoundError, FileExistsError, RunLocked) as err:
         parser.error(str(err))
     return 0
 

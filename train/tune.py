@@ -299,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("train.tune needs optuna, which the rl extra installs: pip install 'iiwa-torch[rl]'")
     try:
         tune(args)
-    except (ValueError, FileNotFoundError, FileExistsError, RunLocked) as err:
+    except (ValueError, TypeError, FileNotFoundError, FileExistsError, RunLocked) as err:
         parser.error(str(err))
     except KeyboardInterrupt:
         print("interrupted: the running trial is marked failed; the same command resumes the study", flush=True)
