@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +29,7 @@ from . import kinematics as kin
 from .chain import Chain
 from .checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
 from .dh import DHChain
+from .segments import EPS, choose, closest_parameters, quotient, unit_float
 from .so3 import check_rigid
 
 __all__ = [
@@ -53,7 +53,6 @@ __all__ = [
 
 _BLOCK = 4096  # configurations per block of the robot's own distances
 CLEARANCE_NUMPY_BATCH = 32  # clearance: numpy float64 up to this many CPU configurations without autograd
-_EPS = float(np.finfo(np.float64).eps)  # a Python float: a numpy scalar would make the float kernel's products numpy's
 
 
 # ---------------------------------------------------------------------------- distance kernels
@@ -68,34 +67,6 @@ def _safe_norm(v: Tensor) -> Tensor:
     return _root((v * v).sum(-1))
 
 
-def _closest_parameters(a, e, b, c, f, where, unit, div=operator.truediv):
-    """The closest-point parameters ``s, t`` of two segments from the dot products ``a = d1.d1``,
-    ``e = d2.d2``, ``b = d1.d2``, ``c = d1.r``, ``f = d2.r`` (``r = p1 - p2``), float64 arrays of
-    torch or numpy, or Python floats: ``where``, ``unit`` (clamp into [0, 1]) and ``div`` (a
-    quotient ``where`` may discard) are that library's, so the torch, numpy and float kernels
-    run this one formula."""
-    eps = _EPS
-    ae = a * e
-    denom = ae - b * b
-    s = unit(where(denom > eps * ae, div(b * f - c * e, denom), 0.0))
-    t = unit(where(e <= eps * eps, 0.0, div(f + b * s, e)))
-    s = unit(where(a <= eps * eps, 0.0, div(b * t - c, a)))
-    return s, t
-
-
-def _choose(condition: bool, x: float, y: float) -> float:
-    return x if condition else y
-
-
-def _unit_float(x: float) -> float:
-    return min(max(x, 0.0), 1.0)
-
-
-def _quotient(x: float, y: float) -> float:
-    """``x / y``, and 0 for ``y = 0`` (a quotient :func:`_closest_parameters` then discards)."""
-    return x / y if y else 0.0
-
-
 def _dot(u, v) -> float:
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
@@ -104,8 +75,8 @@ def _segment_closest_floats(p1, d1, p2, d2) -> tuple[float, float, tuple[float, 
     """The closest points of one pair of segments ``p1 + s d1``, ``p2 + t d2`` (3-tuples of Python
     floats) as in :func:`_segment_gap`: ``s``, ``t`` and the vector ``w`` between them (first minus second)."""
     r = (p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2])
-    s, t = _closest_parameters(_dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r),
-                               _choose, _unit_float, _quotient)
+    s, t = closest_parameters(_dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r),
+                               choose, unit_float, quotient)
     return s, t, (r[0] + s * d1[0] - t * d2[0], r[1] + s * d1[1] - t * d2[1], r[2] + s * d1[2] - t * d2[2])
 
 
@@ -129,7 +100,7 @@ def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
         if not u1.shape == u2.shape == r.shape:
             u1, u2, r = torch.broadcast_tensors(u1, u2, r)
         dots = ((x * y).sum(0) for x, y in ((u1, u1), (u2, u2), (u1, u2), (u1, r), (u2, r)))
-        s, t = (x.to(p1.dtype) for x in _closest_parameters(*dots, torch.where, lambda x: x.clamp_(0, 1)))
+        s, t = (x.to(p1.dtype) for x in closest_parameters(*dots, torch.where, lambda x: x.clamp_(0, 1)))
     w = p1 + s * d1 - p2 - t * d2
     return _root((w * w).sum(0))  # not linalg.vector_norm: over the first dim it is ~20x slower
 
@@ -145,7 +116,7 @@ def _segment_gap_numpy(p1: np.ndarray, d1: np.ndarray, p2: np.ndarray, d2: np.nd
     r = p1 - p2
     dots = ((x * y).sum(-1) for x, y in ((d1, d1), (d2, d2), (d1, d2), (d1, r), (d2, r)))
     with np.errstate(divide="ignore", invalid="ignore"):  # the quotients np.where discards
-        s, t = _closest_parameters(*dots, np.where, _unit)
+        s, t = closest_parameters(*dots, np.where, _unit)
     w = r + s[..., None] * d1 - t[..., None] * d2
     return np.sqrt((w * w).sum(-1))
 
@@ -157,7 +128,7 @@ def _point_gap_numpy(p: np.ndarray, d: np.ndarray, c: np.ndarray) -> np.ndarray:
     without the ops that come to nothing, so the same distances bit for bit."""
     r = p - c
     a = (d * d).sum(-1)
-    eps = _EPS
+    eps = EPS
     with np.errstate(divide="ignore", invalid="ignore"):  # the quotient np.where discards
         s = _unit(np.where(a <= eps * eps, 0.0, -(d * r).sum(-1) / a))
     w = r + s[..., None] * d

@@ -19,7 +19,7 @@ import torch
 
 from iiwa_torch import collision, compiled, robots
 from iiwa_torch.dh import DHChain
-from iiwa_torch.ik import analytic, gradient, small, solve
+from iiwa_torch.ik import analytic, lm_setup, small, solve
 
 needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
 kernels = compiled.kernels() if compiled.ENABLED else None
@@ -136,11 +136,11 @@ def test_pose_errors_and_into_limits():
     assert np.allclose(pos_err, pos_ref, atol=1e-15) and not rot_err.any() and not rot_ref.any()
     lo, hi = chain.limits.numpy()
     q = rng.uniform(-12.0, 12.0, (400, 7))  # mostly outside the limits, by up to two turns
-    expected = gradient.into_limits(q, lo, hi)  # numpy in: numpy's remainder, as the kernel's
+    expected = lm_setup.into_limits(q, lo, hi)  # numpy in: numpy's remainder, as the kernel's
     got = np.array([[kernels.into_limits(x, lo[i], hi[i]) for i, x in enumerate(row)] for row in q])
     assert np.array_equal(got, expected)
     # torch's remainder rounds differently in float64 (a - b floor(a / b)): the same within 1e-14
-    torch_answer = gradient.into_limits(torch.from_numpy(q), chain.limits[0], chain.limits[1]).numpy()
+    torch_answer = lm_setup.into_limits(torch.from_numpy(q), chain.limits[0], chain.limits[1]).numpy()
     assert np.allclose(got, torch_answer, atol=1e-14, rtol=0)
     assert ((got >= lo) & (got <= hi)).all()
 

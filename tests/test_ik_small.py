@@ -13,7 +13,7 @@ import torch
 
 from iiwa_torch import compiled, robots, so3
 from iiwa_torch.collision import World
-from iiwa_torch.ik import gradient, small, solve
+from iiwa_torch.ik import lm_setup, small, solve
 
 CHAINS = {"iiwa14": robots.iiwa14(), "puma560": robots.puma560(), "planar3r": robots.planar3r()}
 
@@ -220,10 +220,10 @@ def test_seed_ranks_in_numpy_as_in_torch(mode):
     path's) and by torch tensors (the batched loop's): the same formula, the same ranks."""
     chain = CHAINS["iiwa14"]
     pool = chain.random_q(64, generator=torch.Generator().manual_seed(14), dtype=torch.float32)
-    features = gradient.pool_features(chain, pool, mode)
+    features = lm_setup.pool_features(chain, pool, mode)
     target, _ = targets(chain, 20, 15, torch.float32, mode)
-    by_torch = gradient.pool_distance(chain, pool, target, mode, features)
-    by_numpy = gradient.pool_distance(chain, pool, target.numpy(), mode, tuple(x.numpy() for x in features))
+    by_torch = lm_setup.pool_distance(chain, pool, target, mode, features)
+    by_numpy = lm_setup.pool_distance(chain, pool, target.numpy(), mode, tuple(x.numpy() for x in features))
     assert isinstance(by_numpy, np.ndarray) and np.allclose(by_numpy, by_torch.numpy(), atol=1e-5, rtol=0)
     for count in (1, 5):
-        assert np.array_equal(gradient.seed_ranks(by_numpy, count), gradient.seed_ranks(by_torch, count).numpy())
+        assert np.array_equal(lm_setup.seed_ranks(by_numpy, count), lm_setup.seed_ranks(by_torch, count).numpy())

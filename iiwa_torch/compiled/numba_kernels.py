@@ -13,7 +13,7 @@ import math
 import numba
 import numpy as np
 
-from .. import collision
+from .. import segments
 
 __all__ = ["capsule_clearance", "cholesky_solve", "end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds",
            "own_clearance", "pose_errors"]
@@ -195,7 +195,7 @@ def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
 @_jit
 def into_limits(x, lo, hi):
     """One angle into ``[lo, hi]``: shifted by a multiple of 2 pi if that fits, else the nearer
-    limit around the circle. Mirrors :func:`iiwa_torch.ik.gradient.into_limits`."""
+    limit around the circle. Mirrors :func:`iiwa_torch.ik.lm_setup.into_limits`."""
     turn = 2 * math.pi
     turned = lo + (x - lo) % turn  # Python's float remainder: fmod, then the divisor's sign, as torch's
     if lo <= x <= hi:
@@ -698,8 +698,8 @@ def _sin_cos(x):
 
 
 # the one closest-point formula of the torch, numpy and float paths, with the float path's helpers
-_closest = _inline(collision._closest_parameters)
-_choose, _unit, _quotient = _inline(collision._choose), _inline(collision._unit_float), _inline(collision._quotient)
+_closest = _inline(segments.closest_parameters)
+_choose, _unit, _quotient = _inline(segments.choose), _inline(segments.unit_float), _inline(segments.quotient)
 _LANES = 256  # configurations per block: the block's frames and capsules stay in the L1 cache
 
 
@@ -714,7 +714,7 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
     used). The arguments are :meth:`iiwa_torch.collision.Capsules._numpy_tables`' and the chain's
     ``float_arrays``. Mirrors :func:`iiwa_torch.collision._distances` without obstacles: the
     frames of :func:`iiwa_torch.kinematics.frames_batch_last`, the segments of
-    :func:`iiwa_torch.collision._segment_gap` (:func:`iiwa_torch.collision._closest_parameters`
+    :func:`iiwa_torch.collision._segment_gap` (:func:`iiwa_torch.segments.closest_parameters`
     itself, compiled). Each block of configurations goes through every step as a loop over the
     block, straight-line and branch-free, which LLVM vectorises."""
     count, k_all, last = q.shape[0], frames.shape[0], 0

@@ -25,7 +25,7 @@ import torch
 from .. import compiled
 from ..chain import Chain
 from ..kinematics import end_pose_matmul, floats_ok, pose_jacobian_numpy
-from .gradient import (
+from .lm_setup import (
     DAMP_DOWN,
     DAMP_UP,
     FREE_STEPS,
@@ -252,7 +252,7 @@ def _cached(chain: Chain, dtype: torch.dtype, key, make):
 
 
 def _limits(chain: Chain, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`~iiwa_torch.ik.gradient.inner_limits` for ``dtype``, as float64 numpy ``(n,)`` each."""
+    """:func:`~iiwa_torch.ik.lm_setup.inner_limits` for ``dtype``, as float64 numpy ``(n,)`` each."""
     return _cached(chain, dtype, "limits", lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
 
 

@@ -1,0 +1,131 @@
+"""What the two Levenberg-Marquardt solvers of :func:`~iiwa_torch.ik.solve` share: the batched
+torch one (:mod:`iiwa_torch.ik.gradient`) and the small-batch CPU one (:mod:`iiwa_torch.ik.small`):
+the damping schedule, the option checks, the seed pool's ranking and the joint limits."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal, get_args
+
+import numpy as np
+import torch
+
+from ..chain import Chain
+from ..checks import check_choice, check_positive
+from .limits import shift_into_limits
+
+__all__ = [
+    "DAMP_DOWN",
+    "DAMP_UP",
+    "FREE_STEPS",
+    "LAMBDA0",
+    "MIN_BATCH",
+    "POOL",
+    "Mode",
+    "Precision",
+    "broadcast_q",
+    "check_solve_options",
+    "inner_limits",
+    "into_limits",
+    "pool_distance",
+    "pool_features",
+    "round_width",
+    "seed_ranks",
+    "work_dtype",
+]
+
+Tensor = torch.Tensor
+Mode = Literal["pose", "position"]
+Precision = Literal["auto", "input"]
+
+POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
+MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
+FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
+LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
+DAMP_DOWN, DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
+
+
+def inner_limits(chain: Chain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """``(lo, hi)``, each ``(n,)``, the joint limits in ``dtype`` rounded inward, so an angle
+    within them is within the chain's float64 limits too (float32 rounding could cross them)."""
+    exact = chain.limits
+    lo, hi = exact.to(dtype)
+    lo = torch.where(lo.double() < exact[0], torch.nextafter(lo, torch.full_like(lo, math.inf)), lo)
+    hi = torch.where(hi.double() > exact[1], torch.nextafter(hi, torch.full_like(hi, -math.inf)), hi)
+    return lo, hi
+
+
+def into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """Joint angles into ``[lo, hi]``: an angle outside is first shifted by a multiple of 2 pi
+    (the same pose for a revolute joint), then clamped to the nearer limit (around the circle)
+    if still outside. Numpy arrays in give a numpy array, by the same formula."""
+    xp = np if isinstance(q, np.ndarray) else torch
+    shifted, fits = shift_into_limits(q, lo, hi)
+    turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
+    nearer = xp.where(turned - hi <= lo + 2 * math.pi - turned, hi, lo)
+    return xp.where(fits, shifted, nearer)
+
+
+def broadcast_q(value: Tensor, chain: Chain, batch: torch.Size, name: str, dtype: torch.dtype) -> Tensor:
+    """Check ``value (..., n)`` and broadcast it to ``(prod(batch), n)``."""
+    chain.check_q(value, name)
+    try:
+        return torch.broadcast_to(value.to(dtype), (*batch, chain.n_joints)).reshape(-1, chain.n_joints)
+    except RuntimeError:
+        raise ValueError(
+            f"{name} must broadcast to the targets' batch shape {(*batch, chain.n_joints)}, got {tuple(value.shape)}"
+        ) from None
+
+
+def pool_distance(chain: Chain, pool: Tensor, target: Tensor, mode: str, features=None) -> Tensor:
+    """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
+    squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
+    less terms that are the same for every pool entry. ``features``: the pool's
+    :func:`pool_features`, if computed already. Numpy ``target`` and ``features`` in give a
+    numpy array, by the same formula."""
+    sq, twice_feat = pool_features(chain, pool, mode) if features is None else features
+    if mode == "pose":
+        cat = np.concatenate if isinstance(target, np.ndarray) else torch.cat
+        target = cat([target[:, :3, 3], 0.3 * target[:, :3, :3].reshape(target.shape[0], 9)], 1)
+    return sq - twice_feat @ target.T
+
+
+def pool_features(chain: Chain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
+    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and twice
+    the features ``(pool, 12)`` (position, 0.3 times the rotation; position only: ``(pool, 3)``)."""
+    pose = chain.fk(pool)
+    position = pose[:, :3, 3]
+    feat = torch.cat([position, 0.3 * pose[:, :3, :3].flatten(1)], 1) if mode == "pose" else position
+    return position.square().sum(1, keepdim=True), 2 * feat
+
+
+def seed_ranks(distance: Tensor, count: int) -> Tensor:
+    """``(count, b)``: the indices of the ``count`` pool entries nearest each target, nearest
+    first, from :func:`pool_distance` ``(pool, b)`` (a numpy array in: a numpy array out)."""
+    if isinstance(distance, np.ndarray):
+        return distance.argmin(0)[None] if count == 1 else distance.argsort(0, kind="stable")[:count]
+    return distance.argmin(0, keepdim=True) if count == 1 else distance.topk(count, 0, largest=False).indices
+
+
+def round_width(seeds: int, next_seed: int, remaining: int) -> int:
+    """How many seeds (from ``next_seed`` on) each of ``remaining`` problems tries side by side
+    in the next round: enough to fill ``MIN_BATCH`` slots."""
+    return min(seeds - next_seed, max(1, -(-MIN_BATCH // remaining)))
+
+
+def work_dtype(dtype: torch.dtype, precision: str, pos_tol: float, rot_tol: float) -> torch.dtype:
+    """The dtype :func:`~iiwa_torch.ik.solve` iterates in for targets of ``dtype`` (see its ``precision``)."""
+    loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
+    return torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
+
+
+def check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
+    """Raise ``ValueError`` unless :func:`~iiwa_torch.ik.solve`'s options of these names are valid."""
+    check_choice(mode, get_args(Mode), "mode")
+    for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
+        check_positive(value, name)
+    for value, name in ((iterations, "iterations"), (check_every, "check_every")):
+        check_positive(value, name, integer=True)
+    if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
+        raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
+    check_choice(precision, get_args(Precision), "precision")
