@@ -9,7 +9,7 @@ import pytest
 import torch
 from conftest import placed
 
-from iiwa_torch import robots
+from iiwa_torch import robots, so3
 from iiwa_torch.collision import World
 from iiwa_torch.ik import analytic
 from iiwa_torch.ik.analytic import spherical6r
@@ -47,7 +47,8 @@ def _stable(chain, target, q_tol: float, ulps: float) -> torch.Tensor:
     most ``q_tol`` and keeps its flags when the target positions are scaled by ``1 +- ulps * eps``, and
     none of its joints is within ``q_tol`` of a limit, also a turn away (a joint whose limits span more
     than ``[-pi, pi]`` is shifted by 2 pi into them when that fits, so an angle far from a limit can be
-    a turn from it), or of +-pi (where the wrap into ``[-pi, pi]`` picks a side), nor is the wrist so
+    a turn from it), or of +-pi (where the wrap into ``[-pi, pi]`` picks a side), nor does it move by
+    ``q_tol`` when the target turns by ``ulps * eps`` (rad), nor is the wrist so
     near alignment that rounding moves the split of q4 and q6 by ``q_tol`` (``|sin theta5| <= 100 eps /
     q_tol``). Elsewhere the numpy path, whose sin, cos, atan2 and sqrt differ from torch's in the last
     bit or two (how much depends on the CPU's vector kernels), may decide otherwise."""
@@ -59,13 +60,17 @@ def _stable(chain, target, q_tol: float, ulps: float) -> torch.Tensor:
         ok &= torch.minimum(gap, 2 * torch.pi - gap).amin(-1) > q_tol
     ok &= (q.abs() - torch.pi).abs().amin(-1) > q_tol
     ok &= (q[..., 4] + chain.dh[4, 3]).sin().abs() > 100 * torch.finfo(target.dtype).eps / q_tol
+    eps = torch.finfo(target.dtype).eps
+    turn = so3.exp(torch.tensor([1.0, -2.0, 3.0], dtype=target.dtype) * ulps * eps)  # a turn of a few ulps
     for sign in (1, -1):
         moved = target.clone()
-        moved[:, :3, 3] *= 1 + sign * ulps * torch.finfo(target.dtype).eps
-        out = _batched(chain, moved)
-        ok &= (out.q - ref.q).abs().amax(-1) <= q_tol
-        for name in FLAGS:
-            ok &= getattr(out, name) == getattr(ref, name)
+        moved[:, :3, 3] *= 1 + sign * ulps * eps
+        turned = target.clone()
+        turned[:, :3, :3] = turned[:, :3, :3] @ (turn if sign > 0 else turn.T)
+        for out in (_batched(chain, moved), _batched(chain, turned)):
+            ok &= (out.q - ref.q).abs().amax(-1) <= q_tol
+            for name in FLAGS:
+                ok &= getattr(out, name) == getattr(ref, name)
     return ok
 
 
