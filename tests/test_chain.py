@@ -190,3 +190,45 @@ def test_gradient_ik_solves_the_panda():
     assert panda.within_limits(result.q).all()
     reached = panda.fk(result.q[result.success])
     assert (reached[:, :3, 3] - target[result.success][:, :3, 3]).norm(dim=-1).max() <= 1e-5
+
+
+def test_arm_specific_pieces_say_so():
+    """The closed forms and the preset capsule models are for the DH presets: another arm gets an
+    error that says what to use instead."""
+    from iiwa_torch import collision
+    from iiwa_torch.ik import analytic
+
+    panda = _chain("panda")
+    q = panda.random_q(2, generator=torch.Generator().manual_seed(10))
+    for call in (lambda: analytic.iiwa(panda, panda.fk(q), 0.0), lambda: analytic.pieper(panda, panda.fk(q)),
+                 lambda: analytic.iiwa_solve(panda, panda.fk(q))):
+        with pytest.raises(ValueError, match=r"'panda' is a Chain .* ik\.solve"):
+            call()
+    with pytest.raises(ValueError, match="no preset capsule model.*capsules="):
+        collision.clearance(panda, q)
+
+
+def test_link_frames_match_pybullet():
+    """pybullet's own link frames (``getLinkState``, URDF link frames) on the same file: within its
+    float32 rounding of the origins."""
+    pybullet = pytest.importorskip("pybullet")
+    panda = _chain("panda")
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        body = pybullet.loadURDF(str(DATA / FILES["panda"][0]), useFixedBase=True, physicsClientId=client)
+        index = {pybullet.getJointInfo(body, j, physicsClientId=client)[1].decode(): j
+                 for j in range(pybullet.getNumJoints(body, physicsClientId=client))}
+        joints = [index[name] for name in panda.joint_names]
+        q = panda.random_q(100, generator=torch.Generator().manual_seed(11))
+        frames = panda.fk_all(q)
+        for row, expected in zip(q.tolist(), frames):
+            for j, value in zip(joints, row):
+                pybullet.resetJointState(body, j, value, physicsClientId=client)
+            for k, j in enumerate(joints):
+                state = pybullet.getLinkState(body, j, computeForwardKinematics=True, physicsClientId=client)
+                position, quaternion = np.array(state[4]), np.array(state[5])  # the URDF link frame
+                rotation = np.array(pybullet.getMatrixFromQuaternion(quaternion)).reshape(3, 3)
+                np.testing.assert_allclose(position, expected[k + 1, :3, 3].numpy(), atol=1e-6)
+                np.testing.assert_allclose(rotation, expected[k + 1, :3, :3].numpy(), atol=1e-6)
+    finally:
+        pybullet.disconnect(client)

@@ -23,6 +23,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
+from ...chain import Chain
 from ...checks import check_finite, check_float_tensor, check_instance
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import Convention, DHChain
@@ -257,6 +258,14 @@ def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float, ops=TORCH) -> tup
 
 
 # ---------------------------------------------------------------- chain structure
+def _check_dh(chain, robot: str) -> None:
+    """Raise unless ``chain`` is a DH chain: a clear word for another arm, which has no closed form here."""
+    check_instance(chain, Chain, "chain")
+    if not isinstance(chain, DHChain):
+        raise ValueError(f"the {robot} closed form solves the DH chains of its structure; {chain.name!r} is a "
+                         f"{type(chain).__name__} (from a URDF?), for which ik.solve (the gradient IK) works")
+
+
 def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tuple[float, float, float, float]]:
     """Check that ``chain`` is a standard-DH chain of ``n`` joints whose rows obey ``rows``.
 
@@ -264,7 +273,7 @@ def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tu
     ``+-pi/2`` (``"perp"``) or 0 (``"twist0"``), or a positive ``d``/``a`` (``"d+"``, ``"a+"``).
     Returns the rows ``(a, alpha, d, offset)`` as floats; raises ``ValueError`` otherwise.
     """
-    check_instance(chain, DHChain, "chain")
+    _check_dh(chain, robot)
     if chain.convention is not Convention.STANDARD:
         raise ValueError(f"the {robot} closed form needs a standard-DH chain, got {chain.convention.value!r}")
     if chain.n_joints != n:
@@ -322,7 +331,7 @@ def as_values(value, name: str, dtype: torch.dtype, device: torch.device, batch:
 
 
 def check_target(chain: DHChain, target: Tensor) -> None:
-    check_instance(chain, DHChain, "chain")
+    _check_dh(chain, "analytic")
     check_rigid(target, "target")
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
