@@ -232,3 +232,14 @@ def test_link_frames_match_pybullet():
                 np.testing.assert_allclose(rotation, expected[k + 1, :3, :3].numpy(), atol=1e-6)
     finally:
         pybullet.disconnect(client)
+
+
+@pytest.mark.parametrize("count", [3, 200])  # the small-batch (compiled) and the batched solver
+def test_gradient_ik_with_continuous_and_prismatic_joints(count):
+    odd = _chain("odd")
+    q = odd.random_q(count, generator=torch.Generator().manual_seed(12))
+    q[:, 2] += 7.0  # the continuous joint beyond a turn
+    target = odd.fk(q)[:, :3, 3]
+    result = ik.solve(odd, target, mode="position")
+    assert result.success.all() and odd.within_limits(result.q).all()
+    assert (odd.position(result.q) - target).norm(dim=-1).max() <= 1e-4
