@@ -739,7 +739,7 @@ def _serve_then_ctrl_c(argv: list[str]) -> tuple[int, str, int]:
 
         reader = threading.Thread(target=read, daemon=True)
         reader.start()
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 60  # a loaded 2-core machine needs far more than the usual 2 s
         while not any("Ctrl-C to stop" in line for line in lines):
             assert proc.poll() is None and time.monotonic() < deadline, f"the viewer did not start: {lines}"
             time.sleep(0.1)
