@@ -32,8 +32,9 @@ import yaml
 from train.run_dir import ALGOS, RunDir, RunLocked, atomic_write_text
 
 METRICS = {"success": "maximize", "median_distance": "minimize", "p95_distance": "minimize"}
-HEARTBEAT = 60  # s between a running trial's heartbeats in the storage
-GRACE = 180  # s without a heartbeat after which another worker marks a trial (of a killed process) failed
+HEARTBEAT = 60  # s between a running trial's heartbeats in the storage (default of --heartbeat)
+GRACE = 180  # s without a heartbeat after which another worker fails a killed process's trial (--grace)
+RETRIES = 2  # times a trial failed that way is run again with its parameters
 _PPO_NETS = {"small": [64, 64], "medium": [128, 128], "large": [256, 256]}
 _SAC_NETS = {"small": [64, 64], "medium": [256, 256]}
 
@@ -152,15 +153,28 @@ def hide_password(url: str) -> str:
     return re.sub(r"(//[^/:@]*:)[^/@]*@", r"\1***@", url)
 
 
-def open_storage(url: str):
-    """Optuna's RDB storage at ``url`` (SQLAlchemy form), with heartbeats; ValueError if it cannot be opened."""
+def open_storage(url: str, heartbeat: int = HEARTBEAT, grace: int = GRACE):
+    """Optuna's RDB storage at ``url`` (SQLAlchemy form); ValueError if it cannot be opened.
+
+    Running trials record a heartbeat every ``heartbeat`` s; one without a heartbeat for ``grace`` s (its
+    process was killed) is failed by the next worker that starts a trial and queued again, ``RETRIES`` times.
+    """
     import optuna
+    from sqlalchemy.exc import IntegrityError, ProgrammingError
+
+    def connect():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            retry = optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=RETRIES)
+            return optuna.storages.RDBStorage(url, heartbeat_interval=heartbeat, grace_period=grace,
+                                              heartbeat_stale_trial_callback=retry)
 
     shown = hide_password(url)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT, grace_period=GRACE)
+        try:
+            return connect()
+        except (IntegrityError, ProgrammingError):  # another worker created Optuna's tables at the same time:
+            return connect()  # they exist now
     except ImportError as err:
         cause = err.__cause__ or err
         raise ValueError(f"storage {shown}: its database driver is not installed ({cause}): pip install it") from None
@@ -197,6 +211,23 @@ def counted_states() -> tuple:
     return TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING
 
 
+def counted_trials(study) -> int:
+    """How many trials of ``study`` count towards ``--trials`` (``counted_states``), once the running trials
+    whose heartbeat is stale (of killed workers) are failed, and so queued again."""
+    import optuna
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        optuna.storages.fail_stale_trials(study)
+    return len(study.get_trials(deepcopy=False, states=counted_states()))
+
+
+def stop_when_counted(study, trials: int) -> None:
+    """``study.optimize`` callback: stop once ``trials`` are counted (``counted_trials``)."""
+    if counted_trials(study) >= trials:
+        study.stop()
+
+
 def write_best(study, out: Path, storage: str) -> Path | None:
     """``<out>/<study>/best.yaml``: the best completed trial's run config plus a ``tune`` entry (study,
     ``storage`` URL without password, trial, metric, value); None while no trial has completed."""
@@ -223,6 +254,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=int, required=True, help="trials of the study in total, over all workers")
     p.add_argument("--storage", help="Optuna RDB storage URL (default sqlite:///<out>/study.db); one shared "
                    "database (e.g. postgresql://user@host/db) for a sweep on several machines")
+    p.add_argument("--heartbeat", type=int, default=HEARTBEAT, metavar="S",
+                   help=f"seconds between a running trial's heartbeats in the storage (default {HEARTBEAT})")
+    p.add_argument("--grace", type=int, default=GRACE, metavar="S",
+                   help=f"seconds without a heartbeat after which a killed worker's trial is failed and run "
+                   f"again (default {GRACE})")
     p.add_argument("--study-name", help="study name (default <algo>-<env>)")
     p.add_argument("--out", type=Path, default=Path("runs/tune"), help="folder of the trials (default runs/tune)")
     p.add_argument("-n", "--timesteps", type=float, help="env steps per trial (default: n_timesteps of the YAML)")
@@ -240,7 +276,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def tune(args: argparse.Namespace) -> Path | None:
     """Run trials until the study holds ``args.trials``; the path of ``best.yaml`` (None: no trial completed)."""
-    import optuna
     import torch
 
     from train.train import load_hyperparams, parse_overrides
@@ -259,22 +294,19 @@ def tune(args: argparse.Namespace) -> Path | None:
         args.out.mkdir(parents=True, exist_ok=True)
     url = args.storage or f"sqlite:///{args.out.resolve() / 'study.db'}"
     shown = hide_password(url)
-    storage = open_storage(url)
+    storage = open_storage(url, args.heartbeat, args.grace)
     study = load_study(storage, study_name, sweep, shown)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        optuna.storages.fail_stale_trials(study)
-    remaining = args.trials - len(study.get_trials(deepcopy=False, states=counted_states()))
+    remaining = args.trials - counted_trials(study)
     running = len(study.get_trials(deepcopy=False, states=counted_states()[2:]))
-    note = f" ({running} running elsewhere, or left by a killed worker: failed {GRACE} s after its last " \
+    note = f" ({running} running elsewhere, or left by a killed worker: failed {args.grace} s after its last " \
         f"heartbeat)" if running else ""
     print(f"study {study_name!r} in {shown}: {args.trials - remaining} of {args.trials} trials counted{note}, "
           f"running {max(remaining, 0)} here", flush=True)
     if remaining > 0:
-        command = "python -m train.tune " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        study.optimize(lambda trial: objective(trial, sweep, args.out, command, args.verbose), n_trials=remaining,
+        command = "python -m train.tune " + " ".join(shlex.quote(hide_password(a)) for a in sys.argv[1:])
+        study.optimize(lambda trial: objective(trial, sweep, args.out, command, args.verbose), n_trials=args.trials,
                        callbacks=[lambda s, _: write_best(s, args.out, shown),
-                                  optuna.study.MaxTrialsCallback(args.trials, states=counted_states())])
+                                  lambda s, _: stop_when_counted(s, args.trials)])
     best = write_best(study, args.out, shown)
     if best is None:
         print("no trial completed yet", flush=True)
@@ -290,6 +322,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.trials < 1:
         parser.error(f"--trials must be >= 1, got {args.trials}")
+    if args.heartbeat < 1 or args.grace <= args.heartbeat:
+        parser.error(f"--heartbeat must be >= 1 and --grace above it, got {args.heartbeat} and {args.grace}")
     from train.train import check_run_args
 
     check_run_args(parser, args)
