@@ -72,8 +72,8 @@ def test_pybullet_iiwa_is_srs_with_the_presets_branches():
     assert found.form is analytic.ClosedForm.SRS
     # The file's pi/2 is 1.57079632679: the axes meet within ~1e-11 only, and are refused below that.
     assert 1e-13 < found.deviation < 1e-10
-    with pytest.raises(ValueError, match="do not meet in one point"):
-        analytic.structure(chain, tol=1e-13)
+    with pytest.raises(ValueError, match=r"axes 1 and 2 are not perpendicular \(4.9e-12 rad off\)"):
+        analytic.structure(chain, tol=1e-12)
     # The iiwa 14 preset with the file's 0.081 m flange, and the file's end frame as its tool:
     # the two arms agree (to the file's rounding) at random q, so their IK must too.
     preset = robots.iiwa14(flange=0.081)

@@ -296,9 +296,10 @@ def _check_rows(rows: list[list[float]], rules: list[dict], tol: float) -> tuple
             zeros.append((abs(d), f"axes {j - 1}, {j} and {j + 1} do not meet in one point "
                                   f"({abs(d):.3g} m apart along axis {j})"))
         if rule.get("perp"):
-            zeros.append((abs(math.cos(alpha)), f"{pair} are not perpendicular ({math.degrees(alpha):.6g} deg)"))
+            off = abs(math.asin(math.cos(alpha)))
+            zeros.append((abs(math.cos(alpha)), f"{pair} are not perpendicular ({off:.3g} rad off)"))
         if rule.get("twist0"):
-            zeros.append((abs(alpha), f"{pair} are not parallel ({math.degrees(alpha):.6g} deg apart)"))
+            zeros.append((abs(alpha), f"{pair} are not parallel ({abs(alpha):.3g} rad apart)"))
         for value, text in zeros:
             if value > tol:
                 problems.append(text)
