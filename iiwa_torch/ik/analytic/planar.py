@@ -23,6 +23,9 @@ __all__ = ["planar3r"]
 
 Tensor = torch.Tensor
 
+_LINK = {"twist0": True, "a+": True}
+PLANAR_ROWS = [_LINK, _LINK, {"twist0": True}]  # the rows planar3r needs (``_common.check_chain``)
+
 
 def _check_planar_transform(matrix: Tensor, name: str) -> None:
     if abs(float(matrix[2, 2]) - 1.0) > 1e-12:
@@ -58,8 +61,7 @@ def planar3r(
     is False and the arm is stretched towards the target. Singular (finite values, infinite
     derivative of ``theta_2``): arm stretched or folded (``|cos theta_2| = 1``).
     """
-    link = {"twist0": True, "a+": True}
-    rows = check_chain(chain, 3, [link, link, {"twist0": True}], "planar 3R")
+    rows = check_chain(chain, 3, PLANAR_ROWS, "planar 3R")
     _check_planar_transform(chain.base, "base")
     _check_planar_transform(chain.tool, "tool")
     named = (("x", x), ("y", y), ("phi", phi))

@@ -76,7 +76,7 @@ Tensor = torch.Tensor
 
 PIEPER_NUMPY_BATCH = 512  # up to this many poses per call (CPU, no world, no gradient), pieper runs in numpy
 
-_ROWS = [
+PIEPER_ROWS = [
     {"perp": True},
     {"twist0": True, "a+": True},
     {"perp": True},
@@ -104,7 +104,7 @@ def pieper(
         wrist`` (0 = first sign: wrist centre in front of the waist, ``sin(elbow) >= 0``,
         ``sin(q5 + offset5) >= 0``).
     """
-    rows = check_chain(chain, 6, _ROWS, "6R spherical-wrist (Pieper)")
+    rows = check_chain(chain, 6, PIEPER_ROWS, "6R spherical-wrist (Pieper)")
     check_target(chain, target)
     tol = reach_tol(target.dtype)
     if world is None and numpy_applies(chain, target.numel() // 16, PIEPER_NUMPY_BATCH, target):

@@ -101,7 +101,7 @@ _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in 
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
 _REFINE = 3  # refining passes when a reference q0 is given
 _ROUNDS = ((0, 1), (1, 4), (4, 16), (16, 1 << 30))  # candidate ranks whose clearance iiwa_solve checks, round by round
-_ROWS = [
+SRS_ROWS = [
     {"a0": True, "perp": True},
     {"a0": True, "d0": True, "perp": True},
     {"a0": True, "d+": True, "perp": True},
@@ -116,7 +116,7 @@ class _Geometry:
     """The chain's constants for the closed form (checked on construction)."""
 
     def __init__(self, chain: DHChain) -> None:
-        rows = check_chain(chain, 7, _ROWS, "iiwa (S-R-S)")
+        rows = check_chain(chain, 7, SRS_ROWS, "iiwa (S-R-S)")
         self.d1, self.d3, self.d5 = rows[0][2], rows[2][2], rows[4][2]
         self.sig = [sigma(row[1]) for row in rows[:6]]  # sin(alpha_1..6)
 
