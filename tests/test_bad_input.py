@@ -271,6 +271,13 @@ ENTRIES: dict[str, Entry] = {
         poses=("target",),
         bad=_counts("num_psi") + _tols("pos_tol", "rot_tol"),
     ),
+    "iiwa_torch.ik.analytic:structure": Entry(
+        analytic.structure, lambda: {"chain": PUMA}, bad=(("chain", "puma"), ("tol", -1.0), ("tol", math.nan))
+    ),
+    "iiwa_torch.ik.analytic:solve": Entry(
+        analytic.solve, lambda: {"chain": PUMA, "target": PUMA_POSE}, poses=("target",),
+        bad=(("chain", "puma"), ("psi", 0.5)),
+    ),
     "iiwa_torch.ik.analytic:pieper": Entry(
         analytic.pieper, lambda: {"chain": PUMA, "target": PUMA_POSE}, poses=("target",), bad=(("chain", CHAIN),)
     ),
@@ -507,6 +514,8 @@ EXEMPT = {
     "iiwa_torch.robots:puma560": "no arguments",
     "iiwa_torch.robots:lrmate200ic": "no arguments",
     "iiwa_torch.ik:IKResult": "a result type",
+    "iiwa_torch.ik.analytic:ClosedForm": "an Enum of the closed forms (a result's field)",
+    "iiwa_torch.ik.analytic:Structure": "a result type",
     "iiwa_torch.ik.analytic:AnalyticSolutions": "a result type",
     "iiwa_torch.trajectory:JointTrajectory": "a result type",
     "iiwa_torch.trajectory:TrackResult": "a result type",
