@@ -237,3 +237,17 @@ def test_compare_file_missing_is_a_one_line_error(tmp_path, capsys):
                                      "--compare", str(tmp_path / "none.json")])
     assert "none.json" in err
 
+
+@pytest.mark.parametrize("text, message", [
+    ("{bad", "not a readable JSON file"),
+    ('{"evaluations": []}', "expected a run's evaluations.json"),
+    ('[{"steps": 0}]', "expected a run's evaluations.json"),
+    ("[]", "expected a run's evaluations.json"),
+])
+def test_compare_file_malformed_is_a_one_line_error_naming_it(tmp_path, capsys, text, message):
+    (tmp_path / "bad.json").write_text(text)
+    err = error_of(capsys, ev.main, ["--model", str(SHIPPED_PPO), "--goals", "2", "--out", str(tmp_path / "r"),
+                                     "--compare", str(tmp_path / "bad.json")])
+    assert f"--compare {tmp_path / 'bad.json'}: {message}" in err
+    assert not (tmp_path / "r").exists()  # refused before the rollouts
+

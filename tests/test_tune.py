@@ -179,6 +179,8 @@ def test_hide_password():
     (["--algo", "td3"], "argument --algo: invalid choice: 'td3'"),
     (["--study-name", "a/b"], "--study-name names a folder in --out"),
     (["--hyperparams", "eval_goals=0"], "eval_goals must be a positive integer, got 0"),
+    (["--hyperparams", "foo=1"], "unknown hyper-parameter(s) ['foo'] for ppo"),
+    (["--hyperparams", "learning_rate=abc"], "learning_rate must be a number or lin_<number>"),
 ])
 def test_bad_input_is_a_one_line_error(tmp_path, capsys, flags, message):
     err = error_of(capsys, [*tune_args(tmp_path / "t", 1), *flags])
@@ -191,6 +193,18 @@ def test_a_study_of_another_sweep_is_refused(tmp_path, capsys):
     assert tune.main(tune_args(out, 1, 128)) == 0
     err = error_of(capsys, [*tune_args(out, 1, 128), "--metric", "median_distance"])
     assert f"study '{STUDY}'" in err and "pick another --study-name" in err
+
+
+def test_a_study_whose_trials_all_failed_takes_the_corrected_command(tmp_path, capsys):
+    """A policy option the policy does not take passes the checks before the study and fails in SB3's
+    constructor: the trial fails; the command without it then runs instead of being refused as another sweep."""
+    out = tmp_path / "t"
+    err = error_of(capsys, [*tune_args(out, 1, 128), "policy_kwargs={foo: 1}"])
+    assert "hyper-parameters rejected by PPO" in err and "foo" in err
+    assert [t.state for t in stored(out).trials] == [TrialState.FAIL]
+    assert tune.main(tune_args(out, 1, 128)) == 0
+    assert f"study '{STUDY}': none of its trials" in capsys.readouterr().out
+    assert [t.state for t in stored(out).trials] == [TrialState.FAIL, TrialState.COMPLETE]
 
 
 def test_missing_optuna_is_a_one_line_error(tmp_path, capsys, monkeypatch):

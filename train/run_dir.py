@@ -80,6 +80,13 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_save(path, lambda tmp: tmp.write_text(text))
 
 
+def check_folder(path: Path, flag: str = "--out") -> None:
+    """Raise ValueError if ``path`` or a folder above it is a file, so that ``path`` cannot be a folder."""
+    blocking = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"{flag} {path}: {blocking} is a file, not a folder; pick another {flag}")
+
+
 def validate_config(config: Any, source: str) -> dict[str, Any]:
     """A run's config dict checked for the keys and values ``train.train`` and ``train.evaluate`` read."""
     if not isinstance(config, dict):

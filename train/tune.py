@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import logging
 import os
 import re
 import shlex
@@ -146,6 +147,18 @@ def objective(trial, sweep: dict[str, Any], out: Path, command: str, verbose: in
     return cb.clock.evaluations[-1][sweep["metric"]]
 
 
+class _NoTraceback(logging.Filter):
+    """Keep Optuna's line on a failed trial, without the traceback it adds: ``main`` says what went wrong
+    in one line (a bad hyper-parameter, an interrupt)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.exc_info = record.exc_text = None
+        return True
+
+
+NO_TRACEBACK = _NoTraceback()
+
+
 # ---------------------------------------------------------------------------- storage and study
 def hide_password(url: str) -> str:
     """``url`` with the password of ``user:password@host`` replaced by ``***``."""
@@ -182,6 +195,10 @@ def load_study(storage, study_name: str, sweep: dict[str, Any], shown: str):
     study = optuna.create_study(storage=storage, study_name=study_name, sampler=sampler, pruner=pruner,
                                 direction=METRICS[sweep["metric"]], load_if_exists=True)
     found = study.user_attrs.get("sweep")
+    if found is not None and found != sweep and not study.get_trials(deepcopy=False, states=counted_states()):
+        print(f"study {study_name!r}: none of its trials of the sweep {found} completed; it now runs {sweep}",
+              flush=True)  # e.g. the first command had a hyper-parameter that every trial failed on
+        found = None
     if found is None:
         study.set_user_attr("sweep", sweep)
     elif found != sweep:
@@ -243,9 +260,10 @@ def tune(args: argparse.Namespace) -> Path | None:
     import optuna
     import torch
 
-    from train.train import load_hyperparams, parse_overrides
+    from train.train import algo_kwargs, load_hyperparams, parse_overrides
 
     torch.set_num_threads(args.threads)
+    logging.getLogger("optuna.study._optimize").addFilter(NO_TRACEBACK)  # the logger of the failed-trial line
     study_name = args.study_name or f"{args.algo}-{args.env_id}"
     if not study_name or "/" in study_name or study_name.startswith("."):
         raise ValueError(f"--study-name names a folder in --out: no '/' and no leading '.', got {study_name!r}")
@@ -253,6 +271,7 @@ def tune(args: argparse.Namespace) -> Path | None:
     overrides.update((key, value) for key, value in (("n_timesteps", args.timesteps), ("n_envs", args.n_envs))
                      if value is not None)
     hp = load_hyperparams(args.algo, args.env_id, overrides)  # validates the env id and the overrides
+    algo_kwargs(args.algo, hp)  # and the SB3 keys and values, before the study records the sweep
     sweep = {"algo": args.algo, "env_id": args.env_id, "seed": args.seed, "metric": args.metric,
              "overrides": {key: hp[key] for key in ("n_timesteps", "n_envs", *overrides)}}
     if args.storage is None:
