@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from .. import so3
-from ..checks import check_choice, check_finite, check_instance, check_positive
+from ..checks import check_choice, check_finite, check_generator, check_instance, check_positive, is_number
 from ..collision import Capsules, World, check_world, clearance, pairwise_clearance, robot_capsules
 from ..dh import DHChain
 from .dls import dls_step_batch_last
@@ -467,6 +467,7 @@ def solve(
     check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
     seeds = (8 if chain.n_joints >= 7 else 32) if seeds is None else seeds
     check_positive(seeds, "seeds", integer=True)
+    check_generator(generator)
     batch = _check_target(target, mode, None, None)
     if target.device != chain.dh.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
@@ -529,7 +530,7 @@ def check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_ev
         check_positive(value, name)
     for value, name in ((iterations, "iterations"), (check_every, "check_every")):
         check_positive(value, name, integer=True)
-    if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
+    if not is_number(rest_gain) or not 0 <= rest_gain <= 1:
         raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
     check_choice(precision, get_args(Precision), "precision")
 
@@ -784,6 +785,9 @@ def minimize(
             raise ValueError(
                 f"loss must return one value per problem, shape {tuple(batch)}, got {getattr(value, 'shape', value)}"
             )
+        if torch.is_grad_enabled() and not value.requires_grad:
+            raise ValueError("loss must depend on q (or pose) through torch operations: its value has no gradient "
+                             "(a constant, or computed through .detach(), .item() or numpy)")
         if world is None:
             return value
         return value + clearance_weight * clearance_shortfall(chain, q, world, margin, capsules)
