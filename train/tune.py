@@ -124,6 +124,9 @@ def objective(trial, sweep: dict[str, Any], out: Path, command: str, verbose: in
     The trial's run config goes to its user attribute ``config`` (so any worker can write the best one).
     Raises ``optuna.TrialPruned`` when pruned, or when the training fails with a ValueError (NaN
     parameters from extreme hyper-parameters), whose message goes to the user attribute ``error``.
+    On Ctrl-C or SIGTERM the run directory goes to the user attribute ``interrupted``; a trial that
+    ``tune`` enqueued with the user attribute ``resumes`` (``{"trial", "run"}``, same parameters)
+    continues that run from its newest checkpoint, its evaluations so far reported again.
     """
     import optuna
 
@@ -133,12 +136,22 @@ def objective(trial, sweep: dict[str, Any], out: Path, command: str, verbose: in
     base = load_hyperparams(algo, env_id, sweep["overrides"])
     config = make_config(algo, env_id, sweep["seed"], {**base, **SAMPLERS[algo](trial, base)},
                          f"{command}  # trial {trial.number}")
+    resumes = trial.user_attrs.get("resumes")
+    resuming = resumes is not None and RunDir(resumes["run"]).config_path.exists()
+    own = study_folder(out, trial.study.study_name) / f"trial_{trial.number:04d}"
+    run = RunDir(resumes["run"] if resuming else own)
+    if resuming:
+        config = run.read_config()
+        for entry in run.read_evaluations():
+            trial.report(entry[sweep["metric"]], entry["steps"])
     trial.set_user_attr("config", config)
-    run = RunDir(study_folder(out, trial.study.study_name) / f"trial_{trial.number:04d}")
-    model = new_model(run, config, verbose)
+    model = None if resuming else new_model(run, config, verbose)  # None: run_training resumes the run
     callback = functools.partial(_trial_callback_class(), trial, sweep["metric"])
     try:
         cb = run_training(run, config, model, verbose=verbose, callback=callback)
+    except KeyboardInterrupt:
+        trial.set_user_attr("interrupted", str(run.path))
+        raise
     except ValueError as err:
         trial.set_user_attr("error", str(err))
         raise optuna.TrialPruned(f"training failed: {err}") from None
@@ -205,6 +218,18 @@ def load_study(storage, study_name: str, sweep: dict[str, Any], shown: str):
         raise ValueError(f"study {study_name!r} in {shown} is a sweep of {found}, not {sweep}: "
                          f"pick another --study-name")
     return study
+
+
+def resume_interrupted(study) -> None:
+    """Enqueue, ahead of new trials, the parameters of each trial interrupted by Ctrl-C or SIGTERM
+    (user attribute ``interrupted``) that no trial resumes yet; ``objective`` continues its run."""
+    taken = {t.user_attrs["resumes"]["trial"] for t in study.get_trials(deepcopy=False) if "resumes" in t.user_attrs}
+    for t in study.get_trials(deepcopy=False):
+        if "interrupted" in t.user_attrs and t.number not in taken:
+            resumes = {"trial": t.number, "run": t.user_attrs["interrupted"]}
+            study.enqueue_trial(t.params, user_attrs={"resumes": resumes})
+            print(f"trial {t.number} was interrupted: the next trial resumes it (its parameters, and its run "
+                  f"{t.user_attrs['interrupted']} from the newest checkpoint if it has one)", flush=True)
 
 
 def counted_states() -> tuple:
@@ -283,6 +308,7 @@ def tune(args: argparse.Namespace) -> Path | None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         optuna.storages.fail_stale_trials(study)
+    resume_interrupted(study)
     remaining = args.trials - len(study.get_trials(deepcopy=False, states=counted_states()))
     running = len(study.get_trials(deepcopy=False, states=counted_states()[2:]))
     note = f" ({running} running elsewhere, or left by a killed worker: failed {GRACE} s after its last " \
@@ -321,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, FileExistsError, RunLocked) as err:
         parser.error(str(err))
     except KeyboardInterrupt:
-        print("interrupted: the running trial is marked failed; the same command resumes the study", flush=True)
+        print("interrupted: the running trial is marked failed; the same command resumes the study, that trial "
+              "first (from its newest checkpoint)", flush=True)
         return 130
     return 0
 
