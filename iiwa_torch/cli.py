@@ -6,6 +6,7 @@ The entry point is ``iiwa_torch.launch.main``, which sets OpenMP's wait policy b
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import math
@@ -702,8 +703,10 @@ class Elapsed:
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    # `view` serves until stopped: no running time over its own messages
+    running = contextlib.nullcontext() if args.func is _view else Elapsed(args.parser.prog.split()[-1])
     try:
-        with Elapsed(args.parser.prog.split()[-1]):
+        with running:
             return args.func(args)
     except (_UsageError, ValueError) as err:  # the library's ValueErrors name the bad input too
         args.parser.error(str(err))  # the subcommand's usage and the message; exit status 2
