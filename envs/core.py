@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from iiwa_torch import kinematics as kin
-from iiwa_torch.checks import check_bool
+from iiwa_torch.checks import as_device, check_bool, is_integer, is_number
 from iiwa_torch.collision import capsule_clearance, capsule_clearance_of_one
 from iiwa_torch.dh import DHChain
 from iiwa_torch.robots import iiwa14
@@ -178,26 +178,23 @@ class ReachTask:
         self.start_kind = enum_option(StartKind, start, "start")
         for name, value in [("dt", dt), ("distance_threshold", distance_threshold),
                             ("orientation_threshold", orientation_threshold)]:
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if not (is_number(value) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if not (isinstance(orientation_weight, (int, float)) and math.isfinite(orientation_weight)
+        if not (is_number(orientation_weight) and math.isfinite(orientation_weight)
                 and orientation_weight >= 0):
             raise ValueError(f"orientation_weight must be >= 0, got {orientation_weight!r}")
-        if not (isinstance(goal_min_distance, (int, float)) and 0 <= goal_min_distance < math.inf):
+        if not (is_number(goal_min_distance) and 0 <= goal_min_distance < math.inf):
             raise ValueError(f"goal_min_distance must be >= 0 (metres), got {goal_min_distance!r}")
-        if max_episode_steps is not None and (isinstance(max_episode_steps, bool) or
-                                              not isinstance(max_episode_steps, int) or max_episode_steps < 1):
+        if max_episode_steps is not None and (not is_integer(max_episode_steps) or max_episode_steps < 1):
             raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.collision = enum_option(CollisionKind, collision, "collision")
-        if floor is not None and (isinstance(floor, bool) or not isinstance(floor, (int, float))
-                                  or not math.isfinite(floor)):
+        if floor is not None and (not is_number(floor) or not math.isfinite(floor)):
             raise ValueError(f"floor must be a finite height in metres or None, got {floor!r}")
-        if not (isinstance(collision_penalty, (int, float)) and math.isfinite(collision_penalty)
-                and collision_penalty >= 0) or isinstance(collision_penalty, bool):
+        if not (is_number(collision_penalty) and math.isfinite(collision_penalty) and collision_penalty >= 0):
             raise ValueError(f"collision_penalty must be a finite number >= 0, got {collision_penalty!r}")
-        if isinstance(obstacles, bool) or not isinstance(obstacles, int) or not 0 <= obstacles <= 8:
+        if not is_integer(obstacles) or not 0 <= obstacles <= 8:
             raise ValueError(f"obstacles must be an int in [0, 8], got {obstacles!r}")
         if obstacles and self.collision is CollisionKind.OFF:
             raise ValueError("obstacles need collision checks: use collision='terminate' or 'penalize', not 'off'")
@@ -209,10 +206,10 @@ class ReachTask:
         self.collision_penalty = float(collision_penalty)
         self.dt = float(dt)
         self.goal_min_distance = float(goal_min_distance)
-        self.max_episode_steps = max_episode_steps
+        self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
         self.terminate_on_success = bool(terminate_on_success)
         self.dtype = dtype
-        self.device = torch.device("cpu") if device is None else torch.device(device)
+        self.device = as_device(device)
         self.arm = JointVelocityArm(iiwa14() if robot is None else robot, self.dt, home, dtype, self.device)
         self.goals = ReachGoals(goal, reward, float(distance_threshold), float(orientation_threshold),
                                 float(orientation_weight))

@@ -16,6 +16,8 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from iiwa_torch.checks import is_integer
+
 from .core import ReachState, ReachTask
 from .goals import GoalKind
 
@@ -256,11 +258,11 @@ class IiwaReachVectorEnv(VectorEnv):
     def __init__(
         self, num_envs: int = 1, max_episode_steps: int | None = 50, render_mode: str | None = None, **task_options: Any
     ) -> None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+        if not is_integer(num_envs) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         if render_mode is not None and render_mode != "rgb_array":
             raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}")
-        self.num_envs = num_envs
+        self.num_envs = int(num_envs)
         self.render_mode = render_mode
         self.task = ReachTask(max_episode_steps=max_episode_steps, **task_options)
         self.single_observation_space, self.single_action_space = goal_env_spaces(self.task)

@@ -26,6 +26,8 @@ import numpy as np
 import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
+from iiwa_torch.checks import is_integer
+
 from . import MAX_EPISODE_STEPS, make_task
 from .core import ReachState
 from .goals import GoalKind
@@ -68,7 +70,7 @@ class IiwaReachVecEnv(VecEnv):
         render_mode: str | None = None,
         **task_options: Any,
     ) -> None:
-        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+        if not is_integer(num_envs) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}")
         if render_mode is not None and render_mode != "rgb_array":
             raise ValueError(f"render_mode must be 'rgb_array' or None, got {render_mode!r}")
@@ -76,7 +78,7 @@ class IiwaReachVecEnv(VecEnv):
         self.env_id = env_id
         self.render_mode = render_mode  # read by VecEnv.__init__ through get_attr
         observation_space, action_space = goal_env_spaces(self.task)
-        super().__init__(num_envs, observation_space, action_space)
+        super().__init__(int(num_envs), observation_space, action_space)
         self._state: ReachState | None = None
         self._actions: torch.Tensor | None = None
         if seed is not None:

@@ -27,7 +27,7 @@ from torch import nn
 
 from . import compiled, so3
 from . import kinematics as kin
-from .checks import as_point, check_finite, check_float_tensor, check_nonnegative
+from .checks import as_point, check_finite, check_float_tensor, check_generator, check_nonnegative
 from .kinematics import Frame, Geometry
 
 __all__ = ["Chain", "JointKind"]
@@ -334,6 +334,7 @@ class Chain(nn.Module):
                 raise ValueError(f"random_q's shape must be non-negative integers, got {shape}")
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"random_q's dtype must be float32 or float64, got {dtype!r}")
+        check_generator(generator)
         lim = self.geometry(dtype).draw_limits
         u = torch.rand(*shape, self.n_joints, generator=generator, dtype=dtype, device=lim.device)
         return lim[0] + u * (lim[1] - lim[0])

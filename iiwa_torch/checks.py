@@ -4,6 +4,8 @@ and what came."""
 from __future__ import annotations
 
 import math
+import numbers
+import os
 from itertools import chain
 
 import numpy as np
@@ -84,18 +86,79 @@ def check_choice(value, choices: tuple, name: str) -> None:
         raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
 
 
+def is_integer(value) -> bool:
+    """True for an integer of any numeric type (``int``, ``np.int64``, ...), never a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def is_number(value) -> bool:
+    """True for a real number of any numeric type (``int``, ``float``, ``np.float32``, ...), never a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 def check_positive(value, name: str, integer: bool = False) -> None:
-    """Raise ``ValueError`` unless ``value`` is a finite number ``> 0`` (an int if ``integer``; never a bool)."""
-    kind = int if integer else (int, float)
-    if isinstance(value, bool) or not isinstance(value, kind) or not value > 0 or not math.isfinite(value):
+    """Raise ``ValueError`` unless ``value`` is a finite number ``> 0`` (an integer if ``integer``; never a
+    bool), of any numeric type."""
+    kind = is_integer if integer else is_number
+    if not kind(value) or not value > 0 or not math.isfinite(value):
         raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
 
 
 def check_nonnegative(value, name: str, integer: bool = False) -> None:
-    """Raise ``ValueError`` unless ``value`` is a finite number ``>= 0`` (an int if ``integer``; never a bool)."""
-    kind = int if integer else (int, float)
-    if isinstance(value, bool) or not isinstance(value, kind) or not value >= 0 or not math.isfinite(value):
+    """Raise ``ValueError`` unless ``value`` is a finite number ``>= 0`` (an integer if ``integer``; never a
+    bool), of any numeric type."""
+    kind = is_integer if integer else is_number
+    if not kind(value) or not value >= 0 or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite {'integer' if integer else 'number'} >= 0, got {value!r}")
+
+
+def check_generator(generator, name: str = "generator") -> None:
+    """Raise ``TypeError`` unless ``generator`` is a ``torch.Generator`` or ``None``."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(f"{name} must be a torch.Generator or None (e.g. torch.Generator().manual_seed(0)), "
+                        f"got {type(generator).__name__}")
+
+
+def as_device(device, name: str = "device") -> torch.device:
+    """``device`` (a ``torch.device``, a string such as ``"cpu"``, or ``None`` for the CPU) as a
+    ``torch.device`` that holds values in this torch build; ``ValueError`` otherwise (``"meta"``, or
+    ``"cuda"`` on a CPU-only build)."""
+    try:
+        found = torch.device("cpu" if device is None else device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{name} must be a torch device such as 'cpu', got {device!r}") from None
+    if found.type == "meta":
+        raise ValueError(f"{name} 'meta' holds no values; use a real device such as 'cpu'")
+    try:
+        torch.empty(0, device=found)
+    except (RuntimeError, AssertionError) as err:  # torch asserts that CUDA was compiled in
+        raise ValueError(f"{name} {device!r} is not usable in this torch build ({err}); use 'cpu'") from None
+    return found
+
+
+MEMORY_SHARE = 0.8  # of the available memory a single call may plan to allocate
+
+
+def available_memory() -> int:
+    """Bytes of memory available to a new allocation: ``MemAvailable`` of /proc/meminfo (Linux), else the
+    free physical pages."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def check_memory(nbytes: int, what: str) -> None:
+    """Raise ``ValueError`` if ``what`` would allocate ``nbytes`` (estimated from its sizes), more than
+    ``MEMORY_SHARE`` of the available memory, with both figures in GB."""
+    free = available_memory()
+    if nbytes > MEMORY_SHARE * free:
+        raise ValueError(f"{what} needs about {nbytes / 1e9:.3g} GB of memory, more than the "
+                         f"{free / 1e9:.3g} GB available: make it smaller (or split it into parts)")
 
 
 def as_point(point, name: str = "point") -> torch.Tensor:

@@ -6,20 +6,26 @@ The entry point is ``iiwa_torch.launch.main``, which sets OpenMP's wait policy b
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import math
 import shutil
 import sys
+import threading
 import time
 from pathlib import Path
 
 import torch
 
 from . import robots, so3
+from .checks import check_memory
 from .dh import DHChain
 
 _F64 = torch.float64
+# peak memory of `demo` per timed configuration (fk, the LM solve and the 8 analytic branches in
+# float64): about 2.9 kB measured from 50,000 to 200,000 configurations, rounded up
+DEMO_BYTES_PER_CONFIGURATION = 3_000
 
 _DESCRIPTION = """\
 Forward and inverse kinematics, trajectories, robot tables and a demo.
@@ -276,6 +282,8 @@ def _traj(args: argparse.Namespace) -> int:
         raise _UsageError(f"--steps must be at least 2, got {args.steps}")
     if args.duration is not None and not 0 < args.duration < math.inf:
         raise _UsageError(f"--duration must be positive (seconds), got {args.duration:g}")
+    if args.size < 1 or (args.fps is not None and args.fps < 1):
+        raise _UsageError(f"--size and --fps must be positive, got {args.size} and {args.fps}")
     if args.csv:
         _writable(args.csv, "--csv")
     if args.gif:
@@ -407,6 +415,7 @@ def _demo(args: argparse.Namespace) -> int:
 
     if args.batch < 1:
         raise _UsageError(f"--batch must be a positive integer, got {args.batch}")
+    check_memory(args.batch * DEMO_BYTES_PER_CONFIGURATION, f"demo --batch {args.batch}")
     viz = None if args.no_gif else _viz()
     torch.set_num_threads(min(2, torch.get_num_threads()))
 
@@ -661,11 +670,49 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Elapsed:
+    """While a command runs, after ``delay`` s, its elapsed time on stderr: rewritten in place every
+    second on a terminal, a line every 30 s otherwise; stdout (tables, ``--json``) is untouched."""
+
+    def __init__(self, name: str, delay: float = 2.0):
+        self.name, self.delay = name, delay
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._start = time.monotonic()
+        self._shown = False
+
+    def __enter__(self) -> Elapsed:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        if self._shown and sys.stderr.isatty():
+            sys.stderr.write("\r\033[K")  # clear the line for what follows
+            sys.stderr.flush()
+
+    def _run(self) -> None:
+        tty = sys.stderr.isatty()
+        if self._stop.wait(self.delay):
+            return
+        while True:
+            self._shown = True
+            text = f"iiwa-torch {self.name}: running for {time.monotonic() - self._start:.0f} s"
+            sys.stderr.write(f"\r{text}\033[K" if tty else text + "\n")
+            sys.stderr.flush()
+            if self._stop.wait(1.0 if tty else 30.0):
+                return
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
+    # `view` serves until stopped: no running time over its own messages
+    running = contextlib.nullcontext() if args.func is _view else Elapsed(args.parser.prog.split()[-1])
     try:
-        return args.func(args)
+        with running:
+            return args.func(args)
     except (_UsageError, ValueError) as err:  # the library's ValueErrors name the bad input too
         args.parser.error(str(err))  # the subcommand's usage and the message; exit status 2
 

@@ -27,7 +27,15 @@ from torch import Tensor
 from . import compiled
 from . import kinematics as kin
 from .chain import Chain
-from .checks import check_finite, check_float_tensor, check_instance, check_nonnegative, check_positive, check_tensor
+from .checks import (
+    check_finite,
+    check_float_tensor,
+    check_instance,
+    check_nonnegative,
+    check_positive,
+    check_tensor,
+    is_number,
+)
 from .dh import DHChain
 from .segments import EPS, choose, closest_parameters, quotient, unit_float
 from .so3 import check_rigid
@@ -314,9 +322,11 @@ class Capsules:
         if len(set(self.pairs)) != len(self.pairs):
             raise ValueError(f"pairs contains duplicates: {self.pairs}")
         if self.floor_height is not None and not (
-            isinstance(self.floor_height, (int, float)) and math.isfinite(self.floor_height)
+            is_number(self.floor_height) and math.isfinite(self.floor_height)
         ):
             raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
+        if self.floor_height is not None:
+            object.__setattr__(self, "floor_height", float(self.floor_height))
         object.__setattr__(self, "_cache", {})
 
     def _index_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
@@ -575,9 +585,10 @@ class World:
     capsules: tuple[Tensor, Tensor] | None = None
 
     def __post_init__(self) -> None:
-        if self.floor is not None and (isinstance(self.floor, bool) or not isinstance(self.floor, (int, float))
-                                       or not abs(self.floor) <= MAX_EXTENT):
+        if self.floor is not None and not (is_number(self.floor) and abs(self.floor) <= MAX_EXTENT):
             raise ValueError(f"floor must be a height in metres within {MAX_EXTENT:g} or None, got {self.floor!r}")
+        if self.floor is not None:
+            object.__setattr__(self, "floor", float(self.floor))  # a numpy scalar, in Python's float
         first = None
         for kind, (shape_a, shape_b) in _OBSTACLE_DIMS.items():
             pair = getattr(self, kind)
@@ -698,6 +709,11 @@ def _check_query(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> N
                 f"world obstacles are {t.dtype} on {t.device} but q is {q.dtype} on {q.device}; "
                 "build the world in q's dtype and device"
             )
+    try:
+        torch.broadcast_shapes(world.batch_shape, q.shape[:-1])
+    except RuntimeError:
+        raise ValueError(f"the world's batch shape {tuple(world.batch_shape)} does not broadcast with q's "
+                         f"{tuple(q.shape[:-1])}: give one world, or one per configuration") from None
 
 
 def _resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:

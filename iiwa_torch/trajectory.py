@@ -19,14 +19,26 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Literal, get_args
 
+import numpy as np
 import torch
 
 from . import so3
 from .chain import Chain
-from .checks import all_finite, check_choice, check_finite, check_float_tensor, check_instance, check_positive
+from .checks import (
+    all_finite,
+    check_choice,
+    check_finite,
+    check_float_tensor,
+    check_instance,
+    check_memory,
+    check_positive,
+    is_integer,
+    is_number,
+)
 from .collision import Capsules, World, check_world, clearance
 
 __all__ = [
@@ -99,12 +111,13 @@ class TrackResult:
 def _times(t, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
     """``t`` (step count or time vector) -> normalised times ``s (..., T)`` in [0, 1] and the
     duration ``(..., 1)``."""
-    if isinstance(t, bool):
-        raise TypeError("t must be a number of steps (int >= 2) or a time vector, got a bool")
-    if isinstance(t, int):
+    if is_integer(t):
         if t < 2:
             raise ValueError(f"t as a number of steps must be at least 2, got {t}")
-        return torch.linspace(0, 1, t, dtype=dtype, device=device), torch.ones(1, dtype=dtype, device=device)
+        return torch.linspace(0, 1, int(t), dtype=dtype, device=device), torch.ones(1, dtype=dtype, device=device)
+    if isinstance(t, (bool, str, bytes)) or not isinstance(t, (torch.Tensor, np.ndarray, list, tuple, numbers.Real)):
+        raise TypeError(f"t must be a number of steps (an integer >= 2) or a time vector (..., T), "
+                        f"got {t!r} ({type(t).__name__})")
     t = torch.as_tensor(t, dtype=dtype, device=device)
     if t.ndim == 0 or t.shape[-1] < 2:
         raise ValueError(f"t must be a step count or a time vector of shape (..., T) with T >= 2, got {tuple(t.shape)}")
@@ -151,10 +164,14 @@ def jtraj(
                 raise ValueError(f"{name} must have shape (..., n), got a scalar")
             check_finite(value, name)
     given = [x for x in (q0, q1, qd0, qd1) if x is not None]
+    _check_same_kind(("q0", "q1", "qd0", "qd1"), (q0, q1, qd0, qd1))
     try:
-        torch.broadcast_shapes(*(x.shape for x in given))
+        ends = torch.broadcast_shapes(*(x.shape for x in given))
     except RuntimeError:
         raise ValueError(f"q0, q1, qd0, qd1 must broadcast together, got {[tuple(x.shape) for x in given]}") from None
+    steps = int(t) if is_integer(t) else (t.shape[-1] if isinstance(t, torch.Tensor) and t.ndim else 0)
+    # q, qd, qdd (T, *ends) and the three (T, 6) bases with their factors (T each)
+    check_memory(steps * (3 * ends.numel() + 24) * q0.element_size(), f"jtraj with {steps} steps")
     s, duration = _times(t, q0.dtype, q0.device)  # (..., T), (..., 1)
     shape = torch.broadcast_shapes(*(x.shape for x in given), duration.shape)  # (..., n)
     delta = (q1 - q0).expand(shape)
@@ -190,6 +207,14 @@ def jtraj(
     return JointTrajectory(q=q, qd=qd, qdd=qdd, min_clearance=lowest)
 
 
+def _check_same_kind(names: tuple[str, ...], values: tuple) -> None:
+    """Raise ``TypeError`` unless the given tensors (``None`` skipped) share one dtype and device."""
+    given = [(n, v) for n, v in zip(names, values) if v is not None]
+    if len({(v.dtype, v.device) for _, v in given}) > 1:
+        raise TypeError(f"{', '.join(n for n, _ in given)} must share one dtype and device, got "
+                        + ", ".join(f"{n} {v.dtype} on {v.device}" for n, v in given))
+
+
 def path_clearance(chain: Chain, q: Tensor, world: World, capsules: Capsules | None = None) -> Tensor:
     """Clearance (m) of every sample of joint paths ``q (..., T, n) -> (..., T)``, against a
     world whose batch shape broadcasts with the paths' ``(...)``. Only the samples are
@@ -214,6 +239,7 @@ def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
     check_choice(profile, get_args(Profile), "profile")
     so3.check_rigid(T0, "T0")
     so3.check_rigid(T1, "T1")
+    _check_same_kind(("T0", "T1"), (T0, T1))
     s, _ = _times(t, T0.dtype, T0.device)
     if profile == "quintic":
         zero = torch.zeros(1, dtype=T0.dtype, device=T0.device)
@@ -261,7 +287,7 @@ def _speed_limits(chain: Chain, speed_scale: float, dtype: torch.dtype) -> Tenso
     check_instance(chain, Chain, "chain")
     if chain.velocity_limits is None:
         raise ValueError(f"chain {chain.name!r} has no velocity_limits; pass them to Chain to time-scale")
-    if isinstance(speed_scale, bool) or not isinstance(speed_scale, (int, float)) or not 0 < speed_scale <= 1:
+    if not is_number(speed_scale) or not 0 < speed_scale <= 1:
         raise ValueError(f"speed_scale must be a number in (0, 1], got {speed_scale!r}")
     return speed_scale * chain.velocity_limits.to(dtype)
 
@@ -318,8 +344,8 @@ def track(
         raise ValueError(f"rest_gain applies to method='gradient' only, got {rest_gain!r} with method='analytic'")
     so3.check_rigid(poses, "poses")
     chain.check_q(q0, "q0")
-    if poses.ndim < 3:
-        raise ValueError(f"poses must have shape (..., T, 4, 4), got {tuple(poses.shape)}")
+    if poses.ndim < 3 or poses.shape[-3] == 0:
+        raise ValueError(f"poses must have shape (..., T, 4, 4) with T >= 1, got {tuple(poses.shape)}")
     try:
         batch = torch.broadcast_shapes(poses.shape[:-3], q0.shape[:-1])
     except RuntimeError:

@@ -118,6 +118,8 @@ def load_world(spec) -> collision.World:
         items = spec.get(kind)
         if not items:
             return None
+        if not isinstance(items, (list, tuple)):
+            raise ValueError(f"world: {kind} must be a list of rows of numbers, got {items!r}")
         bad = [row for row in items if not isinstance(row, (list, tuple)) or len(row) not in widths]
         if bad:
             raise ValueError(f"world: each of {kind} needs {' or '.join(map(str, widths))} numbers, got {bad[0]}")

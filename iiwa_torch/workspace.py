@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from .chain import Chain
-from .checks import as_point, check_instance, check_positive
+from .checks import as_point, check_generator, check_instance, check_positive, is_integer
 
 __all__ = [
     "Section",
@@ -175,7 +175,7 @@ def frame_point(chain: Chain, frame: int, *, trials: int = 64, tol: float = 1e-9
     """
     check_instance(chain, Chain, "chain")
     n = chain.n_joints
-    if not isinstance(frame, int) or isinstance(frame, bool) or not 0 <= frame <= n:
+    if not is_integer(frame) or not 0 <= frame <= n:
         raise ValueError(f"frame must be an integer in 0..{n}, got {frame!r}")
     check_positive(trials, "trials", integer=True)
     check_positive(tol, "tol")
@@ -203,8 +203,9 @@ def sample_points(
     its origin) at ``n`` configurations drawn uniformly within the joint limits."""
     check_instance(chain, Chain, "chain")
     check_positive(n, "n", integer=True)
+    check_generator(generator)
     p = as_point(point)
-    q = chain.random_q(n, generator=generator, dtype=dtype)
+    q = chain.random_q(int(n), generator=generator, dtype=dtype)
     if not p.any():
         return chain.position(q)
     pose = chain.fk(q)
@@ -227,6 +228,8 @@ def _cell_index(xyz: Tensor, section: Section, lower: tuple[float, ...], shape: 
 
 def _grid(chain: Chain, section: Section, h: float, p: Tensor) -> tuple[tuple[float, ...], tuple[int, ...]]:
     reach = chain.reach_bound(p) + h
+    if 2 * reach / h > 2**25:  # first as a float: a tiny h makes it inf
+        raise ValueError(f"h = {h} m makes a grid of more than 2**25 cells (reach {reach:.3f} m); use a larger h")
     cells = int(math.ceil(2 * reach / h))
     if section is Section.RZ:
         lower, shape = (0.0, -reach), (int(math.ceil(reach / h)), cells)
@@ -257,11 +260,13 @@ def occupancy(
     check_positive(h, "h")
     check_positive(n_samples, "n_samples", integer=True)
     check_positive(block, "block", integer=True)
+    check_generator(generator)
     p = as_point(point)
     lower, shape = _grid(chain, section, h, p)
     total = torch.zeros(math.prod(shape), dtype=torch.int64)
     done = 0
     if counts is not None:
+        check_instance(counts, Occupancy, "counts")
         if (counts.section, counts.h, counts.lower, counts.counts.shape) != (section, h, lower, shape):
             raise ValueError("counts is from a different grid (section, h or chain)")
         total += torch.from_numpy(counts.counts.reshape(-1))
@@ -327,7 +332,7 @@ def envelopes(occ: Occupancy, *, axis_gap: int = 4) -> tuple[np.ndarray, np.ndar
     check_instance(occ, Occupancy, "occ")
     if occ.section is not Section.RZ:
         raise ValueError(f"envelopes need an RZ occupancy, got section {occ.section.value!r}")
-    if not isinstance(axis_gap, int) or axis_gap < 0:
+    if not is_integer(axis_gap) or axis_gap < 0:
         raise ValueError(f"axis_gap must be a non-negative integer (cells), got {axis_gap!r}")
     occ_rz = occ.occupied
     rows = np.flatnonzero(occ_rz.any(0))
@@ -388,6 +393,7 @@ def dexterity_map(
     check_positive(h, "h")
     check_positive(n_samples, "n_samples", integer=True)
     check_positive(block, "block", integer=True)
+    check_generator(generator)
     p = as_point(point)
     lower, shape = _grid(chain, Section.RZ, h, p)
     size = math.prod(shape)
@@ -397,7 +403,7 @@ def dexterity_map(
     left = n_samples
     while left:
         b = min(block, left)
-        q = chain.random_q(b, generator=generator)
+        q = chain.random_q(int(b), generator=generator)
         pose = chain.fk(q)
         xyz = pose[:, :3, 3] + pose[:, :3, :3] @ p
         m = dexterity(chain, q, position_only=position_only).manipulability

@@ -69,6 +69,11 @@ def _non_rotations(name: str) -> tuple:
     shear = torch.eye(3, dtype=torch.float64)
     shear[0, 1] = 0.5
     return tuple((name, m) for m in (2 * ROT, -ROT, shear))
+# a NumPy generator, a seed and a torch generator's class are not torch generators
+_GENERATORS = tuple(("generator", g) for g in (np.random.default_rng(0), 5, torch.Generator))
+_TWO_WORLDS = collision.World(spheres=(torch.zeros(2, 1, 3, dtype=torch.float64),
+                                       torch.ones(2, 1, dtype=torch.float64)))
+_DEVICES = (("device", "meta"), ("device", "gpu0")) + (() if torch.cuda.is_available() else (("device", "cuda"),))
 
 
 def _tols(*names: str) -> tuple:
@@ -186,7 +191,7 @@ ENTRIES: dict[str, Entry] = {
     "DHChain.random_q": Entry(
         lambda n, **kw: CHAIN.random_q(n, **kw),
         lambda: {"n": 3},
-        bad=_counts("n", allow_zero=True) + (("dtype", torch.float16), ("dtype", torch.int32), ("generator", 3)),
+        bad=_counts("n", allow_zero=True) + (("dtype", torch.float16), ("dtype", torch.int32)) + _GENERATORS,
         names=(("n", "shape"),),
     ),
     "DHChain.reach_bound": Entry(
@@ -222,7 +227,8 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"chain": CHAIN, "target": POSE, "q0": Q, "iterations": 2, "rest": Q, "rest_gain": 0.1},
         tensors=("q0", "rest"),
         poses=("target",),
-        bad=(("mode", "orientation"), ("precision", "half"), ("rest_gain", 2.0))
+        bad=(("mode", "orientation"), ("precision", "half"), ("rest_gain", 2.0), ("world", _TWO_WORLDS))
+        + _GENERATORS
         + _counts("seeds", "iterations", "check_every")
         + _tols("pos_tol", "rot_tol", "rot_weight"),
     ),
@@ -231,7 +237,9 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"chain": CHAIN, "loss": lambda q, p: q.square().sum(-1), "q0": Q, "target": POSE, "steps": 2},
         tensors=("q0",),
         poses=("target",),
-        bad=(("mode", "orientation"), ("optimizer", "sgd"), ("loss", None))
+        bad=(("mode", "orientation"), ("optimizer", "sgd"), ("loss", None), ("world", _TWO_WORLDS),
+             ("loss", lambda q, p: torch.ones(q.shape[:-1], dtype=q.dtype)),  # does not depend on q
+             ("loss", lambda q, p: p.detach()[..., 2, 3]))
         + _counts("steps")
         + _tols("pos_tol", "rot_tol", "lr"),
     ),
@@ -298,20 +306,22 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"q0": Q, "q1": Q.flip(0), "t": 5, "qd0": torch.zeros_like(Q)},
         tensors=("q0", "q1", "qd0"),
         bad=(("t", 1), ("t", 0), ("t", -3), ("t", 2.5), ("t", torch.tensor([0.0, 1.0, 0.5], dtype=torch.float64)),
-             ("t", torch.tensor([0.0, 1e-200], dtype=torch.float64))),  # accelerations overflow
+             ("t", torch.tensor([0.0, 1e-200], dtype=torch.float64)),  # accelerations overflow
+             ("t", "10"), ("t", None), ("q1", Q.float()), ("qd0", torch.zeros_like(Q).float())),
     ),
     "iiwa_torch.trajectory:ctraj": Entry(
         trajectory.ctraj,
         lambda: {"T0": POSE, "T1": POSE.flip(0), "t": 4},
         poses=("T0", "T1"),
-        bad=(("t", 1), ("t", -2), ("profile", "cubic")),
+        bad=(("t", 1), ("t", -2), ("t", "4"), ("profile", "cubic"), ("T1", POSE.float())),
     ),
     "iiwa_torch.trajectory:track": Entry(
         trajectory.track,
         lambda: {"chain": CHAIN, "poses": POSE[None], "q0": Q[0]},
         tensors=("q0",),
         poses=("poses",),
-        bad=(("method", "rrt"), ("rest_gain", math.nan), ("rest_gain", -1.0)) + _tols("pos_tol", "rot_tol"),
+        bad=(("method", "rrt"), ("rest_gain", math.nan), ("rest_gain", -1.0), ("poses", POSE[:0]))
+        + _tols("pos_tol", "rot_tol"),
     ),
     "iiwa_torch.trajectory:path_clearance": Entry(
         trajectory.path_clearance,
@@ -365,7 +375,7 @@ ENTRIES: dict[str, Entry] = {
         collision.clearance,
         lambda: {"chain": CHAIN, "q": Q, "world": collision.World()},
         tensors=("q",),
-        bad=(("world", 0.0), ("capsules", "capsules")),
+        bad=(("world", 0.0), ("capsules", "capsules"), ("world", _TWO_WORLDS)),
     ),
     "iiwa_torch.collision:capsule_clearance": Entry(
         collision.capsule_clearance,
@@ -405,17 +415,19 @@ ENTRIES: dict[str, Entry] = {
     "iiwa_torch.workspace:sample_points": Entry(
         workspace.sample_points,
         lambda: {"chain": CHAIN, "n": 8},
-        bad=_counts("n") + (("point", [0.0, math.nan, 0.0]), ("point", [0.0, 1.0]), ("dtype", torch.float16)),
+        bad=_counts("n") + _GENERATORS
+        + (("point", [0.0, math.nan, 0.0]), ("point", [0.0, 1.0]), ("dtype", torch.float16)),
     ),
     "iiwa_torch.workspace:occupancy": Entry(
         workspace.occupancy,
         lambda: {"chain": CHAIN, "n_samples": 256, "h": 0.2},
-        bad=_counts("n_samples", "block") + _tols("h") + (("section", "xz"), ("point", [math.inf, 0.0, 0.0])),
+        bad=_counts("n_samples", "block") + _tols("h") + _GENERATORS
+        + (("section", "xz"), ("point", [math.inf, 0.0, 0.0]), ("counts", 5), ("counts", np.zeros((3, 3)))),
     ),
     "iiwa_torch.workspace:volume": Entry(
         workspace.volume,
         lambda: {"chain": CHAIN, "h": 0.2, "n_start": 256, "max_samples": 1024, "tol": 0.5},
-        bad=_counts("n_start", "max_samples") + _tols("h", "tol") + (("section", "xz"),),
+        bad=_counts("n_start", "max_samples") + _tols("h", "tol") + (("section", "xz"), ("h", 1e-320), ("h", 1e-9)),
     ),
     "iiwa_torch.workspace:extent": Entry(
         workspace.extent,
@@ -431,7 +443,7 @@ ENTRIES: dict[str, Entry] = {
     "iiwa_torch.workspace:dexterity_map": Entry(
         workspace.dexterity_map,
         lambda: {"chain": CHAIN, "n_samples": 64, "h": 0.2},
-        bad=_counts("n_samples", "block") + _tols("h"),
+        bad=_counts("n_samples", "block") + _tols("h") + _GENERATORS,
     ),
     # ------------------------------------------------------------------ environments
     "envs:make_task": Entry(
@@ -444,7 +456,7 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"env_id": "IiwaReachObstacles-v0"},
         bad=(("env_id", "IiwaReach-v9"), ("env_id", 3)),
     ),
-    "envs.core:ReachTask": Entry(ReachTask, lambda: {}, bad=_TASK_OPTIONS),
+    "envs.core:ReachTask": Entry(ReachTask, lambda: {}, bad=_TASK_OPTIONS + _DEVICES),
     "envs.reach:IiwaReachEnv": Entry(IiwaReachEnv, lambda: {}, bad=_TASK_OPTIONS + (("render_mode", "video"),)),
     "IiwaReachEnv.step": Entry(
         _env_step(IiwaReachEnv, None),
@@ -636,7 +648,8 @@ def _cases():
         if "margin" in params:
             wrong_types += (("margin", -1.0), ("margin", math.nan))
         for arg, value in entry.bad + wrong_types:
-            yield pytest.param(key, arg, value, id=f"{key}-{arg}={value!r:.30}")
+            shown = re.sub(r" at 0x[0-9a-fA-F]+", "", repr(value))  # ids equal in every xdist worker
+            yield pytest.param(key, arg, value, id=f"{key}-{arg}={shown:.30}")
 
 
 @pytest.mark.parametrize(("key", "arg", "value"), list(_cases()))
@@ -704,3 +717,50 @@ def test_all_finite_finds_every_non_finite_element(shape):
             assert all_finite(torch.from_numpy(x)) is False
     clean = np.ones(shape)
     assert all_finite(clean) and all_finite(torch.from_numpy(clean)) and all_finite(torch.from_numpy(clean).float())
+
+
+@pytest.mark.parametrize("n", [3, 40])  # the NumPy path (up to 32 configurations) and the torch one
+def test_a_world_batch_that_does_not_fit_q_is_named(n):
+    world = collision.World(spheres=(torch.zeros(n, 1, 3, dtype=torch.float64), torch.ones(n, 1, dtype=torch.float64)))
+    q = CHAIN.random_q(n + 10, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=rf"world's batch shape \({n},\) does not broadcast with q's \({n + 10},\)"):
+        collision.clearance(CHAIN, q, world)
+    assert collision.clearance(CHAIN, q[:n], world).shape == (n,)  # one world per configuration fits
+
+
+def test_numpy_scalars_are_numbers():
+    """Counts and sizes of any numeric type give what the Python numbers give; bools stay refused."""
+    seed = lambda: torch.Generator().manual_seed(3)  # noqa: E731
+    assert torch.equal(workspace.sample_points(CHAIN, np.int64(8), generator=seed()),
+                       workspace.sample_points(CHAIN, 8, generator=seed()))
+    occ = workspace.occupancy(CHAIN, np.int32(256), np.float64(0.2), generator=seed())
+    assert np.array_equal(occ.counts, workspace.occupancy(CHAIN, 256, 0.2, generator=seed()).counts)
+    q0, q1 = Q[0], Q[1]
+    assert torch.equal(trajectory.jtraj(q0, q1, np.int64(6)).q, trajectory.jtraj(q0, q1, 6).q)  # a count, not times
+    assert collision.World(floor=np.float32(0.5)).floor == 0.5
+    assert ReachTask(floor=np.float64(0.1), obstacles=np.int64(0), max_episode_steps=np.int16(9)).max_episode_steps == 9
+    assert IiwaReachVecEnv(np.int64(2), "IiwaReach-v0").num_envs == 2
+    for value in (True, np.bool_(True)):
+        with pytest.raises(ValueError, match="n must be a positive integer"):
+            workspace.sample_points(CHAIN, value)
+
+
+def test_a_trajectory_too_large_for_memory_is_refused_with_its_size(monkeypatch):
+    from iiwa_torch import checks
+
+    monkeypatch.setattr(checks, "available_memory", lambda: 10**9)
+    q0, q1 = Q[0], Q[1]
+    with pytest.raises(ValueError, match="jtraj with 10000000 steps needs about") as info:
+        trajectory.jtraj(q0, q1, 10**7)
+    needed = float(re.search(r"about ([\d.]+) GB", str(info.value)).group(1))
+    assert needed >= 3 * 10**7 * 7 * 8 / 1e9  # at least q, qd and qdd in float64
+    assert "1 GB available" in str(info.value)
+    assert trajectory.jtraj(q0, q1, 1000).q.shape == (1000, 7)  # small ones still run
+
+
+def test_available_memory_is_what_the_kernel_reports():
+    from iiwa_torch.checks import available_memory
+
+    text = open("/proc/meminfo").read()
+    total = int(re.search(r"MemTotal:\s+(\d+) kB", text).group(1)) * 1024
+    assert 0 < available_memory() <= total

@@ -4,6 +4,7 @@ trajectory files, and clear non-zero exits for bad arguments."""
 import csv
 import json
 import math
+import re
 import subprocess
 import sys
 import time
@@ -152,6 +153,8 @@ def test_demo_runs(capsys, tmp_path):
         (["ik", "--pose", "0.5", "0", "0.5", "--method", "analytic"], "needs --method gradient"),
         (["traj", "--from-q", *["0"] * 7], "exactly one of"),
         (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--steps", "1"], "at least 2"),
+        (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--size", "0"], "--size and --fps must be positive"),
+        (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--fps", "0"], "--size and --fps must be positive"),
         (["robots", "abb"], "unknown robot"),
         (["robots", "--robot", "puma560"], "unrecognized arguments: --robot"),  # was ignored: all presets
         (["ik", "--robot", "puma560", "--pose", "0.5", "0", "0.5", "180", "0", "180", "--psi", "10"], "--psi is"),
@@ -320,3 +323,25 @@ def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
         assert proc.wait(timeout=60) == 0
     finally:
         proc.kill()
+
+
+def test_demo_larger_than_memory_is_refused_with_its_size(capsys, monkeypatch):
+    from iiwa_torch import checks
+
+    monkeypatch.setattr(checks, "available_memory", lambda: 10**9)
+    err = _fails(capsys, "demo", "--no-gif", "--batch", str(10**6)).strip().splitlines()[-1]
+    needed = float(re.search(r"demo --batch 1000000 needs about ([\d.]+) GB", err).group(1))
+    assert needed >= 10**6 * (7 + 16) * 8 / 1e9  # at least its q and poses in float64
+    assert "1 GB available" in err
+
+
+def test_a_long_command_says_it_is_running_on_stderr_only(capsys):
+    from iiwa_torch.cli import Elapsed
+
+    with Elapsed("workspace", delay=0.05):
+        time.sleep(0.3)  # the command's work
+    out, err = capsys.readouterr()
+    assert out == "" and "iiwa-torch workspace: running for 0 s" in err
+    with Elapsed("fk"):  # a quick command prints nothing
+        pass
+    assert capsys.readouterr() == ("", "")

@@ -233,12 +233,34 @@ def test_ship_needs_a_finished_run(tmp_path, capsys):
     (["--algo", "ppo", "--env", "IiwaReach-v0", "--n-envs", "0"], "--n-envs must be >= 1"),
     (["--env", "IiwaReach-v0"], "--algo and --env are required"),
     (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "oops"], "key=value"),
+    (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "n_steps=-1"],
+     "hyper-parameters rejected by PPO: `n_steps * n_envs` must be greater than 1"),
+    (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "batch_size=0"],
+     "hyper-parameters rejected by PPO: `batch_size` must be greater than 1"),
+    (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "learning_rate=abc"],
+     "learning_rate must be a number or lin_<number> (a linear decay), got 'abc'"),
+    (["--algo", "sac", "--env", "IiwaReach-v0", "--hyperparams", "learning_rate=lin_x"],
+     "learning_rate must be a number or lin_<number> (a linear decay), got 'lin_x'"),
 ])
 def test_bad_train_flags_give_clear_errors(tmp_path, capsys, argv, message):
     with pytest.raises(SystemExit) as exc:
         tr.main([*argv, "--out", str(tmp_path / "run"), "--no-progress-bar"])
     assert exc.value.code == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_an_out_that_is_a_file_is_a_clear_error(tmp_path, capsys):
+    (tmp_path / "file").write_text("x")
+    for main, argv in ((tr.main, ["--algo", "ppo", "--env", "IiwaReach-v0"]),
+                       (ev.main, ["--model", str(_shipped()[0]), "--goals", "2"])):
+        for out in (tmp_path / "file", tmp_path / "file" / "below"):
+            with pytest.raises(SystemExit) as exc:
+                main([*argv, "--out", str(out)])
+            assert exc.value.code == 2
+            err = capsys.readouterr().err
+            assert f"--out {out}: {tmp_path / 'file'} is a file, not a folder" in err and "Traceback" not in err
 
 
 def test_resume_without_a_run_and_existing_out_are_errors(tmp_path, capsys):

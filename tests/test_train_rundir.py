@@ -273,3 +273,31 @@ def test_compare_file_missing_is_a_one_line_error(tmp_path, capsys):
                                      "--compare", str(tmp_path / "none.json")])
     assert "none.json" in err
 
+
+@pytest.mark.parametrize("text, message", [
+    ("{bad", "not a readable JSON file"),
+    ('{"evaluations": []}', "expected a run's evaluations.json"),
+    ('[{"steps": 0}]', "expected a run's evaluations.json"),
+    ("[]", "expected a run's evaluations.json"),
+])
+def test_compare_file_malformed_is_a_one_line_error_naming_it(tmp_path, capsys, text, message):
+    (tmp_path / "bad.json").write_text(text)
+    err = error_of(capsys, ev.main, ["--model", str(SHIPPED_PPO), "--goals", "2", "--out", str(tmp_path / "r"),
+                                     "--compare", str(tmp_path / "bad.json")])
+    assert f"--compare {tmp_path / 'bad.json'}: {message}" in err
+    assert not (tmp_path / "r").exists()  # refused before the rollouts
+
+
+
+def test_a_run_killed_during_its_first_config_write_can_be_started_again(tmp_path, capsys):
+    """What ``kill -9`` inside the first ``atomic_write_text(config.yaml)`` leaves: the lock file and the
+    half-written temporary file, no config.yaml. --resume says what happened; a new run takes the folder."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / ".lock").write_text("pid 123")
+    (run / ".tmp_123_config.yaml").write_text("algo: pp")
+    err = error_of(capsys, tr.main, ["--resume", "--out", str(run)])
+    assert "its first write was cut short" in err and "without --resume" in err
+    assert tr.main(["--algo", "ppo", "--env", "IiwaReach-v0", "--out", str(run), "--timesteps", "64", "--n-envs", "4",
+                    "--hyperparams", "n_steps=16", "batch_size=64", "eval_goals=8", "--no-progress-bar"]) == 0
+    assert RunDir(run).read_config()["hyperparams"]["n_timesteps"] == 64 and (run / "model.zip").is_file()

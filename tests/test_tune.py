@@ -84,7 +84,8 @@ def test_two_trials_then_the_best_config_reruns_with_train_train(tmp_path):
 
 @pytest.mark.slow
 def test_an_interrupted_study_resumes_keeping_its_completed_trials(tmp_path):
-    """SIGTERM during trial 1 marks it failed (exit 130); the same command then adds a new trial."""
+    """SIGTERM during trial 1 marks it failed (exit 130, no traceback); the same command then resumes it as
+    trial 2: its parameters, its run folder continued from the checkpoint the interrupt saved."""
     out = tmp_path / "tune"
     argv = tune_args(out, 2, 2048)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), *sys.path])}
@@ -99,16 +100,23 @@ def test_an_interrupted_study_resumes_keeping_its_completed_trials(tmp_path):
     proc.send_signal(signal.SIGTERM)
     stdout, stderr = proc.communicate(timeout=HANG_GUARD)
     assert proc.returncode == 130, stderr.decode()[-2000:]
-    assert "the same command resumes the study" in stdout.decode()
+    assert "the same command resumes the study" in stdout.decode() and "Traceback" not in stderr.decode()
     before = stored(out).trials
     assert [t.state for t in before] == [TrialState.COMPLETE, TrialState.FAIL]
     assert yaml.safe_load((out / STUDY / "best.yaml").read_text())["tune"]["trial"] == 0
+    (checkpoint,) = (out / STUDY / "trial_0001" / "checkpoints").glob("step_*")
+    done = json.loads((checkpoint / "state.json").read_text())
+    assert 128 <= done["num_timesteps"] < 2048
 
     assert tune.main(argv) == 0
     after = stored(out).trials
     assert [t.state for t in after] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.COMPLETE]
     assert (after[0].params, after[0].value) == (before[0].params, before[0].value)
-    assert after[2].value == last_metric(out, 2)
+    assert after[2].params == before[1].params and after[2].user_attrs["resumes"]["trial"] == 1
+    assert not (out / STUDY / "trial_0002").exists()  # trial 2 trained in trial 1's folder
+    resumed = json.loads((out / STUDY / "trial_0001" / "evaluations.json").read_text())
+    assert resumed[: len(done["evaluations"])] == done["evaluations"]  # kept, not trained again
+    assert resumed[-1]["steps"] >= 2048 and after[2].value == resumed[-1]["success"]  # whole rollouts past it
     assert tune.main(argv) == 0  # the study is complete: nothing more runs
     assert len(stored(out).trials) == 3
 
@@ -179,6 +187,8 @@ def test_hide_password():
     (["--algo", "td3"], "argument --algo: invalid choice: 'td3'"),
     (["--study-name", "a/b"], "--study-name names a folder in --out"),
     (["--hyperparams", "eval_goals=0"], "eval_goals must be a positive integer, got 0"),
+    (["--hyperparams", "foo=1"], "unknown hyper-parameter(s) ['foo'] for ppo"),
+    (["--hyperparams", "learning_rate=abc"], "learning_rate must be a number or lin_<number>"),
 ])
 def test_bad_input_is_a_one_line_error(tmp_path, capsys, flags, message):
     err = error_of(capsys, [*tune_args(tmp_path / "t", 1), *flags])
@@ -191,6 +201,18 @@ def test_a_study_of_another_sweep_is_refused(tmp_path, capsys):
     assert tune.main(tune_args(out, 1, 128)) == 0
     err = error_of(capsys, [*tune_args(out, 1, 128), "--metric", "median_distance"])
     assert f"study '{STUDY}'" in err and "pick another --study-name" in err
+
+
+def test_a_study_whose_trials_all_failed_takes_the_corrected_command(tmp_path, capsys):
+    """A policy option the policy does not take passes the checks before the study and fails in SB3's
+    constructor: the trial fails; the command without it then runs instead of being refused as another sweep."""
+    out = tmp_path / "t"
+    err = error_of(capsys, [*tune_args(out, 1, 128), "policy_kwargs={foo: 1}"])
+    assert "hyper-parameters rejected by PPO" in err and "foo" in err
+    assert [t.state for t in stored(out).trials] == [TrialState.FAIL]
+    assert tune.main(tune_args(out, 1, 128)) == 0
+    assert f"study '{STUDY}': none of its trials" in capsys.readouterr().out
+    assert [t.state for t in stored(out).trials] == [TrialState.FAIL, TrialState.COMPLETE]
 
 
 def test_missing_optuna_is_a_one_line_error(tmp_path, capsys, monkeypatch):

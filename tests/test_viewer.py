@@ -360,6 +360,8 @@ def test_load_world_reads_every_kind(tmp_path):
     [
         ({"sphere": []}, "unknown keys"),
         ({"spheres": [[0, 0, 0]]}, "4 numbers"),
+        ({"spheres": 5}, "spheres must be a list of rows of numbers, got 5"),
+        ({"walls": "x"}, "walls must be a list of rows"),
         ({"boxes": [[0, 0, 0, 1, 1]]}, "6 or 9 numbers"),
         ({"spheres": [[0, 0, 0, -1]]}, "radii must be positive"),
         ({"walls": [[0, 0, 0, 1]]}, "nonzero"),

@@ -759,8 +759,33 @@ def _learning_curves(plt, report: dict[str, Any], evaluations: list[dict], compa
     return fig
 
 
-def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths: list[Path],
+COMPARE_KEYS = ("steps", "wall_time", "success")  # of each evaluation a learning curve draws
+
+
+def read_compare(paths: list[Path]) -> dict[str, list[dict]]:
+    """Label -> evaluations of each ``--compare`` file: ``{"label", "evaluations"}`` or a run's
+    ``evaluations.json`` list (labelled by its folder); ValueError names a file that is neither."""
+    compare = {}
+    for path in map(Path, paths):
+        try:
+            blob = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise ValueError(f"--compare {path}: not a readable JSON file ({err})") from None
+        label, evaluations = (blob.get("label"), blob.get("evaluations")) if isinstance(blob, dict) \
+            else (path.parent.name, blob)
+        entry_ok = lambda e: isinstance(e, dict) and all(isinstance(e.get(k), (int, float)) for k in COMPARE_KEYS)
+        if not isinstance(label, str) or not isinstance(evaluations, list) or not evaluations \
+                or not all(map(entry_ok, evaluations)):
+            raise ValueError(f"--compare {path}: expected a run's evaluations.json (a list of entries with steps, "
+                             f"wall_time and success) or {{\"label\": ..., \"evaluations\": [...]}}")
+        compare[label] = evaluations
+    return compare
+
+
+def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare: dict[str, list[dict]],
              env_overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The report of the policy in ``model_dir`` on ``n_goals`` held-out goals, written to ``out``, with the
+    learning curves of ``compare`` (``read_compare``) beside its own."""
     import torch
 
     import envs
@@ -797,13 +822,6 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare_paths:
         metrics[name]["beyond_float32_floor"] = float(np.mean(d["final_error"] > FLOOR_SPACINGS * spacing["float32"]))
     spacing = {k: float(np.median(v)) for k, v in spacing.items()}
     evaluations = RunDir(model_dir).read_evaluations()
-    compare = {}
-    for p in compare_paths:
-        blob = json.loads(Path(p).read_text())  # {"label", "evaluations"} or a run's evaluations.json list
-        if isinstance(blob, dict):
-            compare[blob["label"]] = blob["evaluations"]
-        else:
-            compare[Path(p).parent.name] = blob
     out.mkdir(parents=True, exist_ok=True)
     report = {
         "env_id": env_id,
@@ -851,6 +869,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     import yaml
 
+    from train.run_dir import check_folder
+
     overrides = {}
     for item in args.env_kwargs:
         key, sep, value = item.partition("=")
@@ -863,7 +883,8 @@ def main(argv: list[str] | None = None) -> int:
         if not path.is_file():
             p.error(f"--compare: {path} not found; expected an evaluations JSON (a run's evaluations.json)")
     try:
-        evaluate(args.model, args.goals, args.seed, args.out, args.compare, overrides)
+        check_folder(args.out)
+        evaluate(args.model, args.goals, args.seed, args.out, read_compare(args.compare), overrides)
     except (FileNotFoundError, ValueError, TypeError) as err:
         p.error(str(err))
     return 0

@@ -80,6 +80,13 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_save(path, lambda tmp: tmp.write_text(text))
 
 
+def check_folder(path: Path, flag: str = "--out") -> None:
+    """Raise ValueError if ``path`` or a folder above it is a file, so that ``path`` cannot be a folder."""
+    blocking = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"{flag} {path}: {blocking} is a file, not a folder; pick another {flag}")
+
+
 def validate_config(config: Any, source: str) -> dict[str, Any]:
     """A run's config dict checked for the keys and values ``train.train`` and ``train.evaluate`` read."""
     from iiwa_torch.checks import check_bool  # here: torch only after main has set OpenMP's wait policy
@@ -157,13 +164,17 @@ class RunDir:
         return self.path / "checkpoints"
 
     def is_empty(self) -> bool:
-        """True if the directory is missing or holds nothing but a lock file."""
-        return not self.path.exists() or all(p.name == LOCK_NAME for p in self.path.iterdir())
+        """True if the directory is missing or holds nothing but a lock file and the temporary files of
+        writes cut short (a kill during the first ``config.yaml`` write leaves only those)."""
+        return not self.path.exists() or all(p.name == LOCK_NAME or p.name.startswith(".tmp_")
+                                             for p in self.path.iterdir())
 
     # -------------------------------------------------------------------- config and evaluations
     def read_config(self) -> dict[str, Any]:
         if not self.config_path.exists():
-            raise FileNotFoundError(f"{self.config_path} not found; is {self.path} a train.train run directory?")
+            hint = (" (its first write was cut short: nothing was trained; start the run again without --resume)"
+                    if self.path.is_dir() and self.is_empty() else f"; is {self.path} a train.train run directory?")
+            raise FileNotFoundError(f"{self.config_path} not found{hint}")
         return validate_config(read_yaml(self.config_path), str(self.config_path))
 
     def write_config(self, config: dict[str, Any]) -> None:

@@ -42,7 +42,16 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from train.run_dir import ALGOS, CheckpointError, RunDir, RunLocked, check_model, read_yaml, validate_config
+from train.run_dir import (
+    ALGOS,
+    CheckpointError,
+    RunDir,
+    RunLocked,
+    check_folder,
+    check_model,
+    read_yaml,
+    validate_config,
+)
 
 if TYPE_CHECKING:
     from train.callbacks import EvalAndCheckpoint
@@ -132,12 +141,17 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def _schedule(value):
-    """``"lin_1e-3"`` -> a linear decay to 0 (SB3 passes the remaining progress 1 -> 0); numbers unchanged."""
-    if isinstance(value, str) and value.startswith("lin_"):
-        start = float(value[4:])
-        return lambda progress: progress * start
-    return float(value) if isinstance(value, str) else value
+def _schedule(key: str, value):
+    """``"lin_1e-3"`` -> a linear decay to 0 (SB3 passes the remaining progress 1 -> 0); numbers unchanged.
+    ValueError names ``key`` if ``value`` is neither a number nor ``lin_<number>``."""
+    text = value[4:] if isinstance(value, str) and value.startswith("lin_") else value
+    try:
+        start = float(text) if isinstance(text, str) else text
+    except ValueError:
+        start = None
+    if isinstance(start, bool) or not isinstance(start, (int, float)):
+        raise ValueError(f"{key} must be a number or lin_<number> (a linear decay), got {value!r}")
+    return (lambda progress: progress * start) if text is not value else start
 
 
 def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
@@ -151,7 +165,7 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
     _check_algo_keys(algo, kwargs)
     for key in ("learning_rate", "clip_range"):
         if key in kwargs:
-            kwargs[key] = _schedule(kwargs[key])
+            kwargs[key] = _schedule(key, kwargs[key])
     policy_kwargs = dict(kwargs.pop("policy_kwargs", None) or {})
     if "activation_fn" in policy_kwargs:
         name = policy_kwargs["activation_fn"]
@@ -351,7 +365,8 @@ def new_model(run: RunDir, config: dict[str, Any], verbose: int = 0):
     try:
         return _algo_class(algo)(policy, venv, seed=seed, device="cpu", verbose=verbose,
                                  tensorboard_log=str(run.path / "tb"), **kwargs)
-    except TypeError as err:  # a nested option (policy_kwargs, her) the policy or buffer does not take
+    except (TypeError, AssertionError) as err:  # a nested option the policy or buffer does not take (TypeError);
+        # SB3 checks sizes such as n_steps and batch_size with assert
         raise ValueError(f"hyper-parameters rejected by {algo.upper()}: {err}") from None
 
 
@@ -448,6 +463,7 @@ def _finish(run: RunDir, model, callback) -> None:
 
 
 def _check_new(run: RunDir) -> None:
+    check_folder(run.path)
     if not run.is_empty():
         raise FileExistsError(f"{run.path} exists and is not empty: pick a new --out, or pass --resume")
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import logging
 import os
 import re
 import shlex
@@ -124,6 +125,9 @@ def objective(trial, sweep: dict[str, Any], out: Path, command: str, verbose: in
     The trial's run config goes to its user attribute ``config`` (so any worker can write the best one).
     Raises ``optuna.TrialPruned`` when pruned, or when the training fails with a ValueError (NaN
     parameters from extreme hyper-parameters), whose message goes to the user attribute ``error``.
+    On Ctrl-C or SIGTERM the run directory goes to the user attribute ``interrupted``; a trial that
+    ``tune`` enqueued with the user attribute ``resumes`` (``{"trial", "run"}``, same parameters)
+    continues that run from its newest checkpoint, its evaluations so far reported again.
     """
     import optuna
 
@@ -133,18 +137,40 @@ def objective(trial, sweep: dict[str, Any], out: Path, command: str, verbose: in
     base = load_hyperparams(algo, env_id, sweep["overrides"])
     config = make_config(algo, env_id, sweep["seed"], {**base, **SAMPLERS[algo](trial, base)},
                          f"{command}  # trial {trial.number}")
+    resumes = trial.user_attrs.get("resumes")
+    resuming = resumes is not None and RunDir(resumes["run"]).config_path.exists()
+    own = study_folder(out, trial.study.study_name) / f"trial_{trial.number:04d}"
+    run = RunDir(resumes["run"] if resuming else own)
+    if resuming:
+        config = run.read_config()
+        for entry in run.read_evaluations():
+            trial.report(entry[sweep["metric"]], entry["steps"])
     trial.set_user_attr("config", config)
-    run = RunDir(study_folder(out, trial.study.study_name) / f"trial_{trial.number:04d}")
-    model = new_model(run, config, verbose)
+    model = None if resuming else new_model(run, config, verbose)  # None: run_training resumes the run
     callback = functools.partial(_trial_callback_class(), trial, sweep["metric"])
     try:
         cb = run_training(run, config, model, verbose=verbose, callback=callback)
+    except KeyboardInterrupt:
+        trial.set_user_attr("interrupted", str(run.path))
+        raise
     except ValueError as err:
         trial.set_user_attr("error", str(err))
         raise optuna.TrialPruned(f"training failed: {err}") from None
     if cb.pruned:
         raise optuna.TrialPruned(f"at step {cb.num_timesteps}")
     return cb.clock.evaluations[-1][sweep["metric"]]
+
+
+class _NoTraceback(logging.Filter):
+    """Keep Optuna's line on a failed trial, without the traceback it adds: ``main`` says what went wrong
+    in one line (a bad hyper-parameter, an interrupt)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.exc_info = record.exc_text = None
+        return True
+
+
+NO_TRACEBACK = _NoTraceback()
 
 
 # ---------------------------------------------------------------------------- storage and study
@@ -196,12 +222,28 @@ def load_study(storage, study_name: str, sweep: dict[str, Any], shown: str):
     study = optuna.create_study(storage=storage, study_name=study_name, sampler=sampler, pruner=pruner,
                                 direction=METRICS[sweep["metric"]], load_if_exists=True)
     found = study.user_attrs.get("sweep")
+    if found is not None and found != sweep and not study.get_trials(deepcopy=False, states=counted_states()):
+        print(f"study {study_name!r}: none of its trials of the sweep {found} completed; it now runs {sweep}",
+              flush=True)  # e.g. the first command had a hyper-parameter that every trial failed on
+        found = None
     if found is None:
         study.set_user_attr("sweep", sweep)
     elif found != sweep:
         raise ValueError(f"study {study_name!r} in {shown} is a sweep of {found}, not {sweep}: "
                          f"pick another --study-name")
     return study
+
+
+def resume_interrupted(study) -> None:
+    """Enqueue, ahead of new trials, the parameters of each trial interrupted by Ctrl-C or SIGTERM
+    (user attribute ``interrupted``) that no trial resumes yet; ``objective`` continues its run."""
+    taken = {t.user_attrs["resumes"]["trial"] for t in study.get_trials(deepcopy=False) if "resumes" in t.user_attrs}
+    for t in study.get_trials(deepcopy=False):
+        if "interrupted" in t.user_attrs and t.number not in taken:
+            resumes = {"trial": t.number, "run": t.user_attrs["interrupted"]}
+            study.enqueue_trial(t.params, user_attrs={"resumes": resumes})
+            print(f"trial {t.number} was interrupted: the next trial resumes it (its parameters, and its run "
+                  f"{t.user_attrs['interrupted']} from the newest checkpoint if it has one)", flush=True)
 
 
 def counted_states() -> tuple:
@@ -278,9 +320,10 @@ def tune(args: argparse.Namespace) -> Path | None:
     """Run trials until the study holds ``args.trials``; the path of ``best.yaml`` (None: no trial completed)."""
     import torch
 
-    from train.train import load_hyperparams, parse_overrides
+    from train.train import algo_kwargs, load_hyperparams, parse_overrides
 
     torch.set_num_threads(args.threads)
+    logging.getLogger("optuna.study._optimize").addFilter(NO_TRACEBACK)  # the logger of the failed-trial line
     study_name = args.study_name or f"{args.algo}-{args.env_id}"
     if not study_name or "/" in study_name or study_name.startswith("."):
         raise ValueError(f"--study-name names a folder in --out: no '/' and no leading '.', got {study_name!r}")
@@ -288,6 +331,7 @@ def tune(args: argparse.Namespace) -> Path | None:
     overrides.update((key, value) for key, value in (("n_timesteps", args.timesteps), ("n_envs", args.n_envs))
                      if value is not None)
     hp = load_hyperparams(args.algo, args.env_id, overrides)  # validates the env id and the overrides
+    algo_kwargs(args.algo, hp)  # and the SB3 keys and values, before the study records the sweep
     sweep = {"algo": args.algo, "env_id": args.env_id, "seed": args.seed, "metric": args.metric,
              "overrides": {key: hp[key] for key in ("n_timesteps", "n_envs", *overrides)}}
     if args.storage is None:
@@ -296,7 +340,9 @@ def tune(args: argparse.Namespace) -> Path | None:
     shown = hide_password(url)
     storage = open_storage(url, args.heartbeat, args.grace)
     study = load_study(storage, study_name, sweep, shown)
-    remaining = args.trials - counted_trials(study)
+    counted = counted_trials(study)  # fails the trials of killed workers first
+    resume_interrupted(study)
+    remaining = args.trials - counted
     running = len(study.get_trials(deepcopy=False, states=counted_states()[2:]))
     note = f" ({running} running elsewhere, or left by a killed worker: failed {args.grace} s after its last " \
         f"heartbeat)" if running else ""
@@ -336,7 +382,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, TypeError, FileNotFoundError, FileExistsError, RunLocked) as err:
         parser.error(str(err))
     except KeyboardInterrupt:
-        print("interrupted: the running trial is marked failed; the same command resumes the study", flush=True)
+        print("interrupted: the running trial is marked failed; the same command resumes the study, that trial "
+              "first (from its newest checkpoint)", flush=True)
         return 130
     return 0
 

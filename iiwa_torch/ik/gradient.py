@@ -25,7 +25,7 @@ import torch
 
 from .. import so3
 from ..chain import Chain
-from ..checks import check_choice, check_finite, check_instance, check_positive
+from ..checks import check_choice, check_finite, check_generator, check_instance, check_positive
 from ..collision import Capsules, World, check_world, clearance, pairwise_clearance, robot_capsules
 from . import small
 from .dls import dls_step_batch_last
@@ -391,6 +391,7 @@ def solve(
     check_instance(chain, Chain, "chain")
     check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision)
     check_positive(seeds, "seeds", integer=True)
+    check_generator(generator)
     batch = _check_target(target, mode, None, None)
     if target.device != chain.limits.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.limits.device}")
@@ -688,6 +689,9 @@ def minimize(
             raise ValueError(
                 f"loss must return one value per problem, shape {tuple(batch)}, got {getattr(value, 'shape', value)}"
             )
+        if torch.is_grad_enabled() and not value.requires_grad:
+            raise ValueError("loss must depend on q (or pose) through torch operations: its value has no gradient "
+                             "(a constant, or computed through .detach(), .item() or numpy)")
         if world is None:
             return value
         return value + clearance_weight * clearance_shortfall(chain, q, world, margin, capsules)

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..chain import Chain
-from ..checks import check_choice, check_positive
+from ..checks import check_choice, check_positive, is_number
 from .limits import shift_into_limits
 
 __all__ = [
@@ -126,6 +126,6 @@ def check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_ev
         check_positive(value, name)
     for value, name in ((iterations, "iterations"), (check_every, "check_every")):
         check_positive(value, name, integer=True)
-    if isinstance(rest_gain, bool) or not isinstance(rest_gain, (int, float)) or not 0 <= rest_gain <= 1:
+    if not is_number(rest_gain) or not 0 <= rest_gain <= 1:
         raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
     check_choice(precision, get_args(Precision), "precision")
