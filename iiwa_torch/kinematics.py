@@ -339,7 +339,10 @@ def _combine(vectors: Sequence[Tensor], coefficients: Sequence[float], start: Te
     out = start
     for v, c in zip(vectors, coefficients):
         if c != 0.0:
-            out = (v if c == 1.0 else v * c) if out is None else torch.add(out, v, alpha=c)
+            if out is not None:
+                out = torch.add(out, v, alpha=c)
+            else:
+                out = v if c == 1.0 else -v if c == -1.0 else v * c
     return out
 
 
@@ -394,7 +397,7 @@ def _joint_trig(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = Non
 
     ``trig``: the caller's cosine and sine of ``q`` itself, reused (rotated by the offsets
     if the chain has any) instead of computed again."""
-    theta = (q + g.offsets).contiguous() if g.has_offsets else q
+    theta = (q + g.offsets if g.has_offsets else q).contiguous()  # rows of a batch-last view of q are strided
     if trig is None:
         return theta, torch.cos(theta), torch.sin(theta)
     c, s = trig
@@ -836,9 +839,12 @@ def jacobian(g: Geometry, q: Tensor) -> Tensor:
     if q.shape[0] <= SMALL_BATCH and floats_ok(q):
         return jacobian_floats(g, q) if q.shape[0] == 1 or compiled.ENABLED else jacobian_numpy(g, q)
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
-    linear = torch.stack(_cross(z.unbind(1), (end - origin).unbind(1)), 1)  # (n, 3, b)
-    rows = torch.cat([_prismatic_rows(g, linear, z), _prismatic_rows(g, z, torch.zeros_like(z))], 1)  # (n, 6, b)
-    return rows.permute(2, 1, 0).contiguous()  # (b, 6, n)
+    z = z.unbind(1)
+    linear, angular = _cross(z, (end - origin).unbind(1)), z  # 3 x (n, b) each
+    if g.has_prismatic:  # a sliding joint: [z; 0]
+        linear = [_prismatic_rows(g, row, zc) for row, zc in zip(linear, z)]
+        angular = [_prismatic_rows(g, zc, torch.zeros_like(zc)) for zc in z]
+    return torch.stack([row.T for row in (*linear, *angular)], 1)  # (b, 6, n): the transpose happens in this one copy
 
 
 class EndPoseFunction(torch.autograd.Function):
