@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from . import robots, so3
+from .checks import MissingExtra, require
 from .dh import DHChain
 
 _F64 = torch.float64
@@ -101,12 +102,9 @@ def _writable(path: str, option: str) -> Path:
 
 
 def _viz():
-    """The drawing module, or a usage error naming the extra that provides matplotlib and Pillow."""
-    try:
-        import matplotlib  # noqa: F401
-        import PIL  # noqa: F401
-    except ModuleNotFoundError as err:
-        raise _UsageError(f"drawing needs {err.name}: pip install 'iiwa-torch[viz]'") from None
+    """The drawing module, after checking (before any work) that matplotlib and Pillow are installed."""
+    require("matplotlib", "viz")
+    require("PIL", "viz")
     from . import viz
 
     return viz
@@ -467,10 +465,9 @@ def _timed(fn, *args):
 
 
 def _view(args: argparse.Namespace) -> int:
-    try:
-        from . import viewer
-    except ModuleNotFoundError as err:  # pragma: no cover - depends on the install
-        raise _UsageError(f"the viewer needs the viewer extra: pip install 'iiwa-torch[viewer]' ({err})") from None
+    require("viser", "viewer")  # before any work
+    from . import viewer
+
     chain = _chain(args)
     q = None if args.q is None else _q(chain, args.q, args.rad, "view")
     world = None if args.world is None else viewer.load_world(args.world)
@@ -482,7 +479,6 @@ def _view(args: argparse.Namespace) -> int:
     elif args.policy is not None:
         path, dt, goals = _policy_rollouts(chain, args.policy, args.goals, args.seed)
         _say(f"{args.goals} rollouts of {args.policy}: pick one with the playback panel's path slider")
-    _say(f"viewer of {chain.name} at http://{args.host}:{args.port} (Ctrl-C stops it)")
     viewer.show(
         chain, q, host=args.host, port=args.port, world=world, show_capsules=args.capsules, show_frames=args.frames,
         path=path, dt=dt, goals=goals,
@@ -511,12 +507,10 @@ def _csv_path(chain: DHChain, file: str) -> tuple[torch.Tensor, float]:
 def _policy_rollouts(chain: DHChain, policy: str, n_goals: int, seed: int):
     """``(q (n_goals, T + 1, n), dt s, goal positions (n_goals, 3))`` of a trained policy's rollouts
     on held-out goals (as ``train.evaluate`` runs them)."""
-    try:
-        from envs.sb3 import IiwaReachVecEnv
-        from train.evaluate import load_policy
-        from train.rollout import make_goal_set, policy_actor, rollout
-    except ModuleNotFoundError as err:
-        raise _UsageError(f"--policy needs {err.name}: pip install 'iiwa-torch[rl]'") from None
+    from envs.sb3 import IiwaReachVecEnv
+    from train.evaluate import load_policy
+    from train.rollout import make_goal_set, policy_actor, rollout
+
     if n_goals < 1:
         raise _UsageError(f"--goals must be a positive integer, got {n_goals}")
     try:
@@ -663,6 +657,8 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except (_UsageError, ValueError) as err:  # the library's ValueErrors name the bad input too
         args.parser.error(str(err))  # the subcommand's usage and the message; exit status 2
+    except MissingExtra as err:  # one line naming the extra to install
+        args.parser.exit(2, f"{args.parser.prog}: error: {err}\n")
 
 
 if __name__ == "__main__":

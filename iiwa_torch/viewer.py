@@ -20,6 +20,8 @@ viser is imported here only, never when ``iiwa_torch`` is imported.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import math
 import threading
@@ -30,7 +32,7 @@ import numpy as np
 import torch
 
 from . import collision, ik, so3
-from .checks import check_float_tensor, check_positive
+from .checks import check_float_tensor, check_positive, require
 from .dh import Convention, DHChain
 from .ik import analytic
 
@@ -218,8 +220,7 @@ class Viewer:
         show_capsules: bool = False,
         show_frames: bool = False,
     ):
-        import viser
-
+        viser = require("viser", "viewer")
         if not isinstance(chain, DHChain):
             raise TypeError(f"chain must be a DHChain, got {type(chain).__name__}")
         if world is not None and not isinstance(world, collision.World):
@@ -255,7 +256,8 @@ class Viewer:
         self._closing = threading.Event()
         self._player: threading.Thread | None = None
 
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: show() prints the address once
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
         try:
             self._build_scene(show_capsules, show_frames)
             self._build_gui(show_capsules, show_frames)

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .checks import as_point, check_instance, check_positive
+from .checks import as_point, check_instance, check_positive, require
 from .dh import DHChain
 
 __all__ = [
@@ -427,8 +427,8 @@ def plot_workspace(
     and, if given, the datasheet's dimensions (a :data:`DATASHEET` entry, mm) marked. With
     ``manipulability_path``, also a map of the mean and max manipulability over the r-z plane.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    FigureCanvasAgg = require("matplotlib.backends.backend_agg", "viz").FigureCanvasAgg
+    Figure = require("matplotlib.figure", "viz").Figure
 
     gen = torch.Generator().manual_seed(seed)
     occ = occupancy(chain, n_samples, h, section=Section.RZ, point=point, generator=gen)

@@ -297,7 +297,8 @@ def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     try:
-        assert f"http://127.0.0.1:{port}" in proc.stdout.readline()  # printed before the server starts
+        banner = proc.stdout.readline()
+        assert f"http://127.0.0.1:{port}" in banner
         for _ in range(600):  # wait for the server itself, not for a fixed time
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=1) as page:
@@ -309,5 +310,6 @@ def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
                 time.sleep(0.1)
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 0
+        assert (banner + proc.stdout.read()).count("http://") == 1  # the address, printed once
     finally:
         proc.kill()

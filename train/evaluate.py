@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from iiwa_torch.checks import require
+
 TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
 METHODS = ("policy", "analytic_ik", "gradient_ik")  # and "controller" for a residual policy
 SINGLE_GOALS = 20  # goals timed one at a time for the "single" wall time
@@ -522,10 +524,9 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
                evaluations: list[dict], compare: dict[str, list[dict]], goals=None) -> list[str]:
     """Write the report's PNGs into ``out``; returns their file names. With ``goals`` (the
     :class:`train.rollout.GoalSet`) of an env with obstacles, also ``rollouts_obstacles.png``."""
-    import matplotlib
-
+    matplotlib = require("matplotlib", "viz")
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", "viz")
 
     names = [n for n in data]
     errors = {n: data[n]["final_error"] for n in names}
@@ -634,9 +635,10 @@ def picture_goals(collided: np.ndarray, failed: np.ndarray, obstacle_count: np.n
 def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: dict[str, Any]):
     """The figure of a few policy rollouts among their goals' obstacles: per goal, the end effector's path
     from home, the arm at home (faint) and at the end with its capsules, the obstacles, the goal."""
-    import matplotlib.lines as mlines
     import torch
-    from matplotlib.figure import Figure
+
+    mlines = require("matplotlib.lines", "viz")
+    Figure = require("matplotlib.figure", "viz").Figure
 
     from envs.world import SLOT_SIZE
     from iiwa_torch.collision import clearance

@@ -29,6 +29,7 @@ from typing import Any
 
 import yaml
 
+from iiwa_torch.checks import MissingExtra, require
 from train.run_dir import ALGOS, RunDir, RunLocked, atomic_write_text
 
 METRICS = {"success": "maximize", "median_distance": "minimize", "p95_distance": "minimize"}
@@ -124,7 +125,7 @@ def objective(trial, sweep: dict[str, Any], out: Path, command: str, verbose: in
     Raises ``optuna.TrialPruned`` when pruned, or when the training fails with a ValueError (NaN
     parameters from extreme hyper-parameters), whose message goes to the user attribute ``error``.
     """
-    import optuna
+    optuna = require("optuna", "rl")
 
     from train.train import load_hyperparams, make_config, new_model, run_training
 
@@ -154,7 +155,7 @@ def hide_password(url: str) -> str:
 
 def open_storage(url: str):
     """Optuna's RDB storage at ``url`` (SQLAlchemy form), with heartbeats; ValueError if it cannot be opened."""
-    import optuna
+    optuna = require("optuna", "rl")
 
     shown = hide_password(url)
     try:
@@ -173,7 +174,7 @@ def open_storage(url: str):
 
 def load_study(storage, study_name: str, sweep: dict[str, Any], shown: str):
     """The study ``study_name`` in ``storage``, created if missing; ValueError if it exists for another sweep."""
-    import optuna
+    optuna = require("optuna", "rl")
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -192,16 +193,14 @@ def load_study(storage, study_name: str, sweep: dict[str, Any], shown: str):
 
 def counted_states() -> tuple:
     """The trial states that count towards ``--trials``: completed, pruned and running."""
-    from optuna.trial import TrialState
-
+    TrialState = require("optuna.trial", "rl").TrialState
     return TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING
 
 
 def write_best(study, out: Path, storage: str) -> Path | None:
     """``<out>/<study>/best.yaml``: the best completed trial's run config plus a ``tune`` entry (study,
     ``storage`` URL without password, trial, metric, value); None while no trial has completed."""
-    from optuna.trial import TrialState
-
+    TrialState = require("optuna.trial", "rl").TrialState
     if not study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
         return None
     best = study.best_trial
@@ -240,8 +239,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def tune(args: argparse.Namespace) -> Path | None:
     """Run trials until the study holds ``args.trials``; the path of ``best.yaml`` (None: no trial completed)."""
-    import optuna
     import torch
+
+    optuna = require("optuna", "rl")
 
     from train.train import load_hyperparams, parse_overrides
 
@@ -294,9 +294,9 @@ def main(argv: list[str] | None = None) -> int:
 
     check_run_args(parser, args)
     try:
-        import optuna  # noqa: F401
-    except ImportError:
-        parser.error("train.tune needs optuna, which the rl extra installs: pip install 'iiwa-torch[rl]'")
+        require("optuna", "rl")
+    except MissingExtra as err:
+        parser.error(str(err))
     try:
         tune(args)
     except (ValueError, FileNotFoundError, FileExistsError, RunLocked) as err:
