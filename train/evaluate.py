@@ -63,31 +63,37 @@ FLOAT_TYPES = {"float32": np.float32, "float64": np.float64}
 
 # ---------------------------------------------------------------------------- loading
 def load_policy(model_dir: Path):
-    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder; ValueError if the
-    config is malformed or the model is not one of its algo for its env."""
+    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder (a run stopped before
+    its end, without ``model.zip``: its newest checkpoint, said on stderr); ValueError if the config is malformed
+    or the model is not one of its algo for its env."""
     import pickle
 
     from train.run_dir import RunDir, check_model
     from train.train import make_env
 
     run = RunDir(model_dir)
-    if not (run.path / "model.zip").exists() or not run.config_path.exists():
+    folder = run.path
+    if not (folder / "model.zip").exists() and run.config_path.exists() and run.latest_checkpoint() is not None:
+        folder = run.latest_checkpoint()
+        print(f"{run.path} has no model.zip (the run did not finish): evaluating its newest checkpoint, "
+              f"{folder.relative_to(run.path)}", file=sys.stderr)
+    if not (folder / "model.zip").exists() or not run.config_path.exists():
         raise FileNotFoundError(f"{run.path} must hold model.zip and config.yaml (a train.train run or a "
-                                f"train/policies/ folder)")
+                                f"train/policies/ folder), or config.yaml and checkpoints/ (a stopped run)")
     config = run.read_config()
     env = make_env(config["env_id"], 1, 0, config["hyperparams"].get("env_kwargs"))
-    check_model(config["algo"], run.path / "model.zip", env.observation_space, env.action_space)
+    check_model(config["algo"], folder / "model.zip", env.observation_space, env.action_space)
     from stable_baselines3 import PPO, SAC
 
     # with its env: SB3 cannot rebuild a HER replay buffer without one
-    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(run.path / "model.zip", env=env, device="cpu")
+    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(folder / "model.zip", env=env, device="cpu")
     vec_normalize = None
-    if (run.path / "vecnormalize.pkl").exists():
+    if (folder / "vecnormalize.pkl").exists():
         try:
-            with open(run.path / "vecnormalize.pkl", "rb") as f:
+            with open(folder / "vecnormalize.pkl", "rb") as f:
                 vec_normalize = pickle.load(f)  # SB3's own format (VecNormalize.save pickles the wrapper)
         except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as err:
-            raise ValueError(f"{run.path / 'vecnormalize.pkl'} is unreadable ({type(err).__name__}: {err}); "
+            raise ValueError(f"{folder / 'vecnormalize.pkl'} is unreadable ({type(err).__name__}: {err}); "
                              f"expected the VecNormalize file train.train writes") from None
         vec_normalize.training = False
     return model, vec_normalize, config
