@@ -10,10 +10,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import gymnasium
+from iiwa_torch.checks import require
 
 if TYPE_CHECKING:
     from .core import ReachTask
+
+gymnasium = require("gymnasium", "rl")  # first: every module here imports it
 
 __all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs", "make_task", "registered_options"]
 

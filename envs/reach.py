@@ -16,7 +16,7 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from iiwa_torch.checks import is_integer
+from iiwa_torch.checks import is_integer, require
 
 from .core import ReachState, ReachTask
 from .goals import GoalKind
@@ -208,7 +208,7 @@ class IiwaReachEnv(gym.Env):
         image = render_rgb(self.task.robot, self._state.q[:, 0], goal=self._state.goal[:3, 0], size=(480, 480))
         if self.render_mode == "rgb_array":
             return image
-        import matplotlib.pyplot as plt  # "human": show the same picture in a pyplot window
+        plt = require("matplotlib.pyplot", "viz")  # "human": show the same picture in a pyplot window
 
         if self._figure is None:
             self._figure = plt.figure("IiwaReach")
@@ -221,9 +221,7 @@ class IiwaReachEnv(gym.Env):
 
     def close(self) -> None:
         if self._figure is not None:
-            import matplotlib.pyplot as plt
-
-            plt.close(self._figure)
+            require("matplotlib.pyplot", "viz").close(self._figure)
             self._figure = None
 
 

@@ -24,9 +24,8 @@ from typing import Any
 import gymnasium
 import numpy as np
 import torch
-from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
-from iiwa_torch.checks import is_integer
+from iiwa_torch.checks import is_integer, require
 
 from . import MAX_EPISODE_STEPS, make_task
 from .core import ReachState
@@ -35,6 +34,9 @@ from .reach import goal_env_spaces
 from .seeding import keys_from_seeds
 
 __all__ = ["IiwaReachVecEnv"]
+
+_base_vec_env = require("stable_baselines3.common.vec_env.base_vec_env", "rl")
+VecEnv, VecEnvIndices = _base_vec_env.VecEnv, _base_vec_env.VecEnvIndices
 
 
 class IiwaReachVecEnv(VecEnv):

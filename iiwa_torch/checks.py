@@ -3,10 +3,12 @@ and what came."""
 
 from __future__ import annotations
 
+import importlib
 import math
 import numbers
 import os
 from itertools import chain
+from types import ModuleType
 
 import numpy as np
 import torch
@@ -170,3 +172,22 @@ def as_point(point, name: str = "point") -> torch.Tensor:
     if p is None or p.shape != (3,) or not torch.isfinite(p).all():
         raise ValueError(f"{name} must be None or 3 finite coordinates (m) in the end-effector frame, got {point!r}")
     return p
+
+
+class MissingExtra(ModuleNotFoundError):
+    """An optional dependency is not installed; the message names the extra that installs it."""
+
+
+def require(module: str, extra: str) -> ModuleType:
+    """``module`` (e.g. ``"viser"``, ``"matplotlib.figure"``) imported, or :class:`MissingExtra`
+    naming the extra that installs it (``pip install 'iiwa-torch[viewer]'``) if its top-level
+    package is not installed. Every optional import of iiwa_torch, envs and train goes through here."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as err:
+        top = module.partition(".")[0]
+        if err.name is None or err.name.partition(".")[0] != top:
+            raise  # a dependency of an installed package is missing: its own message says which
+        raise MissingExtra(
+            f"{top} is not installed; it comes with the {extra} extra: pip install 'iiwa-torch[{extra}]'", name=top
+        ) from None

@@ -18,11 +18,12 @@ from pathlib import Path
 
 import torch
 
-from . import robots, so3
-from .checks import check_memory
+from . import __version__, robots, so3
+from .checks import MissingExtra, check_memory, require
 from .dh import DHChain
 
 _F64 = torch.float64
+_POS_TOL, _ROT_TOL = 1e-9, 1e-8  # m, rad: the gradient IK's tolerances; a solution missing by more is invalid
 # peak memory of `demo` per timed configuration (fk, the LM solve and the 8 analytic branches in
 # float64): about 2.9 kB measured from 50,000 to 200,000 configurations, rounded up
 DEMO_BYTES_PER_CONFIGURATION = 3_000
@@ -107,12 +108,9 @@ def _writable(path: str, option: str) -> Path:
 
 
 def _viz():
-    """The drawing module, or a usage error naming the extra that provides matplotlib and Pillow."""
-    try:
-        import matplotlib  # noqa: F401
-        import PIL  # noqa: F401
-    except ModuleNotFoundError as err:
-        raise _UsageError(f"drawing needs {err.name}: pip install 'iiwa-torch[viz]'") from None
+    """The drawing module, after checking (before any work) that matplotlib and Pillow are installed."""
+    require("matplotlib", "viz")
+    require("PIL", "viz")
     from . import viz
 
     return viz
@@ -220,10 +218,14 @@ def _ik(args: argparse.Namespace) -> int:
         pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
     args.method = method
     status = 0 if bool(valid.any()) else 1
+    why = [
+        None if v else _why_invalid(chain, qi, pe, re, args.rad)
+        for qi, v, pe, re in zip(q.tolist(), valid.tolist(), pos_err.tolist(), rot_err.tolist())
+    ]
     if args.json:
         sols = [
-            {"branch": b, "q_rad": qi, "valid": v, "pos_err_m": pe, "rot_err_rad": re}
-            for b, qi, v, pe, re in zip(label, q.tolist(), valid.tolist(), pos_err.tolist(), rot_err.tolist())
+            {"branch": b, "q_rad": qi, "valid": v, "why_invalid": w, "pos_err_m": pe, "rot_err_rad": re}
+            for b, qi, v, w, pe, re in zip(label, q.tolist(), valid.tolist(), why, pos_err.tolist(), rot_err.tolist())
         ]
         if position_only:
             for sol in sols:
@@ -234,14 +236,32 @@ def _ik(args: argparse.Namespace) -> int:
         return status
     unit = "rad" if args.rad else "deg"
     rows = []
-    for b, qi, v, pe, re in zip(label, q.tolist(), valid.tolist(), pos_err.tolist(), rot_err.tolist()):
+    for b, qi, w, pe, re in zip(label, q.tolist(), why, pos_err.tolist(), rot_err.tolist()):
         shown = qi if args.rad else [math.degrees(x) for x in qi]
-        rows.append([b, *_fmt(shown, 2), "yes" if v else "no", f"{pe:.1e}", "-" if math.isnan(re) else f"{re:.1e}"])
+        rows.append([b, *_fmt(shown, 2), "no" if w else "yes", f"{pe:.1e}", "-" if math.isnan(re) else f"{re:.1e}"])
     cols = ["branch", *chain.joint_names, "valid", "pos err (m)", "rot err (rad)"]
     _table(f"{chain.name}: IK solutions ({args.method}), joint angles in {unit}", cols, rows)
+    for b, w in zip(label, why):
+        if w:
+            _say(f"{b} invalid: {w}")
     if status:
         print("no valid solution (unreachable or outside the joint limits)", file=sys.stderr)
     return status
+
+
+def _why_invalid(chain: DHChain, q: list[float], pos_err: float, rot_err: float, rad: bool) -> str:
+    """Why the solution ``q`` (rad) is invalid: it misses the target (errors in m, rad; NaN: position
+    only) beyond the solver tolerances, or joints lie outside their limits (e.g. ``A3 = -180 deg outside +-170``)."""
+    if not pos_err <= _POS_TOL or rot_err > _ROT_TOL:
+        missed = f"{pos_err:.1e} m" + ("" if math.isnan(rot_err) else f", {rot_err:.1e} rad")
+        return f"misses the target by {missed}"
+    unit, shown = ("rad", lambda v: f"{round(v, 4):g}") if rad else ("deg", lambda v: f"{round(math.degrees(v), 2):g}")
+    outside = []
+    for name, v, lo, hi in zip(chain.joint_names, q, *chain.limits.tolist()):
+        if not lo <= v <= hi:
+            span = f"+-{shown(hi)}" if lo == -hi else f"[{shown(lo)}, {shown(hi)}]"
+            outside.append(f"{name} = {shown(v)} {unit} outside {span}")
+    return ", ".join(outside) or "outside the joint limits"
 
 
 def _ik_analytic(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
@@ -267,7 +287,7 @@ def _ik_gradient(
     from .ik import solve
 
     generator = torch.Generator().manual_seed(args.seed)
-    result = solve(chain, target, mode=mode, generator=generator, pos_tol=1e-9, rot_tol=1e-8)
+    result = solve(chain, target, mode=mode, generator=generator, pos_tol=_POS_TOL, rot_tol=_ROT_TOL)
     return result.q[None], result.success[None], ["lm"]
 
 
@@ -418,13 +438,15 @@ def _demo(args: argparse.Namespace) -> int:
     check_memory(args.batch * DEMO_BYTES_PER_CONFIGURATION, f"demo --batch {args.batch}")
     viz = None if args.no_gif else _viz()
     torch.set_num_threads(min(2, torch.get_num_threads()))
+    say, table = (lambda *a: None, lambda *a: None) if args.json else (_say, _table)
 
     # 1. The validation pose of Pereira et al. (flange 0.090 m): position (0.490, 0, 0.780).
-    _say("1. iiwa14 with the flange of Pereira et al. (0.090 m) at q4 = -90 deg, q5 = 60 deg")
-    _say("   Pereira et al. (and RoboDK): xyz = (0.490, 0, 0.780), R = [[0, 0, 1], [0.866, 0.5, 0], [-0.5, 0.866, 0]]")
+    say("1. iiwa14 with the flange of Pereira et al. (0.090 m) at q4 = -90 deg, q5 = 60 deg")
+    say("   Pereira et al. (and RoboDK): xyz = (0.490, 0, 0.780), R = [[0, 0, 1], [0.866, 0.5, 0], [-0.5, 0.866, 0]]")
     paper = robots.iiwa14(flange=0.090)
     q_val = torch.tensor([0, 0, 0, -math.pi / 2, math.pi / 3, 0, 0], dtype=_F64)
-    _print_pose(paper.fk(q_val), False, "iiwa-torch: fk")
+    if not args.json:
+        _print_pose(paper.fk(q_val), False, "iiwa-torch: fk")
 
     # 2. Batched FK and IK timing (each call warmed up on 8 problems first).
     chain = robots.iiwa14()
@@ -433,13 +455,14 @@ def _demo(args: argparse.Namespace) -> int:
     fk_ms, poses = _timed(chain.fk, q)
     ik_ms, result = _timed(solve, chain, poses)
     an_ms, sol = _timed(analytic.iiwa, chain, poses, analytic.iiwa_arm_angle(chain, q))
+    ik_solved, an_solved = float(result.success.double().mean()), float(sol.valid.any(-1).double().mean())
     rows = [
         ["chain.fk", f"{fk_ms:.1f}", "-"],
-        ["ik.solve (gradient, LM)", f"{ik_ms:.1f}", f"{100 * result.success.double().mean():.2f}%"],
-        ["ik.analytic.iiwa (8 branches)", f"{an_ms:.1f}", f"{100 * sol.valid.any(-1).double().mean():.2f}%"],
+        ["ik.solve (gradient, LM)", f"{ik_ms:.1f}", f"{100 * ik_solved:.2f}%"],
+        ["ik.analytic.iiwa (8 branches)", f"{an_ms:.1f}", f"{100 * an_solved:.2f}%"],
     ]
-    _say(f"\n2. {n} random configurations of the iiwa14, float64, {torch.get_num_threads()} torch threads")
-    _table("batched calls", ["call", "ms", "solved"], rows)
+    say(f"\n2. {n} random configurations of the iiwa14, float64, {torch.get_num_threads()} torch threads")
+    table("batched calls", ["call", "ms", "solved"], rows)
 
     # 3. A tracked Cartesian line.
     q0 = torch.tensor([0, 30, 0, -80, 0, 70, 0], dtype=_F64).deg2rad()
@@ -449,26 +472,40 @@ def _demo(args: argparse.Namespace) -> int:
     path = trajectory.ctraj(pose0, pose1, 30, profile="quintic")
     track = trajectory.track(chain, path, q0, method="analytic")
     duration = trajectory.sampled_duration(chain, track.q)
-    _say("\n3. a straight line of 0.38 m, tracked by the closed-form IK (nearest solution at each step)")
-    _table(
+    line = {
+        "steps": path.shape[0],
+        "max_pos_err_m": float(track.pos_err.max()),
+        "max_rot_err_rad": float(track.rot_err.max()),
+        "max_joint_step_rad": float(track.max_step),
+        "shortest_duration_s": float(duration),
+    }
+    say("\n3. a straight line of 0.38 m, tracked by the closed-form IK (nearest solution at each step)")
+    table(
         "ik along the line",
         ["steps", "max pos err (m)", "max rot err (rad)", "max joint step (deg)", "shortest duration (s)"],
         [
             [
-                str(path.shape[0]),
-                f"{track.pos_err.max():.1e}",
-                f"{track.rot_err.max():.1e}",
-                f"{math.degrees(track.max_step):.2f}",
+                str(line["steps"]),
+                f"{line['max_pos_err_m']:.1e}",
+                f"{line['max_rot_err_rad']:.1e}",
+                f"{math.degrees(line['max_joint_step_rad']):.2f}",
                 f"{duration:.2f}",
             ]
         ],
     )
+    files = []
     if viz is not None:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         gif = out / "tracked_line.gif"
         viz.animate(chain, track.q, gif, fps=12, path=path, size=(320, 320))
-        _say(f"animation written to {gif}")
+        files.append(str(gif))
+        say(f"animation written to {gif}")
+    if args.json:
+        timing = {"batch": n, "threads": torch.get_num_threads(), "fk_ms": fk_ms, "ik_solve_ms": ik_ms,
+                  "ik_solve_solved": ik_solved, "analytic_ms": an_ms, "analytic_solved": an_solved}  # fmt: skip
+        validation = {"robot": paper.name, "q_rad": q_val.tolist(), **_pose_summary(paper.fk(q_val))}
+        _json({"validation_pose": validation, "batched_calls": timing, "tracked_line": line, "files": files})
     return 0
 
 
@@ -481,10 +518,9 @@ def _timed(fn, *args):
 
 
 def _view(args: argparse.Namespace) -> int:
-    try:
-        from . import viewer
-    except ModuleNotFoundError as err:  # pragma: no cover - depends on the install
-        raise _UsageError(f"the viewer needs the viewer extra: pip install 'iiwa-torch[viewer]' ({err})") from None
+    require("viser", "viewer")  # before any work
+    from . import viewer
+
     chain = _chain(args)
     q = None if args.q is None else _q(chain, args.q, args.rad, "view")
     world = None if args.world is None else viewer.load_world(args.world)
@@ -524,12 +560,10 @@ def _csv_path(chain: DHChain, file: str) -> tuple[torch.Tensor, float]:
 def _policy_rollouts(chain: DHChain, policy: str, n_goals: int, seed: int):
     """``(q (n_goals, T + 1, n), dt s, goal positions (n_goals, 3))`` of a trained policy's rollouts
     on held-out goals (as ``train.evaluate`` runs them)."""
-    try:
-        from envs.sb3 import IiwaReachVecEnv
-        from train.evaluate import load_policy
-        from train.rollout import make_goal_set, policy_actor, rollout
-    except ModuleNotFoundError as err:
-        raise _UsageError(f"--policy needs {err.name}: pip install 'iiwa-torch[rl]'") from None
+    from envs.sb3 import IiwaReachVecEnv
+    from train.evaluate import load_policy
+    from train.rollout import make_goal_set, policy_actor, rollout
+
     if n_goals < 1:
         raise _UsageError(f"--goals must be a positive integer, got {n_goals}")
     try:
@@ -550,25 +584,39 @@ def _policy_rollouts(chain: DHChain, policy: str, n_goals: int, seed: int):
 def _workspace(args: argparse.Namespace) -> int:
     from . import workspace
 
-    _viz()  # matplotlib is needed: say which extra if it is missing
+    if args.plot is None and not args.json:
+        raise _UsageError("give --plot PNG (the side view), --json (the extent), or both")
+    if args.plot is not None:
+        _viz()  # matplotlib is needed: say which extra if it is missing
     chain = _chain(args)
-    _writable(args.plot, "--plot")
+    if args.plot is not None:
+        _writable(args.plot, "--plot")
     if args.manipulability:
+        if args.plot is None:
+            raise _UsageError("--manipulability is drawn with the side view: give --plot too")
         _writable(args.manipulability, "--manipulability")
     if args.samples <= 0 or args.h <= 0:
         raise _UsageError(f"--samples and --h must be positive, got {args.samples} and {args.h}")
     wrist = args.point == "wrist"
-    workspace.plot_workspace(
-        chain,
-        args.plot,
-        manipulability_path=args.manipulability,
-        point=workspace.frame_point(chain, 5) if wrist else None,
-        point_label="wrist centre" if wrist else "flange",
-        h=args.h,
-        n_samples=args.samples,
-        datasheet=workspace.DATASHEET.get(chain.name) if wrist else None,
-        seed=args.seed,
-    )
+    point = workspace.frame_point(chain, 5) if wrist else None
+    if args.plot is not None:
+        workspace.plot_workspace(
+            chain,
+            args.plot,
+            manipulability_path=args.manipulability,
+            point=point,
+            point_label="wrist centre" if wrist else "flange",
+            h=args.h,
+            n_samples=args.samples,
+            datasheet=workspace.DATASHEET.get(chain.name) if wrist else None,
+            seed=args.seed,
+        )
+    if args.json:
+        reach = workspace.extent(chain, args.samples, point=point, generator=torch.Generator().manual_seed(args.seed))
+        files = [f for f in (args.plot, args.manipulability) if f]
+        _json({"robot": chain.name, "point": args.point, "n_samples": args.samples, "z_max_m": reach.z_max,
+               "z_min_m": reach.z_min, "r_max_m": reach.r_max, "files": files})  # fmt: skip
+        return 0
     _say(f"side view written to {args.plot}")
     if args.manipulability:
         _say(f"manipulability map written to {args.manipulability}")
@@ -590,6 +638,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="iiwa-torch", description=_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("fk", parents=[common], help="joint angles -> end-effector pose")
@@ -638,6 +687,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="reports/demo", help="directory for the animation (default reports/demo)")
     p.add_argument("--batch", type=int, default=10_000, help="configurations in the timing (default 10000)")
     p.add_argument("--no-gif", action="store_true", help="skip writing the animation")
+    p.add_argument("--json", action="store_true", help="print JSON (metres, radians, ms) instead of tables")
     p.set_defaults(func=_demo, parser=p)
 
     p = sub.add_parser("view", parents=[common], help="browser viewer: joint sliders, pose read-out, IK target")
@@ -657,7 +707,7 @@ def _parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_view, parser=p)
 
     p = sub.add_parser("workspace", parents=[common], help="reachable set: side-view envelope, manipulability map")
-    p.add_argument("--plot", required=True, metavar="PNG", help="write the side view (r-z plane) to this PNG")
+    p.add_argument("--plot", metavar="PNG", help="write the side view (r-z plane) to this PNG")
     p.add_argument("--manipulability", metavar="PNG", help="also write a manipulability map to this PNG")
     p.add_argument(
         "--point", choices=["wrist", "flange"], default="wrist",
@@ -715,6 +765,8 @@ def main(argv: list[str] | None = None) -> int:
             return args.func(args)
     except (_UsageError, ValueError) as err:  # the library's ValueErrors name the bad input too
         args.parser.error(str(err))  # the subcommand's usage and the message; exit status 2
+    except MissingExtra as err:  # one line naming the extra to install
+        args.parser.exit(2, f"{args.parser.prog}: error: {err}\n")
 
 
 if __name__ == "__main__":

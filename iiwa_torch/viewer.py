@@ -20,7 +20,9 @@ viser is imported here only, never when ``iiwa_torch`` is imported.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import io
 import ipaddress
 import json
 import math
@@ -36,7 +38,7 @@ import numpy as np
 import torch
 
 from . import collision, ik, so3
-from .checks import check_bool, check_float_tensor, check_positive
+from .checks import check_bool, check_float_tensor, check_positive, require
 from .dh import Convention, DHChain
 from .ik import analytic
 
@@ -264,8 +266,7 @@ class Viewer:
         show_capsules: bool = False,
         show_frames: bool = False,
     ):
-        import viser
-
+        viser = require("viser", "viewer")
         if not isinstance(chain, DHChain):
             raise TypeError(f"chain must be a DHChain, got {type(chain).__name__}")
         if world is not None and not isinstance(world, collision.World):
@@ -304,7 +305,8 @@ class Viewer:
         self._closing = threading.Event()
         self._player: threading.Thread | None = None
 
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: show() prints the address once
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.host, self.port = host, self.server.get_port()
         if not loopback:
             print(f"warning: the viewer on {host} has no login: anyone who can reach port {self.port} controls it",

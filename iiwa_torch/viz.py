@@ -1,9 +1,9 @@
 """Matplotlib drawings of a chain: 3-D stick figures, off-screen RGB frames, animations.
 
 matplotlib (and Pillow, for GIFs) is imported inside the functions, never when
-``iiwa_torch`` is imported. Nothing here touches pyplot's global state: pictures are drawn
-on a ``matplotlib.figure.Figure`` with its own Agg canvas, so rendering is safe inside
-gymnasium environments, worker processes and tests.
+``iiwa_torch`` is imported; without them, the error names the ``viz`` extra. Nothing here
+touches pyplot's global state: pictures are drawn on a ``matplotlib.figure.Figure`` with its
+own Agg canvas, so rendering is safe inside gymnasium environments, worker processes and tests.
 
 - :func:`draw_chain` draws one configuration ``(n,)`` or several ``(k, n)`` on a 3-D axes;
 - :func:`render_rgb` returns an ``(H, W, 3)`` uint8 image (for ``render_mode="rgb_array"``);
@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from .chain import Chain
+from .checks import require
 from .collision import Capsules, World, pairwise_clearance, robot_capsules
 
 __all__ = [
@@ -99,8 +100,8 @@ def draw_chain(ax, chain: Chain, q, *, frames: bool = False, color=None, alpha: 
 
 def _scene(chain: Chain, size: tuple[int, int], dpi: int, elev: float, azim: float):
     """A figure with its own Agg canvas and one 3-D axes, limits fixed to the chain's reach."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    FigureCanvasAgg = require("matplotlib.backends.backend_agg", "viz").FigureCanvasAgg
+    Figure = require("matplotlib.figure", "viz").Figure
 
     width, height = size
     fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
@@ -125,9 +126,7 @@ def _scene(chain: Chain, size: tuple[int, int], dpi: int, elev: float, azim: flo
 
 
 def _locator():
-    from matplotlib.ticker import MaxNLocator
-
-    return MaxNLocator(5)
+    return require("matplotlib.ticker", "viz").MaxNLocator(5)
 
 
 def _goal_xyz(goal) -> np.ndarray:
@@ -191,8 +190,7 @@ def render_rgb(
 
 def save_png(chain: Chain, q, file, **kwargs) -> Path:
     """Render with :func:`render_rgb` (same keyword arguments) and write a PNG; returns the path."""
-    from PIL import Image
-
+    Image = require("PIL.Image", "viz")
     file = Path(file)
     Image.fromarray(render_rgb(chain, q, **kwargs)).save(file)
     return file
@@ -276,8 +274,7 @@ def side_view(points, centre=(0.0, 0.0, 0.0), offset: float = 25.0) -> float:
 
 
 def _write_gif(images: list[np.ndarray], file: Path, fps: int) -> None:
-    from PIL import Image
-
+    Image = require("PIL.Image", "viz")
     # One palette, from the first and last frames (the trace drawn so far is complete in the
     # last), keeps the file small; frames are not merged (disposal 1 + no optimize).
     both = Image.fromarray(np.concatenate([images[0], images[-1]], 0))
@@ -369,7 +366,7 @@ def draw_obstacles(ax, world: World, *, colliding=(), alpha: float = 0.6) -> lis
     capsules are grey surfaces (``gid`` ``sphere<i>``, ``box<i>``, ``capsule<i>``, ``floor``),
     red when their label is in ``colliding``. Walls are not drawn.
     """
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    Poly3DCollection = require("mpl_toolkits.mplot3d.art3d", "viz").Poly3DCollection
 
     _check_one_world(world)
     colliding = set(colliding)
@@ -446,7 +443,8 @@ def _fit_cube(ax, bounds: np.ndarray, margin: float = 0.08) -> None:
 
 def _shade(faces, colour, alpha: float) -> np.ndarray:
     """Face colours lit like matplotlib's shaded surfaces (lighter facing the default light)."""
-    from matplotlib.colors import LightSource, to_rgba
+    colors = require("matplotlib.colors", "viz")
+    LightSource, to_rgba = colors.LightSource, colors.to_rgba
 
     normals = np.array([np.cross(f[1] - f[0], f[2] - f[0]) for f in faces])
     centre = np.mean([f.mean(0) for f in faces], 0)

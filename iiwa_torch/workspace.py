@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from .chain import Chain
-from .checks import as_point, check_generator, check_instance, check_positive, is_integer
+from .checks import as_point, check_generator, check_instance, check_positive, is_integer, require
 
 __all__ = [
     "Section",
@@ -433,8 +433,8 @@ def plot_workspace(
     and, if given, the datasheet's dimensions (a :data:`DATASHEET` entry, mm) marked. With
     ``manipulability_path``, also a map of the mean and max manipulability over the r-z plane.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    FigureCanvasAgg = require("matplotlib.backends.backend_agg", "viz").FigureCanvasAgg
+    Figure = require("matplotlib.figure", "viz").Figure
 
     gen = torch.Generator().manual_seed(seed)
     occ = occupancy(chain, n_samples, h, section=Section.RZ, point=point, generator=gen)

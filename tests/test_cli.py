@@ -196,6 +196,54 @@ def test_planar_analytic_ik_hits_the_pose(capsys):
 def test_unreachable_ik_exits_1_with_a_message(capsys):
     assert main(["ik", "--pose", "3", "0", "0", "0", "0", "0"]) == 1
     assert "no valid solution" in capsys.readouterr().err
+    assert main(["ik", "--pose", "3", "0", "0", "0", "0", "0", "--json"]) == 1
+    out = json.loads(capsys.readouterr().out)["solutions"]
+    assert all(s["why_invalid"].startswith("misses the target by") for s in out)
+
+
+IIWA_LIMITS_DEG = (170, 120, 170, 120, 170, 120, 175)  # KUKA's datasheet, LBR iiwa 14 R820
+
+
+def test_ik_says_why_a_branch_is_invalid(capsys):
+    out = _run_json(capsys, "ik", "--pose", "0.49", "0", "0.78", "90", "30", "90", "--flange", "0.090")
+    for sol in out["solutions"]:
+        deg = [math.degrees(v) for v in sol["q_rad"]]
+        limits = enumerate(zip(deg, IIWA_LIMITS_DEG))
+        outside = [f"A{j + 1} = {round(d):d} deg outside +-{lim}" for j, (d, lim) in limits if abs(d) > lim]
+        assert sol["valid"] == (not outside)
+        assert sol["why_invalid"] == (", ".join(outside) or None)
+    assert out["solutions"][0]["why_invalid"] == "A3 = -180 deg outside +-170"  # branch +++
+    assert main(["ik", "--pose", "0.49", "0", "0.78", "90", "30", "90", "--flange", "0.090"]) == 0
+    assert "+++ invalid: A3 = -180 deg outside +-170\n" in capsys.readouterr().out
+
+
+def test_version(capsys):
+    import tomllib
+
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out == f"iiwa-torch {pyproject['project']['version']}\n"
+
+
+def test_demo_json(capsys, tmp_path):
+    out = _run_json(capsys, "demo", "--batch", "64", "--out", str(tmp_path))
+    s3 = math.sqrt(3) / 2  # Pereira et al.'s validation pose
+    expected = [[0, 0, 1, 0.490], [s3, 0.5, 0, 0], [-0.5, s3, 0, 0.780], [0, 0, 0, 1]]
+    torch.testing.assert_close(torch.tensor(out["validation_pose"]["pose"], dtype=F64),
+                               torch.tensor(expected, dtype=F64), rtol=0, atol=1e-12)  # fmt: skip
+    assert out["batched_calls"]["batch"] == 64 and out["batched_calls"]["analytic_solved"] == 1.0
+    assert out["tracked_line"]["steps"] == 30 and out["tracked_line"]["max_pos_err_m"] < 1e-9
+    assert out["files"] == [str(tmp_path / "tracked_line.gif")] and (tmp_path / "tracked_line.gif").exists()
+
+
+def test_workspace_json_without_a_plot(capsys):
+    out = _run_json(capsys, "workspace", "--samples", "200000")
+    # KUKA's datasheet (iiwa 14): the wrist centre reaches B = 1180 mm up and G = 820 mm out; samples stay within
+    assert 1.15 < out["z_max_m"] <= 1.180 + 1e-9 and 0.79 < out["r_max_m"] <= 0.820 + 1e-9
+    assert out["point"] == "wrist" and out["files"] == []
+    assert "give --plot PNG" in _fails(capsys, "workspace")
 
 
 @pytest.mark.parametrize(
@@ -305,11 +353,8 @@ def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     try:
-        line = ""
-        while "Ctrl-C" not in line:  # viser's own banner comes first
-            line = proc.stdout.readline()
-            assert line, "the viewer exited before printing its URL"
-        assert f"http://127.0.0.1:{port} (Ctrl-C" in line
+        banner = proc.stdout.readline()
+        assert f"http://127.0.0.1:{port} (Ctrl-C" in banner
         for _ in range(600):  # wait for the server itself, not for a fixed time
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=1) as page:
@@ -321,6 +366,7 @@ def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
                 time.sleep(0.1)
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 0
+        assert (banner + proc.stdout.read()).count("http://") == 1  # the address, printed once
     finally:
         proc.kill()
 

@@ -426,6 +426,10 @@ def test_input_errors():
         solve(chain, target, mode="position")
     with pytest.raises(ValueError, match=r"\(\.\.\., 4, 4\)"):
         solve(chain, target[:, :3])
+    with pytest.raises(ValueError, match=r'got \(3,\); for positions \(\.\.\., 3\) pass mode="position"'):
+        solve(chain, target[0, :3, 3])  # a point without mode=: the error says how to ask for it
+    with pytest.raises(TypeError, match=r"target must be a float32 or float64 tensor, got torch\.int64"):
+        solve(chain, torch.tensor([1, 0, 1]), mode="position")
     with pytest.raises(ValueError, match="NaN"):
         solve(chain, target * float("nan"))
     with pytest.raises(ValueError, match="q0"):

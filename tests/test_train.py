@@ -281,6 +281,25 @@ def test_evaluate_missing_model_is_a_clear_error(tmp_path, capsys):
     assert "must hold model.zip and config.yaml" in capsys.readouterr().err
 
 
+def test_evaluate_a_stopped_run_uses_its_newest_checkpoint(tmp_path, capsys):
+    """A run stopped before its end has config.yaml and checkpoints/, no model.zip: the newest checkpoint is
+    evaluated (an older one holding a broken model shows the newest was loaded, not the first found)."""
+    import shutil
+
+    shipped = POLICIES / "ppo_iiwa_reach"
+    run = tmp_path / "run"
+    for step, model in ((1024, b"not a model"), (2048, (shipped / "model.zip").read_bytes())):
+        folder = run / "checkpoints" / f"step_{step:012d}"
+        folder.mkdir(parents=True)
+        (folder / "model.zip").write_bytes(model)
+        (folder / "state.json").write_text(json.dumps({"num_timesteps": step}))
+    shutil.copy(shipped / "config.yaml", run / "config.yaml")
+    model, _, _ = ev.load_policy(run)
+    reference, _, _ = ev.load_policy(shipped)
+    assert torch.equal(_params(model), _params(reference))
+    assert "evaluating its newest checkpoint, checkpoints/step_000000002048" in capsys.readouterr().err
+
+
 def test_unknown_gymnasium_id_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown env id 'NoSuchEnv-v9'"):
         tr.make_env("NoSuchEnv-v9", 1, 0)

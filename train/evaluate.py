@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from iiwa_torch.checks import require
+
 TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
 METHODS = ("policy", "analytic_ik", "gradient_ik")  # and "controller" for a residual policy
 SINGLE_GOALS = 20  # goals timed one at a time for the "single" wall time
@@ -61,35 +63,41 @@ FLOAT_TYPES = {"float32": np.float32, "float64": np.float64}
 
 # ---------------------------------------------------------------------------- loading
 def load_policy(model_dir: Path):
-    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder; ValueError if the
-    config is malformed or the model is not one of its algo for its env, FileNotFoundError if a file the
-    config needs is missing (``vecnormalize.pkl`` with ``normalize: true``)."""
+    """``(model, vec_normalize or None, config dict)`` from a run or shipped-policy folder (a run stopped before
+    its end, without ``model.zip``: its newest checkpoint, said on stderr); ValueError if the config is malformed
+    or the model is not one of its algo for its env, FileNotFoundError if a file the config needs is missing
+    (``vecnormalize.pkl`` with ``normalize: true``)."""
     import pickle
 
     from train.run_dir import RunDir, check_model
     from train.train import make_env
 
     run = RunDir(model_dir)
-    if not (run.path / "model.zip").exists() or not run.config_path.exists():
+    folder = run.path
+    if not (folder / "model.zip").exists() and run.config_path.exists() and run.latest_checkpoint() is not None:
+        folder = run.latest_checkpoint()
+        print(f"{run.path} has no model.zip (the run did not finish): evaluating its newest checkpoint, "
+              f"{folder.relative_to(run.path)}", file=sys.stderr)
+    if not (folder / "model.zip").exists() or not run.config_path.exists():
         raise FileNotFoundError(f"{run.path} must hold model.zip and config.yaml (a train.train run or a "
-                                f"train/policies/ folder)")
+                                f"train/policies/ folder), or config.yaml and checkpoints/ (a stopped run)")
     config = run.read_config()
     env = make_env(config["env_id"], 1, 0, config["hyperparams"].get("env_kwargs"))
-    check_model(config["algo"], run.path / "model.zip", env.observation_space, env.action_space)
+    check_model(config["algo"], folder / "model.zip", env.observation_space, env.action_space)
     from stable_baselines3 import PPO, SAC
 
     # with its env: SB3 cannot rebuild a HER replay buffer without one
-    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(run.path / "model.zip", env=env, device="cpu")
+    model = {"ppo": PPO, "sac": SAC}[config["algo"]].load(folder / "model.zip", env=env, device="cpu")
     vec_normalize = None
-    if config["hyperparams"].get("normalize", False) and not (run.path / "vecnormalize.pkl").exists():
-        raise FileNotFoundError(f"{run.path / 'vecnormalize.pkl'} not found: the config says normalize: true, and "
+    if config["hyperparams"].get("normalize", False) and not (folder / "vecnormalize.pkl").exists():
+        raise FileNotFoundError(f"{folder / 'vecnormalize.pkl'} not found: the config says normalize: true, and "
                                 f"the policy needs its observation statistics")
-    if (run.path / "vecnormalize.pkl").exists():
+    if (folder / "vecnormalize.pkl").exists():
         try:
-            with open(run.path / "vecnormalize.pkl", "rb") as f:
+            with open(folder / "vecnormalize.pkl", "rb") as f:
                 vec_normalize = pickle.load(f)  # SB3's own format (VecNormalize.save pickles the wrapper)
         except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as err:
-            raise ValueError(f"{run.path / 'vecnormalize.pkl'} is unreadable ({type(err).__name__}: {err}); "
+            raise ValueError(f"{folder / 'vecnormalize.pkl'} is unreadable ({type(err).__name__}: {err}); "
                              f"expected the VecNormalize file train.train writes") from None
         vec_normalize.training = False
     return model, vec_normalize, config
@@ -526,10 +534,9 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
                evaluations: list[dict], compare: dict[str, list[dict]], goals=None) -> list[str]:
     """Write the report's PNGs into ``out``; returns their file names. With ``goals`` (the
     :class:`train.rollout.GoalSet`) of an env with obstacles, also ``rollouts_obstacles.png``."""
-    import matplotlib
-
+    matplotlib = require("matplotlib", "viz")
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", "viz")
 
     names = [n for n in data]
     errors = {n: data[n]["final_error"] for n in names}
@@ -638,9 +645,10 @@ def picture_goals(collided: np.ndarray, failed: np.ndarray, obstacle_count: np.n
 def _rollouts_obstacles(goals, data: dict[str, dict[str, np.ndarray]], report: dict[str, Any]):
     """The figure of a few policy rollouts among their goals' obstacles: per goal, the end effector's path
     from home, the arm at home (faint) and at the end with its capsules, the obstacles, the goal."""
-    import matplotlib.lines as mlines
     import torch
-    from matplotlib.figure import Figure
+
+    mlines = require("matplotlib.lines", "viz")
+    Figure = require("matplotlib.figure", "viz").Figure
 
     from envs.world import SLOT_SIZE
     from iiwa_torch.collision import clearance

@@ -30,6 +30,7 @@ from typing import Any
 
 import yaml
 
+from iiwa_torch.checks import MissingExtra, require
 from train.run_dir import ALGOS, RunDir, RunLocked, atomic_write_text
 
 METRICS = {"success": "maximize", "median_distance": "minimize", "p95_distance": "minimize"}
@@ -129,7 +130,7 @@ def objective(trial, sweep: dict[str, Any], out: Path, command: str, verbose: in
     ``tune`` enqueued with the user attribute ``resumes`` (``{"trial", "run"}``, same parameters)
     continues that run from its newest checkpoint, its evaluations so far reported again.
     """
-    import optuna
+    optuna = require("optuna", "rl")
 
     from train.train import load_hyperparams, make_config, new_model, run_training
 
@@ -213,7 +214,7 @@ def open_storage(url: str, heartbeat: int = HEARTBEAT, grace: int = GRACE):
 
 def load_study(storage, study_name: str, sweep: dict[str, Any], shown: str):
     """The study ``study_name`` in ``storage``, created if missing; ValueError if it exists for another sweep."""
-    import optuna
+    optuna = require("optuna", "rl")
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -248,8 +249,7 @@ def resume_interrupted(study) -> None:
 
 def counted_states() -> tuple:
     """The trial states that count towards ``--trials``: completed, pruned and running."""
-    from optuna.trial import TrialState
-
+    TrialState = require("optuna.trial", "rl").TrialState
     return TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING
 
 
@@ -273,8 +273,7 @@ def stop_when_counted(study, trials: int) -> None:
 def write_best(study, out: Path, storage: str) -> Path | None:
     """``<out>/<study>/best.yaml``: the best completed trial's run config plus a ``tune`` entry (study,
     ``storage`` URL without password, trial, metric, value); None while no trial has completed."""
-    from optuna.trial import TrialState
-
+    TrialState = require("optuna.trial", "rl").TrialState
     if not study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
         return None
     best = study.best_trial
@@ -374,9 +373,9 @@ def main(argv: list[str] | None = None) -> int:
 
     check_run_args(parser, args)
     try:
-        import optuna  # noqa: F401
-    except ImportError:
-        parser.error("train.tune needs optuna, which the rl extra installs: pip install 'iiwa-torch[rl]'")
+        require("optuna", "rl")
+    except MissingExtra as err:
+        parser.error(str(err))
     try:
         tune(args)
     except (ValueError, TypeError, FileNotFoundError, FileExistsError, RunLocked) as err:

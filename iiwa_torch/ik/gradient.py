@@ -25,7 +25,7 @@ import torch
 
 from .. import so3
 from ..chain import Chain
-from ..checks import check_choice, check_finite, check_generator, check_instance, check_positive
+from ..checks import check_choice, check_finite, check_float_tensor, check_generator, check_instance, check_positive
 from ..collision import Capsules, World, check_world, clearance, pairwise_clearance, robot_capsules
 from . import small
 from .dls import dls_step_batch_last
@@ -286,13 +286,15 @@ def _seed_q(
 def _check_target(target: Tensor, mode: str, dtype: torch.dtype | None, batch: torch.Size | None) -> torch.Size:
     """Validate a pose ``(..., 4, 4)`` or position ``(..., 3)`` target; return its batch shape."""
     if mode == "pose":
+        if isinstance(target, torch.Tensor) and target.ndim and target.shape[-1] == 3:
+            raise ValueError(
+                f"target must have shape (..., 4, 4) (poses), got {tuple(target.shape)}; "
+                'for positions (..., 3) pass mode="position"'
+            )
         so3.check_rigid(target, "target")
         found = target.shape[:-2]
     else:
-        if not isinstance(target, torch.Tensor) or not target.is_floating_point():
-            raise TypeError(
-                f"target must be a float tensor of shape (..., 3) in position mode, got {type(target).__name__}"
-            )
+        check_float_tensor(target, "target", "(..., 3) in position mode")
         if target.ndim == 0 or target.shape[-1] != 3:
             raise ValueError(f"target must have shape (..., 3) in position mode, got {tuple(target.shape)}")
         check_finite(target, "target")
