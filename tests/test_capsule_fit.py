@@ -161,6 +161,25 @@ def test_user_pairs_are_honoured(panda):
         urdf_capsules(chain, text)  # the Panda is not this file's path
 
 
+def test_mesh_files_are_found_or_named(tmp_path):
+    """package:// names resolve under the URDF's folder (pybullet_data's Panda above); a mesh
+    that is not there, or a relative one in URDF text (no folder to look in), is a ValueError."""
+    mesh = '<link name="a"><collision><geometry><mesh filename="{}"/></geometry></collision></link>'
+    joint = ('<joint name="j" type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 0 1"/>'
+             '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint><link name="b"/>')
+    text = f'<robot name="m">{mesh.format("package://meshes/nope.obj")}{joint}</robot>'
+    (tmp_path / "m.urdf").write_text(text)
+    chain = robots.from_urdf(text)
+    with pytest.raises(ValueError, match="nope.obj.* not found"):
+        urdf_capsules(chain, tmp_path / "m.urdf")
+    with pytest.raises(ValueError, match="relative.*file path"):
+        urdf_capsules(chain, text)
+    with pytest.raises(ValueError, match="sizes must be positive"):
+        text = text.replace(mesh.format("package://meshes/nope.obj"), mesh.format("x").replace(
+            '<mesh filename="x"/>', '<sphere radius="0"/>'))
+        urdf_capsules(chain, text)
+
+
 def _pybullet_contacts(chain, q: torch.Tensor, fingers: torch.Tensor) -> np.ndarray:
     """Per configuration, whether pybullet finds the Panda (fingers at ``fingers``) in contact
     deeper than 1 mm with itself or the floor, leaving out parent-child links, the pairs that
