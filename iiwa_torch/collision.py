@@ -497,11 +497,12 @@ def robot_capsules(chain: DHChain) -> Capsules:
     the planar arm lies in the z = 0 plane, so its default world has no floor. Self pairs:
     every pair but neighbours in the list (no other pair overlaps in every posture). Built
     once per chain name and DH table, then shared (the model is frozen). Another arm (a URDF
-    chain) has no preset model: pass ``capsules=`` to the functions that take one."""
+    chain) has no preset model: fit one to its URDF (:func:`iiwa_torch.capsule_fit.urdf_capsules`)
+    and pass it as ``capsules=`` to the functions that take one."""
     check_instance(chain, Chain, "chain")
     if not isinstance(chain, DHChain):
-        raise ValueError(f"chain {chain.name!r} is not a DH preset, so it has no preset capsule model; build a "
-                         "collision.Capsules for it and pass capsules=")
+        raise ValueError(f"chain {chain.name!r} is not a DH preset, so it has no preset capsule model; fit one to its "
+                         "URDF with capsule_fit.urdf_capsules(chain, source) and pass capsules=")
     dh = chain.dh.tolist()
     key = (chain.name, tuple(map(tuple, dh)))  # all the model depends on; it is frozen, so shared
     if key not in _MODELS:

@@ -31,7 +31,7 @@ from .dh import Convention, DHChain
 from .kinematics import elementary_transform
 from .so3 import matrix_to_rpy, rpy_to_matrix
 
-__all__ = ["UrdfJoint", "UrdfPath", "read_urdf", "to_urdf"]
+__all__ = ["UrdfCollision", "UrdfJoint", "UrdfPath", "read_collisions", "read_urdf", "to_urdf"]
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 _JOINT_ELEMENTS = ("origin", "parent", "child", "axis", "limit", "mimic")  # the kinematic ones
@@ -104,7 +104,7 @@ class UrdfJoint:
     ``origin``: 4x4 from the previous movable joint's child link (``base_link`` for the first) to
     this joint's frame at q = 0, fixed joints in between folded in. ``axis``: unit vector in this
     joint's frame. ``lower``/``upper`` in rad (m for prismatic), infinite for continuous;
-    ``velocity`` in rad/s (m/s), None if not given or 0.
+    ``velocity`` in rad/s (m/s), None if not given or 0. ``parent``, ``child``: its links.
     """
 
     name: str
@@ -115,6 +115,7 @@ class UrdfJoint:
     upper: float
     velocity: float | None
     child: str
+    parent: str
 
 
 @dataclass(frozen=True)
@@ -204,6 +205,7 @@ def _movable(joint, origin: torch.Tensor) -> UrdfJoint:
         upper=upper,
         velocity=velocity or None,
         child=joint.child,
+        parent=joint.parent,
     )
 
 
@@ -253,6 +255,24 @@ def _tree(links: list[str], joints: list) -> tuple[str, dict, dict[str, list[str
     return roots[0], parent_joint, children
 
 
+def _parse(document: str | bytes) -> tuple:
+    """The parsed robot (pytorch_kinematics' URDF parser, kinematic elements only), its link names,
+    root link, each link's parent joint and each link's child links (:func:`_tree`)."""
+    kinematic = _kinematic_xml(document)
+    try:
+        from pytorch_kinematics.urdf_parser_py.urdf import URDF
+    except ModuleNotFoundError as err:
+        raise ModuleNotFoundError(
+            f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'", name=err.name
+        ) from err
+    try:
+        robot = URDF.from_xml_string(kinematic)
+    except Exception as err:  # the parser raises its ParseError, AssertionError or a bare Exception
+        raise ValueError(f"source is not a valid URDF: {err}".replace("\n", " ")) from None
+    links = [link.name for link in robot.links]
+    return (robot, links, *_tree(links, robot.joints))
+
+
 def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link: str | None = None) -> UrdfPath:
     """The serial path of a URDF from ``base_link`` to ``end_link``, in float64 Python floats.
 
@@ -265,20 +285,7 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
     ``end_link`` not below ``base_link``, a floating, planar or mimic joint on the path, a zero
     axis, or a path without movable joints.
     """
-    kinematic = _kinematic_xml(_document(source))
-    try:
-        from pytorch_kinematics.urdf_parser_py.urdf import URDF
-    except ModuleNotFoundError as err:
-        raise ModuleNotFoundError(
-            f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'", name=err.name
-        ) from err
-    try:
-        robot = URDF.from_xml_string(kinematic)
-    except Exception as err:  # the parser raises its ParseError, AssertionError or a bare Exception
-        raise ValueError(f"source is not a valid URDF: {err}".replace("\n", " ")) from None
-
-    links = [link.name for link in robot.links]
-    root, parent_joint, children = _tree(links, robot.joints)
+    robot, links, root, parent_joint, children = _parse(_document(source))
     base = root if base_link is None else _known_link(base_link, "base_link", links)
     if end_link is None:
         leaves = [name for name in _below(base, children) if not children[name]]
@@ -320,3 +327,130 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
         tool=_rows(carry),
         links=tuple(j.child for j in joints),
     )
+
+
+@dataclass(frozen=True)
+class UrdfCollision:
+    """One ``<collision>`` element of a link that moves with a frame of the chain.
+
+    ``frame``: the chain frame (0 the base link, i the child link of movable joint i) that ``link``
+    is attached to by fixed joints, and by prismatic joints off the path (a gripper's fingers).
+    ``poses``: 4x4 transforms from that frame to the element's origin: one, or one per corner of
+    the off-path prismatic joints' limits (2**k); the element stays inside the convex hull of its
+    copies at these poses. ``shape``: ``box`` (``size`` its x, y, z edge lengths), ``cylinder``
+    (radius, length along its z), ``sphere`` (radius,) or ``mesh`` (``size`` its x, y, z scale,
+    ``filename`` the file found on disk). Metres.
+    """
+
+    link: str
+    frame: int
+    poses: tuple[Matrix, ...]
+    shape: str
+    size: tuple[float, ...]
+    filename: str | None = None
+
+
+_SIZES = {  # each shape's size attributes: (name, count, default)
+    "box": (("size", 3, ""),),
+    "cylinder": (("radius", 1, ""), ("length", 1, "")),
+    "sphere": (("radius", 1, ""),),
+    "mesh": (("scale", 3, "1 1 1"),),
+}
+
+
+def _numbers(element, attribute: str, count: int, default: str, where: str) -> tuple[float, ...]:
+    text = element.get(attribute, default)
+    try:
+        values = tuple(float(v) for v in text.split())
+    except ValueError:
+        values = ()
+    if len(values) != count or not all(map(math.isfinite, values)):
+        raise ValueError(f"{where}: {attribute} must be {count} finite numbers, got {text!r}")
+    return values
+
+
+def _mesh_file(name: str, directory: str | None, where: str) -> str:
+    """The file a mesh's ``filename`` names: absolute, ``file://``, relative to the URDF's
+    directory, or ``package://pkg/rest`` looked up as ``rest`` or ``pkg/rest`` under the URDF's
+    directory and its parents."""
+    name = name.removeprefix("file://")
+    tried = [name] if os.path.isabs(name) else []
+    if directory is not None and not tried:
+        folders = [directory]
+        while os.path.dirname(folders[-1]) != folders[-1]:
+            folders.append(os.path.dirname(folders[-1]))
+        if name.startswith("package://"):
+            rest = name.removeprefix("package://")
+            tried = [os.path.join(d, r) for r in (rest, rest.partition("/")[2]) if r for d in folders]
+        else:
+            tried = [os.path.join(directory, name)]
+    for path in tried:
+        if os.path.isfile(path):
+            return path
+    if directory is None and not tried:
+        raise ValueError(f"{where}: mesh {name!r} is relative; pass the URDF as a file path so it can be found")
+    raise ValueError(f"{where}: mesh {name!r} not found (looked at {', '.join(tried[:4])})")
+
+
+def _collision(element, link: str, frame: int, poses: list[torch.Tensor], directory: str | None) -> UrdfCollision:
+    """A parsed ``<collision>`` element of ``link``, its link frame at ``poses`` in the chain frame."""
+    where = f"link {link!r}: <collision>"
+    origin = element.find("origin")
+    if origin is not None:
+        xyz = _numbers(origin, "xyz", 3, "0 0 0", where)
+        rpy = _numbers(origin, "rpy", 3, "0 0 0", where)
+        local = torch.eye(4, dtype=torch.float64)
+        local[:3, :3] = rpy_to_matrix(torch.tensor(rpy, dtype=torch.float64))
+        local[:3, 3] = torch.tensor(xyz, dtype=torch.float64)
+        poses = [pose @ local for pose in poses]
+    geometry = element.find("geometry")
+    shapes = [] if geometry is None else [g for g in geometry if g.tag in _SIZES]
+    if len(shapes) != 1:
+        raise ValueError(f"{where} must have one <geometry> of {', '.join(_SIZES)}")
+    shape = shapes[0]
+    size = tuple(v for name, count, default in _SIZES[shape.tag] for v in _numbers(shape, name, count, default, where))
+    filename = _mesh_file(shape.get("filename", ""), directory, where) if shape.tag == "mesh" else None
+    if not all(v > 0 for v in size):
+        raise ValueError(f"{where}: {shape.tag} sizes must be positive, got {size}")
+    return UrdfCollision(link, frame, tuple(_rows(p) for p in poses), shape.tag, size, filename)
+
+
+def read_collisions(source: str | os.PathLike, end_link: str | None = None,
+                    base_link: str | None = None) -> tuple[UrdfCollision, ...]:
+    """The ``<collision>`` elements of the links that move with the frames of :func:`read_urdf`'s
+    path (same arguments): each frame's link, the links attached to it by fixed joints, and those
+    hanging off it by prismatic joints that are not on the path (swept over their limits). Links
+    behind other joints off the path (revolute, continuous) are left out. Mesh files are looked up
+    from the URDF's directory (``package://`` too), so a mesh needs ``source`` as a file path."""
+    document = _document(source)
+    path = read_urdf(source, end_link=end_link, base_link=base_link)
+    _, _, _, parent_joint, children = _parse(document)
+    directory = None if document is source else os.path.dirname(os.path.abspath(os.fspath(source)))
+    elements = {link.get("name"): link.findall("collision") for link in ElementTree.fromstring(document).iter("link")}
+    on_path = {joint.name for joint in path.joints}
+    found = []
+    for frame, top in enumerate((path.base_link, *path.links)):
+        seen, stack = {top}, [(top, [torch.eye(4, dtype=torch.float64)])]
+        while stack:
+            link, poses = stack.pop()
+            found += [_collision(e, link, frame, poses, directory) for e in elements.get(link, [])]
+            steps = []  # (neighbour, its link frame from this one: one or two transforms)
+            up = parent_joint.get(link)
+            if up is not None and up.type == "fixed":
+                steps.append((up.parent, [torch.linalg.inv(_transform(up.origin, up.name))]))
+            for child in children[link]:
+                joint = parent_joint[child]
+                origin = _transform(joint.origin, joint.name)
+                if joint.type == "fixed":
+                    steps.append((child, [origin]))
+                elif joint.type == "prismatic" and joint.name not in on_path:
+                    slide = _movable(joint, origin)
+                    ends = [torch.eye(4, dtype=torch.float64) for _ in range(2)]
+                    for end, value in zip(ends, (slide.lower, slide.upper)):
+                        end[:3, 3] = torch.tensor(slide.axis, dtype=torch.float64) * value
+                    steps.append((child, [origin @ end for end in ends]))
+            for neighbour, moves in steps:
+                if neighbour not in seen:
+                    seen.add(neighbour)
+                    stack.append((neighbour, [pose @ move for pose in poses for move in moves]))
+    return tuple(found)

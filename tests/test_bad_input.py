@@ -25,7 +25,7 @@ from envs.core import ReachTask
 from envs.goals import decode_pose_goal, encode_pose_goal
 from envs.reach import IiwaReachEnv, IiwaReachVectorEnv, goal_env_spaces
 from envs.sb3 import IiwaReachVecEnv
-from iiwa_torch import Chain, DHChain, collision, robots, so3, trajectory, urdf, workspace
+from iiwa_torch import Chain, DHChain, capsule_fit, collision, robots, so3, trajectory, urdf, workspace
 from iiwa_torch.ik import analytic, dls_step, minimize, solve
 
 CHAIN = robots.iiwa14()
@@ -35,6 +35,15 @@ POSE = CHAIN.fk(Q)  # (3, 4, 4)
 PUMA_POSE = PUMA.fk(PUMA.random_q(3, generator=torch.Generator().manual_seed(1)))
 ROT = POSE[:, :3, :3]
 URDF = urdf.to_urdf(CHAIN)
+SPHERES = (  # two joints, a sphere on each link, for capsule_fit
+    '<robot name="s"><link name="a"><collision><geometry><sphere radius="0.1"/></geometry></collision></link>'
+    '<link name="b"><collision><geometry><sphere radius="0.1"/></geometry></collision></link><link name="c">'
+    '<collision><geometry><sphere radius="0.1"/></geometry></collision></link>'
+    '<joint name="j1" type="revolute"><parent link="a"/><child link="b"/><origin xyz="0 0 0.3"/>'
+    '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+    '<joint name="j2" type="revolute"><parent link="b"/><child link="c"/>'
+    '<origin xyz="0.3 0 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint></robot>'
+)
 
 
 @dataclass(frozen=True)
@@ -140,6 +149,21 @@ ENTRIES: dict[str, Entry] = {
             ("end_link", "nope"),
             ("end_link", 5),
             ("base_link", "x"),
+        ),
+    ),
+    "iiwa_torch.capsule_fit:urdf_capsules": Entry(
+        capsule_fit.urdf_capsules,
+        lambda: {"chain": robots.from_urdf(SPHERES), "source": SPHERES, "samples": 64},
+        bad=(
+            ("chain", "panda"),
+            ("chain", CHAIN),
+            ("source", "<robot"),
+            ("source", 3),
+            ("base_link", "nope"),
+            ("pairs", [("a", "x")]),
+            ("pairs", [("a", "a")]),
+            *_counts("samples"),
+            *_counts("seed", allow_zero=True),
         ),
     ),
     "iiwa_torch:Chain": Entry(
@@ -576,6 +600,7 @@ MODULES = (
     "iiwa_torch.ik.analytic",
     "iiwa_torch.trajectory",
     "iiwa_torch.collision",
+    "iiwa_torch.capsule_fit",
     "iiwa_torch.workspace",
     "envs",
     "envs.core",
