@@ -1,6 +1,6 @@
 """FK, end position, all frames, Jacobian and FK forward+backward: iiwa-torch against its peers, one run.
 
-    python benchmarks/bench_fk.py [--quick] [--robot NAME] [--threads 1 2]
+    python benchmarks/bench_fk.py [--quick] [--robot NAME] [--threads 1 2] [--max-batch N]
 
 Peers measured in the same run on the same arm (default the iiwa 14 preset; ``--robot`` takes a
 preset's name or ``panda``, ``xarm6``, ``kuka_iiwa``: pybullet_data's URDF files read by
@@ -166,9 +166,11 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small sizes, one thread (a smoke run)")
     parser.add_argument("--robot", default="iiwa14", help="a preset's name, or panda, xarm6, kuka_iiwa (URDF)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts (default 1 2)")
+    parser.add_argument("--max-batch", type=int, default=None, help="skip larger batches (on a loaded machine)")
     args = parser.parse_args()
     setup(args.robot)
-    sizes = {op: [b for b in bs if b <= 1_000] for op, bs in SIZES.items()} if args.quick else SIZES
+    largest = 1_000 if args.quick else args.max_batch or max(max(bs) for bs in SIZES.values())
+    sizes = {op: [b for b in bs if b <= largest] for op, bs in SIZES.items()}
     threads = [1] if args.quick else args.threads
     fk_gap = pk_fk_difference()
     g = torch.Generator().manual_seed(0)
@@ -237,6 +239,7 @@ def main() -> None:
     ]
     source = "the preset's `to_urdf` export" if ROBOT.path is None else f"`{ROBOT.path.parent.name}/{ROBOT.path.name}`"
     md = (
+        f"`{' '.join(['python benchmarks/bench_fk.py', *sys.argv[1:]])}`: "
         f"FK of {ROBOT.name} ({CHAIN.n_joints} joints, end link `{ROBOT.end_link}`; every peer reads {source}; "
         f"pytorch_kinematics' float64 FK differs from ours by at most {fk_gap:.1e}):\n\n"
     )
@@ -247,7 +250,7 @@ def main() -> None:
         [[k, f"{v * 1e6:.2f}"] for k, v in cpp.items()]
         + [["iiwa-torch fk, batch 1 (one call)", f"{single * 1e6:.1f}"]],
     )
-    mem = None if args.quick else peak_memory_mb(1_000_000)
+    mem = None if largest < 1_000_000 else peak_memory_mb(1_000_000)
     if mem is not None:
         md += (
             f"\nPeak memory of one float32 FK of 1,000,000 configurations: {mem:.0f} MB"

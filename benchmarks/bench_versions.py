@@ -86,9 +86,30 @@ def fmt(key: str, value: float) -> str:
         return f"{VECTOR_N / value / 1e6:.2f}M env-steps/s"
     if "1 (one call)" in key:
         return f"{value * 1e6:.1f} µs"
-    count = int(key.split(", ")[1].replace(",", "")) if key.split(", ")[1][0].isdigit() else 1
-    per = value / count
+    size = key.split(", ")[1]
+    if not size[0].isdigit():  # one line, one env step
+        return f"{value * 1e3:.2f} ms per call"
+    per = value / int(size.replace(",", ""))
     return f"{per * 1e9:,.0f} ns/config" if key.startswith(("fk", "jacobian")) else f"{per * 1e3:.4f} ms/target"
+
+
+def markdown(payload: dict) -> str:
+    """The table of ``main``'s payload: each call's medians before and after, and the ratio."""
+    (before, old_commit), (after, new_commit) = payload["trees"].items()
+    medians, info = payload["medians"], payload["machine"]
+    rows = []
+    for key, old in medians[before].items():
+        new = medians[after][key]
+        rows.append([key, fmt(key, old), fmt(key, new), "" if "success" in key else f"{old / new:.2f}x"])
+    return (
+        f"`python benchmarks/bench_versions.py {before} {after} --rounds {payload['rounds']}`: the iiwa 14 preset's "
+        f"calls under {before} ({old_commit}) and {after} ({new_commit}), one child process per tree and round, "
+        "alternating; medians over the rounds of each child's median (`common.timeit`), 1 thread in each child, "
+        f"IIWA_TORCH_NUMBA {info['IIWA_TORCH_NUMBA']}. Load (1 min) at each child's start: "
+        f"{', '.join(f'{x:.1f}' for x in payload['loads'])}.\n\n"
+        + markdown_table(["call", "before", "after", "speed-up (before / after)"], rows)
+        + f"\nMachine: {info}\n"
+    )
 
 
 def main() -> None:
@@ -117,25 +138,14 @@ def main() -> None:
         .stdout.strip()
         for tree in args.trees
     }
-    rows = []
-    for key, old in medians[before].items():
-        new = medians[after][key]
-        ratio = "" if "success" in key else f"{old / new:.2f}x"
-        rows.append([key, fmt(key, old), fmt(key, new), ratio])
     from iiwa_torch.runtime import machine_info
 
     info = machine_info() | {"IIWA_TORCH_NUMBA": os.environ.get("IIWA_TORCH_NUMBA", "unset (on)")}
-    md = (
-        f"`python benchmarks/bench_versions.py {before} {after} --rounds {args.rounds}`: the iiwa 14 preset's calls "
-        f"under {before} ({commits[before]}) and {after} ({commits[after]}), one child process per tree and round, "
-        "alternating; medians over the rounds of each child's median (`common.timeit`), 1 thread, "
-        f"numba kernels {info['IIWA_TORCH_NUMBA']}. Load (1 min) at each child's start: "
-        f"{', '.join(f'{x:.1f}' for x in loads)}.\n\n"
-        + markdown_table(["call", "before", "after", "speed-up (before / after)"], rows)
-        + f"\nMachine: {info}\n"
-    )
+    payload = {"trees": commits, "rounds": args.rounds, "runs": runs, "medians": medians, "loads": loads,
+               "machine": info}  # fmt: skip
+    md = markdown(payload)
     print(md)
-    path = save(args.name, {"trees": commits, "runs": runs, "medians": medians, "loads": loads, "machine": info}, md)
+    path = save(args.name, payload, md)
     print(f"wrote {path}", file=sys.stderr)
 
 
