@@ -1,31 +1,35 @@
 """FK, end position, all frames, Jacobian and FK forward+backward: iiwa-torch against its peers, one run.
 
-    python benchmarks/bench_fk.py [--quick]
+    python benchmarks/bench_fk.py [--quick] [--robot NAME] [--threads 1 2] [--max-batch N]
 
-Peers measured in the same run on the iiwa 14 (the same URDF for all):
-pytorch_kinematics (batched torch), roboticstoolbox's C++ ``ETS.eval`` and pinocchio
+Peers measured in the same run on the same arm (default the iiwa 14 preset; ``--robot`` takes a
+preset's name or ``panda``, ``xarm6``, ``kuka_iiwa``: pybullet_data's URDF files read by
+``robots.from_urdf``): pytorch_kinematics (batched torch) on the same URDF (a preset's
+``to_urdf`` export, else the file itself), roboticstoolbox's C++ ``ETS.eval`` and pinocchio
 (C++, called once per configuration from Python), a plain batched 4x4-matmul torch chain
 (our small-batch kernel, forced on every size) and the floor: a torch copy of the output's
-size. Prints per-configuration times and ratios; writes results/fk.json and results/fk.md.
+size. Prints per-configuration times and ratios; writes results/fk.json and results/fk.md
+(``fk_<robot>.*`` for another arm).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import subprocess
 import sys
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import markdown_table, save, timeit  # noqa: E402
+from common import Robot, markdown_table, save, timeit  # noqa: E402
 
-from iiwa_torch import kinematics, robots  # noqa: E402
+from iiwa_torch import kinematics  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
-from iiwa_torch.urdf import to_urdf  # noqa: E402
 
-CHAIN = robots.iiwa14()
+ROBOT = CHAIN = GEOMETRY = None  # set by setup(--robot)
 SIZES = {
     "fk": [1, 1_000, 100_000, 1_000_000],
     "position": [1, 1_000, 100_000, 1_000_000],
@@ -50,7 +54,14 @@ def matmul_chain(op: str, q: torch.Tensor):
     return lambda: kinematics.end_pose_matmul(g, q)
 
 
-GEOMETRY = {dtype: CHAIN.geometry(dtype) for dtype in (torch.float32, torch.float64)}
+def setup(name: str) -> None:
+    """The arm of this run and its geometry in both dtypes."""
+    global ROBOT, CHAIN, GEOMETRY
+    ROBOT = Robot(name)
+    CHAIN = ROBOT.chain
+    GEOMETRY = {dtype: CHAIN.geometry(dtype) for dtype in (torch.float32, torch.float64)}
+
+
 # Compiled lazily, on first call (once per dtype).
 FUSED = torch.compile(lambda q: kinematics.end_pose(GEOMETRY[q.dtype], q), dynamic=True)
 
@@ -62,10 +73,15 @@ def compiled(op: str, q: torch.Tensor):
     return lambda: FUSED(q)
 
 
-def pytorch_kinematics(op: str, q: torch.Tensor):
+@functools.cache
+def pk_chain(dtype: torch.dtype):
     import pytorch_kinematics as pk
 
-    serial = pk.build_serial_chain_from_urdf(to_urdf(CHAIN).encode(), "tool0").to(dtype=q.dtype)
+    return pk.build_serial_chain_from_urdf(ROBOT.urdf.encode(), ROBOT.end_link).to(dtype=dtype)
+
+
+def pytorch_kinematics(op: str, q: torch.Tensor):
+    serial = pk_chain(q.dtype)
     if op == "fk":
         return lambda: serial.forward_kinematics(q).get_matrix()
     if op == "position":  # pk has no position-only path: the pose's translation
@@ -76,6 +92,12 @@ def pytorch_kinematics(op: str, q: torch.Tensor):
         return lambda: serial.jacobian(q)
     qg = q.clone().requires_grad_()
     return lambda: serial.forward_kinematics(qg).get_matrix()[..., :3, 3].sum().backward()
+
+
+def pk_fk_difference() -> float:
+    """Largest difference between pytorch_kinematics' end pose and ours (float64, 64 random q)."""
+    q = CHAIN.random_q(64, generator=torch.Generator().manual_seed(1))
+    return float((pytorch_kinematics("fk", q)().double() - CHAIN.fk(q)).abs().max())
 
 
 def floor(op: str, q: torch.Tensor):
@@ -93,20 +115,24 @@ def per_call_cpp(q64: torch.Tensor) -> dict:
     res = {}
     qs = q64.numpy()
     try:
-        import roboticstoolbox as rtb
+        import roboticstoolbox  # noqa: F401
 
-        ets = rtb.DHRobot([rtb.RevoluteDH(a=a, alpha=al, d=d, offset=o) for a, al, d, o in CHAIN.dh.tolist()]).ets()
+        ets = ROBOT.rtb_ets()
         res["roboticstoolbox ETS.eval"] = timeit(lambda: [ets.eval(x) for x in qs]) / len(qs)
     except ImportError:
         pass
     try:
         import pinocchio as pin
 
-        model = pin.buildModelFromXML(to_urdf(CHAIN))
-        data, frame = model.createData(), model.getFrameId("tool0")
+        model = pin.buildModelFromXML(ROBOT.urdf)
+        data, frame = model.createData(), model.getFrameId(ROBOT.end_link)
+        # the file's joints off the chain (the Panda's fingers) held at their neutral values
+        rows = [model.joints[model.getJointId(name)].idx_q for name in CHAIN.joint_names]
+        full = np.tile(pin.neutral(model), (len(qs), 1))
+        full[:, rows] = qs
 
         def run():
-            for x in qs:
+            for x in full:
                 pin.framesForwardKinematics(model, data, x)
                 data.oMf[frame].homogeneous  # noqa: B018
 
@@ -117,15 +143,16 @@ def per_call_cpp(q64: torch.Tensor) -> dict:
 
 
 _PEAK_SCRIPT = """
-import re, torch
-from iiwa_torch import robots
+import re, sys, torch
+sys.path.insert(0, {here!r})
+from common import Robot
 def status(key):
     return int(re.search(key + r":\\s+(\\d+) kB", open("/proc/self/status").read()).group(1)) / 1024
-chain = robots.iiwa14()
-chain.fk(torch.zeros(10, 7))
+chain = Robot({robot!r}).chain
+chain.fk(torch.zeros(10, chain.n_joints))
 base = status("VmRSS")
 open("/proc/self/clear_refs", "w").write("5")  # reset the high-water mark VmHWM
-q = torch.rand({batch}, 7).mul_(2).sub_(1)
+q = torch.rand({batch}, chain.n_joints).mul_(2).sub_(1)
 chain.fk(q)
 print(status("VmHWM") - base)
 """
@@ -134,16 +161,23 @@ print(status("VmHWM") - base)
 def peak_memory_mb(batch: int) -> float:
     """Peak resident memory (MB) of one float32 FK of ``batch`` configurations in a fresh
     process, above its size after imports (Linux ``VmHWM``); includes the input and output."""
-    script = _PEAK_SCRIPT.format(batch=batch)
+    here = os.path.dirname(os.path.abspath(__file__))
+    script = _PEAK_SCRIPT.format(batch=batch, robot=ROBOT.name, here=here)
     return float(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, one thread (a smoke run)")
+    parser.add_argument("--robot", default="iiwa14", help="a preset's name, or panda, xarm6, kuka_iiwa (URDF)")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts (default 1 2)")
+    parser.add_argument("--max-batch", type=int, default=None, help="skip larger batches (on a loaded machine)")
     args = parser.parse_args()
-    sizes = {op: [b for b in bs if b <= 1_000] for op, bs in SIZES.items()} if args.quick else SIZES
-    threads = [1] if args.quick else [1, 2]
+    setup(args.robot)
+    largest = 1_000 if args.quick else args.max_batch or max(max(bs) for bs in SIZES.values())
+    sizes = {op: [b for b in bs if b <= largest] for op, bs in SIZES.items()}
+    threads = [1] if args.quick else args.threads
+    fk_gap = pk_fk_difference()
     g = torch.Generator().manual_seed(0)
     runners = {
         "iiwa-torch": ours,
@@ -208,25 +242,34 @@ def main() -> None:
         "speed-up vs torch.compile",
         "ours / copy floor",
     ]
-    md = markdown_table(headers, rows)
+    source = "the preset's `to_urdf` export" if ROBOT.path is None else f"`{ROBOT.path.parent.name}/{ROBOT.path.name}`"
+    md = (
+        f"`{' '.join(['python benchmarks/bench_fk.py', *sys.argv[1:]])}`: "
+        f"FK of {ROBOT.name} ({CHAIN.n_joints} joints, end link `{ROBOT.end_link}`; every peer reads {source}; "
+        f"pytorch_kinematics' float64 FK differs from ours by at most {fk_gap:.1e}):\n\n"
+    )
+    md += markdown_table(headers, rows)
     md += "\nPer configuration, one call each, float64, 1 thread:\n\n"
     md += markdown_table(
         ["library", "µs per configuration"],
         [[k, f"{v * 1e6:.2f}"] for k, v in cpp.items()]
         + [["iiwa-torch fk, batch 1 (one call)", f"{single * 1e6:.1f}"]],
     )
-    mem = None if args.quick else peak_memory_mb(1_000_000)
+    mem = None if largest < 1_000_000 else peak_memory_mb(1_000_000)
     if mem is not None:
         md += (
             f"\nPeak memory of one float32 FK of 1,000,000 configurations: {mem:.0f} MB"
-            " (input 28 MB and output 64 MB included)\n"
+            f" (input {4 * CHAIN.n_joints} MB and output 64 MB included)\n"
         )
-    info = machine_info()
+    info = machine_info() | {"IIWA_TORCH_NUMBA": os.environ.get("IIWA_TORCH_NUMBA", "unset (on)")}
     md += f"\nMachine: {info}\n"
     print(md)
+    name = "fk" if args.robot == "iiwa14" else f"fk_{args.robot}"
     path = save(
-        "fk_quick" if args.quick else "fk",
+        f"{name}_quick" if args.quick else name,
         {
+            "robot": args.robot,
+            "fk_max_diff_vs_pytorch_kinematics": fk_gap,
             "machine": info,
             "records": records,
             "per_config_cpp_s": cpp,

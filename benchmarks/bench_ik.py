@@ -1,23 +1,31 @@
-"""IK on 10,000 random reachable iiwa 14 poses: iiwa-torch against its peers, one run.
+"""IK on 10,000 random reachable poses: iiwa-torch against its peers, one run.
 
-    python benchmarks/bench_ik.py [--quick]
+    python benchmarks/bench_ik.py [--quick] [--robot NAME] [--threads 1 2]
+
+The arm: ``--robot`` takes a preset's name (default iiwa14) or ``panda``, ``xarm6``,
+``kuka_iiwa`` (pybullet_data's URDF files, read by ``robots.from_urdf``). The tolerance: a
+preset's targets are solved at 0.1 mm / 1 mrad (``solve``'s default), a URDF arm's at
+TRAC-IK's 1e-5 m / 1e-5 rad.
 
 Solvers, all on the same targets (FK of seeded random configurations within the limits):
 - ours: ``iiwa_torch.ik.solve`` (batched LM), float32, float64 (``precision="auto"``: float32
-  iterations, float64 check; and ``"input"``: float64 iterations), 1 and 2 threads;
+  iterations, float64 check; and ``"input"``: float64 iterations), 1 and 2 threads; a URDF
+  arm also with ``seeds=32`` (default 8 for 7 joints);
 - pytorch_kinematics ``PseudoInverseIK`` (batched torch, float32; the settings the issue
   measured: 10 retries, 50 iterations, ``early_stopping_any_converged``, regularisation 1e-6)
-  and its ``PseudoInverseIKWithSVD`` variant, on the chain loaded from our URDF export;
-- roboticstoolbox ``ETS.ik_LM`` (C++, one call per target) at its defaults, tol 1e-7 and tol 1e-10,
-  on an ETS built from the same DH table and limits.
+  and its ``PseudoInverseIKWithSVD`` variant, on the same URDF (a preset's ``to_urdf`` export);
+- roboticstoolbox ``ETS.ik_LM`` (C++, one call per target, ``joint_limits=True``) on the same
+  arm and limits (a preset's DH table; a URDF arm's file read by roboticstoolbox): a preset's
+  at its defaults, tol 1e-7 and tol 1e-10; a URDF arm's at the tolerance that implies ours
+  (its residual ``E = |e|^2 / 2``, so tol = 1e-5^2 / 2) with 8, 32 and 100 (its default) searches.
 
 Every answer is scored by the same code: our ``chain.fk`` and ``so3.pose_error`` (after a
-check that each peer's FK agrees with ours), success at 0.1 mm / 1 mrad and at 1 mm /
-10 mrad, and the share of answers within the joint limits. Then the success/time trade-off
-of ours as seeds and iterations vary, and ours with a world: random collision-free
-configurations' poses, each with the floor and 3 random spheres near the arm (clear of that
-configuration), ``solve(..., world=, margin=0.01)`` scored by FK and ``collision.clearance``.
-Writes results/ik.json and results/ik.md.
+check that each peer's FK agrees with ours), success at the solve's tolerance and at 10 times
+it, and the share of answers within the joint limits. Then the success/time trade-off
+of ours as seeds and iterations vary, and, for a preset, ours with a world: random
+collision-free configurations' poses, each with the floor and 3 random spheres near the arm
+(clear of that configuration), ``solve(..., world=, margin=0.01)`` scored by FK and
+``collision.clearance``. Writes results/ik.json and results/ik.md (``ik_<robot>.*`` for another arm).
 """
 
 from __future__ import annotations
@@ -32,17 +40,30 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import markdown_table, save  # noqa: E402
+from common import Robot, markdown_table, save  # noqa: E402
 
-from iiwa_torch import robots, so3  # noqa: E402
+from iiwa_torch import so3  # noqa: E402
 from iiwa_torch.collision import World, clearance, robot_capsules  # noqa: E402
 from iiwa_torch.ik import solve  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
-from iiwa_torch.urdf import to_urdf  # noqa: E402
 
-CHAIN = robots.iiwa14()
-TOLERANCES = {"0.1mm/1mrad": (1e-4, 1e-3), "1mm/10mrad": (1e-3, 1e-2)}
 MARGIN = 0.01  # clearance required with a world, m
+ROBOT = CHAIN = None  # set by setup(--robot)
+# Success tolerances (m, rad), named: the solve's first (a preset's, else TRAC-IK's), then 10 times it.
+TOLERANCES: dict[str, tuple[float, float]] = {}
+SOLVE_TOL = {"pos_tol": 1e-4, "rot_tol": 1e-3}
+
+
+def setup(name: str) -> None:
+    """The arm of this run and its tolerances."""
+    global ROBOT, CHAIN
+    ROBOT = Robot(name)
+    CHAIN = ROBOT.chain
+    pos, rot = (1e-4, 1e-3) if ROBOT.path is None else (1e-5, 1e-5)
+    SOLVE_TOL.update(pos_tol=pos, rot_tol=rot)
+    TOLERANCES.clear()
+    for p, r in ((pos, rot), (10 * pos, 10 * rot)):
+        TOLERANCES[f"{p * 1e3:g}mm/{r * 1e3:g}mrad"] = (p, r)
 
 
 def score(q: torch.Tensor, target: torch.Tensor) -> dict:
@@ -69,6 +90,7 @@ class Clock:
 def ours(target: torch.Tensor, repeats: int, samples: list | None = None, **options) -> dict:
     """Median over ``repeats`` timed calls (after one warm-up), plus any earlier ``samples``
     of the same configuration, which this list collects."""
+    options = SOLVE_TOL | options
     result = solve(CHAIN, target, **options)
     samples = [] if samples is None else samples
     for _ in range(repeats):
@@ -139,7 +161,7 @@ def pytorch_kinematics(target: torch.Tensor, variant: str) -> dict | None:
         import pytorch_kinematics as pk
     except ImportError:
         return None
-    serial = pk.build_serial_chain_from_urdf(to_urdf(CHAIN).encode(), "tool0").to(dtype=torch.float32)
+    serial = pk.build_serial_chain_from_urdf(ROBOT.urdf.encode(), ROBOT.end_link).to(dtype=torch.float32)
     q_check = CHAIN.random_q(64, generator=torch.Generator().manual_seed(1))
     agree = (serial.forward_kinematics(q_check.float()).get_matrix().double() - CHAIN.fk(q_check)).abs().max()
     solver_cls = getattr(pk, variant)
@@ -151,8 +173,8 @@ def pytorch_kinematics(target: torch.Tensor, variant: str) -> dict | None:
         early_stopping_any_converged=True,
         early_stopping_no_improvement="all",
         regularlization=1e-6,
-        pos_tolerance=1e-4,
-        rot_tolerance=1e-3,
+        pos_tolerance=SOLVE_TOL["pos_tol"],
+        rot_tolerance=SOLVE_TOL["rot_tol"],
         debug=False,
     )
     goal = pk.Transform3d(matrix=target.float())
@@ -170,23 +192,19 @@ def pytorch_kinematics(target: torch.Tensor, variant: str) -> dict | None:
     return timing_row(seconds, len(target)) | {"fk max diff vs ours": float(agree)} | score(q, target)
 
 
-def roboticstoolbox(target: torch.Tensor, tol: float | None) -> dict | None:
+def roboticstoolbox(target: torch.Tensor, options: dict) -> dict | None:
+    """``ETS.ik_LM(goal, joint_limits=True, **options)`` per target."""
     try:
-        import roboticstoolbox as rtb
+        import roboticstoolbox  # noqa: F401
     except ImportError:
         return None
-    links = [
-        rtb.RevoluteDH(a=a, alpha=al, d=d, offset=o, qlim=[lo, hi])
-        for (a, al, d, o), lo, hi in zip(CHAIN.dh.tolist(), *CHAIN.limits.tolist())
-    ]
-    ets = rtb.DHRobot(links, tool=CHAIN.tool.numpy()).ets()
+    ets = ROBOT.rtb_ets()
     q_check = CHAIN.random_q(64, generator=torch.Generator().manual_seed(1))
     agree = max(float(np.abs(ets.eval(x) - y).max()) for x, y in zip(q_check.numpy(), CHAIN.fk(q_check).numpy()))
     goals = list(target.numpy())
-    options = {} if tol is None else {"tol": tol}
     np.random.seed(0)  # ik_LM draws its restarts from numpy's global generator
     clock = Clock()
-    solutions = [ets.ik_LM(g, **options) for g in goals]
+    solutions = [ets.ik_LM(g, joint_limits=True, **options) for g in goals]
     seconds = clock.stop()
     q = torch.tensor(np.stack([s[0] for s in solutions]))
     return timing_row(seconds, len(target)) | {"fk max diff vs ours": agree} | score(q, target)
@@ -195,7 +213,11 @@ def roboticstoolbox(target: torch.Tensor, tol: float | None) -> dict | None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1,000 targets, fewer repeats (a smoke run)")
+    parser.add_argument("--robot", default="iiwa14", help="a preset's name, or panda, xarm6, kuka_iiwa (URDF)")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts (default 1 2)")
     args = parser.parse_args()
+    setup(args.robot)
+    preset = ROBOT.path is None
     count, repeats = (1_000, 2) if args.quick else (10_000, 5)
     q_true = CHAIN.random_q(count, generator=torch.Generator().manual_seed(2024))
     target = CHAIN.fk(q_true)
@@ -213,31 +235,40 @@ def main() -> None:
     # shared machine drifts over the minutes the peers take.
     # float64 runs twice: precision="auto" (iterations in float32, answer checked in float64)
     # and precision="input" (float64 iterations).
+    # A URDF arm's float64 "auto" rows iterate in float32 too: TRAC-IK's 1e-5 is solve's threshold.
     kinds = [(torch.float32, "auto"), (torch.float64, "auto"), (torch.float64, "input")]
-    configs = [(threads, dtype, precision) for threads in (1, 2) for dtype, precision in kinds]
+    seed_counts = [None] if preset else [None, 32]
+    configs = [(threads, dtype, precision, seeds) for threads in args.threads for dtype, precision in kinds
+               for seeds in seed_counts]  # fmt: skip
     samples = {config: [] for config in configs}
-    for threads, dtype, precision in configs:
+    for threads, dtype, precision, seeds in configs:
         torch.set_num_threads(threads)
-        ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
+        ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision, seeds], precision=precision,
+             seeds=seeds)  # fmt: skip
     torch.set_num_threads(1)
     for variant in ("PseudoInverseIK", "PseudoInverseIKWithSVD"):
         report(f"pytorch_kinematics {variant}, float32, 1 thread", pytorch_kinematics(target, variant))
-    for tol in (None, 1e-7, 1e-10):
-        report(
-            f"roboticstoolbox ik_LM (C++), {'defaults' if tol is None else f'tol={tol:g}'}",
-            roboticstoolbox(target, tol),
-        )
-    for threads, dtype, precision in configs:
+    if preset:
+        rtb_options = [{}, {"tol": 1e-7}, {"tol": 1e-10}]
+    else:  # ik_LM's residual is |e|^2 / 2: this tol means |e| <= the smaller of ours
+        tol = min(SOLVE_TOL.values()) ** 2 / 2
+        rtb_options = [{"tol": tol, "slimit": slimit} for slimit in (8, 32, 100)]
+    for options in rtb_options:
+        shown = ", ".join(f"{k}={v:g}" for k, v in options.items()) or "defaults"
+        report(f"roboticstoolbox ik_LM (C++), {shown}", roboticstoolbox(target, options))
+    for threads, dtype, precision, seeds in configs:
         torch.set_num_threads(threads)
-        row = ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
+        row = ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision, seeds],
+                   precision=precision, seeds=seeds)  # fmt: skip
         iterated = "float32 iterations" if precision == "auto" and dtype == torch.float64 else "same-dtype iterations"
         label = f"{str(dtype)[6:]} ({iterated})" if dtype == torch.float64 else "float32"
+        label += "" if seeds is None else f", seeds={seeds}"
         report(f"iiwa-torch solve, {label}, {threads} thread{'s' if threads > 1 else ''}", row)
     torch.set_num_threads(1)
 
     # Success/time trade-off of ours (float32, 1 thread) as seeds and iterations vary.
     tradeoff = []
-    for seeds in (1, 2, 4, 8):
+    for seeds in (1, 2, 4, 8) if preset else (8, 16, 32, 64):
         for iterations in (8, 12, 16, 24):
             row = ours(target.float(), max(1, repeats // 2), seeds=seeds, iterations=iterations)
             tradeoff.append({"seeds": seeds, "iterations per seed": iterations} | row)
@@ -245,12 +276,14 @@ def main() -> None:
 
     # With a world (float64 targets, float32 iterations, 1 thread); the solve without the world on
     # the same targets shows how often a plain answer collides.
-    world_target, world = world_problems(count, 7)
+    # (A URDF arm has no preset capsule model: no world.)
     world_rows = {}
-    for name, options in (("with world, margin 1 cm", {"world": world, "margin": MARGIN}),
-                          ("without world (answers checked against it)", {})):  # fmt: skip
-        row = ours(world_target, repeats, **options)
-        world_rows[name] = row | world_score(solve(CHAIN, world_target, **options).q, world_target, world)
+    if preset:
+        world_target, world = world_problems(count, 7)
+        for name, options in (("with world, margin 1 cm", {"world": world, "margin": MARGIN}),
+                              ("without world (answers checked against it)", {})):  # fmt: skip
+            row = ours(world_target, repeats, **options)
+            world_rows[name] = row | world_score(solve(CHAIN, world_target, **options).q, world_target, world)
     for name, row in world_rows.items():
         print(f"world: {name}: {row}", flush=True)
 
@@ -258,8 +291,9 @@ def main() -> None:
         (r for k, r in rows.items() if k.startswith("iiwa-torch") and k.endswith("1 thread")),
         key=lambda r: r["seconds"],
     )
-    headers = ["solver", "per target, wall (ms)", "per target, CPU (ms)", "success 0.1 mm / 1 mrad",
-               "success 1 mm / 10 mrad", "within limits", "wall vs ours", "CPU vs ours"]  # fmt: skip
+    tight, loose = TOLERANCES
+    headers = ["solver", "per target, wall (ms)", "per target, CPU (ms)", f"success {tight}",
+               f"success {loose}", "within limits", "wall vs ours", "CPU vs ours"]  # fmt: skip
     table = []
     for name, row in sorted(rows.items(), key=lambda item: not item[0].startswith("iiwa-torch")):
         if "error" in row:
@@ -267,7 +301,7 @@ def main() -> None:
             continue
         table.append([
             name, f"{row['per target ms']:.4f}", f"{row['per target cpu ms']:.4f}",
-            f"{100 * row['success 0.1mm/1mrad']:.2f}%", f"{100 * row['success 1mm/10mrad']:.2f}%",
+            f"{100 * row[f'success {tight}']:.2f}%", f"{100 * row[f'success {loose}']:.2f}%",
             f"{100 * row['within limits']:.2f}%", f"{row['seconds'] / best_ours['seconds']:.1f}x",
             f"{row['cpu seconds'] / best_ours['cpu seconds']:.1f}x",
         ])  # fmt: skip
@@ -277,16 +311,18 @@ def main() -> None:
             r["iterations per seed"],
             f"{r['per target ms']:.4f}",
             f"{r['per target cpu ms']:.4f}",
-            f"{100 * r['success 0.1mm/1mrad']:.2f}%",
+            f"{100 * r[f'success {tight}']:.2f}%",
         ]
         for r in tradeoff
     ]
-    info = machine_info()
-    command = "python benchmarks/bench_ik.py" + (" --quick" if args.quick else "")
+    info = machine_info() | {"IIWA_TORCH_NUMBA": os.environ.get("IIWA_TORCH_NUMBA", "unset (on)")}
+    command = " ".join(["python benchmarks/bench_ik.py", *sys.argv[1:]])
+    source = "the DH preset" if preset else f"`{ROBOT.path.parent.name}/{ROBOT.path.name}`, end link `{ROBOT.end_link}`"
     markdown = (
-        f"IK on {count:,} random reachable iiwa 14 poses (`{command}`). Ours: median of {2 * ((repeats + 1) // 2)} "
-        "runs taken before and after the peers; peers: one run. CPU = process time (with 2 threads, both "
-        "threads' time). Ratios against our fastest 1-thread row.\n\n"
+        f"IK on {count:,} random reachable {ROBOT.name} poses ({source}; `{command}`), solved at {tight} "
+        f"(m and rad: {SOLVE_TOL['pos_tol']:g} / {SOLVE_TOL['rot_tol']:g}). Ours: median of "
+        f"{2 * ((repeats + 1) // 2)} runs taken before and after the peers; peers: one run. CPU = process time "
+        "(with 2 threads, both threads' time). Ratios against our fastest 1-thread row.\n\n"
         + markdown_table(headers, table)
         + "\nOurs, float32, 1 thread, as seeds and iterations per seed vary:\n\n"
         + markdown_table(
@@ -295,11 +331,14 @@ def main() -> None:
                 "iterations per seed",
                 "per target, wall (ms)",
                 "per target, CPU (ms)",
-                "success 0.1 mm / 1 mrad",
+                f"success {tight}",
             ],
             trade_table,
         )
-        + f"\nOurs with a world: {count:,} poses of random collision-free configurations, each with the floor "
+    )
+    if world_rows:
+        markdown += (
+        f"\nOurs with a world: {count:,} poses of random collision-free configurations, each with the floor "
         "and 3 random spheres near the arm (clear of that configuration), margin 1 cm; float64 targets, "
         "float32 iterations, 1 thread; success needs 0.1 mm / 1 mrad by our FK and clearance >= margin by "
         "`collision.clearance`:\n\n"
@@ -323,13 +362,14 @@ def main() -> None:
                 ]
                 for name, r in world_rows.items()
             ],
+        )
         )  # fmt: skip
-        + f"\nMachine: {info}\n"
-    )
-    name = "ik_quick" if args.quick else "ik"
-    path = save(name, {"machine": info, "targets": count, "command": command, "solvers": rows, "tradeoff": tradeoff,
-                 "world": world_rows},
-                markdown)  # fmt: skip
+    markdown += f"\nMachine: {info}\n"
+    name = "ik" if args.robot == "iiwa14" else f"ik_{args.robot}"
+    name += "_quick" if args.quick else ""
+    payload = {"robot": args.robot, "tolerance": SOLVE_TOL, "machine": info, "targets": count, "command": command,
+               "solvers": rows, "tradeoff": tradeoff, "world": world_rows}  # fmt: skip
+    path = save(name, payload, markdown)
     print(markdown)
     print(f"wrote {path}", file=sys.stderr)
 

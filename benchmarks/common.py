@@ -7,6 +7,7 @@ process busy on the cores, OpenMP's spin-wait made 2-thread ops ~100x slower her
 from __future__ import annotations
 
 import json
+import re
 import statistics
 import time
 from pathlib import Path
@@ -44,3 +45,59 @@ def markdown_table(headers: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines) + "\n"
+
+
+#: Arms read from pybullet_data's URDF files by ``robots.from_urdf``: name -> (file, end link).
+URDF_ROBOTS = {
+    "panda": ("franka_panda/panda.urdf", "panda_hand"),
+    "xarm6": ("xarm/xarm6_robot.urdf", None),
+    "kuka_iiwa": ("kuka_iiwa/model.urdf", None),
+}
+
+
+class Robot:
+    """A benchmark's arm: ``chain``, the URDF text every peer loads (a preset's ``to_urdf``
+    export, else the file itself), its ``end_link``, and ``path``, the file (None for a preset)."""
+
+    def __init__(self, name: str) -> None:
+        from iiwa_torch import robots
+
+        self.name = name
+        if name in robots.PRESETS:
+            from iiwa_torch.urdf import to_urdf
+
+            self.chain, self.path, self.end_link = robots.PRESETS[name](), None, "tool0"
+            self.urdf = to_urdf(self.chain)
+        elif name in URDF_ROBOTS:
+            import pybullet_data
+
+            file, end = URDF_ROBOTS[name]
+            self.path = Path(pybullet_data.getDataPath()) / file
+            self.chain = robots.from_urdf(self.path, end_link=end)
+            self.end_link = self.chain.link_names[-1] if end is None else end
+            self.urdf = self.path.read_text()
+        else:
+            raise ValueError(f"--robot must be one of {sorted(robots.PRESETS) + sorted(URDF_ROBOTS)}, got {name!r}")
+
+    def rtb_ets(self):
+        """roboticstoolbox's ETS of the same arm with its limits: a preset's DH table, else the URDF file read by
+        roboticstoolbox itself (each ``package://NAME`` resolved to the folder NAME beside the file)."""
+        import roboticstoolbox as rtb
+
+        chain = self.chain
+        if self.path is None:
+            links = [
+                rtb.RevoluteDH(a=a, alpha=al, d=d, offset=o, qlim=[lo, hi])
+                for (a, al, d, o), lo, hi in zip(chain.dh.tolist(), *chain.limits.tolist())
+            ]
+            return rtb.DHRobot(links, base=chain.base.numpy(), tool=chain.tool.numpy()).ets()
+        from roboticstoolbox.models.URDF.URDFRobot import URDF_file
+        from xacrodoc import packages
+
+        names = set(re.findall(r"package://([^/]+)/", self.urdf))
+        packages.update_package_cache({name: str(self.path.parent / name) for name in names})
+        # <transmission> blocks dropped: roboticstoolbox cannot read xarm6's (they hold no kinematics)
+        elinks, name, _ = URDF_file(
+            self.path, patch=lambda text: re.sub(r"<transmission.*?</transmission>", "", text, flags=re.S)
+        )
+        return rtb.Robot(elinks, name=name).ets(end=self.end_link)
