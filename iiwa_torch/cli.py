@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from . import __version__, robots, so3
+from .chain import Chain
 from .checks import MissingExtra, check_memory, require
 from .dh import DHChain
 
@@ -87,12 +88,23 @@ def _fmt(values, digits: int = 4) -> list[str]:
 
 
 # ---------------------------------------------------------------- argument helpers
-def _chain(args: argparse.Namespace) -> DHChain:
+def _chain(args: argparse.Namespace) -> Chain:
+    """The preset of ``--robot`` (default iiwa14), or the chain of ``--urdf`` up to ``--end-link``."""
+    if args.urdf is not None:
+        if args.robot is not None or args.flange is not None:
+            raise _UsageError("--urdf gives the robot: --robot and --flange apply to the presets only")
+        try:
+            return robots.from_urdf(args.urdf, end_link=args.end_link)
+        except (ValueError, TypeError) as err:
+            raise _UsageError(f"--urdf {args.urdf}: {err}") from None
+    if args.end_link is not None:
+        raise _UsageError("--end-link applies to --urdf only")
+    robot = args.robot or "iiwa14"
     if args.flange is not None:
-        if args.robot not in ("iiwa14", "iiwa7"):
-            raise _UsageError(f"--flange applies to the iiwa presets only, not to {args.robot}")
-        return robots.PRESETS[args.robot](flange=args.flange)
-    return robots.PRESETS[args.robot]()
+        if robot not in ("iiwa14", "iiwa7"):
+            raise _UsageError(f"--flange applies to the iiwa presets only, not to {robot}")
+        return robots.PRESETS[robot](flange=args.flange)
+    return robots.PRESETS[robot]()
 
 
 class _UsageError(Exception):
@@ -120,7 +132,7 @@ def _angles(values: list[float], rad: bool) -> list[float]:
     return list(values) if rad else [math.radians(v) for v in values]
 
 
-def _q(chain: DHChain, values: list[float] | None, rad: bool, name: str) -> torch.Tensor:
+def _q(chain: Chain, values: list[float] | None, rad: bool, name: str) -> torch.Tensor:
     if len(values) != chain.n_joints:
         raise _UsageError(f"{name} needs {chain.n_joints} joint angles for {chain.name}, got {len(values)}")
     return torch.tensor(_angles(values, rad), dtype=_F64)
@@ -195,7 +207,7 @@ def _q_text(q: torch.Tensor) -> str:
 def _ik(args: argparse.Namespace) -> int:
     chain = _chain(args)
     position_only = len(args.pose) == 3
-    method = args.method or ("gradient" if position_only else "analytic")
+    method = args.method or ("gradient" if position_only or not _has_closed_form(chain) else "analytic")
     if args.psi is not None and (method != "analytic" or chain.n_joints != 7):
         raise _UsageError(f"--psi is the arm angle of the iiwa's analytic IK (7 joints), not of {method} IK "
                           f"on {chain.name} ({chain.n_joints} joints)")
@@ -249,7 +261,7 @@ def _ik(args: argparse.Namespace) -> int:
     return status
 
 
-def _why_invalid(chain: DHChain, q: list[float], pos_err: float, rot_err: float, rad: bool) -> str:
+def _why_invalid(chain: Chain, q: list[float], pos_err: float, rot_err: float, rad: bool) -> str:
     """Why the solution ``q`` (rad) is invalid: it misses the target (errors in m, rad; NaN: position
     only) beyond the solver tolerances, or joints lie outside their limits (e.g. ``A3 = -180 deg outside +-170``)."""
     if not pos_err <= _POS_TOL or rot_err > _ROT_TOL:
@@ -264,9 +276,32 @@ def _why_invalid(chain: DHChain, q: list[float], pos_err: float, rot_err: float,
     return ", ".join(outside) or "outside the joint limits"
 
 
-def _ik_analytic(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+def _has_closed_form(chain: Chain) -> bool:
+    """Whether ``ik`` can solve ``chain`` in closed form: a preset, or an arm whose joint axes admit one."""
+    if isinstance(chain, DHChain):
+        return True
     from .ik import analytic
 
+    try:
+        analytic.structure(chain)
+    except ValueError:
+        return False
+    return True
+
+
+def _ik_analytic(chain: Chain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+    from .ik import analytic
+
+    if not isinstance(chain, DHChain):  # another arm: the closed form its joint axes admit, if any
+        try:
+            form = analytic.structure(chain).form.value
+        except ValueError as err:
+            raise _UsageError(f"--method analytic: {err}") from None
+        psi = (0.0 if args.psi is None else args.psi if args.rad else math.radians(args.psi)) if chain.n_joints == 7 \
+            else None
+        sol = analytic.solve(chain, target, psi)
+        labels = [f"{form} {k}" for k in range(sol.q.shape[-2])]
+        return sol.q.contiguous(), sol.valid, labels
     if chain.n_joints == 7:
         psi = 0.0 if args.psi is None else args.psi if args.rad else math.radians(args.psi)
         sol = analytic.iiwa(chain, target, psi)
@@ -282,7 +317,7 @@ def _ik_analytic(chain: DHChain, target: torch.Tensor, args) -> tuple[torch.Tens
 
 
 def _ik_gradient(
-    chain: DHChain, target: torch.Tensor, args, mode: str = "pose"
+    chain: Chain, target: torch.Tensor, args, mode: str = "pose"
 ) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
     from .ik import solve
 
@@ -296,6 +331,10 @@ def _traj(args: argparse.Namespace) -> int:
     from . import trajectory
 
     chain = _chain(args)
+    if args.method is None:  # track's closed forms are the presets' (a URDF arm's would need their mapping)
+        args.method = "analytic" if isinstance(chain, DHChain) else "gradient"
+    elif args.method == "analytic" and not isinstance(chain, DHChain):
+        raise _UsageError("traj --method analytic tracks the presets; use --method gradient for a --urdf arm")
     if (args.from_q is None) == (args.from_pose is None) or (args.to_q is None) == (args.to_pose is None):
         raise _UsageError("give exactly one of --from-q/--from-pose and one of --to-q/--to-pose")
     if args.steps < 2:
@@ -368,14 +407,14 @@ def _traj(args: argparse.Namespace) -> int:
     return 0 if worst is None or bool(worst.success.all()) else 1
 
 
-def _auto_duration(chain: DHChain, rule, *args) -> float:
+def _auto_duration(chain: Chain, rule, *args) -> float:
     """The shortest duration within the speed limits (1 s for a chain without limits or no motion)."""
     if chain.velocity_limits is None:
         return 1.0
     return float(rule(chain, *args)) or 1.0
 
 
-def _start_configuration(chain: DHChain, pose: torch.Tensor, method: str) -> torch.Tensor:
+def _start_configuration(chain: Chain, pose: torch.Tensor, method: str) -> torch.Tensor:
     from .ik import analytic, solve
 
     result = analytic.iiwa_solve(chain, pose) if method == "analytic" and chain.n_joints == 7 else solve(chain, pose)
@@ -539,7 +578,7 @@ def _view(args: argparse.Namespace) -> int:
     return 0
 
 
-def _csv_path(chain: DHChain, file: str) -> tuple[torch.Tensor, float]:
+def _csv_path(chain: Chain, file: str) -> tuple[torch.Tensor, float]:
     """The joint path ``(T, n)`` and time step (s) of a CSV written by ``iiwa-torch traj --csv``."""
     try:
         with open(file, newline="") as f:
@@ -557,7 +596,7 @@ def _csv_path(chain: DHChain, file: str) -> tuple[torch.Tensor, float]:
     return q, (t[-1] - t[0]) / (len(t) - 1)
 
 
-def _policy_rollouts(chain: DHChain, policy: str, n_goals: int, seed: int):
+def _policy_rollouts(chain: Chain, policy: str, n_goals: int, seed: int):
     """``(q (n_goals, T + 1, n), dt s, goal positions (n_goals, 3))`` of a trained policy's rollouts
     on held-out goals (as ``train.evaluate`` runs them)."""
     from envs.sb3 import IiwaReachVecEnv
@@ -597,6 +636,8 @@ def _workspace(args: argparse.Namespace) -> int:
         _writable(args.manipulability, "--manipulability")
     if args.samples <= 0 or args.h <= 0:
         raise _UsageError(f"--samples and --h must be positive, got {args.samples} and {args.h}")
+    if args.point is None:  # the wrist centre of the presets' spherical wrists; any other arm's flange
+        args.point = "wrist" if isinstance(chain, DHChain) and chain.n_joints >= 6 else "flange"
     wrist = args.point == "wrist"
     point = workspace.frame_point(chain, 5) if wrist else None
     if args.plot is not None:
@@ -626,7 +667,10 @@ def _workspace(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- parser
 def _parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--robot", default="iiwa14", choices=list(robots.PRESETS), help="robot preset (default iiwa14)")
+    common.add_argument("--robot", choices=list(robots.PRESETS), help="robot preset (default iiwa14)")
+    common.add_argument("--urdf", metavar="FILE", help="any serial arm from its URDF file instead of a preset")
+    common.add_argument("--end-link", metavar="LINK",
+                        help="with --urdf: the end effector's link (default: the only leaf)")
     common.add_argument(
         "--flange",
         type=float,
@@ -671,7 +715,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--to-pose", nargs="+", type=float, metavar="V", help="goal pose (a straight line tracked by IK)")
     p.add_argument("--steps", type=int, default=50, help="samples along the trajectory (default 50)")
     p.add_argument("--duration", type=float, help="seconds (default: the shortest within the speed limits)")
-    p.add_argument("--method", choices=["analytic", "gradient"], default="analytic", help="IK for Cartesian lines")
+    p.add_argument("--method", choices=["analytic", "gradient"],
+                   help="IK for Cartesian lines (default: analytic for the presets, gradient for a --urdf arm)")
     p.add_argument("--csv", metavar="FILE", help="write t, joint angles (rad) and end-effector xyz")
     p.add_argument("--gif", metavar="FILE", help="write an animation (.gif, or .mp4 with ffmpeg)")
     p.add_argument("--fps", type=int, help="animation frame rate (default: real time)")
@@ -710,8 +755,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", metavar="PNG", help="write the side view (r-z plane) to this PNG")
     p.add_argument("--manipulability", metavar="PNG", help="also write a manipulability map to this PNG")
     p.add_argument(
-        "--point", choices=["wrist", "flange"], default="wrist",
-        help="the point whose reach is drawn (default wrist: the centre KUKA's datasheet draws)",
+        "--point", choices=["wrist", "flange"],
+        help="the point whose reach is drawn (default: the wrist centre KUKA's datasheet draws, for the presets; "
+             "the flange for a --urdf arm)",
     )
     p.add_argument("--h", type=float, default=0.005, help="grid cell size in m (default 0.005)")
     p.add_argument("--samples", type=int, default=1 << 23, help="sampled configurations (default 8388608)")

@@ -391,3 +391,42 @@ def test_a_long_command_says_it_is_running_on_stderr_only(capsys):
     with Elapsed("fk"):  # a quick command prints nothing
         pass
     assert capsys.readouterr() == ("", "")
+
+
+def test_any_arm_from_its_urdf(capsys):
+    """fk and ik of a URDF robot: the pose of robots.from_urdf on the same file; the kuka_iiwa file is
+    solved in closed form (its axes make an S-R-S arm), the Panda by the gradient IK; bad files and
+    options are one-line usage errors."""
+    pybullet_data = pytest.importorskip("pybullet_data")
+    pytest.importorskip("pytorch_kinematics")
+    data = Path(pybullet_data.getDataPath())
+    panda_file = str(data / "franka_panda/panda.urdf")
+    panda = robots.from_urdf(panda_file, end_link="panda_hand")
+    q_deg = [10, 30, -20, -90, 15, 100, 40]
+    out = _run_json(capsys, "fk", *map(str, q_deg), "--urdf", panda_file, "--end-link", "panda_hand")
+    expected = panda.fk(torch.tensor([math.radians(v) for v in q_deg], dtype=F64))
+    torch.testing.assert_close(torch.tensor(out["pose"], dtype=F64), expected, rtol=0, atol=1e-12)
+    flat = [str(v) for row in out["pose"] for v in row]
+    ik = _run_json(capsys, "ik", "--pose", *flat, "--urdf", panda_file, "--end-link", "panda_hand")
+    assert ik["method"] == "gradient" and any(s["valid"] for s in ik["solutions"])
+    kuka_file = str(data / "kuka_iiwa/model.urdf")
+    kuka = robots.from_urdf(kuka_file)
+    pose = kuka.fk(kuka.random_q(1, generator=torch.Generator().manual_seed(3))[0])
+    ik = _run_json(capsys, "ik", "--pose", *map(str, pose.flatten().tolist()), "--urdf", kuka_file)
+    assert ik["method"] == "analytic"
+    valid = [s for s in ik["solutions"] if s["valid"]]
+    assert valid
+    for s in valid:
+        reached = kuka.fk(torch.tensor(s["q_rad"], dtype=F64))
+        assert (reached - pose).abs().max() < 1e-9
+    traj = _run_json(capsys, "traj", "--urdf", panda_file, "--end-link", "panda_hand", "--from-q", *map(str, q_deg),
+                     "--to-pose", "0.4", "0.1", "0.4", "180", "0", "0", "--steps", "10")
+    assert traj["kind"] == "Cartesian line tracked by gradient IK" and traj["max_pos_err_m"] < 1e-6
+    reach = _run_json(capsys, "workspace", "--urdf", panda_file, "--end-link", "panda_hand", "--samples", "20000")
+    assert reach["point"] == "flange" and 0.7 < reach["r_max_m"] < 1.0  # the Panda's reach is about 0.855 m
+    assert "no URDF file" in _fails(capsys, "fk", "0", "--urdf", "/no/such.urdf")
+    assert "pass end_link=" in _fails(capsys, "fk", "0", "--urdf", panda_file)
+    assert "presets only" in _fails(capsys, "fk", "0", "--urdf", panda_file, "--robot", "iiwa14")
+    assert "--urdf only" in _fails(capsys, "fk", "0", "--end-link", "tool0")
+    assert "do not meet" in _fails(capsys, "ik", "--pose", *flat, "--urdf", panda_file, "--end-link", "panda_hand",
+                                   "--method", "analytic")
