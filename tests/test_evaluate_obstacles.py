@@ -175,7 +175,7 @@ def test_rollout_flags_are_the_envs_collisions_recounted(step0_model):
 def model_for(env_id: str):
     from stable_baselines3 import PPO
 
-    from train.train import make_env
+    from train.vec_env import make_env
 
     return PPO("MultiInputPolicy", make_env(env_id, 1, 0, {"collision": "off"}), device="cpu", seed=0)
 

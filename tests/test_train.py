@@ -24,6 +24,7 @@ import yaml
 
 from train import evaluate as ev
 from train import train as tr
+from train import vec_env
 from train.run_dir import RunDir
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -302,7 +303,7 @@ def test_evaluate_a_stopped_run_uses_its_newest_checkpoint(tmp_path, capsys):
 
 def test_unknown_gymnasium_id_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown env id 'NoSuchEnv-v9'"):
-        tr.make_env("NoSuchEnv-v9", 1, 0)
+        vec_env.make_env("NoSuchEnv-v9", 1, 0)
 
 
 def test_goal_delta_features_follow_relabelled_goals():

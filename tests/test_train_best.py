@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import envs
-from train import callbacks, ship
+from train import callbacks, ship, vec_env
 from train import evaluate as ev
 from train import train as tr
 from train.rollout import PolicyEvaluator, make_goal_set
@@ -40,7 +40,7 @@ def load(folder: Path):
     from stable_baselines3 import SAC
 
     env_kwargs = RunDir(folder.parents[1]).read_config()["hyperparams"].get("env_kwargs")
-    return SAC.load(folder / "model.zip", env=tr.make_env("IiwaReach-v0", 1, 0, env_kwargs), device="cpu")
+    return SAC.load(folder / "model.zip", env=vec_env.make_env("IiwaReach-v0", 1, 0, env_kwargs), device="cpu")
 
 
 class Scripted:

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from train import train as tr
+from train import vec_env
 
 ROOT = Path(__file__).resolve().parents[1]
 HP = {"features_extractor": "joint", "normalize": False, "policy": "ResidualDLSPolicy", "n_envs": 8,
@@ -27,7 +28,7 @@ def _model():
     hp = tr.load_hyperparams("ppo", "IiwaReach-v0", {**HP, **plain})
     kwargs = tr.algo_kwargs("ppo", hp)
     policy = kwargs.pop("policy")
-    return PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)
+    return PPO(policy, vec_env.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)
 
 
 def test_action_is_dls_step_plus_gated_correction():
@@ -76,12 +77,12 @@ def test_residual_policy_needs_the_joint_extractor_and_a_positive_gate():
     kwargs = tr.algo_kwargs("ppo", hp)
     policy = kwargs.pop("policy")
     with pytest.raises(ValueError, match="needs a shared JointGoalExtractor"):
-        PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", **kwargs)
+        PPO(policy, vec_env.build_venv("IiwaReach-v0", hp, 0), device="cpu", **kwargs)
     with pytest.raises(ValueError, match="gate_distance must be a positive"):
         _bad = {**HP, "policy_kwargs": {"gate_distance": 0}}
         hp = tr.load_hyperparams("ppo", "IiwaReach-v0", _bad)
         kwargs = tr.algo_kwargs("ppo", hp)
-        PPO(kwargs.pop("policy"), tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", **kwargs)
+        PPO(kwargs.pop("policy"), vec_env.build_venv("IiwaReach-v0", hp, 0), device="cpu", **kwargs)
 
 
 def test_joint_features_need_raw_observations():
@@ -98,7 +99,7 @@ def test_with_avoidance_the_whole_mean_keeps_the_damper_constraints():
     hp = tr.load_hyperparams("ppo", "IiwaReachObstacles-v0", {**HP, "n_envs": 64, "n_steps": 4, "batch_size": 256})
     kwargs = tr.algo_kwargs("ppo", hp)
     policy = kwargs.pop("policy")
-    venv = tr.build_venv("IiwaReachObstacles-v0", hp, 0)
+    venv = vec_env.build_venv("IiwaReachObstacles-v0", hp, 0)
     model = PPO(policy, venv, device="cpu", seed=0, **kwargs)
     ext = model.policy.features_extractor
     assert ext.damper_columns is not None
@@ -129,7 +130,7 @@ def test_one_row_head_in_numpy_equals_the_torch_path(monkeypatch, small_kernel):
     from train.evaluate import load_policy
 
     model, _, config = load_policy(ROOT / "train" / "policies" / "ppo_iiwa_reach_obstacles")
-    policy, venv = model.policy, tr.build_venv(config["env_id"], {**config["hyperparams"], "n_envs": 64}, 0)
+    policy, venv = model.policy, vec_env.build_venv(config["env_id"], {**config["hyperparams"], "n_envs": 64}, 0)
     head, rng = policy.action_net, np.random.default_rng(1)
     obs = venv.reset()
     for _ in range(20):  # random motion: some arms come near their obstacles
@@ -195,7 +196,7 @@ def test_keep_progress_keeps_the_dls_steps_first_order_progress(small_kernel):
             "features_extractor_kwargs": {"scales": [0.3, 0.03, 0.003], "dampings": [0.1, 0.01]}})
         kwargs = tr.algo_kwargs("ppo", hp)
         policy = kwargs.pop("policy")
-        venv = tr.build_venv("IiwaReach-v0", hp, 0)
+        venv = vec_env.build_venv("IiwaReach-v0", hp, 0)
         model = PPO(policy, venv, device="cpu", seed=0, **kwargs)
         head = model.policy.action_net
         parts = [rng.normal(size=(n, head.linear.in_features)), step, distance] + ([gradient] if keep else [])
@@ -229,4 +230,4 @@ def test_keep_progress_must_be_a_bool():
     kwargs = tr.algo_kwargs("ppo", hp)
     policy = kwargs.pop("policy")
     with pytest.raises(TypeError, match="keep_progress must be True or False"):
-        PPO(policy, tr.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)
+        PPO(policy, vec_env.build_venv("IiwaReach-v0", hp, 0), device="cpu", seed=0, **kwargs)

@@ -69,7 +69,7 @@ class EvalAndCheckpoint(BaseCallback):
 
     def _other_env_metrics(self) -> tuple[dict[str, float], float]:
         """Another goal env (e.g. panda-gym): ``eval_goals`` seeded episodes, as it defines them."""
-        from train.train import make_env
+        from train.vec_env import make_env
 
         start = time.perf_counter()
         vec_normalize = self.model.get_vec_normalize_env()

@@ -70,7 +70,7 @@ def load_policy(model_dir: Path):
     import pickle
 
     from train.run_dir import RunDir, check_model
-    from train.train import make_env
+    from train.vec_env import make_env
 
     run = RunDir(model_dir)
     folder = run.path

@@ -27,7 +27,6 @@ checkpoint whose files all load. Everything is validated before the first write.
 from __future__ import annotations
 
 import argparse
-import importlib
 import inspect
 import json
 import os
@@ -52,6 +51,7 @@ from train.run_dir import (
     read_yaml,
     validate_config,
 )
+from train.vec_env import build_venv, wrap_normalize
 
 if TYPE_CHECKING:
     from train.callbacks import EvalAndCheckpoint
@@ -235,54 +235,6 @@ def git_commit() -> str:
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return sha.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
-
-
-# ---------------------------------------------------------------------------- environments
-def make_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any] | None = None):
-    """The SB3 VecEnv: the batched ``envs.sb3.IiwaReachVecEnv`` for our ids, else SB3's
-    ``make_vec_env`` on a gymnasium id (e.g. ``panda_gym:PandaReach-v3``)."""
-    import envs
-    from envs.sb3 import IiwaReachVecEnv
-
-    if env_id in envs.ENV_IDS:
-        return IiwaReachVecEnv(n_envs, env_id, seed=seed, **(env_kwargs or {}))
-    import gymnasium
-    from stable_baselines3.common.env_util import make_vec_env
-
-    module, _, name = env_id.rpartition(":")
-    try:
-        if module:
-            importlib.import_module(module)  # registers its ids, as gymnasium.make("module:Id") does
-        gymnasium.spec(name)
-    except (gymnasium.error.Error, ImportError) as err:
-        raise ValueError(f"unknown env id {env_id!r}: use one of {list(envs.ENV_IDS)} or a registered "
-                         f"gymnasium id ('module:Id' imports the module first) ({err})") from None
-    return make_vec_env(name, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
-
-
-def build_venv(env_id: str, hp: dict[str, Any], seed: int):
-    """``make_env`` plus ``VecMonitor`` (episode return, length and success in the logs) and, if the
-    hyper-parameters ask, the ``LogDistanceBonus`` and ``ClearancePenalty`` reward terms (before any
-    normalisation)."""
-    from stable_baselines3.common.vec_env import VecMonitor
-
-    from train.wrappers import ClearancePenalty, LogDistanceBonus
-
-    venv = VecMonitor(make_env(env_id, hp["n_envs"], seed, hp.get("env_kwargs")))
-    if hp.get("log_distance_bonus") is not None:
-        venv = LogDistanceBonus(venv, **hp["log_distance_bonus"])
-    if hp.get("clearance_penalty") is not None:
-        venv = ClearancePenalty(venv, **hp["clearance_penalty"])
-    return venv
-
-
-def wrap_normalize(venv, hp: dict[str, Any], gamma: float):
-    """VecNormalize on the ``observation`` key (goals stay in metres for the goal-delta features)."""
-    from stable_baselines3.common.vec_env import VecNormalize
-
-    if not hp.get("normalize", False):
-        return venv
-    return VecNormalize(venv, norm_obs_keys=["observation"], norm_reward=False, gamma=gamma)
 
 
 # ---------------------------------------------------------------------------- main
