@@ -351,6 +351,7 @@ def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):
     proc = subprocess.Popen(
         [sys.executable, "-m", "iiwa_torch.cli", "view", "--port", str(port)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # a background shell may ignore Ctrl-C
     )
     try:
         banner = proc.stdout.readline()

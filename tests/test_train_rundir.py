@@ -161,11 +161,15 @@ def test_ctrl_c_during_a_save_is_held_until_the_checkpoint_is_complete(run_copy)
         save(path)
 
     model.save_replay_buffer = interrupted
-    with pytest.raises(KeyboardInterrupt):
-        run.save_checkpoint(model, {"num_timesteps": 600, "elapsed": 0.0, "evaluations": []})
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)  # a background shell may ignore Ctrl-C
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run.save_checkpoint(model, {"num_timesteps": 600, "elapsed": 0.0, "evaluations": []})
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     assert run.latest_checkpoint().name == "step_000000000600"
     assert (run.latest_checkpoint() / "replay_buffer.pkl").is_file()
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_atomic_write_keeps_the_old_file_when_writing_fails(tmp_path):
