@@ -8,7 +8,7 @@ import pathlib
 import numpy as np
 import pytest
 import torch
-from urdf_samples import ODD_URDF
+from urdf_samples import ODD_URDF, pinocchio_q
 
 from iiwa_torch import Chain, ik, robots, urdf
 
@@ -47,12 +47,7 @@ def _pinocchio(name: str, chain: Chain, q: np.ndarray, end_link: str):
     end, links = model.getFrameId(end_link), [model.getFrameId(link) for link in chain.link_names]
     poses, frames, jacobians = [], [], []
     for row in q:
-        full = pin.neutral(model)
-        for slot, value in zip(slots, row):
-            if slot.nq == 2:  # continuous: (cos, sin)
-                full[slot.idx_q : slot.idx_q + 2] = math.cos(value), math.sin(value)
-            else:
-                full[slot.idx_q] = value
+        full = pinocchio_q(pin, model, slots, row)
         pin.forwardKinematics(model, data, full)
         pin.updateFramePlacements(model, data)
         poses.append(data.oMf[end].homogeneous.copy())

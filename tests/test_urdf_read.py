@@ -9,6 +9,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 import torch
+from urdf_samples import pinocchio_q
 
 from iiwa_torch import robots, urdf
 from iiwa_torch.urdf import read_urdf
@@ -59,12 +60,7 @@ def _pinocchio_fk(model, path, q):
     slots = [model.joints[model.getJointId(j.name)] for j in path.joints]
     out = []
     for row in q:
-        full = pin.neutral(model)
-        for slot, value in zip(slots, row):
-            if slot.nq == 2:  # continuous: (cos, sin)
-                full[slot.idx_q : slot.idx_q + 2] = math.cos(value), math.sin(value)
-            else:
-                full[slot.idx_q] = value
+        full = pinocchio_q(pin, model, slots, row)
         pin.forwardKinematics(model, data, full)
         pin.updateFramePlacements(model, data)
         out.append(data.oMf[frame].homogeneous.copy())

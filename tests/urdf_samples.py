@@ -1,4 +1,6 @@
-"""URDF files written for the tests."""
+"""URDF files written for the tests, and how pinocchio (the reference) takes joint values."""
+
+import math
 
 # Every joint kind, axes off the coordinate axes, fixed joints inside and after the path, a branch
 # off it: written by hand for this test.
@@ -24,3 +26,15 @@ ODD_URDF = """<?xml version="1.0"?>
     <axis xyz="1 0 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
 </robot>
 """
+
+
+def pinocchio_q(pin, model, slots, values):
+    """pinocchio's configuration of ``model`` with ``values`` (rad or m) at its joints ``slots``, the
+    others neutral; a continuous joint takes its (cos, sin)."""
+    full = pin.neutral(model)
+    for slot, value in zip(slots, values):
+        if slot.nq == 2:
+            full[slot.idx_q : slot.idx_q + 2] = math.cos(value), math.sin(value)
+        else:
+            full[slot.idx_q] = value
+    return full
