@@ -379,9 +379,8 @@ class ReachTask:
             clearance, collision = self.clearance_rows(q_t, state.obstacles)
             collision = xp.of(collision)
         if xp is NUMPY:  # one env: its frames once, in Python floats, for the goal and the clearance
-            g = self.robot.geometry(self.dtype)
-            frames = kin.frames_floats(g, q_t)
-            achieved = self.goals.goal_of_frame(kin.tool_frame_floats(g, frames[-1]), self.dtype)
+            frames, end = kin.frame_lists(self.robot.geometry(self.dtype), q_t)
+            achieved = self.goals.goal_of_frame(end, self.dtype)
             if world is not None and collision is None:
                 collision = np.array([world.clearance_of_frames(frames, block) < 0])
         else:

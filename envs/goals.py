@@ -136,7 +136,7 @@ class ReachGoals:
 
     def goal_of_frame(self, frame: tuple, dtype: torch.dtype) -> Tensor:
         """One end-effector frame ``(x, y, z, p)``, 3-tuples of Python floats
-        (:func:`iiwa_torch.kinematics.tool_frame_floats`) -> its goal vector ``(g, 1)`` in ``dtype``
+        (the second of :func:`iiwa_torch.kinematics.frame_lists`) -> its goal vector ``(g, 1)`` in ``dtype``
         (float32 or float64): :meth:`goal_of` of one configuration, without a torch op."""
         x, y, _, p = frame
         values = p if self.kind is GoalKind.POSITION else p + x + y  # the layout of encode_pose_goal

@@ -142,7 +142,7 @@ class ObstacleWorld:
 
     def clearance_of_frames(self, frames: list[tuple], block: Tensor | None = None) -> float:
         """:meth:`clearance` of one configuration given by its frames
-        (:func:`iiwa_torch.kinematics.frames_floats` of the chain) and one env's ``block``
+        (the first of :func:`iiwa_torch.kinematics.frame_lists` of the chain) and one env's ``block``
         ``(SLOT_SIZE * M, 1)``, in Python floats, unchecked
         (:func:`~iiwa_torch.collision.clearance_of_frames`), exact where negative: a value >= 0
         only has the clearance's sign (0 for 0), which is all the envs ask of it. The block's
@@ -168,11 +168,11 @@ class ObstacleWorld:
         """``clearance(q, block, extra) > 0``, bools ``(m, *extra)``; for one env on the CPU
         (``m = 1``, nothing to differentiate) by the float path of each configuration
         (:meth:`clearance_of_frames`), with the obstacles built once for the episode's steps."""
-        if q.shape[0] != 1 or not kin.floats_ok(q):
+        if q.shape[0] != 1 or not kin.untracked_cpu(q):
             return self.clearance(q, block, extra) > 0
         g = self.chain.geometry(q.dtype)
         flat = q.reshape(-1, q.shape[-1])
-        free = [self.clearance_of_frames(kin.frames_floats(g, c), block) > 0 for c in flat]
+        free = [self.clearance_of_frames(kin.frame_lists(g, c)[0], block) > 0 for c in flat]
         return torch.tensor(free, device=q.device).reshape(q.shape[:-1])
 
     def draw(self, key: Tensor, episode: Tensor, start: Tensor, offset: int, rounds: int) -> Tensor:
@@ -188,7 +188,7 @@ class ObstacleWorld:
         item_slot = slot.repeat(n)
         pending = (item_slot < count[env]).nonzero().squeeze(-1)
         # one env on the CPU: its start's frames once, each item by the float path
-        frames = kin.frames_floats(self.chain.geometry(start.dtype), start) if n == 1 and kin.floats_ok(start) \
+        frames = kin.frame_lists(self.chain.geometry(start.dtype), start)[0] if n == 1 and kin.untracked_cpu(start) \
             else None
         for r in range(rounds):
             if not pending.numel():

@@ -371,8 +371,6 @@ class Chain(nn.Module):
             return kin.one_by_kernel(compiled.kernels().end_poses, self.geometry(torch.float64), x, q.ndim)
         self.check_q(q)
         g = self.geometry(q.dtype)
-        if q.numel() == self.n_joints and kin.floats_ok(q):
-            return kin.end_pose_floats(g, q)
         if q.requires_grad and torch.is_grad_enabled() and q.numel() > kin.SMALL_BATCH * self.n_joints:
             return kin.EndPoseFunction.apply(q, g)
         return kin.blockwise(q, self.n_joints, (4, 4), lambda qb: kin.end_pose(g, qb))
@@ -410,8 +408,6 @@ class Chain(nn.Module):
             return kin.one_by_kernel(compiled.kernels().jacobians, self.geometry(torch.float64), x, q.ndim)
         self.check_q(q)
         g = self.geometry(q.dtype)
-        if q.numel() == self.n_joints and kin.floats_ok(q):
-            return kin.jacobian_floats(g, q)
         return kin.blockwise(q, self.n_joints, (6, self.n_joints), lambda qb: kin.jacobian(g, qb))
 
     def forward(self, q: Tensor) -> Tensor:

@@ -864,11 +864,11 @@ def capsule_clearance(
     one in no pair gets ``inf`` and a zero gradient. For controllers that keep each link clear
     (e.g. a velocity damper: ``gradient[k] . dq >= -xi (distance[k] - d_safe)``). Neither output
     is differentiable further. The gradient is autograd's, but for one CPU configuration with no
-    obstacle but the floor the closed form in Python floats (:func:`_capsule_clearance_floats`), or
-    compiled (:func:`iiwa_torch.compiled.numba_kernels.capsule_clearance`) when enabled."""
+    obstacle but the floor the compiled closed form
+    (:func:`iiwa_torch.compiled.numba_kernels.capsule_clearance`) when enabled."""
     world, capsules = _resolve(chain, q, world, capsules)
-    if q.numel() == chain.n_joints and q.is_cpu and not world.tensors():  # one configuration, floor and self
-        distance, gradient = capsule_clearance_of_one(chain, q, world.floor, capsules)
+    if compiled.ENABLED and q.numel() == chain.n_joints and q.is_cpu and not world.tensors():
+        distance, gradient = _capsule_clearance_compiled(chain, q, world.floor, capsules)
         dtype = np.float32 if q.dtype == torch.float32 else np.float64
         return (torch.from_numpy(distance.astype(dtype, copy=False).reshape(*q.shape[:-1], -1)),
                 torch.from_numpy(gradient.astype(dtype, copy=False).reshape(*q.shape[:-1], -1, chain.n_joints)))
@@ -894,70 +894,22 @@ def capsule_clearance_of_one(
     """:func:`capsule_clearance` of one CPU configuration ``q`` (n numbers, nothing to differentiate)
     against itself and the floor at ``floor`` (m; ``None``: none), unchecked: for callers that built
     every argument themselves (the envs' single env) -> distances ``(K,)`` (m) and gradients ``(K, n)``
-    (m/rad), float64 numpy arrays. Compiled when enabled, else in Python floats."""
+    (m/rad), float64 numpy arrays."""
     if compiled.ENABLED:
         return _capsule_clearance_compiled(chain, q, floor, capsules)
-    distance, gradient = _capsule_clearance_floats(chain, q, floor, capsules)
-    return np.array(distance), np.array(gradient)
-
-
-def _capsule_clearance_floats(
-    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
-) -> tuple[list[float], list[list[float]]]:
-    """:func:`capsule_clearance` of one CPU configuration against the floor and itself, in Python
-    floats: each capsule's distance ``K`` (m) and gradient ``K x n`` (m/rad). A distance is ``|w| - r``
-    at the closest points ``x, y`` (``w = x - y``) or ``x_z - floor - r`` at the lower end point; by
-    the envelope theorem its gradient is ``u . (dx/dq - dy/dq)`` (``u = w / |w|``, or ``e_z``), each
-    point fixed in its capsule's frame, so ``dx/dq_j = z_j x (x - p_j)`` over the joints that move that
-    frame (the same value the autograd of the batched formulas gives)."""
-    n, table = chain.n_joints, capsules._float_table()
-    geometry = chain.geometry()
-    frames, axes = kin.frames_axes_floats(geometry, q)  # the base, then the link frames; each joint's (z, p)
-    slides = [prismatic for prismatic, _, _ in geometry.joints]
-    start, direction = _capsule_ends_floats(frames, capsules)
-    frame_of = [f for f, _, _ in table["points"]]
-    best: list[tuple[float, list[float]]] = [(math.inf, [0.0] * n)] * len(frame_of)
-
-    def along(k: int, point, u) -> list[float]:
-        """``u . d point / dq`` for a point fixed in capsule ``k``'s frame."""
-        out = [0.0] * n
-        for j in range(frame_of[k]):
-            (z0, z1, z2), (p0, p1, p2) = axes[j]
-            if slides[j]:  # a prismatic joint moves the point along its axis
-                out[j] = u[0] * z0 + u[1] * z1 + u[2] * z2
-                continue
-            l0, l1, l2 = point[0] - p0, point[1] - p1, point[2] - p2
-            out[j] = u[0] * (z1 * l2 - z2 * l1) + u[1] * (z2 * l0 - z0 * l2) + u[2] * (z0 * l1 - z1 * l0)
-        return out
-
-    def offer(k: int, distance: float, gradient: list[float]) -> None:
-        if distance < best[k][0]:
-            best[k] = (distance, gradient)
-
-    for (i, j), r in zip(capsules.pairs, table["pair_radius"]):
-        (a, da), (b, db) = (start[i], direction[i]), (start[j], direction[j])
-        s, t, w = _segment_closest_floats(a, da, b, db)
-        norm = math.sqrt(_dot(w, w))
-        u = (w[0] / norm, w[1] / norm, w[2] / norm) if norm > 0 else (0.0, 0.0, 0.0)
-        x = (a[0] + s * da[0], a[1] + s * da[1], a[2] + s * da[2])
-        y = (b[0] + t * db[0], b[1] + t * db[1], b[2] + t * db[2])
-        gradient = [gx - gy for gx, gy in zip(along(i, x, u), along(j, y, u))]
-        offer(i, norm - r, gradient)
-        offer(j, norm - r, gradient)
-    if floor is not None:
-        for k, r in table["floor"]:
-            a, d = start[k], direction[k]
-            end = (a[0] + d[0], a[1] + d[1], a[2] + d[2])
-            low = a if a[2] <= end[2] else end
-            offer(k, low[2] - (r + floor), along(k, low, (0.0, 0.0, 1.0)))
-    return [d for d, _ in best], [g for _, g in best]
+    with torch.inference_mode(False):  # a caller's inference tensors cannot be differentiated: a copy can
+        distance, gradient = capsule_clearance(chain, q.reshape(-1).double().clone(), World(floor=floor), capsules)
+    return distance.numpy(), gradient.numpy()
 
 
 def _capsule_clearance_compiled(
     chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_capsule_clearance_floats` by its compiled kernel: distances ``(K,)`` (m) and gradients
-    ``(K, n)`` (m/rad), float64 arrays."""
+    """:func:`capsule_clearance` of one configuration against the floor and itself by its compiled
+    kernel: distances ``(K,)`` (m) and gradients ``(K, n)`` (m/rad), float64 arrays. A distance is
+    ``|w| - r`` at the closest points ``x, y`` (``w = x - y``) or ``x_z - floor - r`` at the lower
+    end point; by the envelope theorem its gradient is ``u . (dx/dq - dy/dq)`` (``u = w / |w|``, or
+    ``e_z``), each point fixed in its capsule's frame: the value autograd gives."""
     tables, n = capsules._numpy_tables(), chain.n_joints
     k = len(capsules.names)
     distance, gradient = np.empty(k), np.empty((k, n))
@@ -975,9 +927,9 @@ def _plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
     CPU to, or ``None`` for its torch path: :func:`_clearance_numpy` up to ``CLEARANCE_NUMPY_BATCH``
     configurations (no walls or obstacle capsules), :func:`_clearance_compiled` above (numba
     enabled, no obstacle but the floor)."""
-    if world.walls or world.capsules or chain.geometry().link_numpy is None:
+    if world.walls or world.capsules:
         return None
-    if not all(kin.floats_ok(t) for t in (q, *world.tensors())):
+    if not all(kin.untracked_cpu(t) for t in (q, *world.tensors(), chain.limits)):
         return None
     tables = capsules._numpy_tables()
     floor = world.floor is not None and tables["floor"].size > 0
@@ -1003,7 +955,7 @@ def _clearance_compiled(chain: Chain, q: Tensor, world: World, capsules: Capsule
 
 
 def _capsule_ends_floats(frames: list[tuple], capsules: Capsules) -> tuple[list[tuple], list[tuple]]:
-    """One configuration's capsules from its frames (:func:`iiwa_torch.kinematics.frames_floats`):
+    """One configuration's capsules from its frames (:func:`iiwa_torch.kinematics.frame_lists`):
     their start points and start-to-end vectors, K 3-tuples of Python floats each."""
     start, direction = [], []
     for f, (u0, v0, w0), (u1, v1, w1) in capsules._float_table()["points"]:  # each end point: p + u x + v y + w z
@@ -1108,8 +1060,8 @@ def clearance_of_frames(capsules: Capsules, frames: list[tuple], floor: float | 
                         exact_below: float = math.inf) -> float:
     """:func:`clearance` of one configuration from its frames, unchecked: for callers that built
     every argument themselves and query one configuration at a time (the envs' single env).
-    ``frames``: :func:`iiwa_torch.kinematics.frames_floats` of the configuration (the capsules'
-    chain); ``floor``: its height (m, ``None``: none); ``spheres``, ``boxes``: one set of
+    ``frames``: the first of :func:`iiwa_torch.kinematics.frame_lists` of the configuration (the
+    capsules' chain); ``floor``: its height (m, ``None``: none); ``spheres``, ``boxes``: one set of
     obstacles (:func:`solids_numpy`, every batch dim of size 1) -> metres, a Python float.
     ``exact_below``: a clearance at or above it may come back as any value at or above it (boxes
     farther than it are not searched): with ``exact_below=0`` the sign is still exact, and 0
@@ -1146,11 +1098,13 @@ def _clearance_numpy(chain: Chain, q: Tensor, world: World, capsules: Capsules) 
     floor = tables["floor"]
     spheres, boxes = solids_numpy(world)
     if q.numel() == chain.n_joints:  # one configuration: its own distances in Python floats
-        own, start, direction = _own_clearance_floats(kin.frames_floats(chain.geometry(), q), world.floor, capsules)
+        frames = kin.frame_lists(chain.geometry(), q)[0]
+        own, start, direction = _own_clearance_floats(frames, world.floor, capsules)
         mins = [] if own is None else [np.array(own).reshape(lead)]
     else:
         flat = q.detach().reshape(-1, chain.n_joints).numpy().astype(np.float64)
-        frames = kin.frames_numpy(chain.geometry(), flat)[tables["frames"], :, :3]  # (K, B, 3, 4)
+        frames = kin.all_poses(chain.geometry(), torch.from_numpy(flat)).numpy()
+        frames = frames.transpose(1, 0, 2, 3)[tables["frames"], :, :3]  # (K, B, 3, 4)
         ends = frames @ tables["local"][:, None]  # (K, B, 3, 2)
         start, direction = ends[..., 0], ends[..., 1] - ends[..., 0]  # (K, B, 3)
         mins = []

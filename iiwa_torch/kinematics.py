@@ -8,21 +8,20 @@ its first argument and has no other state.
 
 Which kernel runs (``b`` configurations):
 
-- one CPU configuration with nothing to differentiate (:func:`floats_ok`): the end pose and
-  the Jacobian in Python floats (:func:`end_pose_floats`, :func:`jacobian_floats`), the same
-  frame recursion as the elementwise kernel; no torch op but the result's creation. With the
-  compiled kernels (:mod:`iiwa_torch.compiled`) the same recursion compiled, up to
-  ``SMALL_BATCH`` configurations at once.
-- :func:`end_pose`, :func:`all_poses`, :func:`jacobian`: up to ``SMALL_BATCH`` (128)
-  configurations, a chain of ``4x4`` link products (:func:`end_pose_matmul`; the end pose in
-  numpy when :func:`floats_ok`, :func:`end_pose_numpy`, or compiled); above, the elementwise batch-last kernel
-  :func:`frames_batch_last`, in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`).
-- :func:`frames_batch_last`: up to ``FRAMES_NUMPY_BATCH`` (32) CPU configurations without
-  autograd, the 4x4 products in numpy; above, the elementwise kernel.
-- :func:`position_batch_last`: one CPU configuration in Python floats, up to 128 the ``4x4``
-  products, above Horner's scheme (:func:`position_horner`) in blocks of ``POSITION_BLOCK``.
+- up to ``SMALL_BATCH`` (128) CPU configurations with nothing to differentiate
+  (:func:`untracked_cpu`) and the compiled kernels enabled (:mod:`iiwa_torch.compiled`): the
+  frame recursion compiled (:func:`by_kernel`), in float64, for :func:`end_pose`,
+  :func:`all_poses`, :func:`jacobian`, :func:`frames_batch_last`, :func:`position_batch_last`
+  and :func:`frame_lists`. A torch op costs microseconds however small its tensors; the
+  compiled recursion costs a fraction of one per configuration.
+- otherwise up to ``SMALL_BATCH``: a chain of ``4x4`` link products (:func:`end_pose_matmul`,
+  :func:`_frames_matmul`); above, the elementwise batch-last kernel :func:`frames_batch_last`,
+  in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`), and for the position alone
+  Horner's scheme (:func:`position_horner`) in blocks of ``POSITION_BLOCK``.
 - :class:`EndPoseFunction`: ``fk`` above 128 configurations under autograd, whose backward is
   ``J^T`` times the pose gradient's twist (:func:`pose_vjp`) instead of a replay of the ops.
+
+Which kernels exist, and why each, is in ``docs/kinematics.md`` ("Backends").
 
 :func:`reference_fk` is the plain definition for DH tables, a product of ``4x4`` DH link
 matrices, that every fast path is tested against (URDF chains are held to pinocchio).
@@ -49,7 +48,6 @@ __all__ = [
     "BLOCK",
     "POSITION_BLOCK",
     "SMALL_BATCH",
-    "FRAMES_NUMPY_BATCH",
     "EndPoseFunction",
     "Frame",
     "Geometry",
@@ -58,33 +56,23 @@ __all__ = [
     "dh_transforms",
     "elementary_transform",
     "end_pose",
-    "end_pose_floats",
     "end_pose_matmul",
-    "end_pose_numpy",
-    "floats_ok",
+    "frame_lists",
     "frames_batch_last",
-    "frames_axes_floats",
-    "frames_floats",
-    "frames_numpy",
     "jacobian",
-    "jacobian_floats",
-    "jacobian_numpy",
-    "pose_jacobian_numpy",
     "pose_vjp",
     "position_batch_last",
     "position_horner",
     "reference_fk",
     "tool_frame_batch_last",
-    "tool_frame_floats",
+    "untracked_cpu",
 ]
 
 Tensor = torch.Tensor
 Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
 BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
 POSITION_BLOCK = 65536  # the same for the position kernel, whose working set is a third (measured)
-SMALL_BATCH = 128  # up to this many configurations the 4x4-product kernel is faster (measured)
-FRAMES_NUMPY_BATCH = 32  # frames_batch_last: numpy 4x4 products up to this many (measured: faster to ~48)
-_NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+SMALL_BATCH = 128  # up to this many: the compiled or 4x4-product kernel (benchmarks/results/fk.md)
 
 
 def _exact(v: float) -> float:
@@ -166,29 +154,25 @@ class Geometry:
     ``link_{i-1} before_i``, through its origin.
 
     Floats: ``joints`` holds per joint ``(prismatic, before, after)``, the transforms as
-    :func:`_columns` or ``None`` where they are the identity; ``tool_columns`` the tool's columns;
-    ``base_rows`` the base's top three rows. Tensors (``dtype``, the buffers' device):
+    :func:`_columns` or ``None`` where they are the identity; ``tool_columns`` the tool's columns.
+    Tensors (``dtype``, the buffers' device):
     ``base (4, 4)``, ``before (n, 4, 4)``, ``limits (2, n)`` (may be infinite), ``draw_limits (2, n)`` (finite: an
     infinite side becomes one turn, -pi or pi), the small-batch kernel's link coefficients
     ``link_trig (n, 2, 16)``, ``link_const (n, 1, 16)`` (``end_*``: the base folded into the first
     link, the tool into the last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``,
     ``offsets (n, 1)``, ``offset_trig (2, n, 1)`` their cos and sin, ``prismatic (n, 1)`` bool;
-    ``before_numpy (n, 4, 4)``; ``end_numpy`` the numpy copies of ``trig_phase, end_trig,
-    end_const`` on the CPU (else ``None``), ``link_numpy`` those of ``trig_phase, link_trig,
-    link_const``, the base and the tool ``(4, 4)``; ``float_arrays`` the float64 numpy arrays
+    ``float_arrays`` the float64 numpy arrays
     ``transforms (n, 2, 4, 4)`` (before, after), ``params (n, 4)`` (offset, prismatic, before is
     not the identity, after is not), base and tool ``(4, 4)``: the arguments of
     :mod:`iiwa_torch.compiled.numba_kernels`.
     """
 
     joints: tuple[tuple[bool, tuple | None, tuple | None], ...]
-    offset_list: tuple[float, ...]
     has_base: bool
     has_tool: bool
     has_offsets: bool
     has_prismatic: bool
     tool_columns: tuple[tuple[float, float, float], ...]
-    base_rows: tuple[tuple[float, float, float, float], ...]
     base: Tensor
     before: Tensor
     limits: Tensor
@@ -201,9 +185,6 @@ class Geometry:
     offsets: Tensor
     offset_trig: Tensor
     prismatic: Tensor
-    before_numpy: np.ndarray
-    end_numpy: tuple[np.ndarray, np.ndarray, np.ndarray] | None
-    link_numpy: tuple[np.ndarray, ...] | None
     float_arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
     @property
@@ -255,11 +236,6 @@ class Geometry:
             "offset_trig": put(torch.stack([offsets.cos(), offsets.sin()])[..., None]),
             "prismatic": torch.tensor(prismatic, device=device)[:, None],
         }
-        end_numpy = link_numpy = None
-        if device.type == "cpu":
-            end_numpy = tuple(tensors[k].numpy() for k in ("trig_phase", "end_trig", "end_const"))
-            link_numpy = (*(tensors[k].numpy() for k in ("trig_phase", "link_trig", "link_const", "base")),
-                          tool.to(dtype).numpy())
         offset_list = tuple(offsets.tolist())
         plain = [(not torch.equal(b, eye), not torch.equal(a, eye)) for b, a in zip(before, after)]
         joints = tuple((p, _columns(b) if keep_b else None, _columns(a) if keep_a else None)
@@ -267,16 +243,11 @@ class Geometry:
         params = np.array([(o, p, kb, ka) for o, p, (kb, ka) in zip(offset_list, prismatic, plain)], dtype=np.float64)
         return cls(
             joints=joints,
-            offset_list=offset_list,
             has_base=not torch.equal(base, eye),
             has_tool=not torch.equal(tool, eye),
             has_offsets=any(offset_list),
             has_prismatic=any(prismatic),
             tool_columns=_columns(tool),
-            base_rows=tuple(map(tuple, base[:3].tolist())),
-            before_numpy=before.to(dtype).numpy(),
-            end_numpy=end_numpy,
-            link_numpy=link_numpy,
             float_arrays=(torch.stack([before, after], 1).numpy().copy(), params.reshape(n, 4), base.numpy().copy(),
                           tool.numpy().copy()),
             **tensors,
@@ -414,11 +385,10 @@ def frames_batch_last(g: Geometry, q: Tensor, keep: bool = True) -> tuple[list[F
     ``axes`` holds ``(z_i, p_i)``, joint i's axis and a point on it (if ``keep``). The tool is
     not applied (:func:`tool_frame_batch_last`). The moving frame's axes are rotated with
     elementwise multiply-adds over the whole batch; the constant transforms skip their zero
-    terms; no 4x4 products. Up to ``FRAMES_NUMPY_BATCH`` CPU configurations with nothing to
-    differentiate (:func:`floats_ok`), the same frames come from the 4x4 products in numpy instead
-    (fewer ops, each cheaper: about 0.7x the time for 8)."""
-    if q.shape[1] <= FRAMES_NUMPY_BATCH and floats_ok(q):
-        return _frames_batch_last_numpy(g, q, keep)
+    terms; no 4x4 products. Up to ``SMALL_BATCH`` :func:`compilable` configurations, the same
+    frames come from the compiled recursion."""
+    if q.shape[1] <= SMALL_BATCH and compilable(q):
+        return _frames_batch_last_compiled(g, q, keep)
     theta, c, s = _joint_trig(g, q)
     frame = tuple(g.base[:3, :, None].expand(3, 4, q.shape[1]).unbind(1))  # (x, y, z, p), each (3, b)
     frames, axes = [frame], []
@@ -447,16 +417,14 @@ def tool_frame_batch_last(g: Geometry, frame: Frame) -> Frame:
 
 def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """The end-effector position alone: ``q (n, b)`` -> ``(3, b)``, batch last, not checked.
-    One CPU configuration without autograd is computed in Python floats, up to ``SMALL_BATCH``
-    configurations take the 4x4 product kernel, more :func:`position_horner`.
+    Up to ``SMALL_BATCH`` configurations take the compiled recursion (:func:`compilable`) or the
+    4x4 product kernel, more :func:`position_horner`.
 
     ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if the caller has them (the envs'
     observations do): large batches then skip their own trigonometry."""
     b = q.shape[1]
-    if b == 1 and floats_ok(q):
-        return _position_floats(g, q)
     if b <= SMALL_BATCH:
-        return end_pose_matmul(g, q.T)[:, :3, 3].T
+        return end_pose(g, q.T)[:, :3, 3].T
     return position_horner(g, q, trig)
 
 
@@ -500,122 +468,36 @@ def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None =
     return torch.addmm(g.base[:3, 3, None], g.base[:3, :3], point)
 
 
-def _position_floats(g: Geometry, q: Tensor) -> Tensor:
-    """One configuration ``(n, 1)`` -> its ``(3, 1)`` position, computed in Python floats
-    (double precision): fewer instructions than even one chain of small numpy products."""
-    theta = [t + offset for (t,), offset in zip(q.tolist(), g.offset_list)]
-    point = _carry_tool_point(g, theta, [math.cos(t) for t in theta], [math.sin(t) for t in theta])
-    if g.has_base:
-        point = [row[3] + row[0] * point[0] + row[1] * point[1] + row[2] * point[2] for row in g.base_rows]
-    return torch.from_numpy(np.array(point, dtype=_NUMPY_DTYPES[q.dtype]).reshape(3, 1))
+def untracked_cpu(q: Tensor) -> bool:
+    """Whether ``q`` is on the CPU with nothing to differentiate (no ``requires_grad`` under grad
+    mode): what a compiled kernel or any numpy code may take."""
+    return q.is_cpu and not (q.requires_grad and torch.is_grad_enabled())
 
 
-# ---------------------------------------------------------------------- one configuration, Python floats
-def _transform_floats(frame: tuple, columns) -> tuple:
-    """:func:`_transform` on one frame ``(x, y, z, p)`` of 3-tuples of Python floats."""
-    (x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2) = frame
-    out = [(u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1, u * x2 + v * y2 + w * z2) for u, v, w in columns]
-    o0, o1, o2 = out[3]
-    return out[0], out[1], out[2], (p0 + o0, p1 + o1, p2 + o2)
+def compilable(q: Tensor) -> bool:
+    """Whether ``q`` may take the compiled kernels: they are enabled and :func:`untracked_cpu`."""
+    return compiled.ENABLED and untracked_cpu(q)
 
 
-def _frames_floats(g: Geometry, q: Tensor, keep_axes: bool, frames: list | None = None) -> tuple[tuple, list[tuple]]:
-    """One configuration, ``q`` with ``n`` elements, in Python floats (double precision): the same
-    frame recursion as :func:`frames_batch_last` and the tool of :func:`tool_frame_batch_last`.
-    Returns the end frame ``(x, y, z, p)`` (tool applied), each a 3-tuple, and, if
-    ``keep_axes``, the joint axes ``[(z_i, p_i)]``; appends the base and every link frame (no
-    tool), ``(x, y, z, p)`` each, to ``frames`` if given. Scalars throughout: no array op at all."""
-    (x0, y0, z0, p0), (x1, y1, z1, p1), (x2, y2, z2, p2) = g.base_rows
-    frame = ((x0, x1, x2), (y0, y1, y2), (z0, z1, z2), (p0, p1, p2))
-    axes = []
-    if frames is not None:
-        frames.append(frame)
-    for t, offset, (prismatic, before, after) in zip(q.reshape(-1).tolist(), g.offset_list, g.joints):
-        if before is not None:
-            frame = _transform_floats(frame, before)
-        x, y, z, p = frame
-        if keep_axes:
-            axes.append((z, p))
-        t += offset
-        if prismatic:
-            p = (p[0] + t * z[0], p[1] + t * z[1], p[2] + t * z[2])
-        else:
-            c, s = math.cos(t), math.sin(t)
-            x, y = tuple(c * u + s * v for u, v in zip(x, y)), tuple(c * v - s * u for u, v in zip(x, y))
-        frame = (x, y, z, p)
-        if after is not None:
-            frame = _transform_floats(frame, after)
-        if frames is not None:
-            frames.append(frame)
-    return tool_frame_floats(g, frame), axes
+def _compiled_arrays(g: Geometry, q: Tensor) -> np.ndarray:
+    """``q (..., n)`` -> its ``(b, n)`` float64 C-ordered rows, as the compiled kernels take them."""
+    x = (q.detach() if q.requires_grad else q).numpy().reshape(-1, g.n_joints)
+    if x.dtype != np.float64 or not x.flags.c_contiguous:
+        x = np.ascontiguousarray(x, dtype=np.float64)
+    return x
 
 
-def tool_frame_floats(g: Geometry, frame: tuple) -> tuple:
-    """The last link frame ``(x, y, z, p)``, 3-tuples of Python floats (:func:`frames_floats`'s
-    last), -> the end-effector (tool) frame, the same four 3-tuples."""
-    return _transform_floats(frame, g.tool_columns) if g.has_tool else frame
-
-
-def frames_floats(g: Geometry, q: Tensor) -> list[tuple]:
-    """One configuration ``q`` (``n`` elements, CPU, not checked) -> the base and every link frame
-    (no tool), ``n + 1`` tuples ``(x, y, z, p)`` of 3 Python floats each (axis columns and
-    origin): :func:`frames_numpy`'s frames for one configuration, by the float recursion."""
-    frames: list[tuple] = []
-    _frames_floats(g, q, False, frames)
-    return frames
-
-
-def frames_axes_floats(g: Geometry, q: Tensor) -> tuple[list[tuple], list[tuple]]:
-    """:func:`frames_floats` and the joint axes ``[(z_i, p_i)]`` (3-tuples) of the same pass."""
-    frames: list[tuple] = []
-    _, axes = _frames_floats(g, q, True, frames)
-    return frames, axes
-
-
-def end_pose_floats(g: Geometry, q: Tensor) -> Tensor:
-    """One configuration ``q (..., n)`` (a single one: ``q.numel() == n``) -> its end pose
-    ``(..., 4, 4)`` in ``q``'s dtype, computed in Python floats (double precision), or by the
-    same recursion compiled (:func:`iiwa_torch.compiled.numba_kernels.end_poses`, which takes
-    any number of configurations) when enabled; not checked.
-    For CPU inputs with nothing to differentiate (:func:`floats_ok`): the result is a new
-    tensor outside autograd. Its latency is a fraction of any torch kernel's."""
-    if compiled.ENABLED:
-        return by_kernel(compiled.kernels().end_poses, g, q, (4, 4))
-    (x, y, z, p), _ = _frames_floats(g, q, keep_axes=False)
-    rows = [x[0], y[0], z[0], p[0], x[1], y[1], z[1], p[1], x[2], y[2], z[2], p[2], 0.0, 0.0, 0.0, 1.0]
-    return torch.from_numpy(np.array(rows, dtype=_NUMPY_DTYPES[q.dtype]).reshape(*q.shape[:-1], 4, 4))
-
-
-def jacobian_floats(g: Geometry, q: Tensor) -> Tensor:
-    """One configuration ``q (..., n)`` (``q.numel() == n``) -> its Jacobian ``(..., 6, n)`` as
-    :func:`jacobian`, computed in Python floats (or compiled, any number of configurations:
-    :func:`iiwa_torch.compiled.numba_kernels.jacobians`), not checked; for :func:`floats_ok`
-    inputs. Column i is ``[z_i x (p_e - p_i); z_i]`` (revolute) or ``[z_i; 0]`` (prismatic)."""
-    if compiled.ENABLED:
-        return by_kernel(compiled.kernels().jacobians, g, q, (6, g.n_joints))
-    (_, _, _, (e0, e1, e2)), axes = _frames_floats(g, q, keep_axes=True)
-    columns = []
-    for ((z0, z1, z2), (p0, p1, p2)), (prismatic, _, _) in zip(axes, g.joints):
-        if prismatic:
-            columns.append((z0, z1, z2, 0.0, 0.0, 0.0))
-            continue
-        l0, l1, l2 = e0 - p0, e1 - p1, e2 - p2
-        columns.append((z1 * l2 - z2 * l1, z2 * l0 - z0 * l2, z0 * l1 - z1 * l0, z0, z1, z2))
-    out = np.array(columns, dtype=_NUMPY_DTYPES[q.dtype]).T  # (6, n)
-    return torch.from_numpy(np.ascontiguousarray(out).reshape(*q.shape[:-1], 6, len(axes)))
+def _like(out: np.ndarray, q: Tensor) -> Tensor:
+    """A compiled kernel's float64 ``out`` as a tensor in ``q``'s dtype (a new tensor outside autograd)."""
+    return torch.from_numpy(out if q.dtype == torch.float64 else out.astype(np.float32))
 
 
 def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
     """``kernel(*g.float_arrays, q (b, n))``, a compiled kernel of :mod:`iiwa_torch.compiled.numba_kernels`
-    (float64, C-ordered rows), on ``q (..., n)`` (:func:`floats_ok`, not checked) -> ``(..., *shape)``
+    (float64 inside), on ``q (..., n)`` (:func:`compilable`, not checked) -> ``(..., *shape)``
     in ``q``'s dtype, a new tensor outside autograd."""
-    x = (q.detach() if q.requires_grad else q).numpy()
-    if x.ndim != 2 or x.dtype != np.float64 or not x.flags.c_contiguous:
-        x = np.ascontiguousarray(x.reshape(-1, x.shape[-1]), dtype=np.float64)
-    out = kernel(*g.float_arrays, x)
-    if q.dtype != torch.float64:
-        out = out.astype(np.float32)
-    return torch.from_numpy(out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape))
+    out = _like(kernel(*g.float_arrays, _compiled_arrays(g, q)), q)
+    return out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape)
 
 
 def one_by_kernel(kernel, g: Geometry, x: np.ndarray, ndim: int) -> Tensor:
@@ -625,25 +507,40 @@ def one_by_kernel(kernel, g: Geometry, x: np.ndarray, ndim: int) -> Tensor:
     return torch.from_numpy(out if ndim == 2 else out[0])
 
 
-def floats_ok(q: Tensor) -> bool:
-    """Whether one configuration ``q`` may take :func:`end_pose_floats` and :func:`jacobian_floats`:
-    on the CPU with nothing to differentiate (no ``requires_grad`` under grad mode)."""
-    return q.is_cpu and not (q.requires_grad and torch.is_grad_enabled())
+def _frames_batch_last_compiled(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
+    """:func:`frames_batch_last` of ``q (n, b)`` (:func:`compilable`) by the compiled recursion."""
+    frames, z, p, _ = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q.T))
+    if not keep:
+        frames = frames[:, -1:]
+    columns = _like(np.ascontiguousarray(frames.transpose(1, 2, 3, 0)), q)  # (F, 4, 3, b)
+    out = [tuple(f.unbind(0)) for f in columns.unbind(0)]
+    if not keep:
+        return out, []
+    axes = _like(np.ascontiguousarray(np.stack([z, p], 2).transpose(1, 2, 3, 0)), q)  # (n, 2, 3, b)
+    return out, [tuple(a.unbind(0)) for a in axes.unbind(0)]
+
+
+def frame_lists(g: Geometry, q: Tensor) -> tuple[list, list]:
+    """One configuration ``q`` (``n`` elements, :func:`untracked_cpu`, not checked) -> its frames as
+    Python floats, for code that works on one configuration without array ops (the envs' single
+    env, one configuration's clearance): the base and every link frame (no tool), ``n + 1``
+    lists ``[x, y, z, p]`` of three floats each (axis columns and origin), and the end-effector
+    frame (tool applied) in the same form. Computed in float64."""
+    if compiled.ENABLED:
+        frames, _, _, pose = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q))
+        return frames[0].tolist(), pose[0, :3].T.tolist()
+    one = q.reshape(1, -1)
+    return ([f[:3].T.tolist() for f in all_poses(g, one)[0].double()],
+            end_pose(g, one)[0, :3].double().T.tolist())
 
 
 # ---------------------------------------------------------------------- batch first, small batches
-def _link_features(g: Geometry, q):
-    """``q (b, n)``, a tensor or a numpy array -> ``(n, b, 2)``: the coefficients ``(f0, f1)`` of
-    each link in :func:`_link_coefficients`: ``(cos, sin)`` of ``q + offset``, or for a prismatic
-    joint ``q + offset`` itself."""
-    if isinstance(q, Tensor):
-        trig = torch.sin(q.T.unsqueeze(-1) + g.trig_phase)  # (n, b, 2): cos, sin
-        return torch.where(g.prismatic[..., None], (q.T + g.offsets).unsqueeze(-1), trig) if g.has_prismatic else trig
-    phase = g.end_numpy[0]
-    trig = np.sin(q.T[:, :, None] + phase)
-    if g.has_prismatic:
-        trig = np.where(g.prismatic.numpy()[..., None], q.T[:, :, None] + phase[..., 1:], trig)
-    return trig
+def _link_features(g: Geometry, q: Tensor) -> Tensor:
+    """``q (b, n)`` -> ``(n, b, 2)``: the coefficients ``(f0, f1)`` of each link in
+    :func:`_link_coefficients`: ``(cos, sin)`` of ``q + offset``, or for a prismatic joint
+    ``q + offset`` itself."""
+    trig = torch.sin(q.T.unsqueeze(-1) + g.trig_phase)  # (n, b, 2): cos, sin
+    return torch.where(g.prismatic[..., None], (q.T + g.offsets).unsqueeze(-1), trig) if g.has_prismatic else trig
 
 
 def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
@@ -659,86 +556,10 @@ def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
 
 
 def end_pose_matmul(g: Geometry, q: Tensor) -> Tensor:
-    """The small-batch kernel: ``q (b, n) -> (b, 4, 4)`` end poses (tool included), a chain of
-    4x4 products (any batch size). On the CPU with nothing to differentiate (:func:`floats_ok`):
-    one configuration in Python floats, more in numpy (:func:`end_pose_numpy`)."""
-    if floats_ok(q):
-        if q.shape[0] == 1 or compiled.ENABLED:  # one in Python floats, or any number compiled
-            return end_pose_floats(g, q)
-        return torch.from_numpy(end_pose_numpy(g, q))
+    """The small-batch torch kernel: ``q (b, n) -> (b, 4, 4)`` end poses (tool included), a chain
+    of 4x4 products (any batch size)."""
     product = torch.mm if q.shape[0] == 1 else torch.bmm
     return reduce(product, _link_matrices(g, q, end=True)).view(q.shape[0], 4, 4)
-
-
-def end_pose_numpy(g: Geometry, q: Tensor) -> np.ndarray:
-    """``q (b, n)`` on the CPU -> ``(b, 4, 4)`` end poses: the products of :func:`end_pose_matmul`
-    in numpy, whose per-op overhead is a fraction of torch's (a batch of 10: about half the
-    time). Not differentiable: for :func:`floats_ok` inputs."""
-    _, coeffs, const = g.end_numpy
-    return reduce(np.matmul, (const + _link_features(g, q.numpy()) @ coeffs).reshape(g.n_joints, -1, 4, 4))
-
-
-def frames_numpy(g: Geometry, q: np.ndarray) -> np.ndarray:
-    """``q (b, n)``, a numpy array in ``g``'s dtype (``g`` on the CPU) -> ``(n + 1, b, 4, 4)``:
-    the base and every link frame (no tool), the 4x4-product kernel (:func:`_link_matrices`,
-    :func:`_frames_matmul`) in numpy."""
-    _, coeffs, const, base, _ = g.link_numpy
-    b, n = q.shape
-    links = (const + _link_features(g, q) @ coeffs).reshape(n, b, 4, 4)
-    frames = np.empty((n + 1, b, 4, 4), dtype=links.dtype)  # filled in place: np.stack costs as much as the products
-    frames[0] = base
-    for i in range(n):
-        np.matmul(frames[i], links[i], out=frames[i + 1])
-    return frames
-
-
-def _axis_frames_numpy(g: Geometry, frames: np.ndarray) -> np.ndarray:
-    """:func:`frames_numpy`'s ``(n + 1, b, 4, 4)`` -> ``(n, b, 4, 4)``: each joint's frame
-    ``link_{i-1} before_i``, whose z axis is the joint's axis and whose origin lies on it."""
-    if all(before is None for _, before, _ in g.joints):
-        return frames[:-1]
-    return frames[:-1] @ g.before_numpy[:, None]
-
-
-def _frames_batch_last_numpy(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
-    """:func:`frames_batch_last` from :func:`frames_numpy`: the same frames, in its layout."""
-    frames = frames_numpy(g, q.numpy().T)
-    if not keep:
-        frames = frames[-1:]
-    top = np.ascontiguousarray(frames[:, :, :3].transpose(0, 2, 3, 1))  # (F, 3, 4, b)
-    out = [tuple(f.unbind(1)) for f in torch.from_numpy(top).unbind(0)]
-    if not keep:
-        return out, []
-    axes = np.ascontiguousarray(_axis_frames_numpy(g, frames)[:, :, :3, 2:].transpose(0, 2, 3, 1))  # (n, 3, 2, b)
-    return out, [tuple(a.unbind(1)) for a in torch.from_numpy(axes).unbind(0)]
-
-
-def jacobian_numpy(g: Geometry, q: Tensor) -> Tensor:
-    """``q (b, n)`` on the CPU -> ``(b, 6, n)`` Jacobians as :func:`jacobian`, from the link frames
-    of the 4x4-product kernel computed in numpy (a few dozen ops, each a fraction of a torch
-    op's overhead). Not differentiable: for :func:`floats_ok` inputs."""
-    return torch.from_numpy(pose_jacobian_numpy(g, q.numpy())[1])
-
-
-def pose_jacobian_numpy(g: Geometry, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``q (b, n)``, a numpy array in ``g``'s dtype (``g`` on the CPU) -> the end poses
-    ``(b, 4, 4)`` (tool included) and the Jacobians ``(b, 6, n)`` (as :func:`jacobian`), from one
-    pass of the 4x4-product kernel's link frames in numpy."""
-    b, n = q.shape
-    frames = frames_numpy(g, q)
-    axes = _axis_frames_numpy(g, frames)  # (n, b, 4, 4)
-    end = frames[-1] @ g.link_numpy[4]  # (b, 4, 4)
-    out = np.empty((b, 6, n), dtype=frames.dtype)
-    z = out[:, 3:]
-    z[:] = axes[:, :, :3, 2].transpose(1, 2, 0)  # the joint axes z_i, (b, 3, n)
-    lever = end[:, :3, 3, None] - axes[:, :, :3, 3].transpose(1, 2, 0)  # (b, 3, n)
-    for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
-        np.subtract(z[:, i] * lever[:, j], z[:, j] * lever[:, i], out=out[:, r])
-    if g.has_prismatic:  # a sliding joint moves the end along its axis and turns nothing
-        slides = g.prismatic.numpy()[:, 0]
-        out[:, :3, slides] = z[:, :, slides]
-        out[:, 3:, slides] = 0.0
-    return end, out
 
 
 def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:
@@ -794,16 +615,22 @@ def blockwise(q: Tensor, n: int, shape: tuple[int, ...], fn, *others: Tensor) ->
 
 
 def end_pose(g: Geometry, q: Tensor) -> Tensor:
-    """``q (b, n) -> (b, 4, 4)`` end poses: :func:`end_pose_matmul` up to ``SMALL_BATCH``
-    configurations, else the elementwise kernel (one block: see :func:`blockwise`)."""
+    """``q (b, n) -> (b, 4, 4)`` end poses: up to ``SMALL_BATCH`` configurations compiled
+    (:func:`compilable`) or :func:`end_pose_matmul`, else the elementwise kernel (one block: see
+    :func:`blockwise`)."""
     if q.shape[0] <= SMALL_BATCH:
-        return end_pose_matmul(g, q)
+        return by_kernel(compiled.kernels().end_poses, g, q, (4, 4)) if compilable(q) else end_pose_matmul(g, q)
     frames, _ = frames_batch_last(g, q.T, keep=False)
     return _poses(torch.stack(tool_frame_batch_last(g, frames[0]), 1)[None])[:, 0]
 
 
 def all_poses(g: Geometry, q: Tensor) -> Tensor:
     """``q (b, n) -> (b, n + 1, 4, 4)``: the base and every link frame (no tool)."""
+    if q.shape[0] <= SMALL_BATCH and compilable(q):
+        frames = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q))[0]  # (b, n + 1, 4, 3)
+        out = np.zeros((*frames.shape[:2], 4, 4))
+        out[..., :3, :], out[..., 3, 3] = frames.transpose(0, 1, 3, 2), 1.0
+        return _like(out, q)
     if q.shape[0] <= SMALL_BATCH:
         return _frames_matmul(g, q).transpose(0, 1)
     frames, _ = frames_batch_last(g, q.T)
@@ -834,10 +661,9 @@ def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
 
 def jacobian(g: Geometry, q: Tensor) -> Tensor:
     """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first);
-    on the CPU with nothing to differentiate (:func:`floats_ok`), one configuration in Python
-    floats, up to ``SMALL_BATCH`` in numpy."""
-    if q.shape[0] <= SMALL_BATCH and floats_ok(q):
-        return jacobian_floats(g, q) if q.shape[0] == 1 or compiled.ENABLED else jacobian_numpy(g, q)
+    up to ``SMALL_BATCH`` :func:`compilable` configurations compiled."""
+    if q.shape[0] <= SMALL_BATCH and compilable(q):
+        return by_kernel(compiled.kernels().jacobians, g, q, (6, g.n_joints))
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
     z = z.unbind(1)
     linear, angular = _cross(z, (end - origin).unbind(1)), z  # 3 x (n, b) each

@@ -1,18 +1,29 @@
-"""Every kinematics backend held to the torch path, for DH presets and URDF chains (every joint
-kind): the elementwise and 4x4-product torch kernels, Horner's position, the numpy products,
-the Python-float recursion and the compiled (numba) kernels give the same end poses, frames,
-joint axes and Jacobians. The torch path itself is held to the DH reference (test_dh.py) and
-to pinocchio (test_chain.py)."""
+"""Every backend held to the torch path, for DH presets and URDF chains (every joint kind).
+
+Kinematics: the elementwise and 4x4-product torch kernels, Horner's position and the compiled
+(numba) recursion give the same end poses, frames, joint axes and Jacobians. The torch path
+itself is held to the DH reference (test_dh.py) and to pinocchio (test_chain.py). Then the
+other compiled kernels (the LM rounds of ik.solve, the closed forms' sweeps, the clearances),
+each run twice: with the kernels enabled and switched off (``compiled.ENABLED`` monkeypatched
+to False), so the reference is the code they restate. Without numba only the fallback tests run.
+"""
 
 import importlib.util
+import math
+import os
+import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 from urdf_samples import ODD_URDF
 
-from iiwa_torch import compiled, robots
+from iiwa_torch import collision, compiled, robots, so3
 from iiwa_torch import kinematics as kin
+from iiwa_torch.dh import DHChain
+from iiwa_torch.ik import analytic, gradient, lm_setup, small, solve
 
 F64 = torch.float64
 
@@ -47,15 +58,20 @@ def _elementwise(chain, q):
     return torch.stack(end, 1).detach().permute(2, 0, 1), stack.permute(3, 0, 1, 2), axes
 
 
+def _compiled_or_skip():
+    if not compiled.ENABLED:
+        pytest.skip("numba (the fast extra) is not installed")
+
+
 @pytest.mark.parametrize("name", list(CHAINS))
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_every_backend_gives_the_torch_paths_numbers(name, dtype, monkeypatch):
+def test_the_torch_kernels_agree(name, dtype):
+    """The elementwise kernel (frames, end pose, joint axes) and Horner's position against the 4x4 products."""
     chain = CHAINS[name]
     q = chain.random_q(40, generator=torch.Generator().manual_seed(0), dtype=dtype)
     tol = 1e-12 if dtype == F64 else 3e-6
     pose, frames, jac = _torch_path(chain, q)
     g = chain.geometry(dtype)
-    # elementwise torch kernel: frames, end pose and joint axes (the Jacobian's columns)
     end, every, axes = _elementwise(chain, q)
     torch.testing.assert_close(end, pose[:, :3], atol=tol, rtol=0)
     torch.testing.assert_close(every, frames[:, :, :3], atol=tol, rtol=0)
@@ -63,35 +79,340 @@ def test_every_backend_gives_the_torch_paths_numbers(name, dtype, monkeypatch):
     z = torch.stack([a[0] for a in axes]).detach().permute(2, 1, 0)  # (b, 3, n)
     slides = g.prismatic[:, 0]  # a prismatic joint's axis is its linear column, a revolute one's its angular
     torch.testing.assert_close(z, torch.where(slides, jac[:, :3], jac[:, 3:]), atol=tol, rtol=0)
-    # Horner's position
     torch.testing.assert_close(kin.position_horner(g, q.T.contiguous()).T, pose[:, :3, 3], atol=tol, rtol=0)
-    # numpy products
-    torch.testing.assert_close(torch.from_numpy(kin.end_pose_numpy(g, q)), pose, atol=tol, rtol=0)
-    torch.testing.assert_close(torch.from_numpy(kin.frames_numpy(g, q.numpy())).transpose(0, 1), frames,
-                               atol=tol, rtol=0)
-    numpy_pose, numpy_jac = kin.pose_jacobian_numpy(g, q.numpy())
-    torch.testing.assert_close(torch.from_numpy(numpy_jac), jac, atol=tol, rtol=0)
-    # Python floats, one configuration (the compiled kernels off)
-    monkeypatch.setattr(compiled, "ENABLED", False)
-    for i in (0, 17):
-        torch.testing.assert_close(kin.end_pose_floats(g, q[i]), pose[i], atol=tol, rtol=0)
-        torch.testing.assert_close(kin.jacobian_floats(g, q[i]), jac[i], atol=tol, rtol=0)
-        rows = [torch.tensor([*x, *y, *z, *p], dtype=F64).reshape(4, 3).T for x, y, z, p in kin.frames_floats(g, q[i])]
-        torch.testing.assert_close(torch.stack(rows).to(dtype), frames[i, :, :3], atol=tol, rtol=0)
-        torch.testing.assert_close(kin.position_batch_last(g, q[i : i + 1].T)[:, 0], pose[i, :3, 3], atol=tol, rtol=0)
 
 
-@pytest.mark.skipif(not compiled.ENABLED, reason="numba (the fast extra) is not installed")
 @pytest.mark.parametrize("name", list(CHAINS))
-def test_the_compiled_kernels_give_the_float_paths_bits(name, monkeypatch):
-    """numba restates the Python-float recursion, term for term: the same bits."""
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_compiled_kernels_give_the_torch_paths_numbers(name, dtype):
+    """Every small-batch entry point the compiled recursion serves (float64 inside, the result in
+    ``q``'s dtype) against the torch 4x4 products: end poses, every frame, Jacobians, the
+    batch-last frames and axes, the position, and one configuration's frames as Python floats."""
+    _compiled_or_skip()
     chain = CHAINS[name]
-    g = chain.geometry(F64)
-    q = chain.random_q(30, generator=torch.Generator().manual_seed(1))
-    kernels = compiled.kernels()
-    poses, jacs = kernels.end_poses(*g.float_arrays, q.numpy()), kernels.jacobians(*g.float_arrays, q.numpy())
+    q = chain.random_q(40, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    tol = 1e-12 if dtype == F64 else 3e-6
+    pose, frames, jac = _torch_path(chain, q)
+    g = chain.geometry(dtype)
+    assert kin.compilable(q)
+    for got, want in ((kin.end_pose(g, q), pose), (kin.all_poses(g, q), frames), (kin.jacobian(g, q), jac)):
+        assert got.dtype == dtype
+        torch.testing.assert_close(got, want, atol=tol, rtol=0)
+    for keep in (True, False):
+        (fast, fast_axes), (slow, slow_axes) = kin.frames_batch_last(g, q.T), _grad_frames_batch_last(g, q.T)
+        if not keep:
+            (fast, fast_axes), slow, slow_axes = kin.frames_batch_last(g, q.T, keep=False), slow[-1:], []
+        assert len(fast) == len(slow) and len(fast_axes) == len(slow_axes)
+        for a, b in zip([*fast, *fast_axes], [*slow, *slow_axes]):
+            torch.testing.assert_close(torch.stack(a), torch.stack(b), atol=tol, rtol=0)
+    torch.testing.assert_close(kin.position_batch_last(g, q.T), pose[:, :3, 3].T, atol=tol, rtol=0)
+    for i in (0, 17):
+        _check_frame_lists(g, q[i], frames[i], pose[i], tol)
+
+
+def _grad_frames_batch_last(g, q):
+    """:func:`kin.frames_batch_last` through the elementwise torch kernel (autograd on), detached."""
+    frames, axes = kin.frames_batch_last(g, q.contiguous().requires_grad_())
+    return [tuple(t.detach() for t in f) for f in frames], [tuple(t.detach() for t in a) for a in axes]
+
+
+def _check_frame_lists(g, q, frames, pose, tol):
+    """``frame_lists`` of ``q (n,)``, and of the same numbers as the envs hold them, a column ``(n, 1)``."""
+    for layout in (q, q[:, None]):
+        lists, end = kin.frame_lists(g, layout)
+        as_matrix = [torch.tensor(f, dtype=F64).T for f in lists]  # (3, 4): axis columns and origin
+        torch.testing.assert_close(torch.stack(as_matrix), frames[:, :3].double(), atol=tol, rtol=0)
+        torch.testing.assert_close(torch.tensor(end, dtype=F64).T, pose[:3].double(), atol=tol, rtol=0)
+
+
+@pytest.mark.parametrize("name", list(CHAINS))
+def test_frame_lists_without_the_compiled_kernels(name, monkeypatch):
+    """Without numba, one configuration's frames as Python floats come from the torch kernels."""
     monkeypatch.setattr(compiled, "ENABLED", False)
-    for i in range(30):
-        np.testing.assert_array_equal(poses[i], kin.end_pose_floats(g, q[i]).numpy())
-        np.testing.assert_array_equal(jacs[i], kin.jacobian_floats(g, q[i]).numpy())
-    assert np.abs(poses - _torch_path(chain, q)[0].numpy()).max() < 1e-12
+    chain = CHAINS[name]
+    q = chain.random_q(3, generator=torch.Generator().manual_seed(4))
+    pose, frames, _ = _torch_path(chain, q)
+    _check_frame_lists(chain.geometry(F64), q[1], frames[1], pose[1], 1e-12)
+
+
+needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
+kernels = compiled.kernels() if compiled.ENABLED else None
+
+
+def _tilted(angle: float, shift) -> torch.Tensor:
+    t = torch.eye(4, dtype=torch.float64)
+    c, s = math.cos(angle), math.sin(angle)
+    t[:2, :2] = torch.tensor([[c, -s], [s, c]])
+    t[:3, 3] = torch.tensor(shift)
+    return t
+
+
+DH_CHAINS = {
+    "iiwa14_tool": robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05))),
+    "puma560": robots.puma560(),
+    "lrmate_modified_base": DHChain(robots.lrmate200ic().dh, convention="modified",
+                                    base=_tilted(-0.7, (0.1, 0.2, 0.3)), tool=_tilted(0.2, (0.0, 0.0, 0.1))),
+    "planar3r": robots.planar3r(),
+}  # fmt: skip
+
+
+def both_ways(monkeypatch, fn, one_seed_per_round: bool = False):
+    """``fn()`` with the kernels enabled, then with them switched off (and, if
+    ``one_seed_per_round``, the torch rounds of ik.solve one seed wide, as the compiled ones)."""
+    fast = fn()
+    with monkeypatch.context() as m:
+        m.setattr(compiled, "ENABLED", False)
+        if one_seed_per_round:
+            m.setattr(gradient, "round_width", lambda *args: 1)
+        slow = fn()
+    return fast, slow
+
+
+@needs_numba
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("name", list(DH_CHAINS))
+def test_fk_and_jacobian_of_a_few_configurations(monkeypatch, name, dtype):
+    """chain.fk and chain.jacobian, compiled and by torch: one configuration, a few, a batch of two
+    dimensions and a transposed (non-contiguous) one; the kernels compute in float64."""
+    chain = DH_CHAINS[name]
+    gen = torch.Generator().manual_seed(0)
+    shapes = ((), (1,), (10,), (2, 5))
+    for q in [chain.random_q(*shape, dtype=dtype, generator=gen) for shape in shapes] + [
+        chain.random_q(chain.n_joints, 3, dtype=dtype, generator=gen)[:, :, 0].T
+    ]:
+        for method in (chain.fk, chain.jacobian):
+            fast, slow = both_ways(monkeypatch, lambda: method(q))  # noqa: B023
+            assert fast.dtype == slow.dtype == dtype and fast.shape == slow.shape
+            tol = 1e-6 if dtype == torch.float32 else 1e-14
+            assert torch.allclose(fast, slow, atol=tol, rtol=0), (method.__name__, (fast - slow).abs().max())
+
+
+@needs_numba
+@pytest.mark.parametrize("shape", [(7,), (1, 7)])
+def test_one_configuration_shortcut(shape):
+    """fk/jacobian of one plain float64 configuration skip check_q (DHChain._plain_one): the same
+    numbers, bit for bit, as the checked path (taken by a Parameter), the chain's current buffers
+    (load_state_dict), and the same errors: a NaN or inf makes the Python sum of q NaN or inf, so q
+    goes to check_q; huge finite values whose sum overflows go there too, and pass."""
+    chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
+    q = chain.random_q(1, generator=torch.Generator().manual_seed(5)).reshape(shape)
+    assert chain._plain_one(q) is not None
+    for method in (chain.fk, chain.jacobian):
+        assert torch.equal(method(q), method(torch.nn.Parameter(q, requires_grad=False)))
+    other = robots.iiwa7()
+    chain.load_state_dict(other.state_dict())
+    assert torch.equal(chain.fk(q), other.fk(torch.nn.Parameter(q, requires_grad=False)))
+    for bad in (math.nan, math.inf, -math.inf):
+        for j in (0, 6):
+            x = q.clone()
+            x.view(-1)[j] = bad
+            index = (j,) if len(shape) == 1 else (0, j)
+            for method in (chain.fk, chain.jacobian):
+                with pytest.raises(ValueError, match=re.escape(f"q contains NaN or inf (first at index {index})")):
+                    method(x)
+    huge = torch.full(shape, 1e308, dtype=torch.float64)
+    assert chain._plain_one(huge) is None and torch.isfinite(chain.fk(huge)).all()
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["iiwa14", "puma560", "lrmate200ic"])
+def test_capsule_clearance_of_one_configuration(monkeypatch, name):
+    """collision.capsule_clearance of one CPU configuration against the floor (three heights, or
+    none) and itself: the compiled closed form gives autograd's distances and gradients through the
+    torch formulas, in float64 and float32."""
+    chain = getattr(robots, name)()
+    capsules = collision.robot_capsules(chain)
+    q = chain.random_q(40, generator=torch.Generator().manual_seed(2))
+    # where two segments cross, the gap's direction (and so its gradient) is undefined: keep configurations
+    # whose self pairs are 1 mm apart or more
+    radius = dict(zip(capsules.names, capsules.radii.tolist()))
+    d = collision.pairwise_clearance(chain, q, collision.World(floor=None), capsules)
+    gap = d.distance + torch.tensor([radius[a] + radius[b] for a, b in d.pairs], dtype=q.dtype)
+    q = q[(gap > 1e-3).all(-1)][:20]
+    assert q.shape[0] >= 10
+    for i in range(q.shape[0]):
+        for floor in (None, 0.0, -0.1):
+            for x in (q[i : i + 1], q[i].float()):
+                world = collision.World(floor=floor)
+                d1, g1 = collision.capsule_clearance(chain, x, world, capsules)
+                with monkeypatch.context() as m:  # torch in float64, as the kernel computes: near ties pick one pair
+                    m.setattr(compiled, "ENABLED", False)
+                    d0, g0 = (t.to(x.dtype) for t in collision.capsule_clearance(chain, x.double(), world, capsules))
+                assert d1.dtype == x.dtype and d1.shape == d0.shape and g1.shape == g0.shape
+                tol = 1e-12 if x.dtype == torch.float64 else 1e-6
+                torch.testing.assert_close(d1, d0, atol=tol, rtol=0)
+                torch.testing.assert_close(g1, g0, atol=tol, rtol=0)
+
+
+@needs_numba
+def test_pose_errors_and_into_limits():
+    rng = np.random.default_rng(1)
+    chain = robots.iiwa14()
+    pose = chain.fk(chain.random_q(50, generator=torch.Generator().manual_seed(2))).numpy()
+    target = chain.fk(chain.random_q(50, generator=torch.Generator().manual_seed(3))).numpy()
+    target[:3] = pose[:3]  # zero error
+    target[3, :3, :3] = pose[3, :3, :3] @ np.diag([-1.0, -1.0, 1.0])  # a half turn
+    pos, rot = np.ascontiguousarray(target[:, :3, 3]), np.ascontiguousarray(target[:, :3, :3])
+    pos_ref, rot_ref = (v.norm(dim=-1).numpy() for v in so3.pose_error(torch.from_numpy(pose),
+                                                                         torch.from_numpy(target)))
+    pos_err, rot_err = kernels.pose_errors(pose, pos, rot, 1e-7)
+    assert np.allclose(pos_err, pos_ref, atol=1e-15) and np.allclose(rot_err, rot_ref, atol=1e-7)
+    assert abs(rot_err[3] - math.pi) < 1e-7 and np.allclose(rot_err[4:], rot_ref[4:], atol=1e-13)
+    pos_err, rot_err = kernels.pose_errors(pose, pos, np.empty((0, 3, 3)), 1e-7)
+    assert np.allclose(pos_err, pos_ref, atol=1e-15) and not rot_err.any()
+    lo, hi = chain.limits.numpy()
+    q = rng.uniform(-12.0, 12.0, (400, 7))  # mostly outside the limits, by up to two turns
+    expected = lm_setup.into_limits(q, lo, hi)  # numpy in: numpy's remainder, as the kernel's
+    got = np.array([[kernels.into_limits(x, lo[i], hi[i]) for i, x in enumerate(row)] for row in q])
+    assert np.array_equal(got, expected)
+    # torch's remainder rounds differently in float64 (a - b floor(a / b)): the same within 1e-14
+    torch_answer = lm_setup.into_limits(torch.from_numpy(q), chain.limits[0], chain.limits[1]).numpy()
+    assert np.allclose(got, torch_answer, atol=1e-14, rtol=0)
+    assert ((got >= lo) & (got <= hi)).all()
+
+
+def _solve_cases():
+    iiwa = robots.iiwa14()
+    target, q = _targets(iiwa, 24, 5, "pose")
+    q0 = q + 0.1 * torch.randn(q.shape, generator=torch.Generator().manual_seed(6), dtype=q.dtype)
+    q0[::3, 0] += 2 * math.pi
+    yield "iiwa pose", iiwa, target, {}
+    yield "iiwa q0 rest weight", iiwa, target, dict(q0=q0, rest=q, rest_gain=0.1, rot_weight=0.5, seeds=3,
+                                                    iterations=12, check_every=3)  # fmt: skip
+    yield "iiwa float32 tight", iiwa, target.float(), dict(pos_tol=1e-5, rot_tol=1e-4, precision="input")
+    yield "iiwa position", iiwa, _targets(iiwa, 24, 7, "position")[0], dict(mode="position")
+    yield "iiwa own generator", iiwa, target[:5], dict(generator=torch.Generator().manual_seed(9))
+    puma = robots.puma560()
+    yield "puma pose", puma, _targets(puma, 24, 8, "pose")[0], {}
+    planar = robots.planar3r()
+    yield "planar position", planar, _targets(planar, 24, 9, "position")[0], dict(mode="position")
+
+
+def _targets(chain, count, seed, mode):
+    q = chain.random_q(count, generator=torch.Generator().manual_seed(seed))
+    pose = chain.fk(q)
+    return (pose if mode == "pose" else pose[:, :3, 3]), q
+
+
+@needs_numba
+@pytest.mark.parametrize("case", list(_solve_cases()), ids=lambda case: case[0])
+def test_solve_takes_the_same_steps(monkeypatch, case):
+    """The same method: the same answers (to rounding), iterations and success as the torch loop
+    taking one seed per round as the compiled rounds do (the width changes no answer:
+    test_ik_small.py::test_round_width_changes_no_answer), iterating in float64 as they do."""
+    _, chain, target, options = case
+    options = dict(options)
+    q0 = options.pop("q0", None)
+    generator = options.pop("generator", None)
+
+    def run():
+        gen = None if generator is None else generator.clone_state()
+        return solve(chain, target, q0, generator=gen, **{"precision": "input", **options})
+
+    fast, slow = both_ways(monkeypatch, run, one_seed_per_round=True)
+    assert torch.equal(fast.success, slow.success)
+    assert torch.equal(fast.iterations, slow.iterations)
+    assert fast.q.dtype == slow.q.dtype and fast.pos_err.dtype == slow.pos_err.dtype
+    # float32 targets: the torch loop iterates in float32, the kernel in float64 (with float32's eps)
+    tol = 1e-4 if target.dtype == torch.float32 else 1e-9
+    assert (fast.q - slow.q).abs().max() < tol
+    assert (fast.pos_err - slow.pos_err).abs().max() < (1e-5 if target.dtype == torch.float32 else 1e-12)
+    assert fast.success.float().mean() > 0.7
+
+
+@needs_numba
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("with_q0", [False, True])
+def test_iiwa_solve_sweeps_the_same(monkeypatch, with_q0, dtype):
+    """The compiled arm-angle sweep (numba_kernels.iiwa_sweep) against the numpy one it restates: the
+    same answers to rounding, on random poses, unreachable ones and with a single arm angle (most
+    poses then take the retry with 16 angles). The batched torch path holds both in
+    test_iiwa_solve_numpy.py."""
+    chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
+    target, q = _targets(chain, 40, 12, "pose")
+    target[:5, :3, 3] *= 3.0  # out of reach
+    target, q = target.to(dtype), q.to(dtype)
+    for num_psi in (16, 1):
+        q0 = q + 0.05 if with_q0 else None
+        fast, slow = both_ways(monkeypatch, lambda: analytic.iiwa_solve(chain, target, q0, num_psi=num_psi))  # noqa: B023
+        assert torch.equal(fast.success, slow.success) and fast.q.dtype == slow.q.dtype == dtype
+        tol = 1e-5 if dtype == torch.float32 else 1e-12
+        assert (fast.q - slow.q).abs().max() < tol
+        assert (fast.pos_err - slow.pos_err).abs().max() < tol and fast.success[5:].all()
+
+
+@needs_numba
+@pytest.mark.parametrize("name", ["puma560", "lrmate_base_tool"])
+def test_pieper_branches_are_the_numpy_ones(monkeypatch, name):
+    """The compiled closed form of pieper (numba_kernels.pieper_branches) against the numpy one it
+    restates, on every branch of random, unreachable and wrist-aligned poses: the same flags, joints
+    within 1e-12 rad where rounding does not decide (away from +-pi and the limits). The batched
+    torch path holds both in test_pieper_numpy.py."""
+    chain = robots.puma560() if name == "puma560" else robots.lrmate200ic()
+    if name == "lrmate_base_tool":
+        chain.base.copy_(_tilted(-0.7, (0.1, 0.2, 0.3)))
+        chain.tool.copy_(_tilted(0.2, (0.0, 0.0, 0.1)))
+    q = chain.random_q(60, generator=torch.Generator().manual_seed(13))
+    q[40:, 4] = -chain.dh[4, 3]  # wrist aligned
+    target = chain.fk(q)
+    target[:5, :3, 3] *= 5.0  # out of reach
+    fast, slow = both_ways(monkeypatch, lambda: analytic.pieper(chain, target))
+    for field in ("valid", "reachable", "within_limits"):
+        assert torch.equal(getattr(fast, field), getattr(slow, field)), field
+    assert fast.q.stride() == slow.q.stride() and fast.q.dtype == slow.q.dtype
+    lo, hi = chain.limits
+    clear = ((slow.q.abs() - math.pi).abs() > 1e-9) & ((slow.q - lo).abs() > 1e-9) & ((slow.q - hi).abs() > 1e-9)
+    aligned = torch.zeros_like(clear)
+    aligned[40:] = True  # at sin(theta5) = 0 rounding splits theta4 +- theta6
+    keep = clear.all(-1, keepdim=True) & ~aligned
+    assert keep.float().mean() > 0.5
+    assert (fast.q - slow.q).abs()[keep.expand_as(fast.q)].max() < 1e-12
+    assert slow.reachable[5:].any(-1).all() and not slow.reachable[:5].any()
+
+
+def test_fallback_without_the_kernels(monkeypatch):
+    """Switched off, solve takes the torch loop for a few targets, and fk and jacobian of one
+    configuration the torch kernels, which agree with those under autograd."""
+    monkeypatch.setattr(compiled, "ENABLED", False)
+    chain = robots.iiwa14()
+    target, q = _targets(chain, 10, 11, "pose")
+    assert not small.applies(target, None, None, None, 10)
+    assert solve(chain, target).success.float().mean() > 0.8
+    with torch.enable_grad():  # the torch kernels, through autograd
+        q_grad = q[:1].clone().requires_grad_(True)
+        reference = chain.fk(q_grad).detach(), chain.jacobian(q_grad).detach()
+    assert torch.allclose(chain.fk(q[:1]), reference[0], atol=1e-14)
+    assert torch.allclose(chain.jacobian(q[:1]), reference[1], atol=1e-14)
+
+
+def _run(code: str, **env) -> list[str]:
+    environ = {k: v for k, v in os.environ.items() if k != "IIWA_TORCH_NUMBA"} | env
+    return subprocess.run([sys.executable, "-c", code], env=environ, capture_output=True, text=True,
+                          check=True).stdout.split()  # fmt: skip
+
+
+def test_nothing_compiled_or_imported_at_import():
+    """``import iiwa_torch`` (and its subpackages) loads no numba; the first small-batch call does,
+    if enabled; IIWA_TORCH_NUMBA=0 keeps it out even then."""
+    code = (
+        "import sys, torch, iiwa_torch, iiwa_torch.ik, iiwa_torch.ik.analytic, iiwa_torch.trajectory\n"
+        "from iiwa_torch import robots; from iiwa_torch.ik import solve\n"
+        "print('numba' in sys.modules)\n"
+        "arm = robots.iiwa14(); solve(arm, arm.fk(arm.random_q(1)))\n"
+        "from iiwa_torch import compiled; print(compiled.ENABLED, 'numba' in sys.modules)\n"
+    )
+    assert _run(code, IIWA_TORCH_NUMBA="0") == ["False", "False", "False"]
+    enabled = str(importlib.util.find_spec("numba") is not None)  # the child runs without the switch
+    assert _run(code) == ["False", enabled, enabled]
+
+
+@needs_numba
+def test_sine_and_cosine_of_the_clearance_kernel():
+    """The clearance kernel's branch-free sine and cosine against libm's (numpy's) over its range,
+    including angles next to multiples of pi/2 (where the reduction cancels) and the quadrant ends."""
+    rng = np.random.default_rng(3)
+    edges = np.arange(-60000, 60001, 7) * (math.pi / 2)
+    x = np.concatenate([rng.uniform(-1e5, 1e5, 200_000), rng.uniform(-7, 7, 100_000), edges,
+                        np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf), [0.0, -0.0, 1e5, -1e5]])
+    sin, cos = np.array([kernels._sin_cos(v) for v in x]).T
+    assert np.abs(sin - np.sin(x)).max() <= 2.3e-16 and np.abs(cos - np.cos(x)).max() <= 2.3e-16

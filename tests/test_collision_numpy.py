@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import collision, compiled, kinematics, robots
+from iiwa_torch import collision, compiled, robots
 from iiwa_torch.collision import CLEARANCE_NUMPY_BATCH, World, clearance, robot_capsules
 from iiwa_torch.dh import DHChain
 
@@ -20,21 +20,16 @@ PRESETS = sorted(robots.PRESETS)
 
 @pytest.fixture
 def numpy_calls(monkeypatch):
-    """Counts the calls of the numpy frame kernel (the batch size) and of the float one (1), to
-    tell which path a query took."""
+    """Counts the calls of the numpy path (each call's number of configurations), to tell which
+    path a query took."""
     calls = []
-    real, real_floats = kinematics.frames_numpy, kinematics.frames_floats
+    real = collision._clearance_numpy
 
-    def spy(g, q):
-        calls.append(q.shape[0])
-        return real(g, q)
+    def spy(chain, q, world, capsules):
+        calls.append(q.numel() // chain.n_joints)
+        return real(chain, q, world, capsules)
 
-    def spy_floats(g, q):
-        calls.append(1)
-        return real_floats(g, q)
-
-    monkeypatch.setattr(kinematics, "frames_numpy", spy)
-    monkeypatch.setattr(kinematics, "frames_floats", spy_floats)
+    monkeypatch.setattr(collision, "_clearance_numpy", spy)
     return calls
 
 

@@ -414,10 +414,9 @@ def test_meta_and_vmap_give_clear_errors():
 
 
 # ---------------------------------------------------------------- every kernel against the reference
-# Batch sizes across every kernel switch the docs name: 1 (Python floats / numpy), up to 32
-# (batch-last frames in numpy), up to 128 (4x4 products), above (elementwise), above 8,192
-# (blocks), above 65,536 (position blocks).
-BATCHES = [1, 2, kinematics.FRAMES_NUMPY_BATCH, kinematics.FRAMES_NUMPY_BATCH + 1, 100, 128, 129, 1000, 8193, 20000]
+# Batch sizes across every kernel switch the docs name: up to 128 (compiled, or 4x4 products),
+# above (elementwise), above 8,192 (blocks), above 65,536 (position blocks).
+BATCHES = [1, 2, 33, 100, 128, 129, 1000, 8193, 20000]
 
 
 def _reference(chain, q):
@@ -441,7 +440,7 @@ def test_reference_matches_roboticstoolbox():
 
 @pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True)])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_every_fast_path_matches_the_reference(make, dtype):
+def test_every_fast_path_matches_the_reference(make, dtype, small_kernel):
     chain = make()
     tol = 1e-12 if dtype == torch.float64 else 2e-5
     q_all = sample(chain, max(BATCHES), seed=32)
@@ -463,7 +462,7 @@ def test_every_fast_path_matches_the_reference(make, dtype):
         torch.testing.assert_close(tool, ref[:, -1, :3].permute(1, 2, 0), atol=tol, rtol=0)
         trig = (qd.T.cos(), qd.T.sin())
         torch.testing.assert_close(chain.position_batch_last(qd.T, trig), ref[:, -1, :3, 3].T, atol=tol, rtol=0)
-    one = q_all[0].to(dtype)  # one configuration, unbatched: numpy and Python-float paths
+    one = q_all[0].to(dtype)  # one configuration, unbatched
     ref = _reference(chain, q_all[0]).to(dtype)
     torch.testing.assert_close(chain.fk(one), ref[-1], atol=tol, rtol=0)
     torch.testing.assert_close(chain.position(one), ref[-1, :3, 3], atol=tol, rtol=0)
@@ -484,7 +483,7 @@ _TWISTED = [[0.1, 0.3, 0.2, 0.1], [0.2, -1.1, 0.0, 0.0], [0.05, math.pi, 0.1, -0
 @pytest.mark.parametrize("make", [robots.iiwa14, lambda: _with_base_and_tool(False), lambda: _with_base_and_tool(True),
                                   lambda: DHChain(_TWISTED), lambda: DHChain(_TWISTED, convention="modified")])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
+def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype, small_kernel):
     chain = make()
     n, tol = chain.n_joints, 1e-12 if dtype == torch.float64 else 2e-5
     q2 = sample(chain, 2, seed=36)
@@ -492,14 +491,14 @@ def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
     # the torch 4x4-product kernels: a batch, under autograd (the fast paths are for neither)
     q_grad = q2.to(dtype).clone().requires_grad_()
     batched_pose, batched_jac = chain.fk(q_grad)[0].detach(), chain.jacobian(q_grad)[0]
-    assert not kinematics.floats_ok(q_grad)
-    q10 = sample(chain, 10, seed=37).to(dtype)  # a few: the end pose and the Jacobian in numpy
+    assert not kinematics.untracked_cpu(q_grad)
+    q10 = sample(chain, 10, seed=37).to(dtype)  # a few: compiled, or the 4x4 products
     x10 = q10.clone().requires_grad_()
     torch.testing.assert_close(chain.fk(q10), chain.fk(x10).detach(), atol=tol, rtol=0)
     torch.testing.assert_close(chain.jacobian(q10), chain.jacobian(x10), atol=tol, rtol=0)
     ref10 = torch.stack([_reference_jacobian(chain, x) for x in q10.double()]).to(dtype)
     torch.testing.assert_close(chain.jacobian(q10), ref10, atol=tol, rtol=0)
-    for keep in (True, False):  # the batch-last frames in numpy against the elementwise kernel
+    for keep in (True, False):  # the small-batch batch-last frames against the elementwise kernel
         fast, slow = chain.frames_batch_last(q10.T, keep), chain.frames_batch_last(x10.T, keep)
         for got, want in zip(fast, slow):  # frames, then axes (none without keep)
             assert len(got) == len(want)
@@ -507,7 +506,7 @@ def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
                 torch.testing.assert_close(torch.stack(g), torch.stack(w).detach(), atol=tol, rtol=0)
     for shape in ((n,), (1, n), (1, 1, n)):
         one = q2[0].to(dtype).reshape(shape)
-        assert kinematics.floats_ok(one)
+        assert kinematics.untracked_cpu(one)
         pose, jac = chain.fk(one), chain.jacobian(one)
         assert pose.shape == (*shape[:-1], 4, 4) and jac.shape == (*shape[:-1], 6, n)
         assert pose.dtype == jac.dtype == dtype and pose.is_contiguous() and jac.is_contiguous()
@@ -519,13 +518,13 @@ def test_small_cpu_paths_match_the_torch_kernels_and_the_reference(make, dtype):
         torch.testing.assert_close(chain.fk(q2[0].to(dtype)), ref_pose.to(dtype), atol=tol, rtol=0)
     # With something to differentiate, the torch kernels run and autograd sees them.
     x = q2[0].to(dtype).requires_grad_()
-    assert not kinematics.floats_ok(x)
+    assert not kinematics.untracked_cpu(x)
     pose = chain.fk(x)
     assert pose.grad_fn is not None
     (grad,) = torch.autograd.grad(pose[:3, 3].sum(), x)
     torch.testing.assert_close(grad, ref_jac[:3].sum(0).to(dtype), atol=10 * tol, rtol=0)
     with torch.no_grad():
-        assert kinematics.floats_ok(x)
+        assert kinematics.untracked_cpu(x)
         torch.testing.assert_close(chain.fk(x), ref_pose.to(dtype), atol=tol, rtol=0)
     # Bad input is refused as before.
     with pytest.raises(ValueError, match="NaN or inf"):

@@ -457,9 +457,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
     def joint_features(self, q, error, clearance: tuple | None = None):
         """``q (B, nj)`` rad and ``error (B, k)`` -> ``(B, (len(dampings) + 2) * nj + 1)`` float64: the shrunk
         DLS steps in actions per damping, ``J^T e / |e|`` (m), the place within the limits, ``|e|`` (m).
-        Tensors, or numpy arrays (all of them; the Jacobian then by
-        :func:`iiwa_torch.kinematics.jacobian_floats` for one row, else
-        :func:`iiwa_torch.kinematics.pose_jacobian_numpy`).
+        Tensors, or numpy arrays (all of them).
 
         ``k = 3``: a position error (m), ``J = J_p``; ``k = 6``: ``[e_p; w e_r]`` (m), ``J = [J_p; w J_r]``.
         ``clearance``: the capsules' distances ``(B, K)`` (m) and gradients ``(B, K, nj)`` (m/rad), for
@@ -470,9 +468,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
             jac = self.chain.jacobian(q)  # (B, 6, nj): m/rad, then rad/rad
         else:
             q, e = q.astype(np.float64), error.astype(np.float64)
-            g = self.chain.geometry()  # one row: the float recursion costs a fifth of the 4x4 products
-            jac = kin.jacobian_floats(g, torch.from_numpy(q)).numpy() if len(q) == 1 else \
-                kin.pose_jacobian_numpy(g, q)[1]
+            jac = kin.jacobian(self.chain.geometry(), torch.from_numpy(q)).numpy()
         max_step = self._constants(xp)[0]
         k = e.shape[-1]
         w = self.orientation_weight

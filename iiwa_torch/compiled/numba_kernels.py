@@ -1,7 +1,7 @@
 """The numba kernels of :mod:`iiwa_torch.compiled` (importing this module imports numba).
 
-Each kernel restates a formula of the numpy / Python-float paths, and its docstring names the
-function it mirrors (``tests/test_compiled.py`` holds them together). Everything is float64
+Each kernel restates a formula of the torch code, and its docstring names the function it
+restates (``tests/test_backends.py`` holds them together). Everything is float64
 and unchecked: the callers check. A chain enters as the four
 :attr:`~iiwa_torch.kinematics.Geometry.float_arrays` ``transforms, params, base, tool``.
 """
@@ -15,8 +15,8 @@ import numpy as np
 
 from .. import segments
 
-__all__ = ["capsule_clearance", "cholesky_solve", "end_poses", "into_limits", "jacobians", "lm_round", "lm_rounds",
-           "own_clearance", "pose_errors"]
+__all__ = ["capsule_clearance", "cholesky_solve", "end_poses", "frames_axes", "into_limits", "jacobians", "lm_round",
+           "lm_rounds", "own_clearance", "pose_errors"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _inline = numba.njit(cache=True, error_model="numpy", inline="always")  # no call overhead in the LM loop
@@ -74,8 +74,8 @@ def _frames(transforms, params, base, tool, q, pose, Z, P, F):
     """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)``; if ``Z`` has ``n`` rows,
     joint i's axis into ``Z[i]`` and a point on it into ``P[i]`` (both ``(n, 3)``); if ``F`` has
     ``n + 1`` rows, the base and every link frame (no tool) into ``F (n + 1, 4, 3)``, each as its
-    x, y, z axes and origin. Mirrors :func:`iiwa_torch.kinematics._frames_floats` (the frame
-    recursion in Python floats), which skips zero terms: adding them changes no value."""
+    x, y, z axes and origin. The frame recursion of :func:`iiwa_torch.kinematics.frames_batch_last`
+    (the torch elementwise kernel), one configuration at a time in scalars."""
     x0, x1, x2, y0, y1, y2 = base[0, 0], base[1, 0], base[2, 0], base[0, 1], base[1, 1], base[2, 1]
     z0, z1, z2, p0, p1, p2 = base[0, 2], base[1, 2], base[2, 2], base[0, 3], base[1, 3], base[2, 3]
     keep, every = Z.shape[0] > 0, F.shape[0] > 0
@@ -103,7 +103,7 @@ def _frames(transforms, params, base, tool, q, pose, Z, P, F):
 @_jit
 def _jacobian_columns(params, pose, Z, P, J):
     """Column i of ``J (6, n)``: ``[z_i x (p_e - p_i); z_i]`` (revolute) or ``[z_i; 0]`` (prismatic),
-    from :func:`_frames`' axes. Mirrors :func:`iiwa_torch.kinematics.jacobian_floats`."""
+    from :func:`_frames`' axes, as :func:`iiwa_torch.kinematics.jacobian` computes them."""
     e0, e1, e2 = pose[0, 3], pose[1, 3], pose[2, 3]
     for i in range(Z.shape[0]):
         z0, z1, z2 = Z[i, 0], Z[i, 1], Z[i, 2]
@@ -125,6 +125,18 @@ def end_poses(transforms, params, base, tool, q):
 
 
 @_jit
+def frames_axes(transforms, params, base, tool, q):
+    """Configurations ``q (b, n)`` -> the base and every link frame ``(b, n + 1, 4, 3)`` (rows: the
+    x, y, z axes and the origin; no tool), each joint's axis and a point on it ``(b, n, 3)``
+    each, and the end poses ``(b, 4, 4)`` (tool included), as :func:`_frames`."""
+    b, n = q.shape
+    frames, z, p, poses = np.empty((b, n + 1, 4, 3)), np.empty((b, n, 3)), np.empty((b, n, 3)), np.empty((b, 4, 4))
+    for k in range(b):
+        _frames(transforms, params, base, tool, q[k], poses[k], z[k], p[k], frames[k])
+    return frames, z, p, poses
+
+
+@_jit
 def jacobians(transforms, params, base, tool, q):
     """Configurations ``q (b, n)`` -> their Jacobians ``(b, 6, n)`` (linear rows first, world frame)."""
     b, n = q.shape
@@ -140,7 +152,7 @@ def _pose_error(pose, pos, rot, has_rot, eps, e):
     """End pose ``(4, 4)`` against a target position ``pos (3,)`` and rotation ``rot (3, 3)``
     -> the position error into ``e[:3]`` (target - pose, m), the rotation vector
     ``log(rot R^T)`` into ``e[3:6]`` (if ``has_rot``), and their norms ``(pos_err, rot_err)``.
-    Mirrors :func:`iiwa_torch.ik.small.pose_errors`."""
+    As :func:`iiwa_torch.so3.pose_error` (and the torch loop's ``_pose_terms``) define them."""
     e[0], e[1], e[2] = pos[0] - pose[0, 3], pos[1] - pose[1, 3], pos[2] - pose[2, 3]
     pos_err = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     if not has_rot:
@@ -175,7 +187,7 @@ def pose_errors(pose, pos, rot, eps):
 def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
     """``q (n,)`` -> weighted Jacobian into ``J (m, n)`` and weighted error into ``e (m,)`` (m = 6,
     or 3 without ``has_rot``); returns the squared weighted error, position and rotation error.
-    Mirrors :meth:`iiwa_torch.ik.small._Problems.evaluate`."""
+    The torch loop's ``_evaluate`` (:mod:`iiwa_torch.ik.gradient`) for one slot."""
     transforms, params, base, tool = arrays
     pose, Z, P, J6 = scratch
     _frames(transforms, params, base, tool, q, pose, Z, P, np.empty((0, 4, 3)))
@@ -235,7 +247,7 @@ def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest,
     """One LM step of one slot, in place on its ``q (n,)``, ``J (m, n)``, ``e (m,)``; returns the
     new ``E``, position and rotation errors and damping (the old ones but the damping if the
     step is rejected). ``opts``: weight, rest gain, eps, lam_min, LAMBDA0, DAMP_DOWN, DAMP_UP.
-    Mirrors :meth:`iiwa_torch.ik.small._Problems.step`: ``J diag(free) J^T + lam I`` solved by
+    The torch loop's ``_lm_step`` (:mod:`iiwa_torch.ik.gradient`) for one slot: ``J diag(free) J^T + lam I`` solved by
     Cholesky (pivots floored at lam_min, as :func:`~iiwa_torch.ik.dls.cholesky_solve_batch_last`)."""
     weight, rest_gain, eps, lam_min, lambda0, damp_down, damp_up = opts
     m, n = J.shape
@@ -291,7 +303,7 @@ def lm_round(transforms, params, base, tool, q, problem, number, pos, rot, rest,
     ``opts`` as :func:`_lm_step` then pos_tol, rot_tol; ``counts`` iterations, check_every,
     free_steps, seeds. Records each problem's best slot in ``best_q (b, n)``, its key
     ``best_E (b,)`` and iterations ``used (b,)``, in place.
-    Mirrors :meth:`iiwa_torch.ik.small._Problems.run_round` and its ``check``."""
+    The torch loop's ``_run_round`` and ``_check_slots`` (:mod:`iiwa_torch.ik.gradient`)."""
     arrays = (transforms, params, base, tool)
     iterations, check_every, free_steps, seeds = counts[0], counts[1], counts[2], counts[3]
     weight, eps, lam_min, lambda0, pos_tol, rot_tol = opts[0], opts[2], opts[3], opts[4], opts[7], opts[8]
@@ -376,7 +388,7 @@ def lm_rounds(transforms, params, base, tool, pool, order, first, pos, rot, rest
     """Every round of seeds of ``b = best_q.shape[0]`` problems, one seed per problem a round:
     ``first (b, n)`` (q0; 0 rows: none), then the pool ``(P, n)`` entries of ranks ``order (ranks, b)``,
     until a problem converges or runs out of its ``counts[3]`` seeds; the rest as :func:`lm_round`.
-    Mirrors :meth:`iiwa_torch.ik.small._Problems.run` with rounds one seed wide."""
+    The torch loop's ``_run_rounds`` (:mod:`iiwa_torch.ik.gradient`) with rounds one seed wide."""
     b, n = best_q.shape
     shift = 1 if first.shape[0] else 0
     remaining = np.arange(b)

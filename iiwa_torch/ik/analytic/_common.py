@@ -27,7 +27,7 @@ from ...chain import Chain
 from ...checks import check_finite, check_float_tensor, check_instance
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import Convention, DHChain
-from ...kinematics import floats_ok
+from ...kinematics import untracked_cpu
 from ...so3 import check_rigid
 from ..limits import shift_into_limits
 
@@ -381,8 +381,8 @@ def last_frame_numpy(chain: DHChain, target: np.ndarray) -> np.ndarray:
 def numpy_applies(chain: DHChain, size: int, limit: int, *tensors: Tensor) -> bool:
     """Whether a closed form takes its numpy path: ``1..limit`` poses, and ``tensors`` and the
     chain's base and tool on the CPU with nothing to differentiate
-    (:func:`~iiwa_torch.kinematics.floats_ok`)."""
-    return 1 <= size <= limit and all(floats_ok(t) for t in (chain.base, chain.tool, *tensors))
+    (:func:`~iiwa_torch.kinematics.untracked_cpu`)."""
+    return 1 <= size <= limit and all(untracked_cpu(t) for t in (chain.base, chain.tool, *tensors))
 
 
 # ---------------------------------------------------------------- joint limits

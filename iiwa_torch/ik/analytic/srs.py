@@ -39,7 +39,7 @@ Small batches: up to ``SOLVE_NUMPY_BATCH`` CPU poses with nothing to differentia
 array libraries), or up to ``SOLVE_COMPILED_BATCH`` in one compiled call,
 :func:`iiwa_torch.compiled.numba_kernels.iiwa_sweep`, when numba is enabled. That kernel restates
 the closed form, the wrap into the limits, the ranking and the retry as scalar loops (numba cannot
-run the array code); ``tests/test_iiwa_solve_numpy.py`` and ``tests/test_compiled.py`` hold it to
+run the array code); ``tests/test_iiwa_solve_numpy.py`` and ``tests/test_backends.py`` hold it to
 the numpy and the batched sweep.
 """
 
@@ -60,10 +60,9 @@ from ... import compiled
 from ...checks import check_positive
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
-from ...kinematics import end_pose_matmul, frames_numpy
+from ...kinematics import all_poses, end_pose
 from ...so3 import pose_error
 from ..result import IKResult
-from ..small import pose_errors
 from ._common import (
     NUMPY,
     TORCH,
@@ -500,7 +499,8 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
     psi0 = None
     if q0 is not None:
         q0 = q0.detach().double().numpy()
-        frames = frames_numpy(chain.geometry(torch.float64), q0)  # world frame; S, E, W back into frame 0
+        frames = all_poses(chain.geometry(torch.float64), torch.from_numpy(q0)).numpy().transpose(1, 0, 2, 3)
+        # world frame; S, E, W back into frame 0
         base = setup.base
         psi0 = _arm_angle(*((frames[[1, 3, 5], :, :3, 3] - base[:3, 3]) @ base[:3, :3]), ops=NUMPY)
     if compiled.ENABLED:
@@ -509,13 +509,14 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
         q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
     out_dtype = np.float32 if dtype == torch.float32 else np.float64
     q = q.astype(out_dtype, copy=False)
-    pose = end_pose_matmul(chain.geometry(dtype), torch.from_numpy(q)).double().numpy()  # chain.fk's kernel for these
+    pose = end_pose(chain.geometry(dtype), torch.from_numpy(q)).double().numpy()  # chain.fk's kernel for these
     pos, eps = target[:, :3, 3], torch.finfo(dtype).eps
     if compiled.ENABLED:
         pos_err, rot_err = compiled.kernels().pose_errors(pose, np.ascontiguousarray(pos), np.ascontiguousarray(
             target[:, :3, :3]), eps)  # fmt: skip
     else:
-        _, pos_err, _, rot_err = pose_errors(pose, pos, target[:, :3, :3], eps)
+        errors = pose_error(*(torch.from_numpy(x).to(dtype) for x in (pose, target)))  # as ik_result's
+        pos_err, rot_err = (v.norm(dim=-1).double().numpy() for v in errors)
     success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
     # reshaped in numpy, then wrapped: a torch reshape costs a few numpy ones
     fields = (q.reshape(*batch, 7), success.reshape(batch), pos_err.astype(out_dtype).reshape(batch),
