@@ -29,7 +29,8 @@ their largest difference from ours. Then the crossover: the smallest batch size 
 which one call of ours takes less than the peer's loop. First-call costs (a fresh process,
 imports done, the call timed once, cold) are measured separately, in child processes; with the
 compiled kernels (numba installed) also with an empty numba cache, where they compile.
-Writes results/small.json and results/small.md (``small_quick`` with ``--quick``).
+Writes results/small.json and results/small.md (``small_torch`` with ``IIWA_TORCH_NUMBA=0``,
+``_quick`` appended with ``--quick``).
 """
 
 from __future__ import annotations
@@ -404,7 +405,8 @@ def main() -> None:
             print(name, batch, json.dumps(row), flush=True)
     results["machine"]["loadavg_at_end"] = list(os.getloadavg())
     md = markdown(results, args.quick)
-    path = save("small_quick" if args.quick else "small", results, md)
+    name = "small" if compiled.ENABLED else "small_torch"  # IIWA_TORCH_NUMBA=0: the torch paths alone
+    path = save(f"{name}_quick" if args.quick else name, results, md)
     print(md)
     print(f"written: {path}")
 
