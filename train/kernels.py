@@ -123,9 +123,11 @@ def _hildreth(x, normal, scaled, bound, sweeps):
 
 
 @_jit
-def features(observation, achieved, desired, e, q, inv_scales, max_step, damping_sq, lower, upper, error_damping,
-             clip, limit_rounds, orientation_weight, centering, twist, guarded, guard, hold_at_limit, damper,
-             clearance_start, K, transforms, params, base, tool):
+def features(  # noqa: C901 (to split: tests/test_codebase.py LONG_FUNCTIONS)
+    observation, achieved, desired, e, q, inv_scales, max_step, damping_sq, lower, upper, error_damping, clip,
+    limit_rounds, orientation_weight, centering, twist, guarded, guard, hold_at_limit, damper, clearance_start, K,
+    transforms, params, base, tool
+):
     """The extractor's features ``(B, F)`` in ``observation``'s dtype.
 
     ``observation (B, O)``, ``achieved``, ``desired (B, G)`` as observed; ``e (B, k)`` float64, the

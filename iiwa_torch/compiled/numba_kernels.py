@@ -408,7 +408,7 @@ def lm_rounds(transforms, params, base, tool, pool, order, first, pos, rot, rest
 
 
 # ---------------------------------------------------------------------- the arm-angle sweep of iiwa_solve
-_TINY = 1e-30  # iiwa_torch.ik.analytic._common._TINY
+_TINY = 1e-30  # iiwa_torch.ik.analytic._common.TINY
 
 
 @_inline
@@ -716,8 +716,9 @@ _LANES = 256  # configurations per block: the block's frames and capsules stay i
 
 
 @_jit
-def own_clearance(q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius,
-                  height, out):
+def own_clearance(  # noqa: C901 (to split: tests/test_codebase.py LONG_FUNCTIONS)
+    q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius, height, out
+):
     """Self and floor clearance of ``q (N, n)`` (float32 or float64; computed in float64) into
     ``out (N,)``, metres: the smallest of ``|x - y| - r`` over the self pairs ``first, second
     (P,)`` (``pair_radius (P, 1)`` radius sums) and ``min(z_start, z_end) - (r + height)`` over the

@@ -3,7 +3,7 @@ structure checks, the spherical-joint decomposition and the joint-limit bookkeep
 
 Guarded trigonometry: every ``acos`` is written as ``atan2(+-s, c)`` with ``c`` clamped to
 ``[-1, 1]`` and ``s`` the square root of ``1 - c^2`` (or of its factored form for a law of
-cosines, :func:`triangle`) clamped to at least ``_TINY``, and every ``atan2(y, x)`` whose
+cosines, :func:`triangle`) clamped to at least ``TINY``, and every ``atan2(y, x)`` whose
 arguments may both vanish replaces ``x`` by 1 there. So
 values are finite everywhere (also in unreachable branches and at singularities) and so
 are gradients: an infinite local derivative in a branch a caller masks out would
@@ -33,7 +33,7 @@ from ..limits import shift_into_limits
 
 Tensor = torch.Tensor
 
-_TINY = 1e-30  # floor under squared norms before a sqrt / atan2: sqrt(_TINY) = 1e-15
+TINY = 1e-30  # floor under squared norms before a sqrt / atan2: sqrt(TINY) = 1e-15
 _TWO_PI = 2 * math.pi
 
 
@@ -158,13 +158,13 @@ def _put(x: np.ndarray, index, values) -> np.ndarray:
 def safe_atan2(y: Tensor, x: Tensor, ops=TORCH) -> Tensor:
     """``atan2(y, x)``, 0 with a finite gradient where ``x`` and ``y`` both vanish (``ops``:
     :data:`TORCH` or :data:`NUMPY`, the arrays' library)."""
-    degenerate = x * x + y * y < _TINY
+    degenerate = x * x + y * y < TINY
     return ops.atan2(y, ops.where(degenerate, 1.0, x))
 
 
 def safe_norm2(x: Tensor, y: Tensor, ops=TORCH) -> Tensor:
     """``sqrt(x^2 + y^2)``, at least ``1e-15``, so its gradient stays finite at 0."""
-    return ops.sqrt(ops.clamp_min(x * x + y * y, _TINY))
+    return ops.sqrt(ops.clamp_min(x * x + y * y, TINY))
 
 
 def acos_pair(c: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -175,7 +175,7 @@ def acos_pair(c: Tensor, tol: float) -> tuple[Tensor, Tensor, Tensor]:
     """
     ok = c.abs() <= 1 + tol
     cc = c.clamp(-1.0, 1.0)
-    return cc, (1 - cc * cc).clamp_min(_TINY).sqrt(), ok
+    return cc, (1 - cc * cc).clamp_min(TINY).sqrt(), ok
 
 
 def triangle(dist: Tensor, l1: float, l2: float, tol: float, ops=TORCH) -> tuple[Tensor, Tensor, Tensor]:
@@ -190,7 +190,7 @@ def triangle(dist: Tensor, l1: float, l2: float, tol: float, ops=TORCH) -> tuple
     ok = abs(c) <= 1 + tol
     outer, inner = l1 + l2, abs(l1 - l2)
     s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
-    return ops.clamp(c, -1.0, 1.0), ops.sqrt(ops.clamp_min(s2, _TINY)) / (2 * l1 * l2), ok
+    return ops.clamp(c, -1.0, 1.0), ops.sqrt(ops.clamp_min(s2, TINY)) / (2 * l1 * l2), ok
 
 
 def reach_tol(dtype: torch.dtype) -> float:

@@ -48,8 +48,8 @@ from ... import compiled
 from ...collision import Capsules, World
 from ...dh import DHChain
 from ._common import (
-    _TINY,
     NUMPY,
+    TINY,
     TORCH,
     AnalyticSolutions,
     check_chain,
@@ -147,7 +147,7 @@ def _closed_form(rows: list[tuple], frame5, tol: float, ops=TORCH) -> tuple[list
     lateral = d2 + d3
     r = safe_norm2(wx, wy, ops)
     shoulder_ok = r >= abs(lateral) * (1 - tol)
-    along = ops.sqrt(ops.clamp_min((r - abs(lateral)) * (r + abs(lateral)), _TINY))  # sqrt(r^2 - D^2)
+    along = ops.sqrt(ops.clamp_min((r - abs(lateral)) * (r + abs(lateral)), TINY))  # sqrt(r^2 - D^2)
     sign = ops.signs(wx)
     big_x = along[..., None] * sign  # (..., 2)
     theta1 = safe_atan2(wy, wx, ops)[..., None] - ops.atan2(ops.full_like(big_x, -s1 * lateral), big_x)

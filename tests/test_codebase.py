@@ -1,0 +1,127 @@
+"""Checks that keep the code readable, from its syntax trees: no module reaches into another's
+private names, functions stay short, and the library does not import the applications.
+
+A function over ``MAX_LINES`` is refused unless it is in ``LONG_FUNCTIONS``, the ones that were
+already longer when these checks came in, each held to the length it had then: the list may
+only shrink (remove an entry when its function is split)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("iiwa_torch", "envs", "train", "benchmarks")
+MAX_LINES = 60
+
+LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came in
+    "benchmarks/bench_ik.py:main": 162,
+    "train/kernels.py:features": 146,
+    "iiwa_torch/ik/gradient.py:solve": 119,
+    "benchmarks/bench_fk.py:main": 113,
+    "iiwa_torch/ik/gradient.py:minimize": 110,
+    "benchmarks/bench_env.py:main": 110,
+    "benchmarks/bench_collision.py:main": 107,
+    "iiwa_torch/cli.py:_parser": 99,
+    "iiwa_torch/trajectory.py:track": 98,
+    "train/evaluate.py:make_plots": 90,
+    "iiwa_torch/workspace.py:plot_workspace": 89,
+    "iiwa_torch/compiled/numba_kernels.py:own_clearance": 89,
+    "iiwa_torch/ik/analytic/srs.py:iiwa_solve": 85,
+    "iiwa_torch/compiled/numba_kernels.py:lm_round": 85,
+    "train/features.py:__init__": 84,
+    "iiwa_torch/trajectory.py:jtraj": 78,
+    "iiwa_torch/cli.py:_traj": 78,
+    "iiwa_torch/cli.py:_demo": 78,
+    "envs/core.py:__init__": 76,
+    "train/evaluate.py:evaluate": 71,
+    "train/evaluate.py:_rollouts_obstacles": 71,
+    "iiwa_torch/collision.py:_distances": 70,
+    "envs/core.py:_new_episodes": 69,
+    "iiwa_torch/ik/analytic/planar.py:planar3r": 68,
+    "benchmarks/bench_workspace.py:main": 68,
+    "benchmarks/bench_analytic.py:main": 67,
+    "benchmarks/bench_trajectory.py:main": 66,
+    "benchmarks/bench_busy.py:main": 66,
+    "iiwa_torch/viewer.py:__init__": 64,
+    "iiwa_torch/ik/analytic/srs.py:iiwa_q3_locked": 63,
+}
+
+
+def _modules() -> list[tuple[str, ast.Module]]:
+    files = sorted(p for package in PACKAGES for p in (ROOT / package).rglob("*.py"))
+    return [(p.relative_to(ROOT).as_posix(), ast.parse(p.read_text(), filename=str(p))) for p in files]
+
+
+MODULES = _modules()
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _function_lengths(tree: ast.Module) -> dict[str, int]:
+    """Every function and method's length in lines (decorators excluded), by name; the longest
+    of a name wins."""
+    lengths: dict[str, int] = {}
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            length = node.end_lineno - node.lineno + 1
+            lengths[node.name] = max(length, lengths.get(node.name, 0))
+    return lengths
+
+
+def test_the_checks_see_the_packages():
+    assert len(MODULES) > 40
+    assert _function_lengths(ast.parse("def f():\n    a = 1\n    return a\n")) == {"f": 3}
+
+
+def test_no_function_grows_past_its_limit():
+    too_long = []
+    for path, tree in MODULES:
+        for name, length in _function_lengths(tree).items():
+            limit = LONG_FUNCTIONS.get(f"{path}:{name}", MAX_LINES)
+            if length > limit:
+                too_long.append(f"{path}:{name} has {length} lines (limit {limit})")
+    assert not too_long, "split these functions:\n" + "\n".join(too_long)
+
+
+def test_the_list_of_long_functions_only_shrinks():
+    """An entry whose function is gone or now short must leave the list (so it cannot regrow)."""
+    lengths = {f"{path}:{name}": n for path, tree in MODULES for name, n in _function_lengths(tree).items()}
+    stale = [key for key in LONG_FUNCTIONS if lengths.get(key, 0) <= MAX_LINES]
+    assert not stale, f"remove from LONG_FUNCTIONS (split or gone): {stale}"
+
+
+def _ours(node: ast.ImportFrom) -> bool:
+    """Whether ``from ... import`` reads one of this project's modules (relative, or in ``PACKAGES``)."""
+    return node.level > 0 or (node.module or "").split(".")[0] in PACKAGES
+
+
+def _imported_modules(tree: ast.Module) -> set[str]:
+    """The names a module binds to this project's modules (``import iiwa_torch.dh as d`` -> ``d``,
+    ``from iiwa_torch import collision`` -> ``collision``)."""
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.asname or a.name.split(".")[0] for a in node.names if a.name.split(".")[0] in PACKAGES}
+        elif isinstance(node, ast.ImportFrom) and _ours(node):
+            names |= {a.asname or a.name for a in node.names}
+    return names
+
+
+@pytest.mark.parametrize("path,tree", MODULES, ids=[p for p, _ in MODULES])
+def test_no_private_names_of_other_modules(path, tree):
+    """``from m import _x`` and ``m._x`` for a module ``m`` of this project are refused; a module's
+    own private names, and dunders, are its business (so are third-party libraries')."""
+    modules = _imported_modules(tree)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and _ours(node):
+            found += [f"from {node.module} import {a.name}" for a in node.names if _private(a.name)]
+        elif (isinstance(node, ast.Attribute) and _private(node.attr) and isinstance(node.value, ast.Name)
+              and node.value.id in modules):
+            found.append(f"{node.value.id}.{node.attr} (line {node.lineno})")
+    assert not found, f"{path} uses private names of other modules: {found}"
