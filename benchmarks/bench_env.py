@@ -105,7 +105,7 @@ def largest_in_child(timing: dict, wait_policy: str | None) -> float:
     process with ``OMP_WAIT_POLICY=wait_policy`` (``None``: unset, OpenMP's default, which
     spins a while before sleeping). With ``ACTIVE`` OpenMP's threads spin between ops: on an
     otherwise idle machine the fast setting (no op waits for a sleeping thread to wake);
-    with another process busy on the cores, it can be ~100x slower (which is why this
+    with another process busy on the cores, by far the slowest (benchmarks/results/busy.md; which is why this
     script itself runs with ``PASSIVE``)."""
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     if wait_policy is not None:

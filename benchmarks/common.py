@@ -1,7 +1,8 @@
 """Shared plumbing for the benchmarks: timing, machine facts, JSON/markdown output.
 
 Each benchmark sets ``OMP_WAIT_POLICY=PASSIVE`` before it imports torch: with another
-process busy on the cores, OpenMP's spin-wait made 2-thread ops ~100x slower here.
+process busy on the cores, OpenMP's spin-wait makes 2-thread ops wait on spinning threads
+(benchmarks/results/busy.md).
 """
 
 from __future__ import annotations

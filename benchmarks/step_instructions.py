@@ -2,7 +2,7 @@
 
     python benchmarks/step_instructions.py [--steps 2000] [IiwaReach-v0 IiwaReachPose-v0 ...]
 
-Timings on this machine's 2 shared cores swing by 2x within a minute; an instruction count
+Timings on this machine's 2 shared cores swing between runs (benchmarks/results/log.md); an instruction count
 does not. For each id, the same script runs twice under ``valgrind --tool=cachegrind
 --cache-sim=no``: once with ``--steps`` random-action steps through ``gymnasium.make`` (a
 reset when an episode ends), once with none. The difference over the step count is the

@@ -267,7 +267,9 @@ class Chain(nn.Module):
         check_float_tensor(q, name, self._q_shape)
         if q.ndim == 0 or q.shape[-1] != n:
             raise ValueError(f"{name} must have shape {self._q_shape}, got {tuple(q.shape)}")
-        lim = self._buffers["limits"]  # not self.limits: nn.Module's attribute lookup costs a third of this check
+        # not self.limits: nn.Module's attribute lookup is a large share of this check, which one
+        # configuration's fk pays on every call (benchmarks/results/small.md, fk at batch 1)
+        lim = self._buffers["limits"]
         if not (q.is_cpu and lim.is_cpu) and q.device != lim.device:  # is_cpu: no device object built
             raise ValueError(
                 f"{name} is on {q.device} but the chain is on {lim.device}; use chain.to({str(q.device)!r})"
@@ -389,7 +391,8 @@ class Chain(nn.Module):
         """End-effector position: ``q (..., n)`` -> ``(..., 3)`` metres, in the world frame.
 
         Equal to ``fk(q)[..., :3, 3]``; for large batches it computes no rotation matrices
-        (:meth:`position_batch_last`), which makes it 2-3x faster. Differentiable (autograd).
+        (:meth:`position_batch_last`), which makes it faster (the ``position`` rows of
+        benchmarks/results/fk.md). Differentiable (autograd).
         """
         self.check_q(q)
         g = self.geometry(q.dtype)

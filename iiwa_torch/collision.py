@@ -110,7 +110,9 @@ def _segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
         dots = ((x * y).sum(0) for x, y in ((u1, u1), (u2, u2), (u1, u2), (u1, r), (u2, r)))
         s, t = (x.to(p1.dtype) for x in closest_parameters(*dots, torch.where, lambda x: x.clamp_(0, 1)))
     w = p1 + s * d1 - p2 - t * d2
-    return _root((w * w).sum(0))  # not linalg.vector_norm: over the first dim it is ~20x slower
+    # not linalg.vector_norm: over the first dim it is much slower (this kernel's time:
+    # benchmarks/results/collision.md, torch rows)
+    return _root((w * w).sum(0))
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -456,7 +458,8 @@ def _capsule_segments(chain: Chain, capsules: Capsules, q: Tensor) -> tuple[Tens
     keeps every elementwise op of the distance kernels contiguous). A fixed number of tensor
     ops: the capsule frames are gathered and one batched product places both end points. Up
     to ``SMALL_BATCH`` configurations the frames come from ``fk_all``'s 4x4 kernel, above from
-    the batch-last elementwise kernel (15x ``fk_all`` at 65,536 configurations)."""
+    the batch-last elementwise kernel, which computes only what the capsules use and is far faster
+    than ``fk_all`` at large batches (benchmarks/results/fk.md)."""
     tables = capsules._index_tables(q.dtype, q.device)
     flat = q.reshape(-1, chain.n_joints)
     geometry = chain.geometry(q.dtype)
@@ -803,9 +806,10 @@ def _distances(
 @contextlib.contextmanager
 def _one_thread(when: bool):
     """Run the block loop on one intra-op thread (``when``), then restore the count. Its ops are
-    a block's size, too small for a second thread to pay: measured at 65,536 configurations,
-    2 threads ran no faster than 1 with OpenMP spinning (``OMP_WAIT_POLICY=ACTIVE``) and 3-4x
-    slower with ``PASSIVE``, where every op's parallel region wakes a sleeping thread."""
+    a block's size, too small for a second thread to pay: with OpenMP spinning
+    (``OMP_WAIT_POLICY=ACTIVE``) a second thread gains nothing, and with ``PASSIVE`` every op's
+    parallel region wakes a sleeping thread, which costs more than the op (the vector env's rows
+    per wait policy: benchmarks/results/env.md; the measurement: benchmarks/results/log.md)."""
     threads = torch.get_num_threads()
     if not when or threads == 1:
         yield

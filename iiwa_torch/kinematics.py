@@ -71,7 +71,7 @@ __all__ = [
 Tensor = torch.Tensor
 Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
 BLOCK = 8192  # configurations per block: the elementwise kernel's working set stays in cache
-POSITION_BLOCK = 65536  # the same for the position kernel, whose working set is a third (measured)
+POSITION_BLOCK = 65536  # the same for the position kernel, whose working set is a third (benchmarks/results/fk.md)
 SMALL_BATCH = 128  # up to this many: the compiled or 4x4-product kernel (benchmarks/results/fk.md)
 
 
@@ -545,7 +545,7 @@ def _link_features(g: Geometry, q: Tensor) -> Tensor:
 
 def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
     """``(b, n)`` -> the n link transforms ``A_i``, each ``(b, 4, 4)``, or ``(4, 4)`` if b is 1
-    (``mm`` on matrices costs half of ``bmm`` on a batch of one). With ``end``, the base is
+    (``mm`` on matrices costs less than ``bmm`` on a batch of one). With ``end``, the base is
     folded into the first and the tool into the last. Each ``A_i`` is linear in the cosine
     and sine of its angle (or in a prismatic joint's travel), so one batched product with
     constant coefficients builds them all."""

@@ -1,8 +1,8 @@
 """Entry point of the ``iiwa-torch`` command (imports no torch itself; see the package docstring).
 
 OpenMP reads its wait policy once, when torch loads: with another busy process on the cores, the
-default spin-wait made batched calls 10-30x slower, so the command asks for ``PASSIVE`` (unless the
-caller set ``OMP_WAIT_POLICY``) before anything imports torch.
+default spin-wait makes batched calls wait on spinning threads (benchmarks/results/busy.md), so the
+command asks for ``PASSIVE`` (unless the caller set ``OMP_WAIT_POLICY``) before anything imports torch.
 """
 
 import os

@@ -192,7 +192,7 @@ def check_rotation(rot: torch.Tensor, name: str = "rot") -> None:
 RIGID_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
 
-_RIGID_NUMPY_BATCH = 64  # up to this many CPU poses check_rigid computes in numpy (a torch op costs several us)
+_RIGID_NUMPY_BATCH = 64  # up to this many CPU poses check_rigid computes in numpy (a torch op's fixed cost dominates)
 
 
 def _rigid_deviation_numpy(pose: np.ndarray) -> float:

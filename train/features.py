@@ -323,7 +323,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         ``(lambda + c |e|)^2`` with ``c = error_damping``."""
         xp = np if isinstance(error, np.ndarray) else torch
         damping_sq = self._constants(xp)[1]  # (L,)
-        if not self.error_damping:  # numpy: a copy (np.broadcast_to costs several microseconds)
+        if not self.error_damping:  # numpy: a copy (np.broadcast_to costs more than copying these few rows)
             return damping_sq[None].repeat(error.shape[0], 0) if xp is np else \
                 damping_sq.expand(error.shape[0], damping_sq.shape[0])
         size = xp.sqrt((error * error).sum(-1))[:, None]  # (B, 1)

@@ -8,8 +8,8 @@ outputs ``mean = DLS step + g(d) Linear(latent)``, with ``g(d) = d / (d + s)`` o
 distance ``d`` to the goal: the network only learns the correction, and at initialisation
 (the last layer is scaled by 0.01, as SB3 does) it is the DLS controller. The gate
 matters: an ungated correction is never exactly zero at the goal, and a bias ``b`` in the
-action holds the arm where the DLS step cancels it (measured: median final error from
-0.5 mm to 7-8 mm within 2 million steps). With the gate the correction fades below ``s``
+action holds the arm where the DLS step cancels it (runs R1 and R2 in
+train/policies/ppo_iiwa_reach/RECORD.md). With the gate the correction fades below ``s``
 and the DLS step settles the arm. With the extractor's ``avoidance`` (an env that observes its
 clearances) the DLS step is kept clear of obstacles by a velocity damper, and so is the whole
 mean: ``step + g(d) Linear(latent)`` is moved, as little as possible, back within the damper's

@@ -5,8 +5,8 @@ targets or fewer, on the CPU, with no world and nothing to differentiate (:func:
 its Levenberg-Marquardt iteration in one call of :func:`iiwa_torch.compiled.numba_kernels.lm_rounds`
 instead of the torch loop: the same seeds (the same pool, drawn from the same generator, in the
 same order), damping schedule, free steps and projection into the limits, convergence checks and
-choice of answer. A torch op costs several microseconds however small its tensors, and an
-iteration takes a few dozen ops; the kernel's iteration costs about one. Without numba every
+choice of answer. A torch op has a fixed cost however small its tensors, and an iteration takes
+a few dozen ops; the kernel's whole iteration costs about one (benchmarks/results/small.md). Without numba every
 batch takes the torch loop. :func:`track_small` runs the gradient method of
 :func:`~iiwa_torch.trajectory.track` (one such solve per pose) in one call.
 """
@@ -40,7 +40,9 @@ from .result import IKResult
 
 __all__ = ["COMPILED_BATCH", "applies", "solve_small", "track_small"]
 
-COMPILED_BATCH = 1024  # up to this many targets per call (benchmarks/results/small.md: 1.5x the torch loop at 1,000)
+# up to this many targets per call: at 1,000 the compiled rounds are still ahead of the torch loop
+# (the ik.solve rows of benchmarks/results/small.md; the torch loop's: IIWA_TORCH_NUMBA=0)
+COMPILED_BATCH = 1024
 
 
 def applies(target: torch.Tensor, q0, rest, world, size: int) -> bool:

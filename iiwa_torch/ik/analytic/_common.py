@@ -404,7 +404,8 @@ def wrap_joints(thetas: list, offsets: list, lows: list, highs: list, ops=TORCH)
     qs, inside = [], []
     for theta, off, lo, hi in zip(thetas, offsets, lows, highs):
         q = theta - off if off else theta
-        q = q - _TWO_PI * ops.rint(q * (1 / _TWO_PI))  # [-pi, pi]; 3x faster than remainder
+        # into [-pi, pi] by rint, cheaper than remainder (the sweep's time: benchmarks/results/analytic.md)
+        q = q - _TWO_PI * ops.rint(q * (1 / _TWO_PI))
         if hi > math.pi or lo < -math.pi:  # only then may a turn get q in [-pi, pi] inside
             q, fits = shift_into_limits(q, lo, hi)
         else:

@@ -94,7 +94,9 @@ __all__ = ["SOLVE_COMPILED_BATCH", "SOLVE_NUMPY_BATCH", "iiwa", "iiwa_arm_angle"
 Tensor = torch.Tensor
 
 SOLVE_NUMPY_BATCH = 256  # up to this many poses per call (CPU, no world, no gradient), iiwa_solve runs in numpy
-SOLVE_COMPILED_BATCH = 1024  # with the compiled kernel, up to this many (measured: 2x the torch sweep at 1,000)
+# with the compiled kernel, up to this many poses: at 1,000 it is still ahead of the torch sweep
+# (the analytic.iiwa_solve rows of benchmarks/results/small.md; the torch sweep's: IIWA_TORCH_NUMBA=0)
+SOLVE_COMPILED_BATCH = 1024
 
 _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
