@@ -129,6 +129,11 @@ def test_ship_best_copies_the_best_model_and_records_its_step(scripted_run, tmp_
     assert "env step 200: periodic success at 1 cm 90.0%, median final distance 1 mm" in record
     model, _, _ = ev.load_policy(dest)
     assert torch.equal(params(model), script.seen[200])
+    history = "## Run history\n\nRun 1: what was tried before.\n"
+    (dest / "RECORD.md").write_text(record + history)
+    ship.ship(run, "best_policy", root=tmp_path)  # shipped again, the final model this time
+    again = (dest / "RECORD.md").read_text()
+    assert "the final model, env step 400" in again and again.endswith(history) and again.count("## Run") == 1
     final = ship.ship(run, "final_policy", root=tmp_path)
     assert "shipped checkpoint: the final model, env step 400" in (final / "RECORD.md").read_text()
     assert ev.load_policy(final)[0].num_timesteps == 400

@@ -4,7 +4,8 @@
 
 Copies ``model.zip``, ``vecnormalize.pkl`` (removed if the run has none), ``config.yaml``,
 ``train_info.json`` and ``evaluations.json`` (the learning curve) and writes ``RECORD.md``: the command, seed,
-commit, training wall time, steps per second, load average and which checkpoint was shipped. By default
+commit, training wall time, steps per second, load average and which checkpoint was shipped, followed by
+the ``## Run history`` section of the RECORD.md it replaces, if any (the runs that led to it). By default
 the final model is shipped; ``--best`` ships the best one of the periodic evaluation instead (the run's
 ``best.json``: highest success, collision-free where the env checks collisions, ties to the lower median
 distance). Then evaluate it:
@@ -84,8 +85,19 @@ def ship(run: Path, name: str, best: bool = False, root: Path = POLICIES) -> Pat
         "The held-out comparison with the IK solvers is in report/ (train.evaluate, 1,000 goals, seed 0).",
         "",
     ]
-    (dest / "RECORD.md").write_text("\n".join(lines))
+    (dest / "RECORD.md").write_text("\n".join(lines) + _run_history(dest / "RECORD.md"))
     return dest
+
+
+HISTORY = "## Run history"  # the heading under which a policy's RECORD.md keeps its earlier runs
+
+
+def _run_history(record: Path) -> str:
+    """The ``## Run history`` section of an existing RECORD.md (to the end of the file), or ``""``:
+    a policy shipped again keeps the runs that led to it."""
+    text = record.read_text() if record.exists() else ""
+    start = text.find(HISTORY)
+    return "\n" + text[start:] if start >= 0 else ""
 
 
 def export_curve(run: Path, out: Path, label: str) -> Path:
