@@ -95,6 +95,8 @@ def _chain(args: argparse.Namespace) -> Chain:
             raise _UsageError("--urdf gives the robot: --robot and --flange apply to the presets only")
         try:
             return robots.from_urdf(args.urdf, end_link=args.end_link)
+        except OSError as err:  # a file that exists but cannot be read
+            raise _UsageError(f"--urdf {args.urdf}: cannot read it: {err.strerror or err}") from None
         except (ValueError, TypeError) as err:
             raise _UsageError(f"--urdf {args.urdf}: {err}") from None
     if args.end_link is not None:
