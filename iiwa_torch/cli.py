@@ -574,8 +574,8 @@ def _view(args: argparse.Namespace) -> int:
         path, dt, goals = _policy_rollouts(chain, args.policy, args.goals, args.seed)
         _say(f"{args.goals} rollouts of {args.policy}: pick one with the playback panel's path slider")
     viewer.show(
-        chain, q, host=args.host, port=args.port, world=world, show_capsules=args.capsules, show_frames=args.frames,
-        path=path, dt=dt, goals=goals,
+        chain, q, host=args.host, port=args.port, world=world, urdf=args.urdf, show_capsules=args.capsules,
+        show_frames=args.frames, path=path, dt=dt, goals=goals,
     )  # fmt: skip
     return 0
 
