@@ -338,11 +338,12 @@ class UrdfCollision:
     ``frame``: the chain frame (0 the base link, i the child link of movable joint i) that ``link``
     is attached to by fixed joints, and by prismatic joints off the path (a gripper's fingers).
     ``poses``: 4x4 transforms from that frame to the element's origin: one, or one per corner of
-    the off-path prismatic joints' limits (2**k); the element stays inside the convex hull of its
-    copies at these poses. ``shape``: ``box`` (``size`` its x, y, z edge lengths), ``cylinder``
-    (radius, length along its z), ``sphere`` (radius,) or ``mesh`` (``size`` its x, y, z scale,
-    ``filename`` the file found on disk). Metres. ``rgba``: a ``<visual>``'s ``<material>`` colour
-    (its own ``<color>`` or the robot's material of that name), 0..1; None if it names none.
+    the off-path prismatic joints' limits (2**k, the first with each at its lower limit); the
+    element stays inside the convex hull of its copies at these poses. ``shape``: ``box``
+    (``size`` its x, y, z edge lengths), ``cylinder`` (radius, length along its z), ``sphere``
+    (radius,) or ``mesh`` (``size`` its x, y, z scale, ``filename`` the file found on disk).
+    Metres. ``rgba``: a ``<visual>``'s ``<material>`` colour (its own ``<color>`` or the robot's
+    material of that name), 0..1; None if it names none.
     """
 
     link: str

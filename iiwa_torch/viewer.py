@@ -290,9 +290,9 @@ class Viewer:
             of a preset, :func:`~iiwa_torch.capsule_fit.urdf_capsules` of ``urdf``; no
             clearance for other chains unless given).
         urdf: the URDF file ``chain`` was read from (:func:`~iiwa_torch.robots.from_urdf`, from
-            its root link): its ``<visual>`` elements are drawn, links past off-path prismatic
-            joints (a gripper's fingers) at those joints' lower limits; without any, its capsules.
-            The skeleton is then hidden (a panel checkbox shows it).
+            its root link): its ``<visual>`` elements are drawn (links past off-path prismatic
+            joints, a gripper's fingers, at those joints' lower limits) and the skeleton hidden (a
+            panel checkbox shows it); a file without visuals shows its capsules.
         show_capsules, show_frames: draw the collision capsules, every link frame (also
             checkboxes in the panel).
 

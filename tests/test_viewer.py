@@ -920,15 +920,6 @@ def _orange(rgb: np.ndarray) -> np.ndarray:
     return mask
 
 
-def _save_screenshot(rgb: np.ndarray, name: str) -> None:
-    """Keep a screenshot for a person to look at, if IIWA_TORCH_SCREENSHOTS names a folder."""
-    folder = os.environ.get("IIWA_TORCH_SCREENSHOTS")
-    if folder:
-        from PIL import Image
-
-        Image.fromarray(rgb).save(Path(folder) / name)
-
-
 def _readout_xyz(chain, q: torch.Tensor) -> str:
     x, y, z = chain.fk(q)[:3, 3].tolist()
     return f"xyz (m): {x:+.4f} {y:+.4f} {z:+.4f}"
@@ -960,8 +951,6 @@ def test_headless_chromium_draws_the_arm_and_follows_the_sliders(request, robot)
         browser.call("Page.navigate", url=f"http://127.0.0.1:{v.server.get_port()}")
         browser.wait_for_text(_readout_xyz(chain, q0))
         first = browser.settled_screenshot()
-        if robot == "urdf":
-            _save_screenshot(first, "viewer_urdf_q0.png")
         for slider, angle in zip(v.sliders, np.degrees(q1.numpy())):  # as the browser's sliders do
             slider.value = float(angle)
         torch.testing.assert_close(v.q, q1)
