@@ -29,17 +29,9 @@ __all__ = ["urdf_capsules"]
 _GRID = 24  # radii tried per axis, twice (coarse, then around the best)
 
 
-def _mesh_vertices(filename: str) -> np.ndarray:
-    """The vertices ``(N, 3)`` of a mesh file's convex hull (enough to enclose the mesh)."""
-    try:
-        import trimesh
-    except ModuleNotFoundError as err:
-        raise ModuleNotFoundError(
-            f"reading collision meshes needs trimesh ({err}): pip install 'iiwa-torch[urdf]'", name=err.name
-        ) from err
-    mesh = trimesh.load(filename, force="mesh")
-    if len(mesh.vertices) == 0:
-        raise ValueError(f"mesh {filename!r} has no vertices")
+def _mesh_vertices(element: UrdfCollision) -> np.ndarray:
+    """The vertices ``(N, 3)`` of a mesh element's convex hull, unscaled (enough to enclose the mesh)."""
+    mesh = element.load_mesh()
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     return np.asarray(mesh.convex_hull.vertices, dtype=np.float64) if len(vertices) >= 4 else vertices
 
@@ -48,7 +40,7 @@ def _element_balls(element: UrdfCollision) -> tuple[np.ndarray, np.ndarray]:
     """Balls ``(N, 3)`` centres, ``(N,)`` radii in the element's origin frame whose convex hull
     holds the element."""
     if element.shape == "mesh":
-        points = _mesh_vertices(element.filename) * np.asarray(element.size)
+        points = _mesh_vertices(element) * np.asarray(element.size)
     elif element.shape == "box":
         points = np.array(list(itertools.product((-0.5, 0.5), repeat=3))) * np.asarray(element.size)
     elif element.shape == "sphere":

@@ -95,6 +95,8 @@ def _chain(args: argparse.Namespace) -> Chain:
             raise _UsageError("--urdf gives the robot: --robot and --flange apply to the presets only")
         try:
             return robots.from_urdf(args.urdf, end_link=args.end_link)
+        except OSError as err:  # a file that exists but cannot be read
+            raise _UsageError(f"--urdf {args.urdf}: cannot read it: {err.strerror or err}") from None
         except (ValueError, TypeError) as err:
             raise _UsageError(f"--urdf {args.urdf}: {err}") from None
     if args.end_link is not None:
@@ -572,8 +574,8 @@ def _view(args: argparse.Namespace) -> int:
         path, dt, goals = _policy_rollouts(chain, args.policy, args.goals, args.seed)
         _say(f"{args.goals} rollouts of {args.policy}: pick one with the playback panel's path slider")
     viewer.show(
-        chain, q, host=args.host, port=args.port, world=world, show_capsules=args.capsules, show_frames=args.frames,
-        path=path, dt=dt, goals=goals,
+        chain, q, host=args.host, port=args.port, world=world, urdf=args.urdf, show_capsules=args.capsules,
+        show_frames=args.frames, path=path, dt=dt, goals=goals,
     )  # fmt: skip
     return 0
 

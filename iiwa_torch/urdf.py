@@ -27,11 +27,12 @@ from xml.sax.saxutils import quoteattr
 import torch
 
 from .chain import Chain, JointKind
+from .checks import require
 from .dh import Convention, DHChain
 from .kinematics import elementary_transform
 from .so3 import matrix_to_rpy, rpy_to_matrix
 
-__all__ = ["UrdfCollision", "UrdfJoint", "UrdfPath", "read_collisions", "read_urdf", "to_urdf"]
+__all__ = ["UrdfCollision", "UrdfJoint", "UrdfPath", "read_collisions", "read_urdf", "read_visuals", "to_urdf"]
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 _JOINT_ELEMENTS = ("origin", "parent", "child", "axis", "limit", "mimic")  # the kinematic ones
@@ -331,15 +332,18 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
 
 @dataclass(frozen=True)
 class UrdfCollision:
-    """One ``<collision>`` element of a link that moves with a frame of the chain.
+    """One ``<collision>`` (or, from :func:`read_visuals`, ``<visual>``) element of a link that
+    moves with a frame of the chain.
 
     ``frame``: the chain frame (0 the base link, i the child link of movable joint i) that ``link``
     is attached to by fixed joints, and by prismatic joints off the path (a gripper's fingers).
     ``poses``: 4x4 transforms from that frame to the element's origin: one, or one per corner of
-    the off-path prismatic joints' limits (2**k); the element stays inside the convex hull of its
-    copies at these poses. ``shape``: ``box`` (``size`` its x, y, z edge lengths), ``cylinder``
-    (radius, length along its z), ``sphere`` (radius,) or ``mesh`` (``size`` its x, y, z scale,
-    ``filename`` the file found on disk). Metres.
+    the off-path prismatic joints' limits (2**k, the first with each at its lower limit); the
+    element stays inside the convex hull of its copies at these poses. ``shape``: ``box``
+    (``size`` its x, y, z edge lengths), ``cylinder`` (radius, length along its z), ``sphere``
+    (radius,) or ``mesh`` (``size`` its x, y, z scale, ``filename`` the file found on disk).
+    Metres. ``rgba``: a ``<visual>``'s ``<material>`` colour (its own ``<color>`` or the robot's
+    material of that name), 0..1; None if it names none.
     """
 
     link: str
@@ -348,6 +352,21 @@ class UrdfCollision:
     shape: str
     size: tuple[float, ...]
     filename: str | None = None
+    rgba: tuple[float, float, float, float] | None = None
+
+    def load_mesh(self):
+        """The ``trimesh.Trimesh`` of a mesh element's file, unscaled (trimesh: the ``urdf`` extra).
+        ValueError if the file cannot be read as a mesh or has no vertices."""
+        if self.shape != "mesh":
+            raise ValueError(f"link {self.link!r}: a {self.shape} element has no mesh file")
+        trimesh = require("trimesh", "urdf")
+        try:
+            mesh = trimesh.load(self.filename, force="mesh")
+        except Exception as err:  # trimesh raises many kinds of errors for a file it cannot read
+            raise ValueError(f"link {self.link!r}: mesh {self.filename!r} cannot be read: {err}") from None
+        if len(getattr(mesh, "vertices", ())) == 0:
+            raise ValueError(f"link {self.link!r}: mesh {self.filename!r} has no vertices")
+        return mesh
 
 
 _SIZES = {  # each shape's size attributes: (name, count, default)
@@ -392,9 +411,24 @@ def _mesh_file(name: str, directory: str | None, where: str) -> str:
     raise ValueError(f"{where}: mesh {name!r} not found (looked at {', '.join(tried[:4])})")
 
 
-def _collision(element, link: str, frame: int, poses: list[torch.Tensor], directory: str | None) -> UrdfCollision:
-    """A parsed ``<collision>`` element of ``link``, its link frame at ``poses`` in the chain frame."""
-    where = f"link {link!r}: <collision>"
+def _colour(material, named: dict, where: str) -> tuple[float, float, float, float] | None:
+    """The rgba (0..1) of a ``<material>`` element: its ``<color>``, else the robot's material of its name."""
+    if material is None:
+        return None
+    colour = material.find("color")
+    if colour is None:
+        return named.get(material.get("name"))
+    rgba = _numbers(colour, "rgba", 4, "", f"{where} <material>")
+    if not all(0 <= v <= 1 for v in rgba):
+        raise ValueError(f"{where} <material>: rgba must be 4 numbers in 0..1, got {rgba}")
+    return rgba
+
+
+def _element(element, link: str, frame: int, poses: list[torch.Tensor], directory: str | None,
+             named: dict | None) -> UrdfCollision:
+    """A parsed ``<collision>`` or ``<visual>`` element of ``link``, its link frame at ``poses`` in the
+    chain frame; ``named``: the robot's material colours (visuals), None for collisions."""
+    where = f"link {link!r}: <{element.tag}>"
     origin = element.find("origin")
     if origin is not None:
         xyz = _numbers(origin, "xyz", 3, "0 0 0", where)
@@ -412,7 +446,8 @@ def _collision(element, link: str, frame: int, poses: list[torch.Tensor], direct
     filename = _mesh_file(shape.get("filename", ""), directory, where) if shape.tag == "mesh" else None
     if not all(v > 0 for v in size):
         raise ValueError(f"{where}: {shape.tag} sizes must be positive, got {size}")
-    return UrdfCollision(link, frame, tuple(_rows(p) for p in poses), shape.tag, size, filename)
+    rgba = None if named is None else _colour(element.find("material"), named, where)
+    return UrdfCollision(link, frame, tuple(_rows(p) for p in poses), shape.tag, size, filename, rgba)
 
 
 def read_collisions(source: str | os.PathLike, end_link: str | None = None,
@@ -422,18 +457,34 @@ def read_collisions(source: str | os.PathLike, end_link: str | None = None,
     hanging off it by prismatic joints that are not on the path (swept over their limits). Links
     behind other joints off the path (revolute, continuous) are left out. Mesh files are looked up
     from the URDF's directory (``package://`` too), so a mesh needs ``source`` as a file path."""
+    return _elements(source, end_link, base_link, "collision")
+
+
+def read_visuals(source: str | os.PathLike, end_link: str | None = None,
+                 base_link: str | None = None) -> tuple[UrdfCollision, ...]:
+    """The ``<visual>`` elements of the same links, frames and poses as :func:`read_collisions`,
+    each with its material colour (``rgba``, None if it names none)."""
+    return _elements(source, end_link, base_link, "visual")
+
+
+def _elements(source, end_link, base_link, tag: str) -> tuple[UrdfCollision, ...]:
+    """The ``<tag>`` elements (``collision`` or ``visual``) of the links moving with the path's frames."""
     document = _document(source)
     path = read_urdf(source, end_link=end_link, base_link=base_link)
     _, _, _, parent_joint, children = _parse(document)
     directory = None if document is source else os.path.dirname(os.path.abspath(os.fspath(source)))
-    elements = {link.get("name"): link.findall("collision") for link in ElementTree.fromstring(document).iter("link")}
+    robot = ElementTree.fromstring(document)
+    elements = {link.get("name"): link.findall(tag) for link in robot.iter("link")}
+    named = None
+    if tag == "visual":
+        named = {m.get("name"): _colour(m, {}, f"material {m.get('name')!r}") for m in robot.findall("material")}
     on_path = {joint.name for joint in path.joints}
     found = []
     for frame, top in enumerate((path.base_link, *path.links)):
         seen, stack = {top}, [(top, [torch.eye(4, dtype=torch.float64)])]
         while stack:
             link, poses = stack.pop()
-            found += [_collision(e, link, frame, poses, directory) for e in elements.get(link, [])]
+            found += [_element(e, link, frame, poses, directory, named) for e in elements.get(link, [])]
             steps = []  # (neighbour, its link frame from this one: one or two transforms)
             up = parent_joint.get(link)
             if up is not None and up.type == "fixed":

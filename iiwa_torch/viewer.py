@@ -1,18 +1,22 @@
-"""Interactive web viewer of a chain (viser): joint sliders, a pose readout, a draggable IK
+"""Interactive web viewer of any chain (viser): joint sliders, a pose readout, a draggable IK
 target, obstacles and clearance, playback of joint paths.
 
 :func:`show` serves a page (default http://127.0.0.1:8080) with the arm drawn as cylinders
-between consecutive frame origins and one short cylinder per joint along its axis, over a
-floor grid, and optionally an obstacle :class:`~iiwa_torch.collision.World`, the robot's
-collision capsules and its frames. The side panel has one slider per joint (degrees, within
-the joint's limits), the end-effector pose (xyz in metres, roll-pitch-yaw in degrees,
-``R = Rz Ry Rx``), the clearance, the IK controls and status, and a player for paths.
+between consecutive frame origins and one short cylinder per joint along its axis (the
+skeleton), over a floor grid, and optionally an obstacle :class:`~iiwa_torch.collision.World`,
+the robot's collision capsules and its frames. A chain read from a URDF file (``urdf=``) is
+drawn with the file's ``<visual>`` meshes and shapes (:func:`iiwa_torch.urdf.read_visuals`,
+meshes read by trimesh), or with its fitted capsules if it has none. The side panel has one
+slider per joint (degrees, metres for a prismatic joint, within the joint's limits), the
+end-effector pose (xyz in metres, roll-pitch-yaw in degrees, ``R = Rz Ry Rx``), the clearance,
+the IK controls and status, and a player for paths.
 
 Dragging the target gizmo solves its pose by the gradient IK (:func:`iiwa_torch.ik.solve`)
-or, for the iiwa and 6R arms with a spherical wrist, by the closed form (a chosen branch or
-the nearest one; for the iiwa a held arm angle or the nearest one). A target that cannot be
-reached within the limits, or only in collision, is coloured and named as such and the arm
-keeps its last valid configuration.
+or, for an arm whose joint axes admit one (the iiwa and other S-R-S arms, 6R arms with a
+spherical wrist: :func:`iiwa_torch.ik.analytic.structure`), by the closed form (a chosen branch
+or the nearest one; for an S-R-S arm a held arm angle or the nearest one). A target that
+cannot be reached within the limits, or only in collision, is coloured and named as such and
+the arm keeps its last valid configuration.
 
 :class:`Viewer` holds the state, so it can be driven and checked without a browser.
 viser is imported here only, never when ``iiwa_torch`` is imported.
@@ -27,6 +31,7 @@ import ipaddress
 import json
 import math
 import numbers
+import os
 import re
 import socket
 import sys
@@ -37,7 +42,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import collision, ik, so3
+from . import capsule_fit, collision, ik, so3
+from . import urdf as urdf_io
+from .chain import Chain, JointKind, z_onto
 from .checks import check_bool, check_float_tensor, check_positive, require
 from .dh import Convention, DHChain
 from .ik import analytic
@@ -234,19 +241,58 @@ class _Capsule:
         self.ends[0].position, self.ends[1].position = a, b
 
 
+def _urdf_parts(chain: Chain, source, capsules: collision.Capsules | None):
+    """The ``<visual>`` elements of the URDF ``source`` that ``chain`` was read from (its root as
+    the base) with their meshes loaded, ``[(element, trimesh or None)]``, and ``capsules`` or, if
+    None, those fitted to its ``<collision>`` geometry (None if it has none)."""
+    path = urdf_io.read_urdf(source, end_link=chain.link_names[-1])
+    if [j.name for j in path.joints] != list(chain.joint_names):
+        raise ValueError(f"chain {chain.name!r} is not the path of urdf {os.fspath(source)!r} from its root link "
+                         f"{path.base_link!r}: pass the chain robots.from_urdf reads from the file")  # fmt: skip
+    visuals = [(e, e.load_mesh() if e.shape == "mesh" else None) for e in urdf_io.read_visuals(source, path.end_link)]
+    if capsules is None and urdf_io.read_collisions(source, end_link=path.end_link):  # after the quick checks
+        capsules = capsule_fit.urdf_capsules(chain, source)
+    return visuals, capsules
+
+
+def _add_visual(scene, name: str, element: urdf_io.UrdfCollision, mesh):
+    """A scene node of a URDF ``<visual>`` element, in its own frame: its material colour if it
+    names one, else a mesh's own colours (or grey)."""
+    colour = _LINK_COLOUR if element.rgba is None else tuple(round(255 * v) for v in element.rgba[:3])
+    opts = dict(color=colour, opacity=None if element.rgba is None or element.rgba[3] >= 1 else element.rgba[3])
+    size = element.size
+    if element.shape == "mesh":
+        if element.rgba is None:
+            if mesh.visual.kind == "texture":  # our own copy: colours sampled at the vertices, no image to send
+                mesh.visual = mesh.visual.to_color()
+            return scene.add_mesh_trimesh(name, mesh, scale=size)
+        return scene.add_mesh_simple(name, np.asarray(mesh.vertices), np.asarray(mesh.faces), scale=size, **opts)
+    if element.shape == "box":
+        return scene.add_box(name, dimensions=size, **opts)
+    if element.shape == "cylinder":
+        return scene.add_cylinder(name, radius=size[0], height=size[1], **opts)
+    return scene.add_icosphere(name, radius=size[0], **opts)
+
+
 class Viewer:
     """A running viser server showing ``chain`` at ``q`` (default: the middle of the limits).
 
     Args:
-        chain: the robot (its float64 buffers are used).
-        q: ``(n,)`` initial joint angles in radians, within the limits.
+        chain: the robot, any :class:`~iiwa_torch.chain.Chain` (its float64 buffers are used).
+        q: ``(n,)`` initial joint values in radians (metres for prismatic joints), within the
+            limits (default: their middle; 0 for a continuous joint).
         host, port: where the server listens: ``127.0.0.1`` (also for '' or None) is this
             machine only; any other address warns on stderr, as anyone who reaches the port
             controls the viewer. Port 0 takes any free port, and a busy one the next free one.
         world: obstacles to draw and to check the clearance against (one set, no batch
             dimension; see :func:`load_world`); None: the capsule model's own floor.
         capsules: the robot's collision model (default: :func:`~iiwa_torch.collision.robot_capsules`
-            of a preset; no clearance for other chains unless given).
+            of a preset, :func:`~iiwa_torch.capsule_fit.urdf_capsules` of ``urdf``; no
+            clearance for other chains unless given).
+        urdf: the URDF file ``chain`` was read from (:func:`~iiwa_torch.robots.from_urdf`, from
+            its root link): its ``<visual>`` elements are drawn (links past off-path prismatic
+            joints, a gripper's fingers, at those joints' lower limits) and the skeleton hidden (a
+            panel checkbox shows it); a file without visuals shows its capsules.
         show_capsules, show_frames: draw the collision capsules, every link frame (also
             checkboxes in the panel).
 
@@ -256,19 +302,21 @@ class Viewer:
 
     def __init__(
         self,
-        chain: DHChain,
+        chain: Chain,
         q: torch.Tensor | None = None,
         host: str = "127.0.0.1",
         port: int = 8080,
         *,
         world: collision.World | None = None,
         capsules: collision.Capsules | None = None,
+        urdf: str | os.PathLike | None = None,
         show_capsules: bool = False,
         show_frames: bool = False,
     ):
         viser = require("viser", "viewer")
-        if not isinstance(chain, DHChain):
-            raise TypeError(f"chain must be a DHChain, got {type(chain).__name__}")
+        if not isinstance(chain, Chain):
+            raise TypeError(f"chain must be an iiwa_torch Chain (a preset or robots.from_urdf), got "
+                            f"{type(chain).__name__}")  # fmt: skip
         if world is not None and not isinstance(world, collision.World):
             raise TypeError(f"world must be an iiwa_torch.collision.World, got {type(world).__name__}")
         if capsules is not None and not isinstance(capsules, collision.Capsules):
@@ -281,7 +329,11 @@ class Viewer:
         self._syncing = False  # set while the viewer writes its own widgets, whose callbacks then do nothing
         self._target_seq = 0
         self._limits = chain.limits.to(_F64)
-        self._q = self._checked(self._limits.mean(0) if q is None else q)
+        self._q = self._checked(self._limits.nan_to_num(posinf=math.pi, neginf=-math.pi).mean(0) if q is None else q)
+        self._visuals = []  # [(URDF <visual> element, its trimesh or None)], read before the server starts
+        if urdf is not None:
+            self._visuals, capsules = _urdf_parts(chain, urdf, capsules)
+            show_capsules = show_capsules or not self._visuals  # no visuals: the capsules are the body
         if capsules is None:
             try:
                 capsules = collision.robot_capsules(chain)
@@ -292,7 +344,7 @@ class Viewer:
                     ) from None
         self.capsules = capsules
         self.world = None if world is None else _unbatched(world)
-        self._analytic = self._closed_form()
+        self._analytic, self._dh, self._signs = self._closed_form()
         self._method, self._branch, self._arm_angle = "gradient", None, None
         self.status = "drag the target gizmo"
         self.outcome: str | None = None
@@ -370,19 +422,33 @@ class Viewer:
             return collision.pairwise_clearance(self.chain, q.to(_F64), self.world, self.capsules)
 
     # ------------------------------------------------------------------ IK
-    def _closed_form(self) -> str | None:
-        """``"iiwa"`` or ``"pieper"`` if the chain has that closed form, else None."""
-        pose = self.chain.fk(self._q)
-        if self.chain.n_joints not in (6, 7):
-            return None
+    def _closed_form(self) -> tuple[str | None, DHChain | None, torch.Tensor | None]:
+        """The chain's closed form: ``"iiwa"`` (S-R-S) or ``"pieper"``, the DH chain it runs on and
+        ``(n,)`` signs (``q_dh = signs * q``); a DH preset's own table and branches, else those of
+        :func:`~iiwa_torch.ik.analytic.structure`. ``(None, None, None)`` if there is none."""
+        n = self.chain.n_joints
+        if n not in (6, 7):
+            return None, None, None
+        kind = "iiwa" if n == 7 else "pieper"
+        if isinstance(self.chain, DHChain):
+            pose = self.chain.fk(self._q)
+            try:
+                if n == 7:
+                    analytic.iiwa(self.chain, pose, 0.0)
+                else:
+                    analytic.pieper(self.chain, pose)
+                return kind, self.chain, torch.ones(n, dtype=_F64)
+            except ValueError:  # its table has other rows than the closed form needs: try its axes
+                pass
         try:
-            if self.chain.n_joints == 7:
-                analytic.iiwa(self.chain, pose, 0.0)
-            else:
-                analytic.pieper(self.chain, pose)
-        except ValueError:  # the chain's structure is not the one the closed form needs
-            return None
-        return "iiwa" if self.chain.n_joints == 7 else "pieper"
+            found = analytic.structure(self.chain)
+        except ValueError:  # its axes admit no closed form
+            return None, None, None
+        return kind, found.dh, found.signs
+
+    def _current_arm_angle(self) -> torch.Tensor:
+        """The S-R-S arm angle (rad, a 0-dim tensor) of the current angles, in the closed form's DH chain."""
+        return analytic.iiwa_arm_angle(self._dh, self._q * self._signs)
 
     @property
     def ik_methods(self) -> tuple[str, ...]:
@@ -406,7 +472,7 @@ class Viewer:
             raise ValueError(f"branch must be None or an int 0..7, got {branch!r}")
         if arm_angle is not None:
             if self._analytic != "iiwa":
-                raise ValueError(f"an arm angle applies to the iiwa's closed form only, not to {self.chain.name}")
+                raise ValueError(f"an arm angle applies to S-R-S arms like the iiwa only, not to {self.chain.name}")
             if isinstance(arm_angle, bool) or not isinstance(arm_angle, (int, float)) or not math.isfinite(arm_angle):
                 raise ValueError(f"arm_angle must be a finite number of radians or None, got {arm_angle!r}")
         with self._lock:
@@ -443,14 +509,14 @@ class Viewer:
         if self._analytic == "iiwa":
             if self._arm_angle is None:
                 grid = torch.linspace(-math.pi, math.pi, _ARM_ANGLES + 1, dtype=_F64)[:-1]
-                psi = torch.cat([analytic.iiwa_arm_angle(self.chain, self._q)[None], grid])
+                psi = torch.cat([self._current_arm_angle()[None], grid])
             else:
                 psi = torch.tensor([self._arm_angle], dtype=_F64)
-            sol = analytic.iiwa(self.chain, pose, psi)  # q (K, 8, 7)
+            sol = analytic.iiwa(self._dh, pose, psi)  # q (K, 8, 7), of the DH chain
         else:
-            sol = analytic.pieper(self.chain, pose)  # q (8, 6)
+            sol = analytic.pieper(self._dh, pose)  # q (8, 6)
         n = self.chain.n_joints
-        q = sol.q.reshape(-1, 8, n)
+        q = (sol.q * self._signs).reshape(-1, 8, n)
         reachable, within = sol.reachable.reshape(-1, 8), sol.within_limits.reshape(-1, 8)
         if self._branch is not None:
             q, reachable, within = q[:, self._branch], reachable[:, self._branch], within[:, self._branch]
@@ -644,17 +710,32 @@ class Viewer:
             "/floor", width=3 * reach, height=3 * reach, cell_size=reach / 10, section_size=reach / 2,
             position=(0.0, 0.0, floor),
         )  # fmt: skip
+        skeleton = dict(visible=not self._visuals)  # inside the meshes where there are some
         self._links = [
-            scene.add_cylinder(f"/arm/link{i}", radius=radius, height=float(lengths[i]), color=_LINK_COLOUR)
+            scene.add_cylinder(f"/arm/link{i}", radius=radius, height=float(lengths[i]), color=_LINK_COLOUR, **skeleton)
             for i in self._segments
         ]
-        # Joint i turns about the z axis of frame i - 1 (standard DH) or of frame i (modified DH).
-        first = 0 if chain.convention == Convention.STANDARD else 1
-        self._axis_frames = list(range(first, first + chain.n_joints))
+        # Joint i turns about the z axis of frame i - 1 (standard DH) or of frame i (modified DH);
+        # in any other chain about its axis in its child link's frame i.
+        n = chain.n_joints
+        if isinstance(chain, DHChain):
+            first = 0 if chain.convention == Convention.STANDARD else 1
+            self._axis_frames, turns = list(range(first, first + n)), torch.eye(3, dtype=_F64).expand(n, 3, 3)
+        else:
+            self._axis_frames, turns = list(range(1, n + 1)), torch.stack([z_onto(a) for a in chain.axes.to(_F64)])
+        self._axis_turns = turns  # (n, 3, 3): the joint cylinder's z onto the axis, in its frame
         self._joints = [
-            scene.add_cylinder(f"/arm/joint{i + 1}", radius=1.5 * radius, height=5 * radius, color=_JOINT_COLOUR)
-            for i in range(chain.n_joints)
+            scene.add_cylinder(f"/arm/joint{i + 1}", radius=1.5 * radius, height=5 * radius, color=_JOINT_COLOUR,
+                               **skeleton)  # fmt: skip
+            for i in range(n)
         ]
+        self.visual_nodes = [  # (URDF <visual> element, its scene node), placed at every draw
+            (element, _add_visual(scene, f"/visuals/{i}_{element.link}", element, mesh))
+            for i, (element, mesh) in enumerate(self._visuals)
+        ]
+        self._visual_frames = [element.frame for element, _ in self._visuals]
+        poses = [element.poses[0] for element, _ in self._visuals]  # off-path prismatic joints at their lower limits
+        self._visual_poses = torch.tensor(poses, dtype=_F64).reshape(-1, 4, 4)
         axes = dict(axes_length=0.12 * reach, axes_radius=0.006 * reach, visible=show_frames)
         self._frame_nodes = [scene.add_frame(f"/frames/f{i}", **axes) for i in range(chain.n_joints + 1)]
         self._frame_nodes.append(scene.add_frame("/frames/end", **axes))
@@ -752,10 +833,18 @@ class Viewer:
     def _build_gui(self, show_capsules: bool, show_frames: bool) -> None:
         gui = self.server.gui
         gui.add_markdown(f"**{self.chain.name}**: drag the target or move the sliders")
-        self.sliders = []  # one viser slider per joint, degrees; assigning a value moves that joint
+        self.sliders = []  # one viser slider per joint, degrees (metres); assigning a value moves that joint
+        prismatic = [kind is JointKind.PRISMATIC for kind in self.chain.kinds]
+        self._slider_scale = torch.tensor([1.0 if p else math.degrees(1.0) for p in prismatic], dtype=_F64)
+        self._slider_digits = [3 if p else 1 for p in prismatic]  # rounded to the slider's step
+        ranges = self._limits.nan_to_num(posinf=math.pi, neginf=-math.pi) * self._slider_scale  # continuous: a turn
         for i, name in enumerate(self.chain.joint_names):
-            lo, hi = (math.degrees(v) for v in self._limits[:, i].tolist())
-            slider = gui.add_slider(f"{name} (deg)", min=lo, max=hi, step=0.1, initial_value=(lo + hi) / 2)
+            lo, hi = ranges[:, i].tolist()
+            scale = 10.0 ** self._slider_digits[i]  # the ends rounded inwards to the step, if the range allows
+            if math.ceil(lo * scale - 1e-6) <= math.floor(hi * scale + 1e-6):
+                lo, hi = math.ceil(lo * scale - 1e-6) / scale, math.floor(hi * scale + 1e-6) / scale
+            slider = gui.add_slider(f"{name} ({'m' if prismatic[i] else 'deg'})", min=lo, max=hi,
+                                    step=10.0 ** -self._slider_digits[i], initial_value=(lo + hi) / 2)  # fmt: skip
             slider.on_update(self._callback(lambda i=i: self._move_joint(i)))
             self.sliders.append(slider)
         self._readout_md = gui.add_markdown("")
@@ -770,6 +859,9 @@ class Viewer:
             self._status_md = gui.add_markdown("")
         for widget in (self._method_dd, self._branch_dd, self._hold_psi, self._psi_slider):
             widget.on_update(self._callback(self._ik_widgets_changed))
+        self._show_skeleton = gui.add_checkbox("show skeleton", not self._visuals, visible=bool(self._visuals))
+        skeleton = self._links + self._joints
+        self._show_skeleton.on_update(lambda _: self._set_visible(skeleton, self._show_skeleton.value))
         self._show_frames = gui.add_checkbox("show frames", show_frames)
         self._show_frames.on_update(lambda _: self._set_visible(self._frame_nodes, self._show_frames.value))
         self._show_capsules = gui.add_checkbox(
@@ -795,7 +887,7 @@ class Viewer:
 
     def _move_joint(self, i: int) -> None:
         q = self._q.clone()
-        q[i] = math.radians(self.sliders[i].value)
+        q[i] = self.sliders[i].value / float(self._slider_scale[i])
         self._q = self.chain.clamp(q)
         self._draw(move_target=True)
 
@@ -823,9 +915,9 @@ class Viewer:
             node.visible = visible
 
     def _arm_text(self, psi: float) -> str:
-        """The iiwa's arm angle ``psi`` (degrees) and branch signs at the current angles (module doc
-        of the closed form)."""
-        theta = (self._q + self.chain.dh[:, 3].to(_F64))[[1, 3, 5]]
+        """The S-R-S arm angle ``psi`` (degrees) and branch signs at the current angles (module doc
+        of the closed form), in the closed form's DH chain."""
+        theta = (self._q * self._signs + self._dh.dh[:, 3].to(_F64))[[1, 3, 5]]
         signs = "".join("+" if math.sin(t) >= 0 else "-" for t in theta.tolist())
         return f"  \narm angle (deg): {psi:+.1f}, branch {signs}"
 
@@ -835,6 +927,9 @@ class Viewer:
         points = self._origins(frames, end)
         mids, quats, _ = _segment_placement(points[self._segments], points[self._segments + 1])
         frame_quats = _quaternions(torch.cat([frames[:, :3, :3], end[None, :3, :3]]))
+        joint_quats = _quaternions(frames[self._axis_frames, :3, :3] @ self._axis_turns)
+        visual_poses = frames[self._visual_frames] @ self._visual_poses  # (V, 4, 4)
+        visual_points, visual_quats = visual_poses[:, :3, 3].numpy(), _quaternions(visual_poses[:, :3, :3])
         result = self._pairwise(self._q)
         hits = set()
         if result is not None:
@@ -847,8 +942,10 @@ class Viewer:
         with self.server.atomic():
             for node, mid, quat in zip(self._links, mids, quats):
                 node.position, node.wxyz = mid, quat
-            for node, f in zip(self._joints, self._axis_frames):
-                node.position, node.wxyz = points[f], frame_quats[f]
+            for node, f, quat in zip(self._joints, self._axis_frames, joint_quats):
+                node.position, node.wxyz = points[f], quat
+            for (_, node), p, quat in zip(self.visual_nodes, visual_points, visual_quats):
+                node.position, node.wxyz = p, quat
             for node, p, quat in zip(self._frame_nodes, points, frame_quats):
                 node.position, node.wxyz = p, quat
             self._end_node.position, self._end_node.wxyz = points[-1], frame_quats[-1]
@@ -869,11 +966,12 @@ class Viewer:
             colour = (150, 150, 150) if self.outcome is None else _TARGET_COLOURS.get(self.outcome, _HIT_COLOUR)
             self._target_marker.color = colour
             with self._quiet():
-                for slider, angle in zip(self.sliders, torch.rad2deg(self._q).tolist()):
-                    slider.value = min(max(round(angle, 1), slider.min), slider.max)
+                for slider, value, digits in zip(self.sliders, (self._q * self._slider_scale).tolist(),
+                                                 self._slider_digits):  # fmt: skip
+                    slider.value = min(max(round(value, digits), slider.min), slider.max)
             arm = ""
             if self._analytic == "iiwa":
-                psi = math.degrees(float(analytic.iiwa_arm_angle(self.chain, self._q)))
+                psi = math.degrees(float(self._current_arm_angle()))
                 arm = self._arm_text(psi)
                 if self._arm_angle is None:  # the slider follows the arm, so holding starts from here
                     with self._quiet():
@@ -888,7 +986,7 @@ class Viewer:
 
 
 def show(
-    chain: DHChain,
+    chain: Chain,
     q: torch.Tensor | None = None,
     host: str = "127.0.0.1",
     port: int = 8080,
@@ -896,6 +994,7 @@ def show(
     *,
     world: collision.World | None = None,
     capsules: collision.Capsules | None = None,
+    urdf: str | os.PathLike | None = None,
     show_capsules: bool = False,
     show_frames: bool = False,
     path: torch.Tensor | None = None,
@@ -906,8 +1005,8 @@ def show(
 
     ``q`` is the first configuration (radians, default mid-limits). ``host="0.0.0.0"`` makes
     it reachable from other machines (with a warning); ``host``, ``port`` as for :class:`Viewer`,
-    which says where the server listens (its ``host`` and ``port``). ``world``, ``capsules``, ``show_capsules``,
-    ``show_frames`` as for :class:`Viewer`; ``path`` ``(T, n)`` or ``(B, T, n)``, ``dt`` (s)
+    which says where the server listens (its ``host`` and ``port``). ``world``, ``capsules``, ``urdf``,
+    ``show_capsules``, ``show_frames`` as for :class:`Viewer`; ``path`` ``(T, n)`` or ``(B, T, n)``, ``dt`` (s)
     and ``goals`` ``(B, 3)`` as for :meth:`Viewer.set_path`. With ``block=True`` it runs until
     Ctrl-C, then stops the server and returns None; with ``block=False`` it returns the
     running :class:`Viewer` (call its ``stop()``).
@@ -916,7 +1015,7 @@ def show(
     viewer, handed_over = None, False
     try:  # Ctrl-C may come as soon as the page is served, while the scene is still being built
         viewer = Viewer(
-            chain, q, host=host, port=port, world=world, capsules=capsules, show_capsules=show_capsules,
+            chain, q, host=host, port=port, world=world, capsules=capsules, urdf=urdf, show_capsules=show_capsules,
             show_frames=show_frames,
         )  # fmt: skip
         if path is not None:

@@ -426,6 +426,8 @@ def test_any_arm_from_its_urdf(capsys):
     reach = _run_json(capsys, "workspace", "--urdf", panda_file, "--end-link", "panda_hand", "--samples", "20000")
     assert reach["point"] == "flange" and 0.7 < reach["r_max_m"] < 1.0  # the Panda's reach is about 0.855 m
     assert "no URDF file" in _fails(capsys, "fk", "0", "--urdf", "/no/such.urdf")
+    if Path("/proc/self/mem").exists():  # a file that is there but cannot be read, even by root
+        assert "cannot read it: Input/output error" in _fails(capsys, "fk", "0", "--urdf", "/proc/self/mem")
     assert "pass end_link=" in _fails(capsys, "fk", "0", "--urdf", panda_file)
     assert "presets only" in _fails(capsys, "fk", "0", "--urdf", panda_file, "--robot", "iiwa14")
     assert "--urdf only" in _fails(capsys, "fk", "0", "--end-link", "tool0")

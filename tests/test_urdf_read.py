@@ -272,3 +272,50 @@ def test_missing_pytorch_kinematics_names_the_extra(monkeypatch):
         monkeypatch.setitem(sys.modules, name, None)  # as if not installed
     with pytest.raises(ModuleNotFoundError, match=r"pip install 'iiwa-torch\[urdf\]'"):
         read_urdf(_robot(J))
+
+
+VISUALS = """<robot name="v">
+  <material name="Teal"><color rgba="0 0.5 0.5 1"/></material>
+  <link name="a"><visual><geometry><box size="0.1 0.2 0.3"/></geometry><material name="Teal"/></visual>
+    <collision><geometry><sphere radius="0.5"/></geometry></collision></link>
+  <joint name="j" type="revolute"><parent link="a"/><child link="b"/><origin xyz="0 0 1"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+  <link name="b"><visual><origin xyz="0.1 0 0" rpy="0 0 1.5"/><geometry><cylinder radius="0.05" length="0.4"/>
+    </geometry><material name="own"><color rgba="1 0 0 0.5"/></material></visual></link>
+  <joint name="f" type="fixed"><parent link="b"/><child link="c"/><origin xyz="0 0.2 0"/></joint>
+  <link name="c"><visual><geometry><mesh filename="m.obj" scale="2 2 2"/></geometry></visual></link>
+</robot>"""
+
+
+def test_visuals_as_the_xml_writes_them(tmp_path):
+    """read_visuals: each <visual>, its frame, its origin (through a fixed joint too), its size and its
+    material colour, inline or named at the robot level; read_collisions of the same file keeps to
+    <collision>."""
+    (tmp_path / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "v.urdf").write_text(VISUALS)
+    box, cylinder, mesh = urdf.read_visuals(tmp_path / "v.urdf")
+    assert (box.link, box.frame, box.shape, box.size, box.rgba) == ("a", 0, "box", (0.1, 0.2, 0.3), (0, 0.5, 0.5, 1))
+    assert (cylinder.link, cylinder.frame, cylinder.size, cylinder.rgba) == ("b", 1, (0.05, 0.4), (1, 0, 0, 0.5))
+    c, s = math.cos(1.5), math.sin(1.5)
+    np.testing.assert_allclose(cylinder.poses[0], [[c, -s, 0, 0.1], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+                               atol=1e-15)  # fmt: skip
+    assert (mesh.link, mesh.frame, mesh.size, mesh.rgba) == ("c", 1, (2.0, 2.0, 2.0), None)
+    np.testing.assert_allclose(np.array(mesh.poses[0])[:3, 3], [0, 0.2, 0])
+    np.testing.assert_allclose(mesh.load_mesh().vertices, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    assert [e.shape for e in urdf.read_collisions(tmp_path / "v.urdf")] == ["sphere"]
+    with pytest.raises(ValueError, match="rgba must be 4 numbers in 0..1"):
+        urdf.read_visuals(VISUALS.replace("1 0 0 0.5", "255 0 0 1"))
+    with pytest.raises(ValueError, match="a box element has no mesh file"):
+        box.load_mesh()
+    (tmp_path / "m.obj").write_bytes(b"\x00\xff" * 50)
+    with pytest.raises(ValueError, match="m.obj' (has no vertices|cannot be read)"):
+        mesh.load_mesh()
+
+
+def test_kuka_visuals_sit_on_their_links():
+    """pybullet's iiwa: link i's visual mesh at frame i, with the colour its named material gives."""
+    elements = urdf.read_visuals(DATA / "kuka_iiwa/model.urdf")
+    assert [(e.link, e.frame) for e in elements] == [(f"lbr_iiwa_link_{i}", i) for i in range(8)]
+    grey, orange, blue = (0.2, 0.2, 0.2, 1.0), (1.0, 0.423529411765, 0.0392156862745, 1.0), (0.5, 0.7, 1.0, 1.0)
+    assert [e.rgba for e in elements] == [grey, blue, blue, orange, blue, blue, orange, grey]
+    assert all(e.filename.endswith(f"meshes/link_{i}.obj") for i, e in enumerate(elements))

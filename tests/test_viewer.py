@@ -18,6 +18,7 @@ import threading
 import time
 import urllib.request
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -61,12 +62,13 @@ def _quat_matrix(wxyz) -> np.ndarray:
     )
 
 
-def _arm_angle(chain, q: torch.Tensor) -> float:
-    """The iiwa's arm angle from its shoulder, elbow and wrist points, as the closed form's
-    documentation defines it: the angle of the elbow about the shoulder-wrist line, from the
-    vertical plane through that line (the base frame is the world frame here)."""
+def _arm_angle(chain, q: torch.Tensor, points=(1, 3, 5)) -> float:
+    """The iiwa's arm angle from its shoulder, elbow and wrist points (the origins of frames
+    ``points`` of ``fk_all``), as the closed form's documentation defines it: the angle of the
+    elbow about the shoulder-wrist line, from the vertical plane through that line (the base frame
+    is the world frame here)."""
     frames = chain.fk_all(q).numpy()
-    s, e, w = frames[1, :3, 3], frames[3, :3, 3], frames[5, :3, 3]
+    s, e, w = (frames[i, :3, 3] for i in points)
     u = (w - s) / np.linalg.norm(w - s)
     horizontal = np.array([0.0, 0.0, 1.0]) - u[2] * u  # the base z axis, minus its part along u
     v_ref = horizontal / np.linalg.norm(horizontal)
@@ -82,6 +84,25 @@ def chain():
 @pytest.fixture(scope="module")
 def viewer(chain):
     v = show(chain, port=_free_port(), block=False)
+    yield v
+    v.stop()
+
+
+@pytest.fixture(scope="module")
+def kuka():
+    """pybullet_data's iiwa (``kuka_iiwa/model.urdf``: visual meshes with named colours, an S-R-S
+    arm) as ``(file, chain)``."""
+    pybullet_data = pytest.importorskip("pybullet_data")
+    pytest.importorskip("pytorch_kinematics")
+    pytest.importorskip("trimesh")
+    file = f"{pybullet_data.getDataPath()}/kuka_iiwa/model.urdf"
+    return file, robots.from_urdf(file)
+
+
+@pytest.fixture(scope="module")
+def kuka_viewer(kuka):
+    file, chain = kuka
+    v = show(chain, port=_free_port(), block=False, urdf=file)  # capsules fitted to its collision meshes
     yield v
     v.stop()
 
@@ -323,6 +344,188 @@ def test_set_ik_rejects_bad_choices(viewer):
         planar.stop()
 
 
+# ---------------------------------------------------------------------- any arm, from its URDF
+def _pybullet_link_frames(file: str, values: dict[str, float]) -> dict[str, np.ndarray]:
+    """pybullet's world frame ``(4, 4)`` of every link of the URDF ``file`` (loaded at the origin), with
+    the joints named in ``values`` set and the others at 0."""
+    import pybullet as p
+
+    cid = p.connect(p.DIRECT)
+    try:
+        robot = p.loadURDF(file, useFixedBase=True, physicsClientId=cid)
+        frames = {p.getBodyInfo(robot, physicsClientId=cid)[0].decode(): np.eye(4)}
+        count = p.getNumJoints(robot, physicsClientId=cid)
+        infos = [p.getJointInfo(robot, i, physicsClientId=cid) for i in range(count)]
+        for i, info in enumerate(infos):
+            p.resetJointState(robot, i, values.get(info[1].decode(), 0.0), physicsClientId=cid)
+        for i, info in enumerate(infos):
+            state = p.getLinkState(robot, i, computeForwardKinematics=True, physicsClientId=cid)
+            frame = np.eye(4)
+            frame[:3, :3] = np.reshape(p.getMatrixFromQuaternion(state[5]), (3, 3))
+            frame[:3, 3] = state[4]
+            frames[info[12].decode()] = frame
+        return frames
+    finally:
+        p.disconnect(cid)
+
+
+def _visual_origins(file: str) -> dict[str, np.ndarray]:
+    """Each link's ``<visual>`` origin ``(4, 4)`` in its link frame, as the XML writes it (these files
+    have at most one visual per link)."""
+    origins = {}
+    for link in ElementTree.parse(file).getroot().iter("link"):
+        origin, matrix = link.find("visual/origin"), np.eye(4)
+        if origin is not None:
+            matrix[:3, :3] = _rpy_matrix(*np.degrees([float(v) for v in origin.get("rpy", "0 0 0").split()]))
+            matrix[:3, 3] = [float(v) for v in origin.get("xyz", "0 0 0").split()]
+        origins[link.get("name")] = matrix
+    return origins
+
+
+def _assert_visuals_at_pybullet_frames(v: Viewer, file: str, q: torch.Tensor) -> None:
+    """Every visual node of ``v`` at ``q`` sits at pybullet's frame of its link times the visual's
+    origin in the XML (joints off the path, a gripper's fingers, at 0, their lower limit)."""
+    pytest.importorskip("pybullet")
+    v.set_q(q)
+    frames = _pybullet_link_frames(file, dict(zip(v.chain.joint_names, q.tolist())))
+    origins = _visual_origins(file)
+    for element, node in v.visual_nodes:  # pybullet's frames are good to about 1e-8 (float32 steps inside)
+        expected = frames[element.link] @ origins[element.link]
+        np.testing.assert_allclose(node.position, expected[:3, 3], atol=1e-6, err_msg=element.link)
+        np.testing.assert_allclose(_quat_matrix(node.wxyz), expected[:3, :3], atol=1e-6, err_msg=element.link)
+
+
+def test_a_urdf_arm_is_drawn_with_its_meshes_at_pybullets_link_frames(kuka, kuka_viewer):
+    file, chain = kuka
+    assert [e.link for e, _ in kuka_viewer.visual_nodes] == [f"lbr_iiwa_link_{i}" for i in range(8)]
+    assert tuple(kuka_viewer.visual_nodes[3][1].color) == (255, 108, 10)  # its material "Orange", 1 0.4235 0.0392
+    assert not any(node.visible for node in kuka_viewer._links + kuka_viewer._joints)  # the skeleton: hidden
+    for q in chain.random_q(2, generator=torch.Generator().manual_seed(5)):
+        _assert_visuals_at_pybullet_frames(kuka_viewer, file, q)
+
+
+def test_the_pandas_hand_and_fingers_follow_its_last_link():
+    """pybullet_data's Panda to panda_hand: the hand hangs off link 7 by fixed joints, the fingers by
+    prismatic joints off the path; the meshes keep their own (textured) colours."""
+    pybullet_data = pytest.importorskip("pybullet_data")
+    pytest.importorskip("pytorch_kinematics")
+    pytest.importorskip("trimesh")
+    file = f"{pybullet_data.getDataPath()}/franka_panda/panda.urdf"
+    chain = robots.from_urdf(file, end_link="panda_hand")
+    hand = collision.Capsules.build(chain, ["hand"], [7], np.zeros((1, 2, 3)), [0.05], pairs=(), floor=[True])
+    v = show(chain, port=_free_port(), block=False, urdf=file, capsules=hand)  # capsules given: none fitted
+    try:
+        assert v.capsules is hand and v.ik_methods == ("gradient",)  # axes 6 and 7 do not meet: no closed form
+        assert {e.link for e, _ in v.visual_nodes} >= {"panda_hand", "panda_leftfinger", "panda_rightfinger"}
+        _assert_visuals_at_pybullet_frames(v, file, torch.tensor([0.3, -0.4, 0.2, -2.0, 0.4, 1.9, 0.6], dtype=F64))
+    finally:
+        v.stop()
+
+
+def test_a_urdf_arm_is_solved_in_closed_form_and_checked_against_its_capsules(kuka, kuka_viewer):
+    """pybullet's iiwa: its axes make an S-R-S arm, so dragging solves it by the closed form, at the
+    arm angle held (measured from its shoulder, elbow and wrist: the origins of link frames 2, 4,
+    6) and in the branch asked for (the signs of the DH angles 2, 4, 6 of analytic.structure,
+    which here are the file's q2, q4, q6 plus a half turn each)."""
+    _, chain = kuka
+    v = kuka_viewer
+    assert v.ik_methods == ("gradient", "analytic")
+    assert v.capsules.names == tuple(f"lbr_iiwa_link_{i}" for i in range(8))
+    found = analytic.structure(chain)
+    q = torch.tensor([0.4, 0.7, -0.3, -1.1, 0.5, 0.9, 0.2], dtype=F64)  # file's signs + - +: branch 5 (- + -)
+    own = _arm_angle(chain, q, points=(2, 4, 6))
+    v.set_q(torch.zeros(7, dtype=F64))
+    for branch, psi in ((5, own + 0.3), (1, own - 0.3)):  # within the limits at these arm angles
+        v.set_ik("analytic", branch=branch, arm_angle=psi)
+        result = v.solve_target(chain.fk(q))
+        assert result.outcome == "reached", v.status
+        np.testing.assert_allclose(chain.fk(v.q).numpy(), chain.fk(q).numpy(), atol=1e-9)
+        assert _arm_angle(chain, v.q, points=(2, 4, 6)) == pytest.approx(psi, abs=1e-7)
+        theta = found.to_dh(v.q) + found.dh.dh[:, 3]
+        signs = [int(math.sin(a) < 0) for a in theta[[1, 3, 5]].tolist()]
+        assert 4 * signs[0] + 2 * signs[1] + signs[2] == branch
+        assert f"branch {'+-'[signs[0]]}{'+-'[signs[1]]}{'+-'[signs[2]]}" in v._readout_md.content
+        assert result.clearance == pytest.approx(v.clearance()[0]) and result.clearance > 0
+    v.set_ik("gradient")
+    v.drag_target((0.0, 1.0, 0.0, 0.0), (0.5, 0.1, 0.5))  # flange pointing down
+    assert v.outcome == "reached", v.status
+    np.testing.assert_allclose(chain.fk(v.q)[:3, 3].numpy(), [0.5, 0.1, 0.5], atol=1e-4)
+
+
+_ODD_ARM = """<robot name="odd">
+  <link name="base"><collision><geometry><box size="0.2 0.2 0.1"/></geometry></collision></link>
+  <joint name="turn" type="revolute"><parent link="base"/><child link="l1"/><origin xyz="0 0 0.1"/>
+    <axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <link name="l1"><collision><origin xyz="0 0 0.2"/><geometry><box size="0.08 0.08 0.4"/></geometry></collision></link>
+  <joint name="spin" type="continuous"><parent link="l1"/><child link="l2"/><origin xyz="0 0 0.4" rpy="0.3 0 0"/>
+    <axis xyz="0 1 1"/></joint>
+  <link name="l2"><collision><origin xyz="0.15 0 0"/><geometry><box size="0.3 0.06 0.06"/></geometry></collision></link>
+  <joint name="slide" type="prismatic"><parent link="l2"/><child link="l3"/><origin xyz="0.3 0 0"/>
+    <axis xyz="1 0 0"/><limit lower="0" upper="0.2" effort="1" velocity="1"/></joint>
+  <link name="l3"><collision><geometry><sphere radius="0.04"/></geometry></collision></link>
+</robot>"""
+
+
+@pytest.fixture(scope="module")
+def odd_viewer(tmp_path_factory):
+    """A URDF arm with a revolute, a continuous and a prismatic joint, collision boxes and no visuals."""
+    pytest.importorskip("pytorch_kinematics")
+    file = tmp_path_factory.mktemp("odd") / "odd.urdf"
+    file.write_text(_ODD_ARM)
+    v = show(robots.from_urdf(file), port=_free_port(), block=False, urdf=file)
+    yield v
+    v.stop()
+
+
+def test_a_urdf_without_visuals_is_drawn_with_its_capsules(odd_viewer):
+    assert odd_viewer.visual_nodes == []
+    assert set(odd_viewer.capsule_nodes) == {"base", "l1", "l2", "l3"}
+    assert all(node.visible for cap in odd_viewer.capsule_nodes.values() for node in cap.nodes)
+    assert all(node.visible for node in odd_viewer._links + odd_viewer._joints)  # and its skeleton
+    assert odd_viewer._show_capsules.value and odd_viewer.ik_methods == ("gradient",)
+
+
+def test_sliders_of_continuous_and_prismatic_joints(odd_viewer):
+    """A continuous joint's slider spans one turn (its middle, 0, is the first value); a prismatic
+    joint's is in metres."""
+    turn, spin, slide = odd_viewer.sliders
+    assert (spin.min, spin.max) == pytest.approx((-180.0, 180.0)) and (slide.min, slide.max) == (0.0, 0.2)
+    assert slide.label == "slide (m)" and spin.label == "spin (deg)"
+    odd_viewer.set_q(torch.tensor([0.0, 0.0, 0.1], dtype=F64))
+    slide.value = 0.15
+    spin.value = -150.0
+    torch.testing.assert_close(odd_viewer.q, torch.tensor([0.0, math.radians(-150.0), 0.15], dtype=F64))
+
+
+@pytest.mark.parametrize("which", ["preset", "kuka", "odd"])
+def test_joint_cylinders_lie_on_the_joint_axes(request, which):
+    """Each joint's cylinder lies along the joint's axis in the world, read from the geometric
+    Jacobian: its z axis is the angular column (the linear one for a prismatic joint), and for a
+    revolute joint the linear column is that axis crossed with the lever from the cylinder's
+    centre to the end effector."""
+    v = request.getfixturevalue({"preset": "viewer", "kuka": "kuka_viewer", "odd": "odd_viewer"}[which])
+    chain = v.chain
+    q = chain.random_q(1, generator=torch.Generator().manual_seed(7))[0]
+    v.set_q(q)
+    jacobian, end = chain.jacobian(q).numpy(), chain.fk(q)[:3, 3].numpy()
+    for i, (node, kind) in enumerate(zip(v._joints, chain.kinds)):
+        z = _quat_matrix(node.wxyz)[:, 2]
+        linear, angular = jacobian[:3, i], jacobian[3:, i]
+        if kind.value == "prismatic":
+            np.testing.assert_allclose(z, linear, atol=1e-9)
+        else:
+            np.testing.assert_allclose(z, angular, atol=1e-9)
+            np.testing.assert_allclose(np.cross(angular, end - node.position), linear, atol=1e-9)
+
+
+def test_a_chain_and_a_urdf_that_do_not_match_are_refused(kuka):
+    file, _ = kuka
+    with pytest.raises(ValueError, match="not the path of urdf"):
+        Viewer(robots.from_urdf(file, base_link="lbr_iiwa_link_1"), port=_free_port(), urdf=file)
+    with pytest.raises(TypeError, match="Chain"):
+        Viewer("iiwa14", port=_free_port())
+
+
 # ---------------------------------------------------------------------- obstacles
 _WORLD = {
     "floor": 0.0,
@@ -562,6 +765,42 @@ def test_cli_view_refuses_what_it_cannot_serve(capsys, argv, message):
     assert message in err.splitlines()[-1]
 
 
+def test_cli_view_of_a_urdf_arm(shown, kuka):
+    file, chain = kuka
+    assert cli.main(["view", "--urdf", file, "--q", "10", "20", "0", "-40", "0", "30", "0"]) == 0
+    ((args, kwargs),) = shown
+    assert args[0].joint_names == chain.joint_names and kwargs["urdf"] == file
+    torch.testing.assert_close(args[1], torch.tensor([10.0, 20, 0, -40, 0, 30, 0], dtype=F64).deg2rad())
+
+
+def test_cli_view_of_files_it_cannot_read(tmp_path, capsys, kuka):
+    """Exit status 2 and the problem on the last line, no traceback: a missing, binary or unreadable
+    URDF, a mesh that is missing or not a mesh (found before any server starts)."""
+    file, _ = kuka
+    (tmp_path / "binary.urdf").write_bytes(bytes(range(256)))
+    model = Path(file).read_text()
+    (tmp_path / "meshes").mkdir()
+    for mesh in Path(file).parent.joinpath("meshes").glob("link_*"):
+        (tmp_path / "meshes" / mesh.name).symlink_to(mesh)
+    (tmp_path / "meshes" / "bad.obj").write_bytes(b"\x00\xff" * 100)
+    (tmp_path / "bad.urdf").write_text(model.replace("meshes/link_3.obj", "meshes/bad.obj"))
+    (tmp_path / "missing.urdf").write_text(model.replace("meshes/link_3.obj", "meshes/gone.obj"))
+    cases = [
+        ("/no/such.urdf", "no URDF file at '/no/such.urdf'"),
+        (str(tmp_path / "binary.urdf"), "not well-formed XML"),
+        (str(tmp_path / "missing.urdf"), "mesh 'meshes/gone.obj' not found"),
+        (str(tmp_path / "bad.urdf"), "bad.obj'"),
+    ]
+    if os.path.exists("/proc/self/mem"):  # a file that is there but cannot be read (even by root)
+        cases.append(("/proc/self/mem", "cannot read it: Input/output error"))
+    for source, message in cases:
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["view", "--urdf", source, "--port", "0"])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and "Traceback" not in err, err
+        assert err.splitlines()[-1].startswith("iiwa-torch view: error: ") and message in err.splitlines()[-1], err
+
+
 def test_cli_view_rolls_out_the_shipped_policy(chain, shown):
     pytest.importorskip("stable_baselines3")
     policy = Path(__file__).resolve().parents[1] / "train" / "policies" / "ppo_iiwa_reach"
@@ -688,11 +927,20 @@ def _readout_xyz(chain, q: torch.Tensor) -> str:
 
 @pytest.mark.skipif(_CHROMIUM is None, reason="no chromium on this machine (apt-get install chromium): "
                                                "the viewer's rendering in a browser is not checked")  # fmt: skip
-def test_headless_chromium_draws_the_arm_and_follows_the_sliders(chain):
+@pytest.mark.parametrize("robot", ["preset", "urdf"])
+def test_headless_chromium_draws_the_arm_and_follows_the_sliders(request, robot):
+    """The iiwa 14 preset (its skeleton's orange joints) and pybullet's iiwa from its URDF (its
+    meshes, two of them orange by their material, the skeleton hidden)."""
+    if robot == "urdf":
+        file, chain = request.getfixturevalue("kuka")
+        kwargs = dict(urdf=file, capsules=request.getfixturevalue("kuka_viewer").capsules)  # fitted once
+    else:
+        chain, kwargs = request.getfixturevalue("chain"), {}
     deadline = time.monotonic() + _BROWSER_SECONDS
     q0 = torch.zeros(7, dtype=F64)
     q1 = torch.tensor([70.0, 50.0, 0.0, -80.0, 0.0, 35.0, 0.0], dtype=F64).deg2rad()
-    v = Viewer(chain, q0, port=_free_port())
+    v = Viewer(chain, q0, port=_free_port(), **kwargs)
+    assert any(node.visible for node in v._joints) == (robot == "preset")
     # Software WebGL takes 2-20 s (machine load) to prefilter viser's environment map for the first
     # frame; plain lights without shadows draw the same arm in well under a second.
     v.server.scene.configure_environment_map(hdri=None)
