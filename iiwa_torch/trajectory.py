@@ -178,8 +178,7 @@ def jtraj(
     v0 = torch.zeros_like(delta) if qd0 is None else (qd0 * duration).expand(shape)  # d q / d s at the ends
     v1 = torch.zeros_like(delta) if qd1 is None else (qd1 * duration).expand(shape)
     # q(s) = q0 + v0 s + c3 s^3 + c4 s^4 + c5 s^5 for s in [0, 1]: a (T, 6) basis times (6, n)
-    # coefficients, one matrix product per output: one op instead of Horner's elementwise chain
-    # (jtraj's time: benchmarks/results/trajectory.md).
+    # coefficients, one matrix product per output instead of Horner's elementwise chain (trajectory.md).
     zero = torch.zeros_like(delta)
     coeffs = torch.stack(
         [

@@ -314,15 +314,7 @@ class Viewer:
         show_frames: bool = False,
     ):
         viser = require("viser", "viewer")
-        if not isinstance(chain, Chain):
-            raise TypeError(f"chain must be an iiwa_torch Chain (a preset or robots.from_urdf), got "
-                            f"{type(chain).__name__}")  # fmt: skip
-        if world is not None and not isinstance(world, collision.World):
-            raise TypeError(f"world must be an iiwa_torch.collision.World, got {type(world).__name__}")
-        if capsules is not None and not isinstance(capsules, collision.Capsules):
-            raise TypeError(f"capsules must be an iiwa_torch.collision.Capsules, got {type(capsules).__name__}")
-        check_bool(show_capsules, "show_capsules")
-        check_bool(show_frames, "show_frames")
+        _check_options(chain, world, capsules, show_capsules, show_frames)
         host, loopback = _listen_address(host, port)
         self.chain = chain
         self._lock = threading.RLock()
@@ -334,15 +326,7 @@ class Viewer:
         if urdf is not None:
             self._visuals, capsules = _urdf_parts(chain, urdf, capsules)
             show_capsules = show_capsules or not self._visuals  # no visuals: the capsules are the body
-        if capsules is None:
-            try:
-                capsules = collision.robot_capsules(chain)
-            except ValueError:
-                if world is not None:
-                    raise ValueError(
-                        f"no capsule model for {chain.name!r}: pass capsules= to check it against the world"
-                    ) from None
-        self.capsules = capsules
+        self.capsules = _preset_capsules(chain, world) if capsules is None else capsules
         self.world = None if world is None else _unbatched(world)
         self._analytic, self._dh, self._signs = self._closed_form()
         self._method, self._branch, self._arm_angle = "gradient", None, None
@@ -921,6 +905,21 @@ class Viewer:
         signs = "".join("+" if math.sin(t) >= 0 else "-" for t in theta.tolist())
         return f"  \narm angle (deg): {psi:+.1f}, branch {signs}"
 
+    def _draw_collisions(self, frames: torch.Tensor, hits: set[str]) -> None:
+        """Place the capsules at the link ``frames (n + 1, 4, 4)``; colour the capsules and obstacles
+        named in ``hits`` as colliding."""
+        if self.capsules is not None:
+            world_frames = frames[list(self.capsules.frames)]
+            rot, origin = world_frames[:, None, :3, :3], world_frames[:, None, :3, 3]
+            ends = (rot @ self.capsules.points[..., None])[..., 0] + origin  # (K, 2, 3)
+            for (name, cap), (a, b) in zip(self.capsule_nodes.items(), ends.numpy()):
+                cap.place(a, b)
+                for node in cap.nodes:
+                    node.color = _HIT_COLOUR if name in hits else _CAPSULE_COLOUR
+        for name, nodes in self.world_nodes.items():
+            for node in nodes:
+                node.color = _HIT_COLOUR if name in hits else _OBSTACLE_COLOUR
+
     def _draw(self, move_target: bool) -> None:
         """Send the arm, sliders, readout, clearance and status for the current ``q``."""
         frames, end = self._frames()
@@ -952,17 +951,7 @@ class Viewer:
             if move_target:
                 self._target.position, self._target.wxyz = points[-1], frame_quats[-1]
                 self._target_pose = end.clone()
-            if self.capsules is not None:
-                world_frames = frames[list(self.capsules.frames)]
-                rot, origin = world_frames[:, None, :3, :3], world_frames[:, None, :3, 3]
-                ends = (rot @ self.capsules.points[..., None])[..., 0] + origin  # (K, 2, 3)
-                for (name, cap), (a, b) in zip(self.capsule_nodes.items(), ends.numpy()):
-                    cap.place(a, b)
-                    for node in cap.nodes:
-                        node.color = _HIT_COLOUR if name in hits else _CAPSULE_COLOUR
-            for name, nodes in self.world_nodes.items():
-                for node in nodes:
-                    node.color = _HIT_COLOUR if name in hits else _OBSTACLE_COLOUR
+            self._draw_collisions(frames, hits)
             colour = (150, 150, 150) if self.outcome is None else _TARGET_COLOURS.get(self.outcome, _HIT_COLOUR)
             self._target_marker.color = colour
             with self._quiet():
@@ -983,6 +972,30 @@ class Viewer:
                 state = "**COLLIDING**" if gap[0] < 0 else "clearance"
                 self._clearance_md.content = f"{state} {1000 * gap[0]:+.1f} mm ({gap[1][0]} - {gap[1][1]})"
             self._status_md.content = f"IK: {self.status}"
+
+
+def _check_options(chain, world, capsules, show_capsules, show_frames) -> None:
+    """:class:`Viewer`'s argument types, checked before anything is built."""
+    if not isinstance(chain, Chain):
+        raise TypeError(f"chain must be an iiwa_torch Chain (a preset or robots.from_urdf), got {type(chain).__name__}")
+    if world is not None and not isinstance(world, collision.World):
+        raise TypeError(f"world must be an iiwa_torch.collision.World, got {type(world).__name__}")
+    if capsules is not None and not isinstance(capsules, collision.Capsules):
+        raise TypeError(f"capsules must be an iiwa_torch.collision.Capsules, got {type(capsules).__name__}")
+    check_bool(show_capsules, "show_capsules")
+    check_bool(show_frames, "show_frames")
+
+
+def _preset_capsules(chain: Chain, world: collision.World | None) -> collision.Capsules | None:
+    """The preset capsule model of ``chain``, or ``None`` for another arm (an error if a ``world``
+    needs one)."""
+    try:
+        return collision.robot_capsules(chain)
+    except ValueError:
+        if world is not None:
+            raise ValueError(f"no capsule model for {chain.name!r}: pass capsules= to check it against the world") \
+                from None
+        return None
 
 
 def show(

@@ -45,7 +45,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "benchmarks/bench_analytic.py:main": 67,
     "benchmarks/bench_trajectory.py:main": 66,
     "benchmarks/bench_busy.py:main": 66,
-    "iiwa_torch/viewer.py:__init__": 64,
     "iiwa_torch/ik/analytic/srs.py:iiwa_q3_locked": 63,
 }
 
