@@ -14,6 +14,7 @@ import shutil
 import sys
 import threading
 import time
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import torch
@@ -600,26 +601,20 @@ def _csv_path(chain: Chain, file: str) -> tuple[torch.Tensor, float]:
 
 def _policy_rollouts(chain: Chain, policy: str, n_goals: int, seed: int):
     """``(q (n_goals, T + 1, n), dt s, goal positions (n_goals, 3))`` of a trained policy's rollouts
-    on held-out goals (as ``train.evaluate`` runs them)."""
-    from envs.sb3 import IiwaReachVecEnv
-    from train.evaluate import load_policy
-    from train.rollout import make_goal_set, policy_actor, rollout
-
+    on held-out goals, by the training code's playback (the ``iiwa_torch.playback`` entry point:
+    ``train.playback.policy_rollouts``)."""
     if n_goals < 1:
         raise _UsageError(f"--goals must be a positive integer, got {n_goals}")
+    found = entry_points(group="iiwa_torch.playback", name="policy")
+    if not found:
+        raise _UsageError("--policy needs iiwa-torch's training code (train/), installed from its repository")
     try:
-        model, vec_normalize, config = load_policy(Path(policy))
+        robot, q, dt, goals = next(iter(found)).load()(Path(policy), n_goals, seed)
     except FileNotFoundError as err:
         raise _UsageError(f"--policy: {err}") from None
-    env_kwargs = config["hyperparams"].get("env_kwargs")
-    task = IiwaReachVecEnv(1, config["env_id"], **(env_kwargs or {})).task
-    if task.robot.name != chain.name:
-        robot = task.robot.name
+    if robot != chain.name:
         raise _UsageError(f"--policy {policy} drives {robot}, not {chain.name}: use --robot {robot}")
-    goals = make_goal_set(config["env_id"], n_goals, seed, env_kwargs)
-    result = rollout(goals, policy_actor(model, vec_normalize))
-    q = torch.as_tensor(result.q, dtype=_F64).transpose(0, 1).contiguous()
-    return q, task.dt, goals.pose[:, :3, 3].to(_F64)
+    return q, dt, goals
 
 
 def _workspace(args: argparse.Namespace) -> int:

@@ -124,3 +124,18 @@ def test_no_private_names_of_other_modules(path, tree):
               and node.value.id in modules):
             found.append(f"{node.value.id}.{node.attr} (line {node.lineno})")
     assert not found, f"{path} uses private names of other modules: {found}"
+
+
+def test_the_library_does_not_import_the_applications():
+    """``iiwa_torch`` imports neither ``envs`` nor ``train`` (the CLI reaches the training code's
+    playback through an entry point)."""
+    found = []
+    for path, tree in MODULES:
+        if not path.startswith("iiwa_torch/"):
+            continue
+        for node in ast.walk(tree):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            if isinstance(node, ast.ImportFrom) and node.level == 0:
+                names = [node.module or ""]
+            found += [f"{path}: {name}" for name in names if name.split(".")[0] in ("envs", "train")]
+    assert not found, found
