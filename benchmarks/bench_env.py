@@ -1,6 +1,6 @@
 """Random-action env-steps per second: the iiwa reaching envs against panda-gym and FetchReach, one run.
 
-    python benchmarks/bench_env.py [--quick]
+    python benchmarks/bench_env.py [--quick] [--robot panda]
 
 Measured in the same run, each with pre-drawn uniform random actions and a reset when an
 episode ends (the vector envs reset themselves):
@@ -29,7 +29,11 @@ The two ratios with targets (single env / PandaReach-v3, SB3 VecEnv / vector env
 are measured again with the two sides timed in alternation, 7 rounds of 0.5 s each, and
 their median reported: on a shared machine a change of load then hits both sides.
 
-Prints a table with the targets of the issue; writes results/env.json and results/env.md.
+``--robot panda`` times the Franka Panda ids instead (``FrankaReach-v0``; the obstacle rows are
+``FrankaReach-v0`` with ``obstacles=4``), its own rows' labels unchanged, against the same peers.
+
+Prints a table with the targets of the issue; writes results/env.json and results/env.md
+(``env_panda`` with ``--robot panda``).
 """
 
 from __future__ import annotations
@@ -50,13 +54,17 @@ import torch  # noqa: E402
 from common import markdown_table, save, timeit  # noqa: E402
 
 import envs  # noqa: E402, F401  (registers the ids)
-from envs.core import ReachTask  # noqa: E402
 from envs.sb3 import IiwaReachVecEnv  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
 
 VECTOR_SIZES = [1, 256, 4_096, 65_536]
 SB3_SIZES = [256, 4_096]
 N_ACTIONS = 16  # distinct pre-drawn action batches, cycled
+#: --robot -> the reach id and the obstacle id with its options
+ROBOT_IDS = {"iiwa": ("IiwaReach-v0", "IiwaReachObstacles-v0", {}),
+             "panda": ("FrankaReach-v0", "FrankaReach-v0", {"obstacles": 4})}
+ROBOT = sys.argv[sys.argv.index("--robot") + 1] if "--robot" in sys.argv else "iiwa"  # a child reads it too
+REACH, OBSTACLES, OBSTACLE_OPTIONS = ROBOT_IDS.get(ROBOT, ROBOT_IDS["iiwa"])
 
 
 def single_env_runner(env: gym.Env, seed: int = 0):
@@ -94,7 +102,7 @@ def alternating_ratios(slow, fast, rounds: int = 7) -> list[float]:
     return [timeit(slow, min_time=0.5, repeats=1) / timeit(fast, min_time=0.5, repeats=1) for _ in range(rounds)]
 
 
-def vector_runner(n: int, env_id: str = "IiwaReach-v0", **options):
+def vector_runner(n: int, env_id: str = REACH, **options):
     vec = gym.make_vec(env_id, num_envs=n, **options)
     vec.reset(seed=0)
     return batched_runner(vec.step, n)
@@ -111,7 +119,7 @@ def largest_in_child(timing: dict, wait_policy: str | None) -> float:
     if wait_policy is not None:
         env["OMP_WAIT_POLICY"] = wait_policy
     child = subprocess.run(
-        [sys.executable, __file__, "--largest-only", str(timing["min_time"]), str(timing["repeats"])],
+        [sys.executable, __file__, "--largest-only", str(timing["min_time"]), str(timing["repeats"]), "--robot", ROBOT],
         env=env, capture_output=True, text=True, check=True,
     )
     return float(child.stdout.split()[-1])
@@ -142,6 +150,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small sizes, short timings (a smoke run)")
     parser.add_argument("--largest-only", nargs=2, type=float, metavar=("MIN_TIME", "REPEATS"),
                         help=argparse.SUPPRESS)  # the child process of largest_in_child
+    parser.add_argument("--robot", choices=sorted(ROBOT_IDS), default="iiwa", help="the arm whose ids are timed")
     args = parser.parse_args()
     if args.largest_only:
         min_time, repeats = args.largest_only
@@ -163,14 +172,15 @@ def main() -> None:
     found = peers()
     for name, env in found.items():
         record(name, 1, single_env_runner(env))
-    single = record("IiwaReach-v0 (gymnasium.make)", 1, single_env_runner(gym.make("IiwaReach-v0")))
+    single = record(f"{REACH} (gymnasium.make)", 1, single_env_runner(gym.make(REACH)))
     raw = {}
     for n in vector_sizes:
         raw[n] = record("IiwaReachVectorEnv (make_vec)", n, vector_runner(n))
     unchecked = record("IiwaReachVectorEnv (make_vec), collision='off'", vector_sizes[-1],
                        vector_runner(vector_sizes[-1], collision="off"))
-    record("IiwaReachObstacles-v0 (gymnasium.make)", 1, single_env_runner(gym.make("IiwaReachObstacles-v0")))
-    obstacles = {n: record("IiwaReachObstacles-v0 (make_vec)", n, vector_runner(n, "IiwaReachObstacles-v0"))
+    obstacle_name = f"{OBSTACLES}{', obstacles=4' if OBSTACLE_OPTIONS else ''}"
+    record(f"{obstacle_name} (gymnasium.make)", 1, single_env_runner(gym.make(OBSTACLES, **OBSTACLE_OPTIONS)))
+    obstacles = {n: record(f"{obstacle_name} (make_vec)", n, vector_runner(n, OBSTACLES, **OBSTACLE_OPTIONS))
                  for n in (256, 4_096)}
     largest = {}  # seconds per step at the largest N: 1 thread; 2 threads with other wait policies
     if not args.quick:
@@ -185,14 +195,14 @@ def main() -> None:
                                       largest_in_child(timing, policy))
     # the floor of a step: the kinematics of the batch (float32, as the env's state), which for
     # position goals is the position-only kernel; the full pose for comparison
-    chain = ReachTask().robot  # the env's chain, in the state's dtype (float32)
+    chain = envs.make_task(REACH).robot  # the env's chain, in the state's dtype (float32)
     for n in (1, vector_sizes[-1]):
         q = chain.random_q(n, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
         record("chain.position alone (the step's floor)", n, lambda q=q: chain.position_batch_last(q.T))
         record("chain.fk alone (full pose)", n, lambda q=q: chain.fk(q))
     sb3, sb3_runners = {}, {}
     for n in SB3_SIZES:
-        venv = IiwaReachVecEnv(n, "IiwaReach-v0", seed=0)
+        venv = IiwaReachVecEnv(n, REACH, seed=0)
         venv.reset()
         sb3_runners[n] = batched_runner(venv.step, n)
         sb3[n] = record("envs.sb3.IiwaReachVecEnv", n, sb3_runners[n])
@@ -203,9 +213,9 @@ def main() -> None:
     if not args.quick:
         if panda is not None:
             panda_env = single_env_runner(found["panda-gym PandaReach-v3"])
-            rounds = alternating_ratios(panda_env, single_env_runner(gym.make("IiwaReach-v0")))
+            rounds = alternating_ratios(panda_env, single_env_runner(gym.make(REACH)))
             print("single env / PandaReach-v3, alternating rounds:", ", ".join(f"{r:.1f}x" for r in rounds))
-        vec = gym.make_vec("IiwaReach-v0", num_envs=256)
+        vec = gym.make_vec(REACH, num_envs=256)
         vec.reset(seed=0)
         sb3_rounds = alternating_ratios(sb3_runners[256], batched_runner(vec.step, 256))
         print("SB3 VecEnv / vector env at N=256, alternating rounds:", ", ".join(f"{r:.2f}" for r in sb3_rounds))
@@ -216,7 +226,7 @@ def main() -> None:
             65_536 / raw[65_536]
         ),
         "the same with collision='off'": vector_sizes[-1] / unchecked,
-        "IiwaReachObstacles-v0 vector env env-steps/s at N=4,096": 4_096 / obstacles[4_096],
+        f"{obstacle_name} vector env env-steps/s at N=4,096": 4_096 / obstacles[4_096],
         **{f"vector env env-steps/s at N=65,536, {setting}": 65_536 / s for setting, s in largest.items()},
         "SB3 VecEnv / vector env time per step at N=256 (target <= 2)": sb3[256] / raw[256],
         "SB3 / vector env at N=256, median of 7 alternating rounds": (
@@ -227,7 +237,8 @@ def main() -> None:
     for name, n, seconds in results:
         ratio = "" if panda is None else f"{(n / seconds) * panda:,.1f}x"
         rows.append([name, f"{n:,}", f"{n / seconds:,.0f}", f"{seconds * 1e6:,.1f}", ratio])
-    md = markdown_table(["env", "arms per call", "env-steps/s", "µs per call", "vs PandaReach-v3"], rows)
+    md = f"Arm: `--robot {args.robot}` (the vector and SB3 rows run {REACH}).\n\n"
+    md += markdown_table(["env", "arms per call", "env-steps/s", "µs per call", "vs PandaReach-v3"], rows)
     md += "\n" + markdown_table(
         ["target", "measured"], [[k, "n/a" if v is None else f"{v:,.2f}"] for k, v in checks.items()]
     )
@@ -245,7 +256,8 @@ def main() -> None:
         "single_vs_panda_alternating_rounds": rounds,
         "sb3_vs_vector_env_alternating_rounds_n256": sb3_rounds,
     }
-    path = save("env_quick" if args.quick else "env", payload, md)
+    stem = "env" if args.robot == "iiwa" else f"env_{args.robot}"
+    path = save(f"{stem}_quick" if args.quick else stem, payload, md)
     print(f"wrote {path}")
 
 

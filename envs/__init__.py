@@ -1,4 +1,4 @@
-"""Gymnasium reaching environments for the KUKA LBR iiwa, registered in one place.
+"""Gymnasium reaching environments for any arm (the KUKA LBR iiwa, the Franka Panda), registered in one place.
 
 ``import envs`` registers the ids in :data:`ENV_IDS`; ``gymnasium.make("envs:IiwaReach-v0")``
 imports this package itself. ``gymnasium.make_vec(id, num_envs=N)`` returns the natively
@@ -17,17 +17,26 @@ if TYPE_CHECKING:
 
 gymnasium = require("gymnasium", "rl")  # first: every module here imports it
 
-__all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "register_envs", "make_task", "registered_options"]
+__all__ = ["ENV_IDS", "MAX_EPISODE_STEPS", "PANDA_HOME", "register_envs", "make_task", "registered_options"]
 
 #: Episode length of the registered ids: from the home posture, a straight full-speed joint
 #: move reaches any configuration within the limits in 48 steps (see ``docs/envs.md``).
 MAX_EPISODE_STEPS = 50
+
+#: panda-gym's neutral posture of the Panda (rad), the home of the ``Franka*`` ids (their
+#: ``robot="panda"``: pybullet_data's URDF, its end effector between the fingertips).
+PANDA_HOME = (0.0, 0.41, 0.0, -1.85, 0.0, 2.26, 0.79)
+_PANDA = {"robot": "panda", "home": PANDA_HOME}
 
 _VARIANTS = {
     "IiwaReach-v0": {"goal": "position", "reward": "dense"},
     "IiwaReachSparse-v0": {"goal": "position", "reward": "sparse"},
     "IiwaReachPose-v0": {"goal": "pose", "reward": "dense"},
     "IiwaReachObstacles-v0": {"goal": "position", "reward": "dense", "obstacles": 4},
+    "FrankaReach-v0": {**_PANDA, "goal": "position", "reward": "dense"},
+    "FrankaReachPose-v0": {**_PANDA, "goal": "pose", "reward": "dense"},
+    # panda-gym's PandaReach-v3 task: goals in its box, success within 5 cm, sparse reward (50 steps as all)
+    "FrankaReachPandaGym-v0": {**_PANDA, "goal_region": "panda_gym", "distance_threshold": 0.05, "reward": "sparse"},
 }
 
 #: Every registered environment id.

@@ -2,8 +2,8 @@
 
 :class:`ReachTask` assembles three parts, kept apart:
 
-- the robot, :class:`envs.robot.JointVelocityArm` (``task.arm``): a DH chain, its limits and
-  speeds, the integration of an action into joint angles;
+- the robot, :class:`envs.robot.JointVelocityArm` (``task.arm``): any chain, its limits and
+  speeds, the integration of an action into joint angles (which arm: :func:`envs.robot.resolve_robot`);
 - the goals, :class:`envs.goals.ReachGoals` (``task.goals``): goal kind, errors, success,
   reward;
 - the transport, :class:`envs.transport.Transport` (``task.transport``): actions in, numpy
@@ -27,14 +27,13 @@ import numpy as np
 import torch
 
 from iiwa_torch import kinematics as kin
+from iiwa_torch.chain import Chain
 from iiwa_torch.checks import as_device, check_bool, is_integer, is_number
-from iiwa_torch.collision import capsule_clearance, capsule_clearance_of_one
-from iiwa_torch.dh import DHChain
-from iiwa_torch.robots import iiwa14
+from iiwa_torch.collision import Capsules, capsule_clearance, capsule_clearance_of_one
 
 from .arrays import NUMPY, TORCH, ArrayOps
-from .goals import GoalKind, ReachGoals, RewardKind, enum_option
-from .robot import JointVelocityArm
+from .goals import PANDA_GYM_BOX, GoalKind, GoalRegion, ReachGoals, RewardKind, enum_option
+from .robot import JointVelocityArm, default_home, resolve_robot
 from .seeding import keys_from_seeds, uniform
 from .transport import Transition, Transport
 from .world import ObstacleWorld, obstacle_world
@@ -120,9 +119,18 @@ class ReachTask:
     """Immutable configuration of the reaching task plus its pure batched functions.
 
     Args:
-        robot: the chain (default ``iiwa14()``); it must have ``velocity_limits``.
+        robot: the arm (default ``iiwa14()``): a preset name (``"iiwa14"``, ...), ``"panda"`` (the
+            Franka Panda of pybullet_data), a URDF file path or a :class:`~iiwa_torch.chain.Chain`;
+            it must have ``velocity_limits`` (:func:`envs.robot.resolve_robot`).
+        end_link: a URDF robot's end link (needed where the file branches; the Panda's default:
+            ``panda_grasptarget``, between the fingertips).
+        capsules: the arm's :class:`~iiwa_torch.collision.Capsules` (default: a preset's model, or
+            one fitted to the URDF's collision meshes; a plain ``Chain`` that checks collisions needs it).
         goal: ``"position"`` (3 numbers) or ``"pose"`` (position and the first two columns
             of the rotation matrix: 9 numbers).
+        goal_region: ``"joint_limits"`` (the FK of configurations within the limits) or
+            ``"panda_gym"`` (positions in panda-gym's box, :data:`envs.goals.PANDA_GYM_BOX`;
+            :class:`envs.goals.GoalRegion`).
         reward: ``"dense"`` or ``"sparse"`` (see :class:`envs.goals.RewardKind`).
         start: ``"home"`` (``home``) or ``"random"`` (uniform within the joint limits).
         dt: control period, s: an action ``a`` in ``[-1, 1]^n`` moves joint ``i`` by
@@ -145,17 +153,21 @@ class ReachTask:
         observe_clearance: append each capsule's clearance and its joint gradient to the observation
             (after the obstacle block: K distances, m, then K x nj gradients, m/rad; see
             :meth:`clearance_rows`), computed once per step, for controllers that keep every link clear.
-        home: start posture for ``start="home"`` (default :data:`iiwa_torch.robots.IIWA_HOME` for 7 joints,
-            else zeros; it must lie within the limits).
+        home: start posture for ``start="home"`` (default :func:`envs.robot.default_home`:
+            :data:`iiwa_torch.robots.IIWA_HOME` for the iiwa presets, else zeros if free, else the middle of
+            the limits; it must lie within the limits).
         dtype: float dtype of the state (observations are always float32).
         device: torch device of the state.
     """
 
     def __init__(
         self,
-        robot: DHChain | None = None,
+        robot: Chain | str | None = None,
         *,
+        end_link: str | None = None,
+        capsules: Capsules | None = None,
         goal: GoalKind | str = GoalKind.POSITION,
+        goal_region: GoalRegion | str = GoalRegion.JOINT_LIMITS,
         reward: RewardKind | str = RewardKind.DENSE,
         start: StartKind | str = StartKind.HOME,
         dt: float = 0.05,
@@ -176,6 +188,7 @@ class ReachTask:
     ) -> None:
         goal, reward = enum_option(GoalKind, goal, "goal"), enum_option(RewardKind, reward, "reward")
         self.start_kind = enum_option(StartKind, start, "start")
+        self.goal_region = enum_option(GoalRegion, goal_region, "goal_region")
         for name, value in [("dt", dt), ("distance_threshold", distance_threshold),
                             ("orientation_threshold", orientation_threshold)]:
             if not (is_number(value) and math.isfinite(value) and value > 0):
@@ -185,6 +198,9 @@ class ReachTask:
             raise ValueError(f"orientation_weight must be >= 0, got {orientation_weight!r}")
         if not (is_number(goal_min_distance) and 0 <= goal_min_distance < math.inf):
             raise ValueError(f"goal_min_distance must be >= 0 (metres), got {goal_min_distance!r}")
+        if self.goal_region is GoalRegion.PANDA_GYM and (goal is not GoalKind.POSITION or goal_min_distance):
+            raise ValueError("goal_region='panda_gym' draws positions: it takes goal='position' and no "
+                             "goal_min_distance")
         if max_episode_steps is not None and (not is_integer(max_episode_steps) or max_episode_steps < 1):
             raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
         if dtype not in (torch.float32, torch.float64):
@@ -210,7 +226,11 @@ class ReachTask:
         self.terminate_on_success = bool(terminate_on_success)
         self.dtype = dtype
         self.device = as_device(device)
-        self.arm = JointVelocityArm(iiwa14() if robot is None else robot, self.dt, home, dtype, self.device)
+        floor = None if floor is None else float(floor)
+        chain, capsules = resolve_robot(robot, end_link, capsules, checked=self.collision is not CollisionKind.OFF)
+        if home is None:
+            home = default_home(chain, capsules, floor)
+        self.arm = JointVelocityArm(chain, self.dt, home, dtype, self.device)
         self.goals = ReachGoals(goal, reward, float(distance_threshold), float(orientation_threshold),
                                 float(orientation_weight))
         #: the chain (the task's own copy, in its dtype and device)
@@ -218,7 +238,7 @@ class ReachTask:
         #: the floor, the capsules and the obstacles (``None`` when collisions are off)
         self.world = None
         if self.collision is not CollisionKind.OFF:
-            self.world = ObstacleWorld(self.robot, None if floor is None else float(floor), obstacles)
+            self.world = ObstacleWorld(self.robot, capsules, floor, obstacles)
             if not bool(self.world.clearance(self.arm.home[None]) > 0):
                 raise ValueError(f"home {self.arm.home.tolist()} collides with the floor or the arm itself")
         block = 0 if self.world is None else self.world.block_size
@@ -341,9 +361,14 @@ class ReachTask:
             score = torch.where(ok, rank, -math.inf)
             return ok.any(-1), goals[:, torch.arange(m, device=goals.device), score.argmax(-1)]
 
-        # the last resort (never seen: 32 rounds of collisions): the start's own goal
-        goal = _first_found(n, draw_goal, lambda: start_goal["all"], self.device) if world is not None \
-            else draw_goal(torch.arange(n, device=self.device), 0)[1]
+        if self.goal_region is GoalRegion.PANDA_GYM:  # draws nj.. as the candidates would; nothing to check
+            low, high = (start.new_tensor(corner)[:, None] for corner in PANDA_GYM_BOX)
+            goal = low + uniform(key, episode, nj, 3, self.dtype).T * (high - low)  # (3, n)
+            start_goal.setdefault("all", self.goal_of(start.T))
+        elif world is not None:  # the last resort (never seen: 32 rounds of collisions): the start's own goal
+            goal = _first_found(n, draw_goal, lambda: start_goal["all"], self.device)
+        else:
+            goal = draw_goal(torch.arange(n, device=self.device), 0)[1]
         q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
         clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
         return ReachState(

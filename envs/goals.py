@@ -19,7 +19,8 @@ from iiwa_torch.so3 import check_rigid
 
 from .arrays import NUMPY, TORCH, ArrayOps
 
-__all__ = ["GoalKind", "RewardKind", "ReachGoals", "encode_pose_goal", "decode_pose_goal", "enum_option"]
+__all__ = ["GoalKind", "RewardKind", "GoalRegion", "PANDA_GYM_BOX", "ReachGoals", "encode_pose_goal",
+           "decode_pose_goal", "enum_option"]
 
 Tensor = torch.Tensor
 
@@ -36,6 +37,20 @@ class RewardKind(str, Enum):
 
     DENSE = "dense"
     SPARSE = "sparse"
+
+
+class GoalRegion(str, Enum):
+    """Where goals are drawn. ``joint_limits``: the forward kinematics of configurations drawn within the
+    joint limits (collision-free when collisions are checked), so every goal is reachable;
+    ``panda_gym``: positions uniform in :data:`PANDA_GYM_BOX`, as panda-gym's Reach task draws them."""
+
+    JOINT_LIMITS = "joint_limits"
+    PANDA_GYM = "panda_gym"
+
+
+#: panda-gym's Reach goals (``goal_range=0.3``: a 0.3 m cube on its table, centred 0.15 m up, its robot's
+#: base 0.6 m behind the centre) in the base frame: lower and upper corners, m.
+PANDA_GYM_BOX = ((0.45, -0.15, 0.0), (0.75, 0.15, 0.3))
 
 
 def enum_option(kind: type[Enum], value, name: str):

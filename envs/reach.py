@@ -1,4 +1,5 @@
-"""Gymnasium reaching environments for the KUKA LBR iiwa: a single env and a batched vector env.
+"""Gymnasium reaching environments for any arm (the KUKA LBR iiwa by default): a single env and a batched
+vector env.
 
 Both are thin shells over :class:`envs.core.ReachTask`: the same pure, batched torch step
 (integrate joint velocities, clamp to the limits, forward kinematics, reward) runs for a
@@ -122,8 +123,10 @@ class IiwaReachEnv(gym.Env):
     ## Arguments
 
     ``gymnasium.make("IiwaReach-v0", render_mode=None, **options)`` where ``options`` are
-    :class:`envs.core.ReachTask`'s: ``robot`` (a ``DHChain`` with velocity limits, default
-    ``iiwa14()``), ``goal`` (``"position"``/``"pose"``), ``reward`` (``"dense"``/``"sparse"``),
+    :class:`envs.core.ReachTask`'s: ``robot`` (a preset name, ``"panda"``, a URDF path or a ``Chain``
+    with velocity limits, default ``iiwa14()``; the action space then has one entry per joint),
+    ``end_link``, ``capsules``, ``goal`` (``"position"``/``"pose"``), ``goal_region``
+    (``"joint_limits"``/``"panda_gym"``), ``reward`` (``"dense"``/``"sparse"``),
     ``start`` (``"home"``/``"random"``), ``dt`` (0.05 s), ``distance_threshold`` (0.01 m),
     ``orientation_threshold`` (0.1 rad), ``orientation_weight`` (0.1 m/rad),
     ``goal_min_distance`` (0 m), ``floor`` (0 m; ``None``: none), ``collision``

@@ -20,15 +20,15 @@ import numpy as np
 import torch
 
 from iiwa_torch import kinematics as kin
+from iiwa_torch.chain import Chain
 from iiwa_torch.collision import (
+    Capsules,
     World,
     clearance,
     clearance_of_frames,
     obstacle_clearance_of_frames,
     pairwise_clearance,
-    robot_capsules,
 )
-from iiwa_torch.dh import DHChain
 
 from .arrays import NUMPY, TORCH, ArrayOps
 from .seeding import uniform
@@ -112,12 +112,11 @@ def active_obstacles(block: Tensor, floor: float | None) -> World:
 
 
 class ObstacleWorld:
-    """The floor at ``floor`` metres (``None``: none), the capsules of ``chain`` (its preset
-    model, :func:`iiwa_torch.collision.robot_capsules`) and up to ``slots`` obstacles per env."""
+    """The floor at ``floor`` metres (``None``: none), the ``capsules`` of ``chain`` (a model fitted to
+    it: :func:`envs.robot.resolve_robot`) and up to ``slots`` obstacles per env."""
 
-    def __init__(self, chain: DHChain, floor: float | None, slots: int) -> None:
-        self.chain, self.floor, self.slots = chain, floor, slots
-        self.capsules = robot_capsules(chain)
+    def __init__(self, chain: Chain, capsules: Capsules, floor: float | None, slots: int) -> None:
+        self.chain, self.capsules, self.floor, self.slots = chain, capsules, floor, slots
         self.block_size = SLOT_SIZE * slots
         self._floor_world = World(floor=floor)
         self._last: tuple = (None, None, None)  # (block, extra, its World): the last one built

@@ -52,7 +52,8 @@ def _assert_obs_equal(a: dict, b: dict) -> None:
 
 # ------------------------------------------------------------------ registration and checkers
 def test_ids_registered_and_made_three_ways():
-    assert envs.ENV_IDS == ("IiwaReach-v0", "IiwaReachSparse-v0", "IiwaReachPose-v0", "IiwaReachObstacles-v0")
+    assert envs.ENV_IDS == ("IiwaReach-v0", "IiwaReachSparse-v0", "IiwaReachPose-v0", "IiwaReachObstacles-v0",
+                            "FrankaReach-v0", "FrankaReachPose-v0", "FrankaReachPandaGym-v0")
     for env_id in envs.ENV_IDS:
         assert gym.spec(env_id).max_episode_steps == envs.MAX_EPISODE_STEPS
         assert isinstance(gym.make(env_id).unwrapped, IiwaReachEnv)

@@ -35,10 +35,11 @@ def numpy_ops(monkeypatch):
 
 
 @pytest.mark.parametrize(("env_id", "collision"), [("IiwaReach-v0", "terminate"), ("IiwaReachPose-v0", "penalize"),
-                                                   ("IiwaReachObstacles-v0", "terminate")])
+                                                   ("IiwaReachObstacles-v0", "terminate"),
+                                                   ("FrankaReach-v0", "terminate"), ("FrankaReachPose-v0", "penalize")])
 def test_single_env_step_equals_the_batched_torch_step(env_id, collision, numpy_ops):
-    task = envs.make_task(env_id, collision=collision, start="random", max_episode_steps=10,
-                           floor=0.2)  # a raised floor: more collisions
+    floor = 0.1 if env_id.startswith("Franka") else 0.2  # raised: more collisions (the Panda's home is above 0.1 m)
+    task = envs.make_task(env_id, collision=collision, start="random", max_episode_steps=10, floor=floor)
     rng = np.random.default_rng(3)
     with torch.inference_mode():
         state = task.reset_all(None, list(range(N)), rng)
