@@ -145,6 +145,36 @@ def peers() -> dict[str, gym.Env]:
     return found
 
 
+def write_results(args, results: list, checks: dict, panda: float | None, rounds: list, sb3_rounds: list) -> None:
+    """The table of ``results`` ``(name, arms per call, s per call)`` and the ``checks`` -> results/env*.md/json."""
+    rows = []
+    for name, n, seconds in results:
+        ratio = "" if panda is None else f"{(n / seconds) * panda:,.1f}x"
+        rows.append([name, f"{n:,}", f"{n / seconds:,.0f}", f"{seconds * 1e6:,.1f}", ratio])
+    md = f"Arm: `--robot {args.robot}` (the vector and SB3 rows run {REACH}).\n\n"
+    md += markdown_table(["env", "arms per call", "env-steps/s", "µs per call", "vs PandaReach-v3"], rows)
+    md += "\n" + markdown_table(
+        ["target", "measured"], [[k, "n/a" if v is None else f"{v:,.2f}"] for k, v in checks.items()]
+    )
+    info = machine_info()
+    md += f"\nMachine: {info}\n"
+    print("\n" + md)
+    payload = {
+        "machine": info,
+        "torch_threads": torch.get_num_threads(),
+        "quick": args.quick,
+        "results": [
+            {"env": name, "num_envs": n, "seconds_per_call": s, "env_steps_per_s": n / s} for name, n, s in results
+        ],
+        "checks": checks,
+        "single_vs_panda_alternating_rounds": rounds,
+        "sb3_vs_vector_env_alternating_rounds_n256": sb3_rounds,
+    }
+    stem = "env" if args.robot == "iiwa" else f"env_{args.robot}"
+    path = save(f"{stem}_quick" if args.quick else stem, payload, md)
+    print(f"wrote {path}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, short timings (a smoke run)")
@@ -233,32 +263,7 @@ def main() -> None:
             statistics.median(sb3_rounds) if sb3_rounds else None
         ),
     }
-    rows = []
-    for name, n, seconds in results:
-        ratio = "" if panda is None else f"{(n / seconds) * panda:,.1f}x"
-        rows.append([name, f"{n:,}", f"{n / seconds:,.0f}", f"{seconds * 1e6:,.1f}", ratio])
-    md = f"Arm: `--robot {args.robot}` (the vector and SB3 rows run {REACH}).\n\n"
-    md += markdown_table(["env", "arms per call", "env-steps/s", "µs per call", "vs PandaReach-v3"], rows)
-    md += "\n" + markdown_table(
-        ["target", "measured"], [[k, "n/a" if v is None else f"{v:,.2f}"] for k, v in checks.items()]
-    )
-    info = machine_info()
-    md += f"\nMachine: {info}\n"
-    print("\n" + md)
-    payload = {
-        "machine": info,
-        "torch_threads": torch.get_num_threads(),
-        "quick": args.quick,
-        "results": [
-            {"env": name, "num_envs": n, "seconds_per_call": s, "env_steps_per_s": n / s} for name, n, s in results
-        ],
-        "checks": checks,
-        "single_vs_panda_alternating_rounds": rounds,
-        "sb3_vs_vector_env_alternating_rounds_n256": sb3_rounds,
-    }
-    stem = "env" if args.robot == "iiwa" else f"env_{args.robot}"
-    path = save(f"{stem}_quick" if args.quick else stem, payload, md)
-    print(f"wrote {path}")
+    write_results(args, results, checks, panda, rounds, sb3_rounds)
 
 
 if __name__ == "__main__":

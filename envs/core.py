@@ -114,6 +114,28 @@ class StepResult(NamedTuple):
     collision: Tensor | None = None
 
 
+def _check_numbers(dt, distance_threshold, orientation_threshold, orientation_weight, goal_min_distance,
+                   max_episode_steps, floor, collision_penalty, obstacles) -> None:
+    """:class:`ReachTask`'s numeric options, each in its range (else a ``ValueError`` naming it)."""
+    for name, value in [("dt", dt), ("distance_threshold", distance_threshold),
+                        ("orientation_threshold", orientation_threshold)]:
+        if not (is_number(value) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    if not (is_number(orientation_weight) and math.isfinite(orientation_weight)
+            and orientation_weight >= 0):
+        raise ValueError(f"orientation_weight must be >= 0, got {orientation_weight!r}")
+    if not (is_number(goal_min_distance) and 0 <= goal_min_distance < math.inf):
+        raise ValueError(f"goal_min_distance must be >= 0 (metres), got {goal_min_distance!r}")
+    if max_episode_steps is not None and (not is_integer(max_episode_steps) or max_episode_steps < 1):
+        raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
+    if floor is not None and (not is_number(floor) or not math.isfinite(floor)):
+        raise ValueError(f"floor must be a finite height in metres or None, got {floor!r}")
+    if not (is_number(collision_penalty) and math.isfinite(collision_penalty) and collision_penalty >= 0):
+        raise ValueError(f"collision_penalty must be a finite number >= 0, got {collision_penalty!r}")
+    if not is_integer(obstacles) or not 0 <= obstacles <= 8:
+        raise ValueError(f"obstacles must be an int in [0, 8], got {obstacles!r}")
+
+
 # ---------------------------------------------------------------------------- task
 class ReachTask:
     """Immutable configuration of the reaching task plus its pure batched functions.
@@ -189,29 +211,14 @@ class ReachTask:
         goal, reward = enum_option(GoalKind, goal, "goal"), enum_option(RewardKind, reward, "reward")
         self.start_kind = enum_option(StartKind, start, "start")
         self.goal_region = enum_option(GoalRegion, goal_region, "goal_region")
-        for name, value in [("dt", dt), ("distance_threshold", distance_threshold),
-                            ("orientation_threshold", orientation_threshold)]:
-            if not (is_number(value) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if not (is_number(orientation_weight) and math.isfinite(orientation_weight)
-                and orientation_weight >= 0):
-            raise ValueError(f"orientation_weight must be >= 0, got {orientation_weight!r}")
-        if not (is_number(goal_min_distance) and 0 <= goal_min_distance < math.inf):
-            raise ValueError(f"goal_min_distance must be >= 0 (metres), got {goal_min_distance!r}")
+        _check_numbers(dt, distance_threshold, orientation_threshold, orientation_weight, goal_min_distance,
+                       max_episode_steps, floor, collision_penalty, obstacles)
         if self.goal_region is GoalRegion.PANDA_GYM and (goal is not GoalKind.POSITION or goal_min_distance):
             raise ValueError("goal_region='panda_gym' draws positions: it takes goal='position' and no "
                              "goal_min_distance")
-        if max_episode_steps is not None and (not is_integer(max_episode_steps) or max_episode_steps < 1):
-            raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
         self.collision = enum_option(CollisionKind, collision, "collision")
-        if floor is not None and (not is_number(floor) or not math.isfinite(floor)):
-            raise ValueError(f"floor must be a finite height in metres or None, got {floor!r}")
-        if not (is_number(collision_penalty) and math.isfinite(collision_penalty) and collision_penalty >= 0):
-            raise ValueError(f"collision_penalty must be a finite number >= 0, got {collision_penalty!r}")
-        if not is_integer(obstacles) or not 0 <= obstacles <= 8:
-            raise ValueError(f"obstacles must be an int in [0, 8], got {obstacles!r}")
         if obstacles and self.collision is CollisionKind.OFF:
             raise ValueError("obstacles need collision checks: use collision='terminate' or 'penalize', not 'off'")
         check_bool(observe_clearance, "observe_clearance")
@@ -310,6 +317,20 @@ class ReachTask:
         fresh = rng.integers(2**63, size=len(seeds)).tolist()
         return self.initial_state(keys_from_seeds([f if s is None else s for f, s in zip(fresh, seeds)], self.device))
 
+    def _random_starts(self, key: Tensor, episode: Tensor) -> Tensor:
+        """Uniform starts within the limits ``(n, nj)`` (draws 0..nj-1 of each key's stream), those
+        that collide redrawn from later parts of the stream (home where 32 rounds fail)."""
+        arm, world, n, nj = self.arm, self.world, key.shape[0], self.arm.n_joints
+
+        def draw_start(idx: Tensor, r: int) -> tuple[Tensor, Tensor]:
+            u = uniform(key[idx], episode[idx], 0 if r == 0 else _START_REDRAWS + r * nj, nj, self.dtype)
+            q = arm.configurations(u)  # (m, nj)
+            if world is None:
+                return torch.ones(len(idx), dtype=torch.bool, device=q.device), q.T
+            return world.is_free(q), q.T
+
+        return _first_found(n, draw_start, lambda: arm.home[:, None].expand(nj, n), self.device).T
+
     def _new_episodes(self, key: Tensor, episode: Tensor) -> ReachState:
         """Start episode ``episode`` for each key: draw the start, the obstacles and the goal.
 
@@ -323,17 +344,7 @@ class ReachTask:
         # the start's goal: from home, home's; else computed with the first goal candidates (in one
         # FK call whose batch, and so whose kernel and rounding, are those of the first versions)
         start_goal = {"all": self._home_goal.expand(-1, n)} if home else {}
-        if home:
-            start = arm.home.expand(n, nj)
-        else:
-            def draw_start(idx: Tensor, r: int) -> tuple[Tensor, Tensor]:
-                u = uniform(key[idx], episode[idx], 0 if r == 0 else _START_REDRAWS + r * nj, nj, self.dtype)
-                q = arm.configurations(u)  # (m, nj)
-                if world is None:
-                    return torch.ones(len(idx), dtype=torch.bool, device=q.device), q.T
-                return world.is_free(q), q.T
-
-            start = _first_found(n, draw_start, lambda: arm.home[:, None].expand(nj, n), self.device).T
+        start = arm.home.expand(n, nj) if home else self._random_starts(key, episode)
         blank = start.new_zeros(0, n)
         obstacles = blank if world is None or not world.slots else world.draw(key, episode, start, _OBSTACLE_DRAWS,
                                                                               _ROUNDS)
