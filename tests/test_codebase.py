@@ -139,3 +139,8 @@ def test_the_library_does_not_import_the_applications():
                 names = [node.module or ""]
             found += [f"{path}: {name}" for name in names if name.split(".")[0] in ("envs", "train")]
     assert not found, found
+
+
+def test_the_readme_stays_a_short_guide():
+    """Reference goes to docs/, history to CHANGELOG.md and the RECORD.md files."""
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 250
