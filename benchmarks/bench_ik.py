@@ -9,8 +9,8 @@ TRAC-IK's 1e-5 m / 1e-5 rad.
 
 Solvers, all on the same targets (FK of seeded random configurations within the limits):
 - ours: ``iiwa_torch.ik.solve`` (batched LM), float32, float64 (``precision="auto"``: float32
-  iterations, float64 check; and ``"input"``: float64 iterations), 1 and 2 threads; a URDF
-  arm also with ``seeds=32`` (default 8 for 7 joints);
+  iterations, float64 check; and ``"input"``: float64 iterations), 1 and 2 threads, at the
+  default 32 seeds;
 - pytorch_kinematics ``PseudoInverseIK`` (batched torch, float32; the settings the issue
   measured: 10 retries, 50 iterations, ``early_stopping_any_converged``, regularisation 1e-6)
   and its ``PseudoInverseIKWithSVD`` variant, on the same URDF (a preset's ``to_urdf`` export);
@@ -237,14 +237,11 @@ def main() -> None:
     # and precision="input" (float64 iterations).
     # A URDF arm's float64 "auto" rows iterate in float32 too: TRAC-IK's 1e-5 is solve's threshold.
     kinds = [(torch.float32, "auto"), (torch.float64, "auto"), (torch.float64, "input")]
-    seed_counts = [None] if preset else [None, 32]
-    configs = [(threads, dtype, precision, seeds) for threads in args.threads for dtype, precision in kinds
-               for seeds in seed_counts]  # fmt: skip
+    configs = [(threads, dtype, precision) for threads in args.threads for dtype, precision in kinds]
     samples = {config: [] for config in configs}
-    for threads, dtype, precision, seeds in configs:
+    for threads, dtype, precision in configs:
         torch.set_num_threads(threads)
-        ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision, seeds], precision=precision,
-             seeds=seeds)  # fmt: skip
+        ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
     torch.set_num_threads(1)
     for variant in ("PseudoInverseIK", "PseudoInverseIKWithSVD"):
         report(f"pytorch_kinematics {variant}, float32, 1 thread", pytorch_kinematics(target, variant))
@@ -256,13 +253,11 @@ def main() -> None:
     for options in rtb_options:
         shown = ", ".join(f"{k}={v:g}" for k, v in options.items()) or "defaults"
         report(f"roboticstoolbox ik_LM (C++), {shown}", roboticstoolbox(target, options))
-    for threads, dtype, precision, seeds in configs:
+    for threads, dtype, precision in configs:
         torch.set_num_threads(threads)
-        row = ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision, seeds],
-                   precision=precision, seeds=seeds)  # fmt: skip
+        row = ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
         iterated = "float32 iterations" if precision == "auto" and dtype == torch.float64 else "same-dtype iterations"
         label = f"{str(dtype)[6:]} ({iterated})" if dtype == torch.float64 else "float32"
-        label += "" if seeds is None else f", seeds={seeds}"
         report(f"iiwa-torch solve, {label}, {threads} thread{'s' if threads > 1 else ''}", row)
     torch.set_num_threads(1)
 
