@@ -418,7 +418,7 @@ class ReachTask:
             frames, end = kin.frame_lists(self.robot.geometry(self.dtype), q_t)
             achieved = self.goals.goal_of_frame(end, self.dtype)
             if world is not None and collision is None:
-                collision = np.array([world.clearance_of_frames(frames, block) < 0])
+                collision = np.array([world.clearance_of_one(q_t, block, frames) < 0])
         else:
             achieved = self.goal_of(q_t, (cos_t, sin_t))
             if world is not None and collision is None:  # one clearance call for the batch

@@ -27,6 +27,7 @@ from iiwa_torch.collision import (
     clearance,
     clearance_of_frames,
     obstacle_clearance_of_frames,
+    own_clearance_of_one,
     pairwise_clearance,
 )
 
@@ -139,20 +140,25 @@ class ObstacleWorld:
         obstacles of ``block`` (one batched :func:`~iiwa_torch.collision.clearance` call)."""
         return clearance(self.chain, q, self.world_of(block, extra), self.capsules)
 
-    def clearance_of_frames(self, frames: list[tuple], block: Tensor | None = None) -> float:
-        """:meth:`clearance` of one configuration given by its frames
-        (the first of :func:`iiwa_torch.kinematics.frame_lists` of the chain) and one env's ``block``
-        ``(SLOT_SIZE * M, 1)``, in Python floats, unchecked
-        (:func:`~iiwa_torch.collision.clearance_of_frames`), exact where negative: a value >= 0
-        only has the clearance's sign (0 for 0), which is all the envs ask of it. The block's
-        active obstacles become float64 arrays once per block (the stand-ins of absent ones are
-        left out: they are never the minimum)."""
+    def clearance_of_one(self, q: Tensor, block: Tensor | None = None, frames: list[tuple] | None = None) -> float:
+        """:meth:`clearance` of one CPU configuration ``q`` (nj numbers, nothing to differentiate)
+        and one env's ``block`` ``(SLOT_SIZE * M, 1)``, unchecked, exact where negative: a value >= 0
+        only has the clearance's sign (0 for 0), which is all the envs ask of it. Without active
+        obstacles, :func:`~iiwa_torch.collision.own_clearance_of_one` (compiled); with them,
+        :func:`~iiwa_torch.collision.clearance_of_frames` from ``frames`` (the first of
+        :func:`iiwa_torch.kinematics.frame_lists` of ``q``, computed if not given), the block's
+        active obstacles made float64 arrays once per block (the stand-ins of absent ones are left
+        out: they are never the minimum)."""
         spheres = boxes = None
         if block is not None and block.shape[0]:
             last, (spheres, boxes) = self._last_solids
             if last is not block:
                 spheres, boxes = self._active_solids(block)
                 self._last_solids = (block, (spheres, boxes))
+        if spheres is None and boxes is None:
+            return own_clearance_of_one(self.chain, q, self.floor, self.capsules)
+        if frames is None:
+            frames = kin.frame_lists(self.chain.geometry(q.dtype), q)[0]
         return clearance_of_frames(self.capsules, frames, self.floor, spheres, boxes, exact_below=0.0)
 
     def _active_solids(self, block: Tensor) -> tuple:
@@ -166,12 +172,10 @@ class ObstacleWorld:
     def is_free(self, q: Tensor, block: Tensor | None = None, extra: int = 0) -> Tensor:
         """``clearance(q, block, extra) > 0``, bools ``(m, *extra)``; for one env on the CPU
         (``m = 1``, nothing to differentiate) by the float path of each configuration
-        (:meth:`clearance_of_frames`), with the obstacles built once for the episode's steps."""
+        (:meth:`clearance_of_one`), with the obstacles built once for the episode's steps."""
         if q.shape[0] != 1 or not kin.untracked_cpu(q):
             return self.clearance(q, block, extra) > 0
-        g = self.chain.geometry(q.dtype)
-        flat = q.reshape(-1, q.shape[-1])
-        free = [self.clearance_of_frames(kin.frame_lists(g, c)[0], block) > 0 for c in flat]
+        free = [self.clearance_of_one(c, block) > 0 for c in q.reshape(-1, q.shape[-1])]
         return torch.tensor(free, device=q.device).reshape(q.shape[:-1])
 
     def draw(self, key: Tensor, episode: Tensor, start: Tensor, offset: int, rounds: int) -> Tensor:

@@ -50,6 +50,7 @@ __all__ = [
     "check_world",
     "clearance",
     "clearance_of_frames",
+    "own_clearance_of_one",
     "obstacle_clearance_of_frames",
     "pairwise_clearance",
     "robot_capsules",
@@ -947,15 +948,32 @@ def _plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
 def _clearance_compiled(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """:func:`clearance` of a CPU batch against itself and the floor by the compiled kernel
     (:func:`iiwa_torch.compiled.numba_kernels.own_clearance`, float64 inside); not differentiable."""
+    out = _own_clearance_kernel(chain, q.detach().reshape(-1, chain.n_joints).numpy(), world.floor, capsules)
+    return torch.from_numpy(out.reshape(q.shape[:-1])).to(q.dtype)
+
+
+def _own_clearance_kernel(chain: Chain, x: np.ndarray, floor: float | None, capsules: Capsules) -> np.ndarray:
+    """:func:`iiwa_torch.compiled.numba_kernels.own_clearance` of ``x (b, n)`` against itself and the
+    floor at ``floor`` (m; ``None``: none) -> ``(b,)`` float64 metres (``inf`` where nothing is checked)."""
     tables = capsules._numpy_tables()
     transforms, params, base, _ = chain.geometry().float_arrays
-    floor = tables["floor"] if world.floor is not None else tables["floor"][:0]
-    out = np.empty(q.shape[:-1])
-    compiled.kernels().own_clearance(q.detach().reshape(-1, chain.n_joints).numpy(), transforms, params, base,
-                                     tables["frames"], tables["local"], tables["first"], tables["second"],
-                                     tables["pair_radius"], floor, tables["floor_radius"],
-                                     0.0 if world.floor is None else float(world.floor), out.reshape(-1))
-    return torch.from_numpy(out).to(q.dtype)
+    out = np.empty(x.shape[0])
+    compiled.kernels().own_clearance(x, transforms, params, base, tables["frames"], tables["local"], tables["first"],
+                                     tables["second"], tables["pair_radius"],
+                                     tables["floor"] if floor is not None else tables["floor"][:0],
+                                     tables["floor_radius"], 0.0 if floor is None else float(floor), out)
+    return out
+
+
+def own_clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules) -> float:
+    """:func:`clearance` of one CPU configuration ``q`` (n numbers, nothing to differentiate) against
+    itself and the floor at ``floor`` (m; ``None``: none), unchecked, for callers that built every
+    argument themselves (the envs' single env) -> metres (``inf`` if nothing is checked). Compiled
+    when enabled, else in Python floats from its frames (:func:`iiwa_torch.kinematics.frame_lists`)."""
+    if compiled.ENABLED:
+        return float(_own_clearance_kernel(chain, q.reshape(1, -1).numpy(), floor, capsules)[0])
+    own, _, _ = _own_clearance_floats(kin.frame_lists(chain.geometry(), q)[0], floor, capsules)
+    return math.inf if own is None else own
 
 
 def _capsule_ends_floats(frames: list[tuple], capsules: Capsules) -> tuple[list[tuple], list[tuple]]:

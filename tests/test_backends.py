@@ -244,6 +244,36 @@ def test_capsule_clearance_of_one_configuration(monkeypatch, name):
                 torch.testing.assert_close(g1, g0, atol=tol, rtol=0)
 
 
+@pytest.mark.parametrize("name", ["iiwa14", "panda"])
+@pytest.mark.parametrize("kernels", ["compiled", "floats"])
+def test_own_clearance_of_one_configuration(monkeypatch, name, kernels):
+    """collision.own_clearance_of_one (the single env's collision flag) against the torch path of
+    collision.clearance in float64, with the floor at three heights or none: the compiled kernel,
+    or without numba the Python floats of its frames."""
+    if name not in CHAINS:
+        pytest.skip("pybullet_data (the Panda's URDF) not installed")
+    if kernels == "compiled":
+        _compiled_or_skip()
+    chain = CHAINS[name]
+    if name == "panda":
+        import envs
+
+        capsules = envs.make_task("FrankaReach-v0").world.capsules  # fitted to the URDF's meshes
+    else:
+        capsules = collision.robot_capsules(chain)
+    monkeypatch.setattr(compiled, "ENABLED", kernels == "compiled" and compiled.ENABLED)
+    q = chain.random_q(30, generator=torch.Generator().manual_seed(5))
+    for floor in (None, 0.0, 0.3):
+        with torch.enable_grad():  # autograd on: clearance takes its torch path
+            world = collision.World(floor=floor)
+            want = collision.clearance(chain, q.clone().requires_grad_(), world, capsules).detach()
+        for i in range(q.shape[0]):
+            for x in (q[i], q[i, :, None].float()):  # a row, and one env's float32 column (n, 1)
+                got = collision.own_clearance_of_one(chain, x, floor, capsules)
+                assert isinstance(got, float)
+                assert got == pytest.approx(float(want[i]), abs=1e-12 if x.dtype == F64 else 1e-5)
+
+
 @needs_numba
 def test_pose_errors_and_into_limits():
     rng = np.random.default_rng(1)

@@ -571,6 +571,8 @@ EXEMPT = {
     "env's clearance rows); capsule_clearance is the checked entry and runs it",
     "iiwa_torch.collision:obstacle_clearance_of_frames": "documented unchecked kernel of one configuration (the "
     "single env's obstacle draws); pairwise_clearance is the checked entry",
+    "iiwa_torch.collision:own_clearance_of_one": "documented unchecked kernel of one configuration (the single "
+    "env's collision flag); clearance is the checked entry",
     "iiwa_torch.collision:solids_numpy": "converts an already validated World",
     "iiwa_torch.workspace:Section": "an Enum of choice strings (checked where taken)",
     "iiwa_torch.workspace:Occupancy": "a result type",
