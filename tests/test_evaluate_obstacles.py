@@ -222,8 +222,8 @@ def test_ik_solvers_get_each_goals_obstacles():
         # blind to the obstacles, answers run into them; given them, none does
         assert floor_only["obstacle_collisions"] > 0, name
         assert given["collisions"] == 0 and given["success@1cm"] >= 0.99, name
-        recount = [pairwise_clearance(goals.robot, torch.as_tensor(data["q"][i]), goals.goal_world(i)).distance.min()
-                   for i in range(goals.n)]
+        recount = [pairwise_clearance(goals.robot, torch.as_tensor(data["q"][i]), goals.goal_world(i),
+                                      goals.capsules).distance.min() for i in range(goals.n)]  # the env's capsules
         assert given["min_clearance_worst_m"] == pytest.approx(min(recount).item(), abs=1e-9), name
 
 

@@ -198,7 +198,7 @@ def test_shipped_policy_still_reaches_held_out_goals(name, minimum, median, coll
 
     model, vec_normalize, config = ev.load_policy(POLICIES / name)
     env_kwargs = config["hyperparams"].get("env_kwargs") or {}
-    pose = config["env_id"] == ev.POSE_ENV
+    pose = config["env_id"] == "IiwaReachPose-v0"
     evaluator = PolicyEvaluator(make_goal_set(config["env_id"], 200, 0, env_kwargs), ev.TOLERANCES["1cm"],
                                 env_kwargs.get("orientation_threshold", ev.ORIENTATION_TOL) if pose else None)
     metrics, _ = evaluator(model, vec_normalize)

@@ -53,7 +53,6 @@ TOLERANCES = {"1cm": 0.01, "5mm": 0.005, "1mm": 0.001}
 METHODS = ("policy", "analytic_ik", "gradient_ik")  # and "controller" for a residual policy
 SINGLE_GOALS = 20  # goals timed one at a time for the "single" wall time
 BATCHED_REPEATS = 3  # batched runs over all goals; the median time is reported (the machine is shared)
-POSE_ENV = "IiwaReachPose-v0"
 ORIENTATION_TOL = 0.1  # rad: the pose env's default orientation threshold
 # An error within this many number spacings of the goal's coordinates is rounding, not accuracy:
 # float32 FK of the iiwa alone differs from float64 by up to 6 spacings on 10,000 random configurations.
@@ -146,18 +145,19 @@ def _limit_violations(chain, q) -> int:
     return int((~chain.within_limits(torch.as_tensor(q, dtype=torch.float64), tol=1e-9)).sum())
 
 
-def collision_metrics(chain, q_path: np.ndarray, world=None) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
-    """Collisions along ``q_path (T + 1, n, nj)`` (rad; ``T = 0`` for an end configuration alone) with the
-    preset's capsules in ``world`` (an :class:`iiwa_torch.collision.World`, batch ``()`` or ``(n,)``: goal
-    ``i``'s obstacles; None: the preset's default world, the floor at z = 0): a goal collides if any of
-    its configurations has a signed distance below 0. Counts over goals, clearances (m) of the per-goal
-    minimum over the path; with obstacles in the world also ``obstacle_collisions``.
+def collision_metrics(chain, q_path: np.ndarray, world=None, capsules=None) -> tuple[dict, np.ndarray,
+                                                                                   np.ndarray]:
+    """Collisions along ``q_path (T + 1, n, nj)`` (rad; ``T = 0`` for an end configuration alone) with
+    ``capsules`` (default the preset's) in ``world`` (an :class:`iiwa_torch.collision.World`, batch ``()``
+    or ``(n,)``: goal ``i``'s obstacles; None: the preset's default world, the floor at z = 0): a goal
+    collides if any of its configurations has a signed distance below 0. Counts over goals, clearances
+    (m) of the per-goal minimum over the path; with obstacles in the world also ``obstacle_collisions``.
     ``(metrics, floor_hit (n,) bool, collided (n,) bool)``: which goals touch the floor, which collide at all."""
     import torch
 
     from iiwa_torch.collision import pairwise_clearance, robot_capsules
 
-    capsules = robot_capsules(chain)
+    capsules = robot_capsules(chain) if capsules is None else capsules
     q = torch.as_tensor(q_path, dtype=torch.float64)
     pairs = pairwise_clearance(chain, q, world, capsules=capsules)  # one batched call over (T + 1, n)
     kind = ["self" if k < len(capsules.pairs) else "floor" if b == "floor" else "obstacle"
@@ -202,7 +202,7 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     floor if the env checks none)."""
     from train.rollout import PolicyEvaluator, make_goal_set, policy_actor, rollout
 
-    pose = goals.env_id == POSE_ENV
+    pose = goals.pose_goals
     evaluator = PolicyEvaluator(goals, TOLERANCES["1cm"],
                                 goals.env_kwargs.get("orientation_threshold", ORIENTATION_TOL) if pose else None)
     runs = [evaluator.rollout(model, vec_normalize) for _ in range(BATCHED_REPEATS)]  # deterministic: the same
@@ -218,7 +218,7 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     # the policy network alone, all steps
     metrics["network_time_per_goal_batched_s"] = float(np.median([x.act_seconds for x in runs])) / goals.n
     lo, hi = chain.limits.numpy()
-    collisions, floor_hit, collided = collision_metrics(chain, r.q, goals.world())
+    collisions, floor_hit, collided = collision_metrics(chain, r.q, goals.world(), goals.capsules)
     metrics.update(collisions)
     # what the default env (collision="terminate") counts: reached, and never a collision on the way
     metrics["success@1cm_collision_free"] = float(np.mean((final < TOLERANCES["1cm"]) & ~collided))
@@ -285,7 +285,7 @@ def run_ik(
     import torch
 
     home = torch.as_tensor(home, dtype=torch.float64)
-    position_only = goals.env_id != POSE_ENV
+    position_only = not goals.pose_goals
     if name == "analytic_ik":
         from iiwa_torch.ik.analytic import iiwa_solve
 
@@ -297,7 +297,8 @@ def run_ik(
         def solve(pose, world):
             target = pose[:, :3, 3] if position_only else pose
             return gradient_solve(chain, target, home.expand(pose.shape[0], -1), mode="position" if position_only
-                                  else "pose", generator=torch.Generator().manual_seed(0), world=world)
+                                  else "pose", generator=torch.Generator().manual_seed(0), world=world,
+                                  capsules=goals.capsules if world is not None else None)
 
     result = solve(goals.pose, world)
     batched = _median_time(lambda i: solve(goals.pose, world), BATCHED_REPEATS) / goals.n
@@ -311,7 +312,7 @@ def run_ik(
     steps = np.ceil(np.max(np.abs(delta) / max_step, axis=-1))  # a straight full-speed joint move
     steps[final >= TOLERANCES["1cm"]] = np.nan
     metrics = summarise(final, steps, path, _limit_violations(chain, q), batched, single, goals.n)
-    collisions, floor_hit, collided = collision_metrics(chain, q.numpy()[None], goals.world())
+    collisions, floor_hit, collided = collision_metrics(chain, q.numpy()[None], goals.world(), goals.capsules)
     metrics.update(collisions)
     metrics["success@1cm_collision_free"] = float(np.mean((final < TOLERANCES["1cm"]) & ~collided))
     metrics["solver_success"] = float(result.success.double().mean())
@@ -819,7 +820,7 @@ def evaluate(model_dir: Path, n_goals: int, seed: int, out: Path, compare: dict[
     for name in ("analytic_ik", "gradient_ik"):
         try:
             metrics[name], data[name] = run_ik(name, goals, chain, data["policy"]["home"], dt, world)
-        except ImportError as err:  # a solver not installed in this checkout: say so, keep the rest
+        except (ImportError, ValueError) as err:  # not installed, or no closed form for this arm: say so
             metrics[name] = {"error": f"unavailable: {err}"}
             continue
         policy_hit, ik_hit = data["policy"]["floor_hit"], data[name]["floor_hit"]

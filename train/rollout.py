@@ -34,7 +34,6 @@ import torch
 __all__ = ["GoalSet", "Rollout", "PolicyEvaluator", "make_goal_set", "rollout", "policy_actor", "held_out_seed",
            "reached", "summarise_finals"]
 
-POSE_ENV = "IiwaReachPose-v0"
 
 
 def held_out_seed(seed: int) -> int:
@@ -73,6 +72,13 @@ class GoalSet:
     floor: float | None
     obstacles: np.ndarray | None = field(repr=False)
     collision_checked: bool
+    #: the capsules the env checks (None when it checks none)
+    capsules: Any = field(default=None, repr=False)
+
+    @property
+    def pose_goals(self) -> bool:
+        """Whether the env's goals are poses (else positions)."""
+        return self.desired_goal.shape[1] > 3
 
     @property
     def n(self) -> int:
@@ -125,7 +131,6 @@ class Rollout:
 
 def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | None = None) -> GoalSet:
     """``n`` held-out goals of ``env_id`` (one of ``envs.ENV_IDS``) for goal-set ``seed``."""
-    from envs import registered_options
     from envs.goals import decode_pose_goal
 
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
@@ -135,21 +140,21 @@ def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | N
     obs = env.reset()
     desired, task = obs["desired_goal"], env.task
     obstacles = task.transport.obstacles_of(obs["observation"]).copy() if task.transport.obstacle_size else None
-    # the pose env with env_id's other options (its obstacles, say) draws the same goal configurations
-    same_world = {k: v for k, v in registered_options(env_id).items() if k not in ("goal", "reward")}
-    if env_id == POSE_ENV:
+    # the same env with pose goals (its obstacles, say, alike) draws the same goal configurations
+    if desired.shape[1] > 3:
         pose_goal = desired
     else:
-        pose_env = _env(POSE_ENV, n, seed, {**same_world, **env_kwargs})
+        pose_env = _env(env_id, n, seed, {**env_kwargs, "goal": "pose"})
         pose_obs = pose_env.reset()
         pose_goal = pose_obs["desired_goal"]
         same = obstacles is None or np.array_equal(pose_env.task.transport.obstacles_of(pose_obs["observation"]),
                                                    obstacles)
         if not same or not np.allclose(pose_goal[:, :3], desired[:, :3], atol=1e-6):
-            raise RuntimeError(f"{POSE_ENV} and {env_id} draw different goals for the same seeds: no goal poses")
+            raise RuntimeError(f"{env_id} with pose goals draws other goals for the same seeds: no goal poses")
     checked = task.world is not None
     return GoalSet(env_id, seed, env_kwargs, desired, decode_pose_goal(pose_goal), robot=task.robot,
-                   floor=task.world.floor if checked else None, obstacles=obstacles, collision_checked=checked)
+                   floor=task.world.floor if checked else None, obstacles=obstacles, collision_checked=checked,
+                   capsules=task.world.capsules if checked else None)
 
 
 Actor = Callable[[dict[str, np.ndarray]], np.ndarray]

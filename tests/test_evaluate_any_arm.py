@@ -1,0 +1,45 @@
+"""train.evaluate's goal sets and IK rows on an arm other than the iiwa (the Franka Panda of
+pybullet_data): its own capsules, goal poses drawn by the same env with pose goals, the gradient
+IK with the env's world, and the closed form refused with its reason."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("pybullet_data")
+pytest.importorskip("stable_baselines3")
+
+import envs  # noqa: E402
+import train.evaluate as ev  # noqa: E402
+from iiwa_torch import collision  # noqa: E402
+from train.rollout import make_goal_set  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def panda_goals():
+    return make_goal_set("FrankaReach-v0", 12, seed=0), envs.make_task("FrankaReach-v0")
+
+
+def test_goal_set_of_the_panda(panda_goals):
+    goals, task = panda_goals
+    assert not goals.pose_goals and goals.capsules is task.world.capsules
+    # the goal poses (for the IK) are FK of the configurations whose positions the env observes
+    np.testing.assert_allclose(goals.pose[:, :3, 3].numpy(), goals.desired_goal, atol=1e-6)
+    torch.testing.assert_close(goals.pose[:, :3, :3] @ goals.pose[:, :3, :3].mT,
+                               torch.eye(3, dtype=torch.float64).expand(12, 3, 3), atol=1e-6, rtol=0)
+
+
+def test_ik_rows_of_the_panda(panda_goals):
+    goals, task = panda_goals
+    home = task.arm.home.double().numpy()
+    world = ev.ik_world(task, goals)
+    metrics, data = ev.run_ik("gradient_ik", goals, task.robot, home, task.dt, world)
+    assert metrics["success@1cm"] == 1.0 and metrics["collisions"] == 0
+    # checked independently: FK of the answers, and their clearance with the env's capsules
+    q = torch.as_tensor(data["q"])
+    assert (task.robot.double().fk(q)[:, :3, 3] - goals.pose[:, :3, 3]).norm(dim=-1).max() < 0.01
+    assert collision.clearance(task.robot.double(), q, world, goals.capsules).min() >= 0
+    with pytest.raises(ValueError, match="gradient IK"):
+        ev.run_ik("analytic_ik", goals, task.robot, home, task.dt, world)
