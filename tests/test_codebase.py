@@ -144,3 +144,28 @@ def test_the_library_does_not_import_the_applications():
 def test_the_readme_stays_a_short_guide():
     """Reference goes to docs/, history to CHANGELOG.md and the RECORD.md files."""
     assert len((ROOT / "README.md").read_text().splitlines()) <= 250
+
+
+def _thresholds() -> list[str]:
+    """Module-level integer constants named ``*_BATCH``, ``*_BLOCK`` or ``*_ROWS``: the batch sizes at
+    which a call changes path, as ``module.NAME`` (package prefix dropped)."""
+    found = []
+    for path, tree in MODULES:
+        if path.startswith("benchmarks/"):
+            continue
+        module = path.removesuffix(".py").replace("/", ".").removeprefix("iiwa_torch.")
+        for node in tree.body:
+            if (isinstance(node, ast.Assign) and isinstance(node.value, ast.Constant)
+                    and type(node.value.value) is int):
+                found += [f"{module}.{t.id}" for t in node.targets if isinstance(t, ast.Name)
+                          and t.id.endswith(("_BATCH", "_BLOCK", "_ROWS")) or getattr(t, "id", "") == "BLOCK"]
+    return found
+
+
+def test_every_path_threshold_is_in_the_table():
+    """docs/kinematics.md's "Path thresholds" lists every batch size that chooses a path."""
+    table = (ROOT / "docs" / "kinematics.md").read_text().split("## Path thresholds")[1].split("\n## ")[0]
+    names = _thresholds()
+    assert len(names) >= 10
+    missing = [name for name in names if f"`{name}`" not in table]
+    assert not missing, f"add to docs/kinematics.md's Path thresholds: {missing}"
