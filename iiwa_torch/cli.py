@@ -662,7 +662,8 @@ def _workspace(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------- parser
-def _parser() -> argparse.ArgumentParser:
+def _common_options() -> argparse.ArgumentParser:
+    """The options most commands share (the robot, units, output format)."""
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--robot", choices=list(robots.PRESETS), help="robot preset (default iiwa14)")
     common.add_argument("--urdf", metavar="FILE", help="any serial arm from its URDF file instead of a preset")
@@ -675,18 +676,19 @@ def _parser() -> argparse.ArgumentParser:
     )
     common.add_argument("--rad", action="store_true", help="angles in radians (default: degrees)")
     common.add_argument("--json", action="store_true", help="print JSON (metres, radians) instead of tables")
+    return common
 
-    parser = argparse.ArgumentParser(
-        prog="iiwa-torch", description=_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
+def _add_fk(sub, common: argparse.ArgumentParser) -> None:
+    """The ``fk`` command's options."""
     p = sub.add_parser("fk", parents=[common], help="joint angles -> end-effector pose")
     p.add_argument("q", nargs="+", type=float, help="joint angles (deg unless --rad)")
     p.add_argument("--plot", metavar="PNG", help="also draw the arm to this PNG file")
     p.set_defaults(func=_fk, parser=p)
 
+
+def _add_ik(sub, common: argparse.ArgumentParser) -> None:
+    """The ``ik`` command's options."""
     p = sub.add_parser("ik", parents=[common], help="pose -> joint angles (all analytic branches, or gradient)")
     p.add_argument(
         "--pose",
@@ -705,6 +707,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed of the gradient solver")
     p.set_defaults(func=_ik, parser=p)
 
+
+def _add_traj(sub, common: argparse.ArgumentParser) -> None:
+    """The ``traj`` command's options."""
     p = sub.add_parser("traj", parents=[common], help="trajectory between configurations or poses -> CSV, animation")
     p.add_argument("--from-q", nargs="+", type=float, metavar="Q", help="start joint angles")
     p.add_argument("--from-pose", nargs="+", type=float, metavar="V", help="start pose: x y z roll pitch yaw, or a 4x4")
@@ -720,11 +725,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=360, help="animation size in pixels")
     p.set_defaults(func=_traj, parser=p)
 
+
+def _add_robots(sub, common: argparse.ArgumentParser) -> None:
+    """The ``robots`` command's options."""
     p = sub.add_parser("robots", help="list presets, or print one's DH table")
     p.add_argument("name", nargs="?", help="a preset name")
     p.add_argument("--json", action="store_true", help="print JSON (metres, radians) instead of tables")
     p.set_defaults(func=_robots, parser=p)
 
+
+def _add_demo(sub, common: argparse.ArgumentParser) -> None:
+    """The ``demo`` command's options."""
     p = sub.add_parser("demo", help="FK at the validation pose, batched FK/IK timing, a tracked line")
     p.add_argument("--out", default="reports/demo", help="directory for the animation (default reports/demo)")
     p.add_argument("--batch", type=int, default=10_000, help="configurations in the timing (default 10000)")
@@ -732,6 +743,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON (metres, radians, ms) instead of tables")
     p.set_defaults(func=_demo, parser=p)
 
+
+def _add_view(sub, common: argparse.ArgumentParser) -> None:
+    """The ``view`` command's options."""
     p = sub.add_parser("view", parents=[common], help="browser viewer: joint sliders, pose read-out, IK target")
     p.add_argument("--q", nargs="+", type=float, metavar="Q", help="first configuration (deg unless --rad)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
@@ -748,6 +762,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="--policy: goal-set seed (default 0)")
     p.set_defaults(func=_view, parser=p)
 
+
+def _add_workspace(sub, common: argparse.ArgumentParser) -> None:
+    """The ``workspace`` command's options."""
     p = sub.add_parser("workspace", parents=[common], help="reachable set: side-view envelope, manipulability map")
     p.add_argument("--plot", metavar="PNG", help="write the side view (r-z plane) to this PNG")
     p.add_argument("--manipulability", metavar="PNG", help="also write a manipulability map to this PNG")
@@ -760,6 +777,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=1 << 23, help="sampled configurations (default 8388608)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the sampling")
     p.set_defaults(func=_workspace, parser=p)
+
+
+def _parser() -> argparse.ArgumentParser:
+    common = _common_options()
+    parser = argparse.ArgumentParser(
+        prog="iiwa-torch", description=_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_fk, _add_ik, _add_traj, _add_robots, _add_demo, _add_view, _add_workspace):
+        add(sub, common)
     return parser
 
 

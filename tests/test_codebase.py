@@ -24,7 +24,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "iiwa_torch/ik/gradient.py:minimize": 110,
     "benchmarks/bench_env.py:main": 89,
     "benchmarks/bench_collision.py:main": 107,
-    "iiwa_torch/cli.py:_parser": 99,
     "iiwa_torch/trajectory.py:track": 98,
     "train/evaluate.py:make_plots": 90,
     "iiwa_torch/workspace.py:plot_workspace": 89,
