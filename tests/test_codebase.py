@@ -25,7 +25,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "benchmarks/bench_env.py:main": 89,
     "benchmarks/bench_collision.py:main": 107,
     "iiwa_torch/trajectory.py:track": 98,
-    "train/evaluate.py:make_plots": 90,
     "iiwa_torch/workspace.py:plot_workspace": 89,
     "iiwa_torch/compiled/numba_kernels.py:own_clearance": 89,
     "iiwa_torch/ik/analytic/srs.py:iiwa_solve": 85,

@@ -538,34 +538,50 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
     matplotlib = require("matplotlib", "viz")
     matplotlib.use("Agg")
     plt = require("matplotlib.pyplot", "viz")
-
-    names = [n for n in data]
-    errors = {n: data[n]["final_error"] for n in names}
-    spacing = report.get("number_spacing_m")
-    written = []
-
-    def save(fig, name):
+    errors = {n: d["final_error"] for n, d in data.items()}
+    figures = {
+        "final_error.png": _plot_final_error(plt, errors, report),
+        "success_vs_tolerance.png": _plot_failure_rate(plt, matplotlib.ticker, errors, report),
+        "time_per_goal.png": _plot_times(plt, list(data), report),
+        "path_length.png": _plot_paths(plt, data),
+    }
+    if evaluations:
+        figures["learning_curve.png"] = _learning_curves(plt, report, evaluations, compare)
+    for name, fig in figures.items():
         fig.tight_layout()
         fig.savefig(out / name, dpi=110)
         plt.close(fig)
-        written.append(name)
+    written = list(figures)
+    if goals is not None and goals.obstacles is not None and "q_path" in data.get("policy", {}):
+        fig = _rollouts_obstacles(goals, data, report)
+        fig.savefig(out / "rollouts_obstacles.png", dpi=100)
+        written.append("rollouts_obstacles.png")
+    return written
 
+
+def _error_range(errors: dict[str, np.ndarray]) -> tuple[float, float]:
+    """Decades ``(lo, hi)`` (m) that hold every non-zero final error, and 1 cm."""
     positive = np.concatenate([e[e > 0] for e in errors.values()])
     lo = 10.0 ** math.floor(math.log10(positive.min())) if positive.size else 1e-9  # no non-zero error is clipped
     hi = 10.0 ** math.ceil(math.log10(max(positive.max(), 0.011))) if positive.size else 1.0
+    return lo, hi
+
+
+def _plot_final_error(plt, errors: dict[str, np.ndarray], report: dict[str, Any]):
+    """Histogram of each method's final position error, log bins, exact zeros in a bin of their own."""
+    lo, hi = _error_range(errors)
     per_decade = 4
     bins = np.logspace(math.log10(lo), math.log10(hi), round(per_decade * math.log10(hi / lo)) + 1)
     zero_at = lo * 10 ** (-4 / per_decade)  # exact zeros: a bin of their own, left of the first bin, with a gap
     has_zero = any((e == 0).any() for e in errors.values())
     fig, ax = plt.subplots(figsize=(9, 4.2))
-    for i, n in enumerate(names):
-        e = errors[n]
+    for i, (n, e) in enumerate(errors.items()):
         counts, _ = np.histogram(e[e > 0], bins=bins)
         line = ax.stairs(counts, bins, lw=1.6, label=n, color=f"C{i}")
         if has_zero and (e == 0).any():
             ax.stairs([int((e == 0).sum())], zero_at * 10 ** (np.array([-0.5, 0.5]) / per_decade), lw=1.6,
                       color=line.get_edgecolor(), hatch="///")
-    _floor_bands(ax, spacing, lo)
+    _floor_bands(ax, report.get("number_spacing_m"), lo)
     ax.axvline(TOLERANCES["1cm"], color="k", ls=":", lw=1.2, label="1 cm (the env's success)")
     ax.set(xscale="log", xlabel="final position error (m)", ylabel="goals", xlim=(zero_at / 3 if has_zero else lo, hi),
            title=f"Final error per method ({report['goals']} goals; {per_decade} bins per decade, none clipped)")
@@ -574,15 +590,19 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
         ax.set_xticks([zero_at, *ticks], ["0\n(exact)", *[f"$10^{{{round(math.log10(t))}}}$" for t in ticks]])
         ax.axvline(lo * 10 ** (-2 / per_decade), color="0.4", lw=0.8)  # the axis break before the zero bin
     ax.legend(fontsize=8, loc="upper right")
-    save(fig, "final_error.png")
+    return fig
 
+
+def _plot_failure_rate(plt, ticker, errors: dict[str, np.ndarray], report: dict[str, Any]):
+    """Each method's share of goals beyond a tolerance, against the tolerance."""
+    lo, hi = _error_range(errors)
     fig, ax = plt.subplots(figsize=(9, 4.2))
     tol = np.logspace(math.log10(lo), math.log10(hi), 400)
     styles = ("-", "--", "-.", ":")
-    for i, n in enumerate(names):
-        beyond = 100 * (errors[n][:, None] >= tol).mean(0)
+    for i, (n, e) in enumerate(errors.items()):
+        beyond = 100 * (e[:, None] >= tol).mean(0)
         ax.plot(tol, beyond, styles[i % len(styles)], lw=2.2 - 0.4 * i, color=f"C{i}", label=n)
-    _floor_bands(ax, spacing, lo)
+    _floor_bands(ax, report.get("number_spacing_m"), lo)
     for t, label in ((TOLERANCES["1mm"], "1 mm"), (TOLERANCES["1cm"], "1 cm")):
         ax.axvline(t, color="k", ls=":", lw=1)
         ax.text(t, 30, f" {label}", fontsize=8)
@@ -591,10 +611,13 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
     ax.set(xscale="log", xlim=(lo, hi), ylim=(0, 100), xlabel="tolerance (m)",
            ylabel="goals beyond the tolerance (%)",
            title=f"Failure rate against tolerance (100% - success; one goal = {one_goal:.2g}%)")
-    ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda y, _: f"{y:g}%"))
+    ax.yaxis.set_major_formatter(ticker.FuncFormatter(lambda y, _: f"{y:g}%"))
     ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.2, 0.08))
-    save(fig, "success_vs_tolerance.png")
+    return fig
 
+
+def _plot_times(plt, names: list[str], report: dict[str, Any]):
+    """Wall time per goal of each method, batched and one goal at a time."""
     fig, ax = plt.subplots(figsize=(7, 4))
     x = np.arange(len(names))
     m = report["methods"]
@@ -603,25 +626,19 @@ def make_plots(out: Path, data: dict[str, dict[str, np.ndarray]], report: dict[s
     ax.set(yscale="log", xticks=x, xticklabels=names, ylabel="ms per goal",
            title="Wall time per goal (policy: all 50 steps)")
     ax.legend()
-    save(fig, "time_per_goal.png")
+    return fig
 
+
+def _plot_paths(plt, data: dict[str, dict[str, np.ndarray]]):
+    """Histogram of each method's joint-space path length."""
     fig, ax = plt.subplots(figsize=(7, 4))
-    top = max(float(np.percentile(data[n]["path"], 99.5)) for n in names)
-    for n in names:
-        ax.hist(data[n]["path"], bins=np.linspace(0, top, 50), histtype="step", lw=1.5, label=n)
+    top = max(float(np.percentile(d["path"], 99.5)) for d in data.values())
+    for n, d in data.items():
+        ax.hist(d["path"], bins=np.linspace(0, top, 50), histtype="step", lw=1.5, label=n)
     ax.set(xlabel="joint-space path length (rad)", ylabel="goals",
            title="Joint-space path length (IK: straight move from home)")
     ax.legend()
-    save(fig, "path_length.png")
-
-    if evaluations:
-        save(_learning_curves(plt, report, evaluations, compare), "learning_curve.png")
-    if goals is not None and goals.obstacles is not None and "q_path" in data.get("policy", {}):
-        fig = _rollouts_obstacles(goals, data, report)
-        fig.savefig(out / "rollouts_obstacles.png", dpi=100)
-        written.append("rollouts_obstacles.png")
-    return written
-
+    return fig
 
 PICTURE_GOALS = 4  # rollouts drawn in rollouts_obstacles.png
 
