@@ -43,3 +43,22 @@ def test_ik_rows_of_the_panda(panda_goals):
     assert collision.clearance(task.robot.double(), q, world, goals.capsules).min() >= 0
     with pytest.raises(ValueError, match="gradient IK"):
         ev.run_ik("analytic_ik", goals, task.robot, home, task.dt, world)
+
+
+def test_rollout_reads_joints_past_pi(panda_goals):
+    """The rollout's joint angles come from the observation's cos and sin: a joint whose range runs past
+    pi (the Panda's joint 6, up to 3.82 rad, from its URDF) is read within its limits, not wrapped."""
+    from train.rollout import rollout
+
+    goals, task = panda_goals
+    upper = float(task.robot.double().limits[1, 5])
+    assert upper > np.pi
+
+    def joint_6_up(observation):
+        action = np.zeros((goals.n, task.arm.n_joints), dtype=np.float32)
+        action[:, 5] = 1.0
+        return action
+
+    q = rollout(goals, joint_6_up).q  # (T + 1, n, nj)
+    np.testing.assert_allclose(q[-1, :, 5], upper, atol=1e-5)  # driven onto its upper limit
+    assert task.robot.double().within_limits(torch.as_tensor(q), tol=1e-5).all()
