@@ -63,8 +63,6 @@ def resolve_robot(robot=None, end_link: str | None = None, capsules: Capsules | 
     if end_link is not None and source is None:
         raise ValueError(f"end_link applies to a URDF robot (a file or one of {sorted(URDF_ARMS)}), "
                          f"got robot={robot!r}")
-    if chain.velocity_limits is None:
-        raise ValueError(f"robot {chain.name!r} has no velocity_limits; the action scale needs them")
     if not checked or capsules is not None:
         if capsules is not None and max(capsules.frames) > chain.n_joints:
             raise ValueError(f"capsules index frames up to {max(capsules.frames)}, but robot {chain.name!r} has "
