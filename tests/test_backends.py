@@ -444,5 +444,5 @@ def test_sine_and_cosine_of_the_clearance_kernel():
     edges = np.arange(-60000, 60001, 7) * (math.pi / 2)
     x = np.concatenate([rng.uniform(-1e5, 1e5, 200_000), rng.uniform(-7, 7, 100_000), edges,
                         np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf), [0.0, -0.0, 1e5, -1e5]])
-    sin, cos = np.array([kernels._sin_cos(v) for v in x]).T
+    sin, cos = np.array([kernels.sin_cos(v) for v in x]).T
     assert np.abs(sin - np.sin(x)).max() <= 2.3e-16 and np.abs(cos - np.cos(x)).max() <= 2.3e-16

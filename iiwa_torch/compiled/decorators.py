@@ -1,0 +1,12 @@
+"""The numba decorators of the compiled kernels (importing this module imports numba)."""
+
+from __future__ import annotations
+
+import numba
+
+__all__ = ["inline", "jit"]
+
+#: a compiled kernel: cached on disk, numpy's float semantics (a division by 0 gives inf or nan, no exception)
+jit = numba.njit(cache=True, error_model="numpy")
+#: a compiled helper inlined into its callers (no call overhead in the hot loops)
+inline = numba.njit(cache=True, error_model="numpy", inline="always")

@@ -1,0 +1,172 @@
+"""Compiled forward kinematics of one configuration at a time: the frame recursion, the Jacobian's
+columns and the pose error (:mod:`iiwa_torch.compiled.numba_kernels` describes the conventions)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .decorators import inline, jit
+
+__all__ = ["apply_transform", "end_poses", "frames_axes", "frames_of", "jacobian_columns", "jacobians", "pose_error",
+           "pose_errors", "turn"]
+
+@inline
+def turn(u0, u1, u2, v0, v1, v2, c, s):
+    """A frame's axis pair ``(u, v)`` turned by the angle of cosine ``c`` and sine ``s`` about the
+    third axis: ``(c u + s v, c v - s u)``, 3 + 3 components (a joint's Rz, or a link's Rx)."""
+    return c * u0 + s * v0, c * u1 + s * v1, c * u2 + s * v2, c * v0 - s * u0, c * v1 - s * u1, c * v2 - s * u2
+
+
+@inline
+def _store_frame(f, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
+    """A frame's axes and origin into the rows of ``f (4, 3)``."""
+    f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2] = x0, x1, x2, y0, y1, y2
+    f[2, 0], f[2, 1], f[2, 2], f[3, 0], f[3, 1], f[3, 2] = z0, z1, z2, p0, p1, p2
+
+
+@inline
+def apply_transform(T, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
+    """A frame (axes x, y, z and origin p) times the constant transform ``T (4, 4)``."""
+    c00, c10, c20, c01, c11, c21 = T[0, 0], T[1, 0], T[2, 0], T[0, 1], T[1, 1], T[2, 1]
+    c02, c12, c22, t0, t1, t2 = T[0, 2], T[1, 2], T[2, 2], T[0, 3], T[1, 3], T[2, 3]
+    return (c00 * x0 + c10 * y0 + c20 * z0, c00 * x1 + c10 * y1 + c20 * z1, c00 * x2 + c10 * y2 + c20 * z2,
+            c01 * x0 + c11 * y0 + c21 * z0, c01 * x1 + c11 * y1 + c21 * z1, c01 * x2 + c11 * y2 + c21 * z2,
+            c02 * x0 + c12 * y0 + c22 * z0, c02 * x1 + c12 * y1 + c22 * z1, c02 * x2 + c12 * y2 + c22 * z2,
+            p0 + (t0 * x0 + t1 * y0 + t2 * z0), p1 + (t0 * x1 + t1 * y1 + t2 * z1),
+            p2 + (t0 * x2 + t1 * y2 + t2 * z2))  # grouped as the float path groups them: the same bits
+
+
+@inline
+def _joint(transforms, params, i, theta, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, axis):
+    """Link frame ``i - 1`` -> link frame ``i`` through joint i at ``theta = q_i + offset_i``:
+    ``before_i M(theta) after_i`` (identities skipped); joint i's axis and a point on it into
+    ``axis (6,)`` if it has 6 entries."""
+    if params[i, 2]:
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 0], x0, x1, x2, y0, y1, y2, z0, z1,
+                                                                z2, p0, p1, p2)
+    if axis.shape[0] == 6:
+        axis[0], axis[1], axis[2], axis[3], axis[4], axis[5] = z0, z1, z2, p0, p1, p2
+    if params[i, 1]:  # prismatic: along z
+        p0, p1, p2 = p0 + theta * z0, p1 + theta * z1, p2 + theta * z2
+    else:
+        x0, x1, x2, y0, y1, y2 = turn(x0, x1, x2, y0, y1, y2, math.cos(theta), math.sin(theta))
+    if params[i, 3]:
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 1], x0, x1, x2, y0, y1, y2, z0, z1,
+                                                                z2, p0, p1, p2)
+    return x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2
+
+
+@jit
+def frames_of(transforms, params, base, tool, q, pose, Z, P, F):
+    """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)``; if ``Z`` has ``n`` rows,
+    joint i's axis into ``Z[i]`` and a point on it into ``P[i]`` (both ``(n, 3)``); if ``F`` has
+    ``n + 1`` rows, the base and every link frame (no tool) into ``F (n + 1, 4, 3)``, each as its
+    x, y, z axes and origin. The frame recursion of :func:`iiwa_torch.kinematics.frames_batch_last`
+    (the torch elementwise kernel), one configuration at a time in scalars."""
+    x0, x1, x2, y0, y1, y2 = base[0, 0], base[1, 0], base[2, 0], base[0, 1], base[1, 1], base[2, 1]
+    z0, z1, z2, p0, p1, p2 = base[0, 2], base[1, 2], base[2, 2], base[0, 3], base[1, 3], base[2, 3]
+    keep, every = Z.shape[0] > 0, F.shape[0] > 0
+    axis = np.empty(6 if keep else 0)
+    if every:
+        _store_frame(F[0], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
+    for i in range(params.shape[0]):
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = _joint(transforms, params, i, q[i] + params[i, 0], x0, x1,
+                                                                x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, axis)
+        if keep:
+            Z[i, 0], Z[i, 1], Z[i, 2], P[i, 0], P[i, 1], P[i, 2] = axis[0], axis[1], axis[2], axis[3], axis[4], axis[5]
+        if every:
+            _store_frame(F[i + 1], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
+    for k in range(4):  # column k of the tool, (u, v, w), in the world: u x + v y + w z
+        u, v, w = tool[0, k], tool[1, k], tool[2, k]
+        pose[0, k], pose[1, k] = u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1
+        pose[2, k] = u * x2 + v * y2 + w * z2
+        pose[3, k] = 0.0
+    pose[0, 3] += p0
+    pose[1, 3] += p1
+    pose[2, 3] += p2
+    pose[3, 3] = 1.0
+
+
+@jit
+def jacobian_columns(params, pose, Z, P, J):
+    """Column i of ``J (6, n)``: ``[z_i x (p_e - p_i); z_i]`` (revolute) or ``[z_i; 0]`` (prismatic),
+    from :func:`frames_of`' axes, as :func:`iiwa_torch.kinematics.jacobian` computes them."""
+    e0, e1, e2 = pose[0, 3], pose[1, 3], pose[2, 3]
+    for i in range(Z.shape[0]):
+        z0, z1, z2 = Z[i, 0], Z[i, 1], Z[i, 2]
+        if params[i, 1]:
+            J[0, i], J[1, i], J[2, i], J[3, i], J[4, i], J[5, i] = z0, z1, z2, 0.0, 0.0, 0.0
+            continue
+        l0, l1, l2 = e0 - P[i, 0], e1 - P[i, 1], e2 - P[i, 2]
+        J[0, i], J[1, i], J[2, i] = z1 * l2 - z2 * l1, z2 * l0 - z0 * l2, z0 * l1 - z1 * l0
+        J[3, i], J[4, i], J[5, i] = z0, z1, z2
+
+
+@jit
+def end_poses(transforms, params, base, tool, q):
+    """Configurations ``q (b, n)`` -> their end poses ``(b, 4, 4)``, as :func:`frames_of`."""
+    out, none = np.empty((q.shape[0], 4, 4)), np.empty((0, 3))
+    for k in range(q.shape[0]):
+        frames_of(transforms, params, base, tool, q[k], out[k], none, none, np.empty((0, 4, 3)))
+    return out
+
+
+@jit
+def frames_axes(transforms, params, base, tool, q):
+    """Configurations ``q (b, n)`` -> the base and every link frame ``(b, n + 1, 4, 3)`` (rows: the
+    x, y, z axes and the origin; no tool), each joint's axis and a point on it ``(b, n, 3)``
+    each, and the end poses ``(b, 4, 4)`` (tool included), as :func:`frames_of`."""
+    b, n = q.shape
+    frames, z, p, poses = np.empty((b, n + 1, 4, 3)), np.empty((b, n, 3)), np.empty((b, n, 3)), np.empty((b, 4, 4))
+    for k in range(b):
+        frames_of(transforms, params, base, tool, q[k], poses[k], z[k], p[k], frames[k])
+    return frames, z, p, poses
+
+
+@jit
+def jacobians(transforms, params, base, tool, q):
+    """Configurations ``q (b, n)`` -> their Jacobians ``(b, 6, n)`` (linear rows first, world frame)."""
+    b, n = q.shape
+    out, pose, Z, P = np.empty((b, 6, n)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
+    for k in range(b):
+        frames_of(transforms, params, base, tool, q[k], pose, Z, P, np.empty((0, 4, 3)))
+        jacobian_columns(params, pose, Z, P, out[k])
+    return out
+
+
+@jit
+def pose_error(pose, pos, rot, has_rot, eps, e):
+    """End pose ``(4, 4)`` against a target position ``pos (3,)`` and rotation ``rot (3, 3)``
+    -> the position error into ``e[:3]`` (target - pose, m), the rotation vector
+    ``log(rot R^T)`` into ``e[3:6]`` (if ``has_rot``), and their norms ``(pos_err, rot_err)``.
+    As :func:`iiwa_torch.so3.pose_error` (and the torch loop's ``_pose_terms``) define them."""
+    e[0], e[1], e[2] = pos[0] - pose[0, 3], pos[1] - pose[1, 3], pos[2] - pose[2, 3]
+    pos_err = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+    if not has_rot:
+        return pos_err, 0.0
+
+    def w(i, j):  # (R rot^T)[i, j]
+        return pose[i, 0] * rot[j, 0] + pose[i, 1] * rot[j, 1] + pose[i, 2] * rot[j, 2]
+
+    v0, v1, v2 = 0.5 * (w(1, 2) - w(2, 1)), 0.5 * (w(2, 0) - w(0, 2)), 0.5 * (w(0, 1) - w(1, 0))
+    trace = w(0, 0) + w(1, 1) + w(2, 2)
+    sin = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    angle = math.atan2(sin, (trace - 1) * 0.5)
+    scale = angle / max(sin, eps)
+    e[3], e[4], e[5] = v0 * scale, v1 * scale, v2 * scale
+    return pos_err, angle
+
+
+@jit
+def pose_errors(pose, pos, rot, eps):
+    """:func:`pose_error` of each ``pose (b, 4, 4)`` against ``pos (b, 3)``, ``rot (b, 3, 3)``
+    (0 rows: position only) -> position and rotation errors ``(b,)`` each (m, rad)."""
+    b, has_rot = pose.shape[0], rot.shape[0] > 0
+    pos_err, rot_err, e = np.empty(b), np.empty(b), np.empty(6)
+    for k in range(b):
+        target_rot = rot[k] if has_rot else pose[k, :3, :3]  # a placeholder without rotations
+        pos_err[k], rot_err[k] = pose_error(pose[k], pos[k], target_rot, has_rot, eps, e)
+    return pos_err, rot_err
+
