@@ -26,7 +26,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "benchmarks/bench_collision.py:main": 107,
     "iiwa_torch/trajectory.py:track": 98,
     "iiwa_torch/workspace.py:plot_workspace": 89,
-    "iiwa_torch/compiled/clearance_kernels.py:own_clearance": 89,
     "iiwa_torch/ik/analytic/srs.py:iiwa_solve": 85,
     "train/features.py:__init__": 84,
     "iiwa_torch/trajectory.py:jtraj": 78,

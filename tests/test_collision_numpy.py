@@ -271,3 +271,29 @@ def test_large_batches_take_any_layout_and_angle(small_kernel, compiled_calls):
     clearance(chain, q, spheres)
     clearance(chain, q.clone().requires_grad_())
     assert not compiled_calls
+
+
+def _many_pairs() -> tuple[DHChain, collision.Capsules]:
+    """The iiwa 14 with its preset capsules and a point (a zero-length capsule) on each of links 3 to
+    7: many self pairs, some of them point-point and point-segment, whose bounds are exact."""
+    chain = robots.iiwa14()
+    caps = robot_capsules(chain)
+    points = torch.cat([caps.points, torch.tensor([[[0.0, 0.05, 0.0]] * 2] * 5, dtype=torch.float64)])
+    frames = (*caps.frames, 3, 4, 5, 6, 7)
+    names = (*caps.names, "dot3", "dot4", "dot5", "dot6", "dot7")
+    radii = torch.cat([caps.radii, torch.full((5,), 0.04, dtype=torch.float64)])
+    floor = torch.cat([caps.floor, torch.zeros(5, dtype=torch.bool)])  # the preset's floor checks
+    return chain, collision.Capsules.build(chain, names, frames, points, radii, floor=floor)
+
+
+def test_large_batches_with_many_pairs_equal_the_torch_path(small_kernel, compiled_calls):
+    """The compiled kernel computes a pair's exact distance only where its mid-point bounds let it be
+    the minimum (clearance_kernels.own_clearance): with many pairs, points among them, the minimum of
+    every pair all the same (the torch path computes each), in blocks of any fill."""
+    chain, caps = _many_pairs()
+    assert len(caps.pairs) > 15
+    q = _configurations(chain, 3000 + 37, np.random.default_rng(14))
+    for world in (World(floor=0.0), World(floor=None)):
+        got, want = clearance(chain, q, world, caps), _torch_path(chain, q, world, caps)
+        assert (want < 0).any() and (want > 0).any()
+        assert torch.allclose(got, want, rtol=0, atol=1e-12), (got - want).abs().max()

@@ -49,12 +49,140 @@ def sin_cos(x):
 _closest = inline(segments.closest_parameters)
 _choose, _unit, _quotient = inline(segments.choose), inline(segments.unit_float), inline(segments.quotient)
 _LANES = 256  # configurations per block: the block's frames and capsules stay in the L1 cache
+_DENSE = 2  # a pair needed in more than 1 / _DENSE of a block's lanes is computed in all of them
+_SLACK = 1e-9  # m: a pair is skipped if its lower bound beats the best by more (rounding of the bounds)
+
+
+@inline
+def _block_angles(q, params, row, m, angle, cs):
+    """Joint angles ``q[row : row + m] + offset`` into ``angle (last, LANES)`` and their cosines and
+    sines into ``cs (2, last, LANES)``: by :func:`sin_cos`, or libm's beyond ``SIN_COS_RANGE``."""
+    wide = False
+    for i in range(angle.shape[0]):
+        turns = not params[i, 1]
+        for j in range(m):
+            angle[i, j] = q[row + j, i] + params[i, 0]
+            wide |= turns & (abs(angle[i, j]) > SIN_COS_RANGE)
+    for i in range(angle.shape[0]):
+        if wide:
+            for j in range(m):
+                cs[0, i, j], cs[1, i, j] = math.cos(angle[i, j]), math.sin(angle[i, j])
+        else:
+            for j in range(m):
+                cs[1, i, j], cs[0, i, j] = sin_cos(angle[i, j])
+
+
+@inline
+def _transform_lanes(T, m, state):
+    """The moving frames ``state (12, LANES)`` (x, y, z axes and origin, 3 rows each) times the
+    constant transform ``T (4, 4)``, in place (:func:`~.kinematics_kernels.apply_transform`)."""
+    for j in range(m):
+        x0, x1, x2, y0, y1, y2 = state[0, j], state[1, j], state[2, j], state[3, j], state[4, j], state[5, j]
+        z0, z1, z2, p0, p1, p2 = state[6, j], state[7, j], state[8, j], state[9, j], state[10, j], state[11, j]
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(T, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0,
+                                                                         p1, p2)
+        state[0, j], state[1, j], state[2, j], state[3, j], state[4, j], state[5, j] = x0, x1, x2, y0, y1, y2
+        state[6, j], state[7, j], state[8, j], state[9, j], state[10, j], state[11, j] = z0, z1, z2, p0, p1, p2
+
+
+@inline
+def _next_frame(transforms, params, i, m, angle, cs, state):
+    """The moving frames ``state (12, LANES)`` of link ``i`` -> link ``i + 1``, through joint i: the
+    recursion of :func:`~.kinematics_kernels.frames_of`. Each branch is taken once for the block,
+    outside the loops over it (a branch inside would keep LLVM from vectorising them)."""
+    if params[i, 2]:
+        _transform_lanes(transforms[i, 0], m, state)
+    if params[i, 1]:  # prismatic: along z
+        for r in range(3):
+            for j in range(m):
+                state[9 + r, j] += angle[i, j] * state[6 + r, j]
+    else:
+        for j in range(m):
+            c, s = cs[0, i, j], cs[1, i, j]
+            x0, x1, x2, y0, y1, y2 = turn(state[0, j], state[1, j], state[2, j], state[3, j], state[4, j],
+                                          state[5, j], c, s)  # fmt: skip
+            state[0, j], state[1, j], state[2, j], state[3, j], state[4, j], state[5, j] = x0, x1, x2, y0, y1, y2
+    if params[i, 3]:
+        _transform_lanes(transforms[i, 1], m, state)
+
+
+@inline
+def _block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends):
+    """Every capsule of a block into ``ends (K, 9, LANES)``: its start point, start-to-end vector and
+    mid-point, from the frames of the block's angles (:func:`_block_angles`)."""
+    for r in range(12):
+        for j in range(m):
+            state[r, j] = base[r % 3, r // 3]
+    for f in range(angle.shape[0] + 1):
+        if f > 0:
+            _next_frame(transforms, params, f - 1, m, angle, cs, state)
+        for k in range(frames.shape[0]):
+            if frames[k] != f:
+                continue
+            u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
+            u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
+            for r in range(3):  # each end point: p + u x + v y + w z
+                for j in range(m):
+                    x, y, z, p = state[r, j], state[3 + r, j], state[6 + r, j], state[9 + r, j]
+                    start = p + u0 * x + v0 * y + w0 * z
+                    ends[k, r, j] = start
+                    ends[k, 3 + r, j] = p + u1 * x + v1 * y + w1 * z - start
+                    ends[k, 6 + r, j] = start + 0.5 * ends[k, 3 + r, j]
+
+
+@inline
+def _pair_clearance(e1, e2, j, radius):
+    """The clearance ``|x - y| - radius`` (m) of lane ``j``'s capsules ``e1, e2 (9, LANES)`` at their
+    closest points: :func:`iiwa_torch.segments.closest_parameters`, compiled."""
+    r0, r1, r2 = e1[0, j] - e2[0, j], e1[1, j] - e2[1, j], e1[2, j] - e2[2, j]
+    a0, a1, a2, b0, b1, b2 = e1[3, j], e1[4, j], e1[5, j], e2[3, j], e2[4, j], e2[5, j]
+    s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
+                    a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
+    w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+    return math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) - radius
+
+
+@inline
+def _block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best):
+    """The block's clearance into ``best (LANES,)``: the floor's exact values and, per self pair, the
+    mid-points' distance ``gap (P, LANES)``, an upper bound of the pair's distance (``- radius``,
+    into ``best``), then each pair's exact distance only in the lanes ``lanes`` where its lower
+    bound ``gap - half-lengths - radius`` (``half (K,)``) is under ``best`` (exact, as the others
+    are not the minimum: see :func:`own_clearance`)."""
+    for j in range(m):
+        best[j] = np.inf
+    for i in range(floor.shape[0]):
+        e, offset = ends[floor[i]], floor_radius[i, 0] + height
+        for j in range(m):
+            best[j] = min(best[j], min(e[2, j], e[2, j] + e[5, j]) - offset)
+    for pair in range(first.shape[0]):
+        e1, e2, radius = ends[first[pair]], ends[second[pair]], pair_radius[pair, 0]
+        for j in range(m):
+            d0, d1, d2 = e1[6, j] - e2[6, j], e1[7, j] - e2[7, j], e1[8, j] - e2[8, j]
+            gap[pair, j] = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            best[j] = min(best[j], gap[pair, j] - radius)
+    for pair in range(first.shape[0]):
+        e1, e2, radius = ends[first[pair]], ends[second[pair]], pair_radius[pair, 0]
+        reach = half[first[pair]] + half[second[pair]] + radius + _SLACK
+        count = 0
+        for j in range(m):
+            count += gap[pair, j] - reach < best[j]
+        if count > m // _DENSE:  # many lanes: all of them, vectorised
+            for j in range(m):
+                best[j] = min(best[j], _pair_clearance(e1, e2, j, radius))
+            continue
+        count = 0
+        for j in range(m):  # the few lanes to compute, gathered without a branch
+            lanes[count] = j
+            count += gap[pair, j] - reach < best[j]
+        for c in range(count):
+            j = lanes[c]
+            best[j] = min(best[j], _pair_clearance(e1, e2, j, radius))
 
 
 @jit
-def own_clearance(  # noqa: C901 (to split: tests/test_codebase.py LONG_FUNCTIONS)
-    q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius, height, out
-):
+def own_clearance(q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius, height,
+                  out):  # fmt: skip
     """Self and floor clearance of ``q (N, n)`` (float32 or float64; computed in float64) into
     ``out (N,)``, metres: the smallest of ``|x - y| - r`` over the self pairs ``first, second
     (P,)`` (``pair_radius (P, 1)`` radius sums) and ``min(z_start, z_end) - (r + height)`` over the
@@ -65,80 +193,24 @@ def own_clearance(  # noqa: C901 (to split: tests/test_codebase.py LONG_FUNCTION
     frames of :func:`iiwa_torch.kinematics.frames_batch_last`, the segments of
     :func:`iiwa_torch.collision._segment_gap` (:func:`iiwa_torch.segments.closest_parameters`
     itself, compiled). Each block of configurations goes through every step as a loop over the
-    block, straight-line and branch-free, which LLVM vectorises."""
+    block, straight-line and branch-free, which LLVM vectorises. A pair's exact distance is
+    computed only where it can be the minimum: each segment lies within half its length of its
+    mid-point, so a pair is at least ``|c1 - c2| - h1 - h2`` apart and at most ``|c1 - c2|``
+    (its mid-points' distance); the result is the exact minimum all the same."""
     count, k_all, last = q.shape[0], frames.shape[0], 0
+    half = np.empty(k_all)  # m: half of each capsule's length (its frame is rigid)
     for k in range(k_all):
         last = max(last, frames[k])
-    angle, cs = np.empty((last, _LANES)), np.empty((2, last, _LANES))
-    state = np.empty((12, _LANES))  # the moving frame: x, y, z axes and origin, 3 rows each
-    ends = np.empty((k_all, 6, _LANES))  # per capsule: start point, start-to-end vector
-    best = np.empty(_LANES)
+        d0, d1, d2 = local[k, 0, 1] - local[k, 0, 0], local[k, 1, 1] - local[k, 1, 0], local[k, 2, 1] - local[k, 2, 0]
+        half[k] = 0.5 * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    angle, cs, state = np.empty((last, _LANES)), np.empty((2, last, _LANES)), np.empty((12, _LANES))
+    ends = np.empty((k_all, 9, _LANES))  # per capsule: start point, start-to-end vector, mid-point
+    gap, lanes, best = np.empty((first.shape[0], _LANES)), np.empty(_LANES, dtype=np.int64), np.empty(_LANES)
     for row in range(0, count, _LANES):
         m = min(_LANES, count - row)
-        wide = False
-        for j in range(m):
-            for i in range(last):
-                angle[i, j] = q[row + j, i] + params[i, 0]
-                wide = wide or (abs(angle[i, j]) > SIN_COS_RANGE and not params[i, 1])
-        for i in range(last):
-            if wide:
-                for j in range(m):
-                    cs[0, i, j], cs[1, i, j] = math.cos(angle[i, j]), math.sin(angle[i, j])
-            else:
-                for j in range(m):
-                    cs[1, i, j], cs[0, i, j] = sin_cos(angle[i, j])
-        for r in range(12):
-            for j in range(m):
-                state[r, j] = base[r % 3, r // 3]
-        for f in range(last + 1):
-            if f > 0:
-                i = f - 1
-                for j in range(m):
-                    x0, x1, x2 = state[0, j], state[1, j], state[2, j]
-                    y0, y1, y2 = state[3, j], state[4, j], state[5, j]
-                    z0, z1, z2 = state[6, j], state[7, j], state[8, j]
-                    p0, p1, p2 = state[9, j], state[10, j], state[11, j]
-                    if params[i, 2]:
-                        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 0], x0, x1, x2, y0, y1,
-                                                                                y2, z0, z1, z2, p0, p1, p2)
-                    if params[i, 1]:  # prismatic: along z
-                        t = angle[i, j]
-                        p0, p1, p2 = p0 + t * z0, p1 + t * z1, p2 + t * z2
-                    else:
-                        x0, x1, x2, y0, y1, y2 = turn(x0, x1, x2, y0, y1, y2, cs[0, i, j], cs[1, i, j])
-                    if params[i, 3]:
-                        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 1], x0, x1, x2, y0, y1,
-                                                                                y2, z0, z1, z2, p0, p1, p2)
-                    state[0, j], state[1, j], state[2, j] = x0, x1, x2
-                    state[3, j], state[4, j], state[5, j] = y0, y1, y2
-                    state[6, j], state[7, j], state[8, j] = z0, z1, z2
-                    state[9, j], state[10, j], state[11, j] = p0, p1, p2
-            for k in range(k_all):
-                if frames[k] != f:
-                    continue
-                u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
-                u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
-                for r in range(3):  # each end point: p + u x + v y + w z
-                    for j in range(m):
-                        x, y, z, p = state[r, j], state[3 + r, j], state[6 + r, j], state[9 + r, j]
-                        start = p + u0 * x + v0 * y + w0 * z
-                        ends[k, r, j] = start
-                        ends[k, 3 + r, j] = p + u1 * x + v1 * y + w1 * z - start
-        for j in range(m):
-            best[j] = np.inf
-        for pair in range(first.shape[0]):
-            e1, e2, radius = ends[first[pair]], ends[second[pair]], pair_radius[pair, 0]
-            for j in range(m):
-                r0, r1, r2 = e1[0, j] - e2[0, j], e1[1, j] - e2[1, j], e1[2, j] - e2[2, j]
-                a0, a1, a2, b0, b1, b2 = e1[3, j], e1[4, j], e1[5, j], e2[3, j], e2[4, j], e2[5, j]
-                s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
-                                a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
-                w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
-                best[j] = min(best[j], math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) - radius)
-        for i in range(floor.shape[0]):
-            e, offset = ends[floor[i]], floor_radius[i, 0] + height
-            for j in range(m):
-                best[j] = min(best[j], min(e[2, j], e[2, j] + e[5, j]) - offset)
+        _block_angles(q, params, row, m, angle, cs)
+        _block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends)
+        _block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best)
         for j in range(m):
             out[row + j] = best[j]
 

@@ -44,8 +44,8 @@ def _joint(transforms, params, i, theta, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0,
     ``before_i M(theta) after_i`` (identities skipped); joint i's axis and a point on it into
     ``axis (6,)`` if it has 6 entries."""
     if params[i, 2]:
-        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 0], x0, x1, x2, y0, y1, y2, z0, z1,
-                                                                z2, p0, p1, p2)
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 0], x0, x1, x2, y0, y1, y2,
+                                                                         z0, z1, z2, p0, p1, p2)
     if axis.shape[0] == 6:
         axis[0], axis[1], axis[2], axis[3], axis[4], axis[5] = z0, z1, z2, p0, p1, p2
     if params[i, 1]:  # prismatic: along z
@@ -53,8 +53,8 @@ def _joint(transforms, params, i, theta, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0,
     else:
         x0, x1, x2, y0, y1, y2 = turn(x0, x1, x2, y0, y1, y2, math.cos(theta), math.sin(theta))
     if params[i, 3]:
-        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 1], x0, x1, x2, y0, y1, y2, z0, z1,
-                                                                z2, p0, p1, p2)
+        x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 1], x0, x1, x2, y0, y1, y2,
+                                                                         z0, z1, z2, p0, p1, p2)
     return x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2
 
 
