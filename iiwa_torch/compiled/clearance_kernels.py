@@ -203,11 +203,12 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
         last = max(last, frames[k])
         d0, d1, d2 = local[k, 0, 1] - local[k, 0, 0], local[k, 1, 1] - local[k, 1, 0], local[k, 2, 1] - local[k, 2, 0]
         half[k] = 0.5 * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    angle, cs, state = np.empty((last, _LANES)), np.empty((2, last, _LANES)), np.empty((12, _LANES))
-    ends = np.empty((k_all, 9, _LANES))  # per capsule: start point, start-to-end vector, mid-point
-    gap, lanes, best = np.empty((first.shape[0], _LANES)), np.empty(_LANES, dtype=np.int64), np.empty(_LANES)
-    for row in range(0, count, _LANES):
-        m = min(_LANES, count - row)
+    w = min(_LANES, count)  # lanes: one configuration (the single env) allocates one lane
+    angle, cs, state = np.empty((last, w)), np.empty((2, last, w)), np.empty((12, w))
+    ends = np.empty((k_all, 9, w))  # per capsule: start point, start-to-end vector, mid-point
+    gap, lanes, best = np.empty((first.shape[0], w)), np.empty(w, dtype=np.int64), np.empty(w)
+    for row in range(0, count, w):
+        m = min(w, count - row)
         _block_angles(q, params, row, m, angle, cs)
         _block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends)
         _block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best)
