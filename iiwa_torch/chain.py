@@ -202,7 +202,7 @@ class Chain(nn.Module):
         """What identifies the geometry buffers' current contents: each one's version counter
         (bumped by every in-place write, ``load_state_dict``'s copies too) and storage address
         (``.data =`` changes it). The buffers are looked up once per geometry: assigning or
-        registering a buffer anew forgets them (:meth:`__setattr__`, :meth:`register_buffer`)."""
+        registering a buffer anew forgets them (:meth:`register_buffer`)."""
         watched = self._watched
         if watched is None:
             watched = self._watched = self._geometry_buffers()
@@ -259,12 +259,9 @@ class Chain(nn.Module):
         self._forget_geometry()
         return super()._apply(fn, recurse)
 
-    def __setattr__(self, name: str, value) -> None:
-        super().__setattr__(name, value)
-        if name in self._buffers:  # a buffer assigned anew: look the geometry buffers up again
-            self._forget_geometry()
-
     def register_buffer(self, name: str, tensor: Tensor | None, persistent: bool = True) -> None:
+        """``nn.Module``'s, which assigning a buffer (``chain.tool = t``) calls too; then the geometry
+        buffers are looked up again."""
         super().register_buffer(name, tensor, persistent)
         self._forget_geometry()
 
