@@ -77,6 +77,7 @@ from ._common import (
     last_frame_numpy,
     last_frame_target,
     numpy_applies,
+    numpy_strips,
     reach_tol,
     reduce_grouped,
     safe_atan2,
@@ -456,8 +457,8 @@ class _Setup:
     """What a sweep takes from the chain, for the arrays of ``ops`` (``_common``): the closed
     form's constants ``geo``, the joint offsets and limits (floats, rad) and their mid-points and
     half-widths, and ``clamp``, ``q (B, 7)`` -> ``q`` clamped into the limits. For torch also the
-    chain (for a world), for numpy the float64 arrays ``base`` and ``limits (2, 7)`` and the cache of
-    :func:`_kernel_args`."""
+    chain (for a world), for numpy the float64 arrays ``base`` and ``limits (2, 7)``, the chain's
+    ``strips`` (:func:`~._common.numpy_strips`) and the cache of :func:`_kernel_args`."""
 
     geo: _Geometry
     ops: object
@@ -470,6 +471,7 @@ class _Setup:
     chain: DHChain | None = None
     base: np.ndarray | None = None
     limits: np.ndarray | None = None
+    strips: tuple | None = None
     kernel_args: dict = dataclasses.field(default_factory=dict)
 
     def bounds(self, dtype: torch.dtype) -> tuple[list, list]:
@@ -500,7 +502,7 @@ def _numpy_setup(chain: DHChain) -> _Setup:
         limits = chain.limits.double().numpy()
         setup = _Setup.build(
             chain, NUMPY, functools.partial(NUMPY.clamp, lo=limits[0], hi=limits[1]),
-            base=chain.base.double().numpy(), limits=limits,
+            base=chain.base.double().numpy(), limits=limits, strips=numpy_strips(chain),
         )
         _NUMPY_SETUPS[key] = setup
     return setup
@@ -515,8 +517,8 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
     dtype = flat.dtype
     setup = _numpy_setup(chain)
     target = (flat.detach() if flat.requires_grad else flat).numpy().astype(np.float64, copy=False)
-    frame6 = last_frame_numpy(chain, target)
-    rot, sw = frame6[:, :3, :3], frame6[:, :3, 3] - np.array([0.0, 0.0, setup.geo.d1])
+    frame6 = last_frame_numpy(chain, target, setup.strips)
+    rot, sw = np.ascontiguousarray(frame6[:, :3, :3]), frame6[:, :3, 3] - np.array([0.0, 0.0, setup.geo.d1])
     psi0 = None
     if q0 is not None:
         q0 = q0.detach().double().numpy()
