@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from enum import Enum
+from operator import attrgetter
 
 import numpy as np
 import torch
@@ -33,6 +34,8 @@ from .kinematics import Frame, Geometry
 __all__ = ["Chain", "JointKind"]
 
 Tensor = torch.Tensor
+_FLOAT64 = torch.float64
+_version = attrgetter("_version")
 
 
 class JointKind(str, Enum):
@@ -161,7 +164,7 @@ class Chain(nn.Module):
         lim = torch.as_tensor(limits, dtype=torch.float64)
         check_limits(lim, self.kinds)
         self._q_shape = f"(..., {n})"  # the shape check_q names
-        self._one_shapes = ((n,), (1, n))  # one configuration's shapes, for _plain_one
+        self._one_shapes = ((n,), (1, n))  # one configuration's shapes, for _one_by_kernel
         self.register_buffer("limits", lim)
         self.register_buffer("base", as_transform(base, "base"))
         self.register_buffer("tool", as_transform(tool, "tool"))
@@ -169,8 +172,7 @@ class Chain(nn.Module):
         if vel is not None and (vel.shape != (n,) or not (vel > 0).all()):
             raise ValueError(f"velocity_limits must be {n} positive speeds, got {vel.tolist()}")
         self.register_buffer("velocity_limits", vel)
-        self._geometry: dict[torch.dtype, Geometry] = {}
-        self._stamp: tuple = ()
+        self._forget_geometry()
         self.register_load_state_dict_post_hook(_after_load)
 
     def _names(self, names, what: str, stem: str, n: int | None = None) -> tuple[str, ...]:
@@ -199,9 +201,19 @@ class Chain(nn.Module):
     def _buffer_stamp(self) -> tuple:
         """What identifies the geometry buffers' current contents: each one's version counter
         (bumped by every in-place write, ``load_state_dict``'s copies too) and storage address
-        (``.data =`` and a new buffer change it)."""
-        buffers = self._geometry_buffers()
-        return tuple(t._version for t in buffers) + tuple(t.data_ptr() for t in buffers)
+        (``.data =`` changes it). The buffers are looked up once per geometry: assigning or
+        registering a buffer anew forgets them (:meth:`register_buffer`)."""
+        watched = self._watched
+        if watched is None:
+            watched = self._watched = self._geometry_buffers()
+        return (*map(_version, watched), *map(Tensor.data_ptr, watched))
+
+    def _forget_geometry(self) -> None:
+        """Drop the cached geometry: the next call rebuilds it from the buffers as they are then."""
+        self._geometry: dict[torch.dtype, Geometry] = {}
+        self._stamp: tuple = ()
+        self._watched: tuple[Tensor, ...] | None = None
+        self._one_arrays: tuple | None = None  # the float64 geometry's float_arrays, on a CPU chain
 
     def geometry(self, dtype: torch.dtype = torch.float64) -> Geometry:
         """The chain's :class:`~iiwa_torch.kinematics.Geometry` in ``dtype`` (float32 or float64), on
@@ -210,7 +222,8 @@ class Chain(nn.Module):
         stamp = self._buffer_stamp()
         if stamp != self._stamp:
             self._check_buffers()
-            self._geometry, self._stamp = {}, stamp
+            self._forget_geometry()
+            self._stamp = self._buffer_stamp()
         g = self._geometry.get(dtype)
         if g is None:
             if dtype not in (torch.float32, torch.float64):
@@ -219,6 +232,8 @@ class Chain(nn.Module):
             prismatic = [k is JointKind.PRISMATIC for k in self.kinds]
             g = Geometry.build(before, after, prismatic, offsets, self.base, self.tool, self.limits, dtype)
             self._geometry[dtype] = g
+            if dtype is _FLOAT64 and g.limits.is_cpu:
+                self._one_arrays = g.float_arrays
         return g
 
     def _check_buffers(self) -> None:
@@ -241,8 +256,14 @@ class Chain(nn.Module):
         check_transform(self.tool, "tool")
 
     def _apply(self, fn, recurse=True):
-        self._geometry, self._stamp = {}, ()
+        self._forget_geometry()
         return super()._apply(fn, recurse)
+
+    def register_buffer(self, name: str, tensor: Tensor | None, persistent: bool = True) -> None:
+        """``nn.Module``'s, which assigning a buffer (``chain.tool = t``) calls too; then the geometry
+        buffers are looked up again."""
+        super().register_buffer(name, tensor, persistent)
+        self._forget_geometry()
 
     # ------------------------------------------------------------------ properties
     @property
@@ -276,25 +297,33 @@ class Chain(nn.Module):
             )
         check_finite(q, name)
 
-    def _plain_one(self, q) -> np.ndarray | None:
-        """The common case of ``fk``/``jacobian`` checked at a fraction of :meth:`check_q`'s cost:
-        ``q``'s values as a ``(1, n)`` float64 array (a view) if the compiled kernels are on and
-        ``q`` is one finite configuration, ``(n,)`` or ``(1, n)``, a plain contiguous float64
-        CPU tensor without ``requires_grad``, on a CPU chain; else ``None``, and the caller runs
-        :meth:`check_q` and its ordinary path, which raises for every bad input. Finite: the
-        Python sum of the n values is (a NaN or inf makes it NaN or inf; an overflow of huge
-        finite values only sends ``q`` to the ordinary path)."""
-        if not (compiled.ENABLED and type(q) is Tensor and q.dtype is torch.float64 and q.is_cpu
-                and not q.requires_grad and q.is_contiguous() and q.shape in self._one_shapes
-                and self._buffers["limits"].is_cpu):  # fmt: skip
+    def _one_by_kernel(self, q, kernel: str) -> Tensor | None:
+        """The common case of ``fk``/``jacobian``, checked at a fraction of :meth:`check_q`'s cost:
+        the compiled ``kernel`` (a name in :mod:`iiwa_torch.compiled.numba_kernels`) of ``q``, a new
+        float64 tensor, if the kernels are on and ``q`` is one finite configuration, ``(n,)`` or
+        ``(1, n)``, a plain float64 CPU tensor without ``requires_grad``, and the chain's float64
+        geometry is built, current and on the CPU; else ``None``, and the caller runs
+        :meth:`check_q`, :meth:`geometry` and its ordinary path, which raises for every bad input
+        and rebuilds a stale geometry. Finite: the Python sum of the n values is (a NaN or inf
+        makes it NaN or inf; an overflow of huge finite values only sends ``q`` to the ordinary
+        path). One configuration's call is mostly overhead, so each check here is one attribute
+        read, and ``q`` is read by ``tolist`` (a third of ``numpy()``'s cost), which the sum needs
+        anyway (benchmarks/results/small.md, fk at batch 1)."""
+        arrays = self._one_arrays
+        if (arrays is None or type(q) is not Tensor or q.dtype is not _FLOAT64 or not q.is_cpu or q.requires_grad
+                or q.shape not in self._one_shapes or not compiled.ENABLED):  # fmt: skip
             return None
         try:
-            x = q.numpy()
-        except (RuntimeError, TypeError):  # no storage to read (torch.func.vmap): check_q says so
+            values = q.tolist()
+        except RuntimeError:  # no storage to read (torch.func.vmap): check_q says so
             return None
-        if not math.isfinite(sum(x.tolist() if x.ndim == 1 else x[0].tolist())):
+        row = q.ndim == 2
+        if row:
+            values = values[0]
+        if not math.isfinite(sum(values)) or self._buffer_stamp() != self._stamp:
             return None
-        return x[None] if x.ndim == 1 else x
+        out = getattr(compiled.kernels(), kernel)(*arrays, np.array(values)[None])
+        return torch.from_numpy(out if row else out[0])
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
@@ -368,9 +397,9 @@ class Chain(nn.Module):
         pose gradient's twist, not a replay of the forward kernel; up to 128, autograd
         through the few ops of the small-batch kernel costs less.
         """
-        x = self._plain_one(q)
-        if x is not None:
-            return kin.one_by_kernel(compiled.kernels().end_poses, self.geometry(torch.float64), x, q.ndim)
+        out = self._one_by_kernel(q, "end_poses")
+        if out is not None:
+            return out
         self.check_q(q)
         g = self.geometry(q.dtype)
         if q.requires_grad and torch.is_grad_enabled() and q.numel() > kin.SMALL_BATCH * self.n_joints:
@@ -406,9 +435,9 @@ class Chain(nn.Module):
         about the axis ``z_i`` through the point ``p_i``, ``[z_i; 0]`` for a prismatic one,
         computed from the frames, not by autograd.
         """
-        x = self._plain_one(q)
-        if x is not None:
-            return kin.one_by_kernel(compiled.kernels().jacobians, self.geometry(torch.float64), x, q.ndim)
+        out = self._one_by_kernel(q, "jacobians")
+        if out is not None:
+            return out
         self.check_q(q)
         g = self.geometry(q.dtype)
         return kin.blockwise(q, self.n_joints, (6, self.n_joints), lambda qb: kin.jacobian(g, qb))
@@ -421,5 +450,5 @@ class Chain(nn.Module):
 def _after_load(chain: Chain, incompatible_keys) -> None:
     """``load_state_dict`` post-hook: the loaded buffers are checked now and the geometry rebuilt
     on next use (their version counters would show the change too; this also fails early)."""
-    chain._geometry, chain._stamp = {}, ()
+    chain._forget_geometry()
     chain._check_buffers()

@@ -500,13 +500,6 @@ def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
     return out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape)
 
 
-def one_by_kernel(kernel, g: Geometry, x: np.ndarray, ndim: int) -> Tensor:
-    """:func:`by_kernel` for one float64 configuration already in numpy, ``x (1, n)`` (from a
-    ``(1, n)`` tensor if ``ndim`` is 2, else ``(n,)``) -> ``(1, *shape)`` or ``(*shape)``, float64."""
-    out = kernel(*g.float_arrays, x)
-    return torch.from_numpy(out if ndim == 2 else out[0])
-
-
 def _frames_batch_last_compiled(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
     """:func:`frames_batch_last` of ``q (n, b)`` (:func:`compilable`) by the compiled recursion."""
     frames, z, p, _ = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q.T))

@@ -190,13 +190,13 @@ def test_fk_and_jacobian_of_a_few_configurations(monkeypatch, name, dtype):
 @needs_numba
 @pytest.mark.parametrize("shape", [(7,), (1, 7)])
 def test_one_configuration_shortcut(shape):
-    """fk/jacobian of one plain float64 configuration skip check_q (DHChain._plain_one): the same
+    """fk/jacobian of one plain float64 configuration skip check_q (Chain._one_by_kernel): the same
     numbers, bit for bit, as the checked path (taken by a Parameter), the chain's current buffers
     (load_state_dict), and the same errors: a NaN or inf makes the Python sum of q NaN or inf, so q
     goes to check_q; huge finite values whose sum overflows go there too, and pass."""
     chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
     q = chain.random_q(1, generator=torch.Generator().manual_seed(5)).reshape(shape)
-    assert chain._plain_one(q) is not None
+    assert chain._one_by_kernel(q, "end_poses") is not None
     for method in (chain.fk, chain.jacobian):
         assert torch.equal(method(q), method(torch.nn.Parameter(q, requires_grad=False)))
     other = robots.iiwa7()
@@ -211,7 +211,40 @@ def test_one_configuration_shortcut(shape):
                 with pytest.raises(ValueError, match=re.escape(f"q contains NaN or inf (first at index {index})")):
                     method(x)
     huge = torch.full(shape, 1e308, dtype=torch.float64)
-    assert chain._plain_one(huge) is None and torch.isfinite(chain.fk(huge)).all()
+    assert chain._one_by_kernel(huge, "end_poses") is None and torch.isfinite(chain.fk(huge)).all()
+    strided = torch.stack([q.reshape(-1), q.reshape(-1)], -1)[..., 0].reshape(shape)  # not contiguous: the same
+    assert not strided.is_contiguous() and torch.equal(chain.fk(strided), chain.fk(q))
+
+
+@needs_numba
+def test_one_configuration_shortcut_follows_the_buffers():
+    """The shortcut's cached geometry follows every way a buffer changes: an in-place write to any
+    geometry buffer, ``.data =``, a buffer assigned or registered anew, a dtype round trip; each
+    answer is a fresh chain's, through the checked path (a Parameter)."""
+    def same(chain, fresh):
+        for q in (torch.full((6,), 0.3, dtype=torch.float64), torch.full((1, 6), -0.7, dtype=torch.float64)):
+            for method, other in ((chain.fk, fresh.fk), (chain.jacobian, fresh.jacobian)):
+                assert torch.equal(method(q), other(torch.nn.Parameter(q, requires_grad=False)))
+                assert chain._one_by_kernel(q, "end_poses") is not None  # the shortcut again, rebuilt
+
+    chain = robots.puma560()
+    same(chain, robots.puma560())
+    edits = [
+        lambda c: c.dh[2, 2].add_(0.05),
+        lambda c: c.tool[:3, 3].copy_(torch.tensor([0.0, 0.1, 0.2])),
+        lambda c: c.base[2, 3].fill_(0.4),
+        lambda c: setattr(c.dh, "data", c.dh.clone() * 1.01),
+        lambda c: setattr(c, "tool", robots.puma560().fk(torch.full((6,), 0.2, dtype=torch.float64))),
+        lambda c: c.register_buffer("base", torch.eye(4, dtype=torch.float64)),
+        lambda c: c.float().double(),
+    ]
+    for edit in edits:
+        edit(chain)
+        fresh = DHChain(chain.dh.clone(), base=chain.base.clone(), tool=chain.tool.clone(), limits=chain.limits.clone())
+        same(chain, fresh)
+    chain.limits[0, 0] = chain.limits[1, 0] + 1.0  # lower above upper: the next one-configuration call says so
+    with pytest.raises(ValueError, match="lower <= upper"):
+        chain.fk(torch.zeros(6, dtype=torch.float64))
 
 
 @needs_numba

@@ -26,7 +26,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "benchmarks/bench_collision.py:main": 107,
     "iiwa_torch/trajectory.py:track": 98,
     "iiwa_torch/workspace.py:plot_workspace": 89,
-    "iiwa_torch/ik/analytic/srs.py:iiwa_solve": 85,
     "train/features.py:__init__": 84,
     "iiwa_torch/trajectory.py:jtraj": 78,
     "iiwa_torch/cli.py:_traj": 78,
@@ -36,12 +35,10 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "train/evaluate.py:_rollouts_obstacles": 71,
     "iiwa_torch/collision.py:_distances": 70,
     "envs/core.py:_new_episodes": 64,
-    "iiwa_torch/ik/analytic/planar.py:planar3r": 68,
     "benchmarks/bench_workspace.py:main": 68,
     "benchmarks/bench_analytic.py:main": 67,
     "benchmarks/bench_trajectory.py:main": 66,
     "benchmarks/bench_busy.py:main": 66,
-    "iiwa_torch/ik/analytic/srs.py:iiwa_q3_locked": 63,
 }
 
 

@@ -333,8 +333,9 @@ def as_values(value, name: str, dtype: torch.dtype, device: torch.device, batch:
 def check_target(chain: DHChain, target: Tensor) -> None:
     _check_dh(chain, "analytic")
     check_rigid(target, "target")
-    if target.device != chain.dh.device:
-        raise ValueError(f"target is on {target.device} but the chain is on {chain.dh.device}")
+    dh = chain.dh
+    if not (target.is_cpu and dh.is_cpu) and target.device != dh.device:  # is_cpu: no device objects built
+        raise ValueError(f"target is on {target.device} but the chain is on {dh.device}")
 
 
 def last_frame_target(chain: DHChain, target: Tensor) -> Tensor:
@@ -366,15 +367,23 @@ def strip_transforms(chain: DHChain) -> tuple[Tensor, Tensor | None]:
 _NUMPY_STRIPS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # chain.geometry(float64) -> (F, B)
 
 
-def last_frame_numpy(chain: DHChain, target: np.ndarray) -> np.ndarray:
-    """:func:`last_frame_target` of a numpy ``target (..., 4, 4)``, in its dtype: the transforms of
-    :func:`strip_transforms` cached per chain geometry (rebuilt when the chain's buffers change)."""
+def numpy_strips(chain: DHChain) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`strip_transforms` as float64 numpy arrays, cached per chain geometry (rebuilt when the
+    chain's buffers change)."""
     key = chain.geometry(torch.float64)
     strips = _NUMPY_STRIPS.get(key)
     if strips is None:
         strips = tuple(None if t is None else t.double().numpy() for t in strip_transforms(chain))
         _NUMPY_STRIPS[key] = strips
-    flange_inv, base_inv = (None if t is None else t.astype(target.dtype, copy=False) for t in strips)
+    return strips
+
+
+def last_frame_numpy(chain: DHChain, target: np.ndarray, strips: tuple | None = None) -> np.ndarray:
+    """:func:`last_frame_target` of a numpy ``target (..., 4, 4)``, in its dtype, by ``strips`` (default
+    :func:`numpy_strips` of ``chain``; a caller that holds them saves the lookup)."""
+    flange_inv, base_inv = numpy_strips(chain) if strips is None else strips
+    if target.dtype != np.float64:
+        flange_inv, base_inv = (None if t is None else t.astype(target.dtype) for t in (flange_inv, base_inv))
     return (target if base_inv is None else base_inv @ target) @ flange_inv
 
 

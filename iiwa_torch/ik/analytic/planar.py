@@ -34,6 +34,24 @@ def _check_planar_transform(matrix: Tensor, name: str) -> None:
         )
 
 
+def _pose_values(chain: DHChain, x, y, phi) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`planar3r`'s ``x, y, phi`` (tensors or numbers), checked, as tensors broadcast together
+    on the chain's device, in the tensors' promoted float dtype (float64 for plain numbers)."""
+    named = (("x", x), ("y", y), ("phi", phi))
+    for name, v in named:
+        if isinstance(v, torch.Tensor):
+            check_float_tensor(v, name, "(...)")
+    floats = [v.dtype for v in (x, y, phi) if isinstance(v, torch.Tensor)]
+    dtype = floats[0] if floats else chain.dh.dtype  # plain numbers: the chain's float64
+    for other in floats[1:]:
+        dtype = torch.promote_types(dtype, other)
+    x, y, phi = (as_values(v, name, dtype, chain.dh.device) for name, v in named)
+    try:
+        return tuple(torch.broadcast_tensors(x, y, phi))
+    except RuntimeError:
+        raise ValueError(f"x, y, phi must broadcast together, got {[tuple(v.shape) for v in (x, y, phi)]}") from None
+
+
 def planar3r(
     chain: DHChain, x, y, phi, *, world: World | None = None, margin: float = 0.0, capsules: Capsules | None = None
 ) -> AnalyticSolutions:
@@ -64,19 +82,8 @@ def planar3r(
     rows = check_chain(chain, 3, PLANAR_ROWS, "planar 3R")
     _check_planar_transform(chain.base, "base")
     _check_planar_transform(chain.tool, "tool")
-    named = (("x", x), ("y", y), ("phi", phi))
-    for name, v in named:
-        if isinstance(v, torch.Tensor):
-            check_float_tensor(v, name, "(...)")
-    floats = [v.dtype for v in (x, y, phi) if isinstance(v, torch.Tensor)]
-    dtype = floats[0] if floats else chain.dh.dtype  # plain numbers: the chain's float64
-    for other in floats[1:]:
-        dtype = torch.promote_types(dtype, other)
-    x, y, phi = (as_values(v, name, dtype, chain.dh.device) for name, v in named)
-    try:
-        x, y, phi = torch.broadcast_tensors(x, y, phi)
-    except RuntimeError:
-        raise ValueError(f"x, y, phi must broadcast together, got {[tuple(v.shape) for v in (x, y, phi)]}") from None
+    x, y, phi = _pose_values(chain, x, y, phi)
+    dtype = x.dtype
 
     # Pose of frame 3 in frame 0 (base and tool stripped), in the plane: heading h, origin p.
     base, tool = chain.base.to(dtype), chain.tool.to(dtype)

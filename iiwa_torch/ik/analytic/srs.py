@@ -77,6 +77,7 @@ from ._common import (
     last_frame_numpy,
     last_frame_target,
     numpy_applies,
+    numpy_strips,
     reach_tol,
     reduce_grouped,
     safe_atan2,
@@ -266,6 +267,27 @@ def _arm_angle(s, e, w, ops=TORCH):
     return safe_atan2(_dot(se, w_ref), _dot(se, v_ref), ops)
 
 
+def _locked_shoulder(geo: _Geometry, sw: Tensor, theta3: Tensor, theta4: Tensor, tol: float):
+    """:func:`iiwa_q3_locked`'s shoulder: ``sw (..., 3)`` and ``theta3, theta4 (..., 2 elbow)`` (rad) ->
+    ``theta1, theta2 (..., 2 elbow, 2 shoulder)`` and ``ok (..., 2 elbow)``, where joint 2 can
+    turn ``W - S`` to the height of ``W``."""
+    sig = geo.sig
+    c3, s3, c4, s4 = torch.cos(theta3), torch.sin(theta3), torch.cos(theta4), torch.sin(theta4)
+    # p = W - S in frame 2, then p' = Rx(alpha2) p.
+    px = geo.d5 * sig[3] * s4 * c3
+    py = geo.d5 * sig[3] * s4 * s3
+    pz = geo.d3 - geo.d5 * sig[2] * sig[3] * c4
+    a, b, c = px, -sig[1] * pz, sig[1] * py  # p'
+    height = (sig[0] * sw[..., 2])[..., None]
+    cos_d, sin_d, ok = acos_pair(height / safe_norm2(a, b), tol)
+    delta = torch.atan2(sin_d[..., None] * torch.tensor([1.0, -1.0], dtype=a.dtype, device=a.device), cos_d[..., None])
+    theta2 = safe_atan2(a, b)[..., None] + delta  # (..., 2 elbow, 2 shoulder)
+    c2, s2 = torch.cos(theta2), torch.sin(theta2)
+    vx, vz = c2 * a[..., None] - s2 * b[..., None], c[..., None].expand_as(c2)
+    theta1 = safe_atan2(sw[..., 1], sw[..., 0])[..., None, None] - safe_atan2(-sig[0] * vz, vx)
+    return theta1, theta2, ok
+
+
 def iiwa_q3_locked(
     chain: DHChain,
     target: Tensor,
@@ -300,19 +322,7 @@ def iiwa_q3_locked(
     sig = geo.sig
     theta4, _, _, reachable = _elbow(geo, sw, tol)  # (..., 2)
     theta3 = theta3[..., None].expand(torch.broadcast_shapes(theta3[..., None].shape, theta4.shape))
-    c3, s3, c4, s4 = torch.cos(theta3), torch.sin(theta3), torch.cos(theta4), torch.sin(theta4)
-    # p = W - S in frame 2, then p' = Rx(alpha2) p.
-    px = geo.d5 * sig[3] * s4 * c3
-    py = geo.d5 * sig[3] * s4 * s3
-    pz = geo.d3 - geo.d5 * sig[2] * sig[3] * c4
-    a, b, c = px, -sig[1] * pz, sig[1] * py  # p'
-    height = (sig[0] * sw[..., 2])[..., None]
-    cos_d, sin_d, ok = acos_pair(height / safe_norm2(a, b), tol)
-    delta = torch.atan2(sin_d[..., None] * torch.tensor([1.0, -1.0], dtype=a.dtype, device=a.device), cos_d[..., None])
-    theta2 = safe_atan2(a, b)[..., None] + delta  # (..., 2 elbow, 2 shoulder)
-    c2, s2 = torch.cos(theta2), torch.sin(theta2)
-    vx, vz = c2 * a[..., None] - s2 * b[..., None], c[..., None].expand_as(c2)
-    theta1 = safe_atan2(sw[..., 1], sw[..., 0])[..., None, None] - safe_atan2(-sig[0] * vz, vx)
+    theta1, theta2, ok = _locked_shoulder(geo, sw, theta3, theta4, tol)
 
     # Columns 0, 2 of R_04^T R = R_24^T (R_02^T R), entry by entry over the batch.
     rot_02 = [[v[..., None, None] for v in row] for row in entries(rot[..., :, 0:3:2])]
@@ -382,15 +392,25 @@ def iiwa_solve(
     check_target(chain, target)
     batch = target.shape[:-2]
     flat = target.reshape(-1, 4, 4)
-    given_q0 = q0
-    if q0 is not None:
-        chain.check_q(q0, "q0")
-        try:
-            q0 = torch.broadcast_to(q0.to(target.dtype), (*batch, 7)).reshape(-1, 7)
-        except RuntimeError:
-            raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
-    if _numpy_applies(chain, flat, given_q0, world, num_psi):
-        return _solve_numpy(chain, flat, q0, num_psi, pos_tol, rot_tol, batch)
+    flat_q0 = None if q0 is None else _flat_q0(chain, q0, batch, target.dtype)
+    if _numpy_applies(chain, flat, q0, world, num_psi):
+        return _solve_numpy(chain, flat, flat_q0, num_psi, pos_tol, rot_tol, batch)
+    return _solve_torch(chain, flat, flat_q0, num_psi, pos_tol, rot_tol, batch, world, margin, capsules)
+
+
+def _flat_q0(chain: DHChain, q0: Tensor, batch: torch.Size, dtype: torch.dtype) -> Tensor:
+    """:func:`iiwa_solve`'s ``q0``, checked, in ``dtype`` and broadcast to the poses' ``batch``, as ``(B, 7)``."""
+    chain.check_q(q0, "q0")
+    try:
+        return torch.broadcast_to(q0.to(dtype), (*batch, 7)).reshape(-1, 7)
+    except RuntimeError:
+        raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
+
+
+def _solve_torch(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, pos_tol: float, rot_tol: float,
+                 batch: torch.Size, world: World | None, margin: float, capsules: Capsules | None) -> IKResult:
+    """:func:`iiwa_solve` in torch (any device, autograd, a world) for ``flat (B, 4, 4)`` and ``q0
+    (B, 7)`` (or None), checked and flattened."""
     obstacles = None if world is None else Obstacles.for_batch(world, margin, capsules, batch)
     if flat.shape[0] == 0:  # no poses
         q_best = flat.new_zeros(0, 7)
@@ -407,7 +427,7 @@ def iiwa_solve(
         clear = obstacles.clearance(chain, q_best)
         success = success & (clear >= margin)
         clear = clear.reshape(batch)
-    iterations = torch.zeros(batch, dtype=torch.int64, device=target.device)
+    iterations = torch.zeros(batch, dtype=torch.int64, device=flat.device)
     return IKResult(
         q=q_best.reshape(*batch, 7),
         success=success.reshape(batch),
@@ -437,8 +457,8 @@ class _Setup:
     """What a sweep takes from the chain, for the arrays of ``ops`` (``_common``): the closed
     form's constants ``geo``, the joint offsets and limits (floats, rad) and their mid-points and
     half-widths, and ``clamp``, ``q (B, 7)`` -> ``q`` clamped into the limits. For torch also the
-    chain (for a world), for numpy the float64 arrays ``base`` and ``limits (2, 7)`` and the cache of
-    :func:`_kernel_args`."""
+    chain (for a world), for numpy the float64 arrays ``base`` and ``limits (2, 7)``, the chain's
+    ``strips`` (:func:`~._common.numpy_strips`) and the cache of :func:`_kernel_args`."""
 
     geo: _Geometry
     ops: object
@@ -451,6 +471,7 @@ class _Setup:
     chain: DHChain | None = None
     base: np.ndarray | None = None
     limits: np.ndarray | None = None
+    strips: tuple | None = None
     kernel_args: dict = dataclasses.field(default_factory=dict)
 
     def bounds(self, dtype: torch.dtype) -> tuple[list, list]:
@@ -481,7 +502,7 @@ def _numpy_setup(chain: DHChain) -> _Setup:
         limits = chain.limits.double().numpy()
         setup = _Setup.build(
             chain, NUMPY, functools.partial(NUMPY.clamp, lo=limits[0], hi=limits[1]),
-            base=chain.base.double().numpy(), limits=limits,
+            base=chain.base.double().numpy(), limits=limits, strips=numpy_strips(chain),
         )
         _NUMPY_SETUPS[key] = setup
     return setup
@@ -495,9 +516,9 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
     in that dtype and its errors from the chain's FK, as the batched path."""
     dtype = flat.dtype
     setup = _numpy_setup(chain)
-    target = flat.detach().double().numpy()
-    frame6 = last_frame_numpy(chain, target)
-    rot, sw = frame6[:, :3, :3], frame6[:, :3, 3] - np.array([0.0, 0.0, setup.geo.d1])
+    target = (flat.detach() if flat.requires_grad else flat).numpy().astype(np.float64, copy=False)
+    frame6 = last_frame_numpy(chain, target, setup.strips)
+    rot, sw = np.ascontiguousarray(frame6[:, :3, :3]), frame6[:, :3, 3] - np.array([0.0, 0.0, setup.geo.d1])
     psi0 = None
     if q0 is not None:
         q0 = q0.detach().double().numpy()
@@ -511,7 +532,10 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
         q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
     out_dtype = np.float32 if dtype == torch.float32 else np.float64
     q = q.astype(out_dtype, copy=False)
-    pose = end_pose(chain.geometry(dtype), torch.from_numpy(q)).double().numpy()  # chain.fk's kernel for these
+    if compiled.ENABLED and dtype == torch.float64:  # chain.fk's kernel for these, called directly
+        pose = compiled.kernels().end_poses(*chain.geometry(dtype).float_arrays, q)
+    else:
+        pose = end_pose(chain.geometry(dtype), torch.from_numpy(q)).double().numpy()
     pos, eps = target[:, :3, 3], torch.finfo(dtype).eps
     if compiled.ENABLED:
         pos_err, rot_err = compiled.kernels().pose_errors(pose, np.ascontiguousarray(pos), np.ascontiguousarray(
@@ -521,8 +545,8 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
         pos_err, rot_err = (v.norm(dim=-1).double().numpy() for v in errors)
     success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
     # reshaped in numpy, then wrapped: a torch reshape costs a few numpy ones
-    fields = (q.reshape(*batch, 7), success.reshape(batch), pos_err.astype(out_dtype).reshape(batch),
-              rot_err.astype(out_dtype).reshape(batch), np.zeros(batch, dtype=np.int64))  # fmt: skip
+    fields = (q.reshape(*batch, 7), success.reshape(batch), pos_err.astype(out_dtype, copy=False).reshape(batch),
+              rot_err.astype(out_dtype, copy=False).reshape(batch), np.zeros(batch, dtype=np.int64))  # fmt: skip
     return IKResult(*(torch.from_numpy(x) for x in fields))
 
 
