@@ -23,7 +23,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "benchmarks/bench_fk.py:main": 113,
     "iiwa_torch/ik/gradient.py:minimize": 110,
     "benchmarks/bench_env.py:main": 89,
-    "benchmarks/bench_collision.py:main": 107,
     "iiwa_torch/trajectory.py:track": 98,
     "iiwa_torch/workspace.py:plot_workspace": 89,
     "iiwa_torch/compiled/numba_kernels.py:own_clearance": 89,
