@@ -20,7 +20,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "benchmarks/bench_ik.py:main": 162,
     "train/kernels.py:features": 146,
     "iiwa_torch/ik/gradient.py:solve": 119,
-    "benchmarks/bench_fk.py:main": 113,
     "iiwa_torch/ik/gradient.py:minimize": 110,
     "benchmarks/bench_env.py:main": 89,
     "iiwa_torch/trajectory.py:track": 98,
