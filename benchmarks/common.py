@@ -35,6 +35,18 @@ def timeit(fn, *, min_time: float = 0.2, repeats: int = 5, max_calls: int | None
     return statistics.median(samples)
 
 
+class Clock:
+    """Wall and CPU (process) seconds since it was made. The machine is shared: CPU time is what the
+    code itself used, wall time also holds the waits for the cores."""
+
+    def __init__(self) -> None:
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+
+    def stop(self) -> tuple[float, float]:
+        """``(wall, cpu)`` seconds since the clock was made."""
+        return time.perf_counter() - self.wall, time.process_time() - self.cpu
+
+
 def save(name: str, payload: dict, markdown: str) -> Path:
     """Write ``results/<name>.json`` and ``results/<name>.md``; return the JSON path."""
     RESULTS.mkdir(exist_ok=True)
