@@ -36,7 +36,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "iiwa_torch/collision.py:_distances": 70,
     "envs/core.py:_new_episodes": 64,
     "iiwa_torch/ik/analytic/planar.py:planar3r": 68,
-    "benchmarks/bench_busy.py:main": 66,
     "iiwa_torch/ik/analytic/srs.py:iiwa_q3_locked": 63,
 }
 
