@@ -27,7 +27,7 @@ import time
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import torch  # noqa: E402
-from common import markdown_table, save, timeit  # noqa: E402
+from common import Robot, markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import robots  # noqa: E402
 from iiwa_torch.collision import World, clearance, robot_capsules  # noqa: E402
@@ -167,10 +167,7 @@ def bench_peers(n_rtb: int, n_grad: int) -> dict:
 
     # iiwa: rtb's C++ Levenberg-Marquardt (ETS), one pose at a time.
     iiwa = robots.iiwa14()
-    rows = zip(iiwa.dh.tolist(), iiwa.limits.T.tolist())
-    links = [rtb.RevoluteDH(a=a, alpha=al, d=d, offset=off, qlim=lim) for (a, al, d, off), lim in rows]
-    iiwa_rtb = rtb.DHRobot(links, name="iiwa14")
-    ets = iiwa_rtb.ets()
+    ets = Robot("iiwa14").rtb_ets()
     target = iiwa.fk(iiwa.random_q(n_rtb, generator=gen))
     start, ok = time.perf_counter(), 0
     for t in target.numpy():
@@ -311,16 +308,7 @@ def world_sweep(n: int) -> dict:
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="10,000 poses, fewer repeats (a smoke run)")
-    args = parser.parse_args()
-    n, repeats = (10_000, 3) if args.quick else (100_000, 7)
-    closed = bench_closed_forms(n, repeats)
-    peers = bench_peers(n_rtb=50 if args.quick else 300, n_grad=1_000 if args.quick else 10_000)
-    sweep = sweep_success(2_000 if args.quick else 100_000)
-    obstacles = world_sweep(500 if args.quick else 10_000)
-
+def closed_form_table(closed: list[dict]) -> str:
     headers = [
         "solver", "dtype", "branches", "s per call (median)", "M branches/s (median)", "M branches/s (best)",
         "M branches/s (best, 1 thread)", "reachable", "valid", "closure m / rad",
@@ -334,6 +322,10 @@ def main() -> None:
         ]
         for r in closed
     ]
+    return markdown_table(headers, rows)
+
+
+def peer_table(peers: dict) -> str:
     ratio = [
         ["PUMA 560 branches/s: ours (batched) vs rtb ikine_a (per call)",
          f"{peers['ours_puma_same_poses_branches_per_s']:,.0f}", f"{peers['rtb_puma_ikine_a_branches_per_s']:,.0f}",
@@ -345,13 +337,13 @@ def main() -> None:
          f"{peers['sweep_iiwa_poses_per_s']:,.0f}", f"{peers['rtb_iiwa_ikine_LM_poses_per_s']:,.0f}",
          f"**{peers['sweep_iiwa_poses_per_s'] / peers['rtb_iiwa_ikine_LM_poses_per_s']:.0f}x**"],
     ]
-    info = machine_info()
-    md = (
-        f"Closed-form IK, {n:,} poses (`python benchmarks/bench_analytic.py`):\n\n"
-        + markdown_table(headers, rows)
-        + "\nAgainst the peers (same run):\n\n"
-        + markdown_table(["comparison", "ours", "peer", "ratio"], ratio)
-        + f"\nSuccess: sweep {peers['sweep_iiwa_success']:.4f}, gradient {peers['gradient_iiwa_success']:.4f} "
+    return markdown_table(["comparison", "ours", "peer", "ratio"], ratio)
+
+
+def success_text(peers: dict, sweep: dict) -> str:
+    """The success rates of the sweep, the gradient solver and rtb, and where the sweep missed."""
+    return (
+        f"Success: sweep {peers['sweep_iiwa_success']:.4f}, gradient {peers['gradient_iiwa_success']:.4f} "
         f"({peers['gradient_misses_solved_by_sweep']} of its {peers['gradient_misses']} misses solved by the sweep), "
         f"rtb ikine_LM {peers['rtb_iiwa_ikine_LM_success']:.3f}. "
         f"iiwa_solve on {sweep['poses']:,} reachable poses: success {sweep['success']:.5f}, "
@@ -359,7 +351,12 @@ def main() -> None:
         f"plain 16-angle grid (narrow feasible arm-angle intervals, found by the finer retry: "
         f"success there {sweep.get('grid16_misses_iiwa_solve_success', float('nan')):.3f}, gradient solver "
         f"{sweep.get('grid16_misses_gradient_success', float('nan')):.3f}).\n\n"
-        + "In a world (floor + 3 random spheres near the arm per pose, margin "
+    )
+
+
+def world_table(obstacles: dict) -> str:
+    return (
+        "In a world (floor + 3 random spheres near the arm per pose, margin "
         f"{obstacles['margin_m'] * 1e3:.0f} mm, poses of collision-free configurations):\n\n"
         + markdown_table(
             ["solver", "poses", "success", "verified (FK + clearance)", "ms per pose", "without the world"],
@@ -372,6 +369,27 @@ def main() -> None:
                 ]
             ],
         )
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="10,000 poses, fewer repeats (a smoke run)")
+    args = parser.parse_args()
+    n, repeats = (10_000, 3) if args.quick else (100_000, 7)
+    closed = bench_closed_forms(n, repeats)
+    peers = bench_peers(n_rtb=50 if args.quick else 300, n_grad=1_000 if args.quick else 10_000)
+    sweep = sweep_success(2_000 if args.quick else 100_000)
+    obstacles = world_sweep(500 if args.quick else 10_000)
+    info = machine_info()
+    md = (
+        f"Closed-form IK, {n:,} poses (`python benchmarks/bench_analytic.py`):\n\n"
+        + closed_form_table(closed)
+        + "\nAgainst the peers (same run):\n\n"
+        + peer_table(peers)
+        + "\n"
+        + success_text(peers, sweep)
+        + world_table(obstacles)
         + f"\nMachine: {info}\n"
     )
     print(md)

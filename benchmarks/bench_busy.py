@@ -21,9 +21,8 @@ import os
 import statistics
 import subprocess
 import sys
-import time
 
-from common import markdown_table, save
+from common import Clock, markdown_table, save
 
 BURNER = "while True: pass"
 
@@ -41,10 +40,11 @@ def child(n: int, repeats: int, threads: int) -> dict:
     solve(chain, target[:8])  # warm-up
     walls, cpus, result = [], [], None
     for _ in range(repeats):
-        wall, cpu = time.perf_counter(), time.process_time()
+        clock = Clock()
         result = solve(chain, target)
-        walls.append(time.perf_counter() - wall)
-        cpus.append(time.process_time() - cpu)
+        wall, cpu = clock.stop()
+        walls.append(wall)
+        cpus.append(cpu)
     return {
         "seconds": statistics.median(walls),
         "cpu seconds": statistics.median(cpus),
@@ -78,23 +78,16 @@ def run_one(policy: str | None, threads: int, busy: bool, n: int, repeats: int) 
     }
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="1,000 targets, one timed call (a smoke run)")
     parser.add_argument("--note", default="", help="a sentence for the table's header (what else ran)")
     parser.add_argument("--child", nargs=3, type=int, metavar=("N", "REPEATS", "THREADS"), help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.child:
-        print(json.dumps(child(*args.child)))
-        return
-    n, repeats = (1_000, 1) if args.quick else (10_000, 3)
-    from iiwa_torch.runtime import machine_info  # imports torch: only after the children ran
+    return parser.parse_args()
 
-    rows = []
-    for policy, threads in itertools.product([None, "PASSIVE"], [1, 2]):
-        for busy in (False, True):
-            rows.append(run_one(policy, threads, busy, n, repeats))
-            print(rows[-1], flush=True)
+
+def markdown(rows: list[dict], n: int, repeats: int, command: str, note: str, machine: dict) -> str:
+    """The table of every configuration, each against the same policy and threads alone."""
     alone = {(r["policy"], r["threads"]): r["seconds"] for r in rows if r["load"] == "alone"}
     table = [
         [
@@ -109,40 +102,45 @@ def main() -> None:
         ]
         for r in rows
     ]
-    command = f"python benchmarks/bench_busy.py{' --quick' if args.quick else ''}"
     md = [
         f"# `ik.solve` alone and beside a busy process (`{command}`)\n\n",
         f"{n:,} random reachable iiwa 14 poses, float64 targets, library defaults; median of {repeats} "
         "timed call(s) per configuration, each configuration in a fresh process. busy: a second Python "
         "process spins on one core for the whole configuration. load average: 1-minute, at the start.\n\n",
     ]
-    if args.note:
-        md.append(f"{args.note}\n\n")
-    md.append(
-        markdown_table(
-            [
-                "OMP_WAIT_POLICY",
-                "torch threads",
-                "load",
-                "load average",
-                "seconds (wall)",
-                "seconds (CPU)",
-                "busy / alone",
-                "success 0.1 mm / 1 mrad",
-            ],
-            table,
-        )
-    )
-    machine = machine_info() | {"OMP_WAIT_POLICY": "set per configuration (column policy)"}
+    if note:
+        md.append(f"{note}\n\n")
+    headers = ["OMP_WAIT_POLICY", "torch threads", "load", "load average", "seconds (wall)", "seconds (CPU)",
+               "busy / alone", "success 0.1 mm / 1 mrad"]  # fmt: skip
+    md.append(markdown_table(headers, table))
     md.append(
         f"\nMachine: {machine['cpu']}, {machine['cpu_count']} CPUs, torch {machine['torch']}, {machine['date']}.\n"
     )
+    return "".join(md)
+
+
+def main() -> None:
+    args = parse_args()
+    if args.child:
+        print(json.dumps(child(*args.child)))
+        return
+    n, repeats = (1_000, 1) if args.quick else (10_000, 3)
+    from iiwa_torch.runtime import machine_info  # imports torch: only after the children ran
+
+    rows = []
+    for policy, threads in itertools.product([None, "PASSIVE"], [1, 2]):
+        for busy in (False, True):
+            rows.append(run_one(policy, threads, busy, n, repeats))
+            print(rows[-1], flush=True)
+    command = f"python benchmarks/bench_busy.py{' --quick' if args.quick else ''}"
+    machine = machine_info() | {"OMP_WAIT_POLICY": "set per configuration (column policy)"}
+    md = markdown(rows, n, repeats, command, args.note, machine)
     path = save(
         "busy_quick" if args.quick else "busy",
         {"command": command, "note": args.note, "machine": machine, "rows": rows},
-        "".join(md),
+        md,
     )
-    print("".join(md))
+    print(md)
     print(f"written: {path}")
 
 

@@ -50,19 +50,10 @@ def quaternion(rot: np.ndarray) -> list[float]:
     return [(rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w), (rot[1, 0] - rot[0, 1]) / (4 * w), w]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="20,000 configurations, 200 for the peers")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    batch, subset = (20_000, 200) if args.quick else (100_000, 2_000)
-    chain = robots.iiwa14()
-    caps = robot_capsules(chain)
-    q = chain.random_q(batch, generator=torch.Generator().manual_seed(0))
-    pairs = pairwise_clearance(chain, q[:1], capsules=caps).pairs
-    rows, payload = [], {"batch": batch, "peer_subset": subset, "pairs": pairs, "machine": machine_info()}
-
-    ours, enabled = {}, compiled.ENABLED
+def time_ours(chain, caps, q: torch.Tensor, rows: list) -> dict:
+    """``clearance`` on ``q`` by each path and dtype: seconds per configuration, keyed "<path> <dtype>";
+    a table row each (the torch path's with fk_all's time for scale) appended to ``rows``."""
+    batch, ours, enabled = q.shape[0], {}, compiled.ENABLED
     paths = (["compiled"] if enabled else []) + ["torch"]
     for path in paths:
         compiled.ENABLED = path == "compiled"
@@ -78,17 +69,14 @@ def main() -> None:
             rows.append([f"iiwa-torch, {key}", batch, f"{seconds / batch * 1e9:,.0f}", note])
             print(" | ".join(map(str, rows[-1])), flush=True)
     compiled.ENABLED = enabled
+    return ours
 
-    qs = q[:subset]
-    ref = pairwise_clearance(chain, qs, capsules=caps).distance.numpy()  # (subset, P)
-    centre, rot, length = capsule_poses(chain, caps, qs)
-    radii = caps.radii.tolist()
-    index = {name: k for k, name in enumerate(caps.names)}
-    pair_idx = [(index[a], None if b == "floor" else index[b]) for a, b in pairs]
-    peers = {}
 
+def coal_runner(radii: list, centre: np.ndarray, rot: np.ndarray, length: np.ndarray, pair_idx: list):
+    """coal's distance over every configuration and pair, as ``run() -> (configs, pairs)`` distances."""
     import coal
 
+    subset = len(centre)
     shapes = [coal.Capsule(r, float(length[0, k])) for k, r in enumerate(radii)]
     floor = coal.Halfspace(np.array([0.0, 0.0, 1.0]), 0.0)
     ident = coal.Transform3s()
@@ -96,7 +84,7 @@ def main() -> None:
     request, result = coal.DistanceRequest(), coal.DistanceResult()
 
     def run_coal() -> np.ndarray:
-        out = np.empty((subset, len(pairs)))
+        out = np.empty((subset, len(pair_idx)))
         for n in range(subset):
             pose = poses[n]
             for p, (i, j) in enumerate(pair_idx):
@@ -104,11 +92,15 @@ def main() -> None:
                 out[n, p] = coal.distance(shapes[i], pose[i], other, other_pose, request, result)
         return out
 
-    peers["coal"] = run_coal
+    return run_coal
 
+
+def pybullet_runner(client: int, radii: list, centre: np.ndarray, rot: np.ndarray, length: np.ndarray,
+                    pair_idx: list):  # fmt: skip
+    """pybullet's ``getClosestPoints`` in ``client`` over every configuration and pair, as ``run()``."""
     import pybullet as pb
 
-    client = pb.connect(pb.DIRECT)
+    subset = len(centre)
     bodies = [
         pb.createMultiBody(
             0,
@@ -124,7 +116,7 @@ def main() -> None:
     positions = centre.tolist()
 
     def run_pybullet() -> np.ndarray:
-        out = np.empty((subset, len(pairs)))
+        out = np.empty((subset, len(pair_idx)))
         for n in range(subset):
             for k, body in enumerate(bodies):
                 pb.resetBasePositionAndOrientation(body, positions[n][k], quats[n][k], physicsClientId=client)
@@ -134,20 +126,53 @@ def main() -> None:
                 out[n, p] = min(h[8] for h in hits)
         return out
 
-    peers["pybullet"] = run_pybullet
+    return run_pybullet
 
+
+def compare(name: str, run, ref: np.ndarray, ours: dict, rows: list, payload: dict) -> None:
+    """A peer's agreement with ``ref`` on separated pairs and its time per configuration against ours."""
+    subset = len(ref)
+    values = run()
+    apart = ref > 1e-3  # penetration depths are defined differently; compare separated pairs
+    agree = float(np.abs(values - ref)[apart].max())
+    per = timeit(run, min_time=0.0, repeats=5) / subset  # median of 5 passes over the subset
+    payload[f"{name}_max_abs_diff_m"] = agree
+    ratios = {key: per / seconds for key, seconds in ours.items()}
+    note = "ours " + ", ".join(f"{key} {ratio:,.1f}x" for key, ratio in ratios.items())
+    rows.append([name, subset, f"{per * 1e9:,.0f}", f"{note} faster; max diff {agree:.1e} m"])
+    print(" | ".join(map(str, rows[-1])), flush=True)
+    payload[f"{name}_s_per_config"] = per
+    payload[f"speedup_vs_{name}"] = ratios
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="20,000 configurations, 200 for the peers")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    batch, subset = (20_000, 200) if args.quick else (100_000, 2_000)
+    chain = robots.iiwa14()
+    caps = robot_capsules(chain)
+    q = chain.random_q(batch, generator=torch.Generator().manual_seed(0))
+    pairs = pairwise_clearance(chain, q[:1], capsules=caps).pairs
+    rows, payload = [], {"batch": batch, "peer_subset": subset, "pairs": pairs, "machine": machine_info()}
+    ours = time_ours(chain, caps, q, rows)
+
+    qs = q[:subset]
+    ref = pairwise_clearance(chain, qs, capsules=caps).distance.numpy()  # (subset, P)
+    poses = capsule_poses(chain, caps, qs)
+    radii = caps.radii.tolist()
+    index = {name: k for k, name in enumerate(caps.names)}
+    pair_idx = [(index[a], None if b == "floor" else index[b]) for a, b in pairs]
+    import pybullet as pb
+
+    client = pb.connect(pb.DIRECT)
+    peers = {
+        "coal": coal_runner(radii, *poses, pair_idx),
+        "pybullet": pybullet_runner(client, radii, *poses, pair_idx),
+    }
     for name, run in peers.items():
-        values = run()
-        apart = ref > 1e-3  # penetration depths are defined differently; compare separated pairs
-        agree = float(np.abs(values - ref)[apart].max())
-        per = timeit(run, min_time=0.0, repeats=5) / subset  # median of 5 passes over the subset
-        payload[f"{name}_max_abs_diff_m"] = agree
-        ratios = {key: per / seconds for key, seconds in ours.items()}
-        note = "ours " + ", ".join(f"{key} {ratio:,.1f}x" for key, ratio in ratios.items())
-        rows.append([name, subset, f"{per * 1e9:,.0f}", f"{note} faster; max diff {agree:.1e} m"])
-        print(" | ".join(map(str, rows[-1])), flush=True)
-        payload[f"{name}_s_per_config"] = per
-        payload[f"speedup_vs_{name}"] = ratios
+        compare(name, run, ref, ours, rows, payload)
     pb.disconnect(client)
     payload["ours_s_per_config"] = ours
     payload["loadavg_after"] = list(os.getloadavg())

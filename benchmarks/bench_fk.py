@@ -24,10 +24,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import Robot, markdown_table, save, timeit  # noqa: E402
+from common import Robot, command, machine, markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import kinematics  # noqa: E402
-from iiwa_torch.runtime import machine_info  # noqa: E402
 
 ROBOT = CHAIN = GEOMETRY = None  # set by setup(--robot)
 SIZES = {
@@ -166,103 +165,112 @@ def peak_memory_mb(batch: int) -> float:
     return float(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout)
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, one thread (a smoke run)")
     parser.add_argument("--robot", default="iiwa14", help="a preset's name, or panda, xarm6, kuka_iiwa (URDF)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts (default 1 2)")
     parser.add_argument("--max-batch", type=int, default=None, help="skip larger batches (on a loaded machine)")
-    args = parser.parse_args()
-    setup(args.robot)
-    largest = 1_000 if args.quick else args.max_batch or max(max(bs) for bs in SIZES.values())
-    sizes = {op: [b for b in bs if b <= largest] for op, bs in SIZES.items()}
-    threads = [1] if args.quick else args.threads
-    fk_gap = pk_fk_difference()
-    g = torch.Generator().manual_seed(0)
-    runners = {
-        "iiwa-torch": ours,
-        "pytorch_kinematics": pytorch_kinematics,
-        "matmul chain": matmul_chain,
-        "torch.compile": compiled,
-        "copy floor": floor,
-    }
-    records, rows = [], []
-    for n_threads in threads:
-        torch.set_num_threads(n_threads)
-        for dtype in (torch.float32, torch.float64):
-            for op, batches in sizes.items():
-                for batch in batches:
-                    q = CHAIN.random_q(batch, generator=g, dtype=dtype)
-                    slow = batch >= 1_000_000
-                    times = {}
-                    for name, make in runners.items():
-                        fn = make(op, q)
-                        if fn is not None:
-                            times[name] = timeit(fn, min_time=0.0 if slow else 0.2, repeats=3 if slow else 5)
-                    rec = {
-                        "op": op,
-                        "batch": batch,
-                        "dtype": str(dtype).split(".")[1],
-                        "threads": n_threads,
-                        "seconds_per_call": times,
-                    }
-                    records.append(rec)
-                    t = times["iiwa-torch"]
-                    pk_ratio = times["pytorch_kinematics"] / t
-                    floor_t = times.get("copy floor")  # none for forward+backward
-                    mm, tc = times.get("matmul chain"), times.get("torch.compile")
-                    rows.append(
-                        [
-                            op,
-                            batch,
-                            rec["dtype"],
-                            n_threads,
-                            f"{t / batch * 1e9:,.0f}",
-                            f"{times['pytorch_kinematics'] / batch * 1e9:,.0f}",
-                            f"**{pk_ratio:.1f}x**",
-                            f"{mm / t:.1f}x" if mm else "",
-                            f"{tc / t:.1f}x" if tc else "",
-                            f"{t / floor_t:.1f}x" if floor_t else "-",
-                        ]
-                    )
-                    print(" | ".join(str(c) for c in rows[-1]), flush=True)
-    torch.set_num_threads(1)
-    cpp = per_call_cpp(CHAIN.random_q(1000, generator=g))
-    one = CHAIN.random_q(1, generator=g)[0]
-    single = timeit(lambda: CHAIN.fk(one))
-    headers = [
-        "op",
-        "batch",
-        "dtype",
-        "threads",
-        "ours ns/config",
-        "pytorch_kinematics ns/config",
-        "speed-up vs pk",
-        "speed-up vs matmul chain",
-        "speed-up vs torch.compile",
-        "ours / copy floor",
+    return parser.parse_args()
+
+
+RUNNERS = {
+    "iiwa-torch": ours,
+    "pytorch_kinematics": pytorch_kinematics,
+    "matmul chain": matmul_chain,
+    "torch.compile": compiled,
+    "copy floor": floor,
+}
+HEADERS = [
+    "op",
+    "batch",
+    "dtype",
+    "threads",
+    "ours ns/config",
+    "pytorch_kinematics ns/config",
+    "speed-up vs pk",
+    "speed-up vs matmul chain",
+    "speed-up vs torch.compile",
+    "ours / copy floor",
+]
+
+
+def measure(op: str, q: torch.Tensor, threads: int) -> tuple[dict, list]:
+    """Every runner that has ``op`` on ``q``: the record (seconds per call) and its table row."""
+    batch = q.shape[0]
+    slow = batch >= 1_000_000
+    times = {}
+    for name, make in RUNNERS.items():
+        fn = make(op, q)
+        if fn is not None:
+            times[name] = timeit(fn, min_time=0.0 if slow else 0.2, repeats=3 if slow else 5)
+    rec = {"op": op, "batch": batch, "dtype": str(q.dtype).split(".")[1], "threads": threads, "seconds_per_call": times}
+    t = times["iiwa-torch"]
+    pk_ratio = times["pytorch_kinematics"] / t
+    floor_t = times.get("copy floor")  # none for forward+backward
+    mm, tc = times.get("matmul chain"), times.get("torch.compile")
+    row = [
+        op,
+        batch,
+        rec["dtype"],
+        threads,
+        f"{t / batch * 1e9:,.0f}",
+        f"{times['pytorch_kinematics'] / batch * 1e9:,.0f}",
+        f"**{pk_ratio:.1f}x**",
+        f"{mm / t:.1f}x" if mm else "",
+        f"{tc / t:.1f}x" if tc else "",
+        f"{t / floor_t:.1f}x" if floor_t else "-",
     ]
+    print(" | ".join(str(c) for c in row), flush=True)
+    return rec, row
+
+
+def markdown(fk_gap: float, rows: list, cpp: dict, single: float, mem: float | None, info: dict) -> str:
+    """The batched table, the per-configuration table, the peak memory (if measured) and the machine."""
     source = "the preset's `to_urdf` export" if ROBOT.path is None else f"`{ROBOT.path.parent.name}/{ROBOT.path.name}`"
     md = (
-        f"`{' '.join(['python benchmarks/bench_fk.py', *sys.argv[1:]])}`: "
+        f"`{command(__file__)}`: "
         f"FK of {ROBOT.name} ({CHAIN.n_joints} joints, end link `{ROBOT.end_link}`; every peer reads {source}; "
         f"pytorch_kinematics' float64 FK differs from ours by at most {fk_gap:.1e}):\n\n"
     )
-    md += markdown_table(headers, rows)
+    md += markdown_table(HEADERS, rows)
     md += "\nPer configuration, one call each, float64, 1 thread:\n\n"
     md += markdown_table(
         ["library", "µs per configuration"],
         [[k, f"{v * 1e6:.2f}"] for k, v in cpp.items()]
         + [["iiwa-torch fk, batch 1 (one call)", f"{single * 1e6:.1f}"]],
     )
-    mem = None if largest < 1_000_000 else peak_memory_mb(1_000_000)
     if mem is not None:
         md += (
             f"\nPeak memory of one float32 FK of 1,000,000 configurations: {mem:.0f} MB"
             f" (input {4 * CHAIN.n_joints} MB and output 64 MB included)\n"
         )
-    info = machine_info() | {"IIWA_TORCH_NUMBA": os.environ.get("IIWA_TORCH_NUMBA", "unset (on)")}
-    md += f"\nMachine: {info}\n"
+    return md + f"\nMachine: {info}\n"
+
+
+def main() -> None:
+    args = parse_args()
+    setup(args.robot)
+    largest = 1_000 if args.quick else args.max_batch or max(max(bs) for bs in SIZES.values())
+    sizes = {op: [b for b in bs if b <= largest] for op, bs in SIZES.items()}
+    fk_gap = pk_fk_difference()
+    g = torch.Generator().manual_seed(0)
+    records, rows = [], []
+    for n_threads in [1] if args.quick else args.threads:
+        torch.set_num_threads(n_threads)
+        for dtype in (torch.float32, torch.float64):
+            for op, batches in sizes.items():
+                for batch in batches:
+                    rec, row = measure(op, CHAIN.random_q(batch, generator=g, dtype=dtype), n_threads)
+                    records.append(rec)
+                    rows.append(row)
+    torch.set_num_threads(1)
+    cpp = per_call_cpp(CHAIN.random_q(1000, generator=g))
+    one = CHAIN.random_q(1, generator=g)[0]
+    single = timeit(lambda: CHAIN.fk(one))
+    mem = None if largest < 1_000_000 else peak_memory_mb(1_000_000)
+    info = machine()
+    md = markdown(fk_gap, rows, cpp, single, mem, info)
     print(md)
     name = "fk" if args.robot == "iiwa14" else f"fk_{args.robot}"
     path = save(

@@ -34,18 +34,16 @@ import argparse
 import os
 import statistics
 import sys
-import time
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import Robot, markdown_table, save  # noqa: E402
+from common import Clock, Robot, command, machine, markdown_table, save  # noqa: E402
 
 from iiwa_torch import so3  # noqa: E402
 from iiwa_torch.collision import World, clearance, robot_capsules  # noqa: E402
 from iiwa_torch.ik import solve  # noqa: E402
-from iiwa_torch.runtime import machine_info  # noqa: E402
 
 MARGIN = 0.01  # clearance required with a world, m
 ROBOT = CHAIN = None  # set by setup(--robot)
@@ -74,17 +72,6 @@ def score(q: torch.Tensor, target: torch.Tensor) -> dict:
     out = {f"success {k}": float(((pos <= p) & (rot <= r)).double().mean()) for k, (p, r) in TOLERANCES.items()}
     out["within limits"] = float(CHAIN.within_limits(q, tol=1e-9).double().mean())
     return out
-
-
-class Clock:
-    """Wall and CPU (process) seconds of one call. The machine is shared: CPU time is what the
-    solver itself used, wall time also holds the waits for the cores."""
-
-    def __init__(self) -> None:
-        self.wall, self.cpu = time.perf_counter(), time.process_time()
-
-    def stop(self) -> tuple[float, float]:
-        return time.perf_counter() - self.wall, time.process_time() - self.cpu
 
 
 def ours(target: torch.Tensor, repeats: int, samples: list | None = None, **options) -> dict:
@@ -210,78 +197,91 @@ def roboticstoolbox(target: torch.Tensor, options: dict) -> dict | None:
     return timing_row(seconds, len(target)) | {"fk max diff vs ours": agree} | score(q, target)
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1,000 targets, fewer repeats (a smoke run)")
     parser.add_argument("--robot", default="iiwa14", help="a preset's name, or panda, xarm6, kuka_iiwa (URDF)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="thread counts (default 1 2)")
-    args = parser.parse_args()
-    setup(args.robot)
-    preset = ROBOT.path is None
-    count, repeats = (1_000, 2) if args.quick else (10_000, 5)
-    q_true = CHAIN.random_q(count, generator=torch.Generator().manual_seed(2024))
-    target = CHAIN.fk(q_true)
-    rows: dict[str, dict] = {}
+    return parser.parse_args()
 
-    def report(name: str, row: dict | None) -> None:
-        if row is None:
-            print(f"{name}: not installed, skipped", flush=True)
-            return
-        rows[name] = row
-        shown = {k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()}
-        print(f"{name}: {shown}", flush=True)
 
-    # Ours is timed before and after the peers (the medians pool both), as the load on a
-    # shared machine drifts over the minutes the peers take.
-    # float64 runs twice: precision="auto" (iterations in float32, answer checked in float64)
-    # and precision="input" (float64 iterations).
-    # A URDF arm's float64 "auto" rows iterate in float32 too: TRAC-IK's 1e-5 is solve's threshold.
-    kinds = [(torch.float32, "auto"), (torch.float64, "auto"), (torch.float64, "input")]
-    configs = [(threads, dtype, precision) for threads in args.threads for dtype, precision in kinds]
-    samples = {config: [] for config in configs}
-    for threads, dtype, precision in configs:
-        torch.set_num_threads(threads)
-        ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
-    torch.set_num_threads(1)
+def report(rows: dict[str, dict], name: str, row: dict | None) -> None:
+    """Print a solver's row and keep it in ``rows`` (a peer that is not installed: ``row`` None)."""
+    if row is None:
+        print(f"{name}: not installed, skipped", flush=True)
+        return
+    rows[name] = row
+    shown = {k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in row.items()}
+    print(f"{name}: {shown}", flush=True)
+
+
+def peer_rows(target: torch.Tensor, rows: dict[str, dict]) -> None:
+    """pytorch_kinematics' two solvers and roboticstoolbox's ik_LM at each of its settings, into ``rows``."""
     for variant in ("PseudoInverseIK", "PseudoInverseIKWithSVD"):
-        report(f"pytorch_kinematics {variant}, float32, 1 thread", pytorch_kinematics(target, variant))
-    if preset:
+        report(rows, f"pytorch_kinematics {variant}, float32, 1 thread", pytorch_kinematics(target, variant))
+    if ROBOT.path is None:
         rtb_options = [{}, {"tol": 1e-7}, {"tol": 1e-10}]
     else:  # ik_LM's residual is |e|^2 / 2: this tol means |e| <= the smaller of ours
         tol = min(SOLVE_TOL.values()) ** 2 / 2
         rtb_options = [{"tol": tol, "slimit": slimit} for slimit in (8, 32, 100)]
     for options in rtb_options:
         shown = ", ".join(f"{k}={v:g}" for k, v in options.items()) or "defaults"
-        report(f"roboticstoolbox ik_LM (C++), {shown}", roboticstoolbox(target, options))
-    for threads, dtype, precision in configs:
-        torch.set_num_threads(threads)
-        row = ours(target.to(dtype), (repeats + 1) // 2, samples[threads, dtype, precision], precision=precision)
+        report(rows, f"roboticstoolbox ik_LM (C++), {shown}", roboticstoolbox(target, options))
+
+
+def solver_rows(target: torch.Tensor, repeats: int, threads: list[int]) -> dict[str, dict]:
+    """Every solver on ``target``: ours is timed before and after the peers (the medians pool both),
+    as the load on a shared machine drifts over the minutes the peers take."""
+    # float64 runs twice: precision="auto" (iterations in float32, answer checked in float64)
+    # and precision="input" (float64 iterations).
+    # A URDF arm's float64 "auto" rows iterate in float32 too: TRAC-IK's 1e-5 is solve's threshold.
+    kinds = [(torch.float32, "auto"), (torch.float64, "auto"), (torch.float64, "input")]
+    configs = [(n, dtype, precision) for n in threads for dtype, precision in kinds]
+    samples = {config: [] for config in configs}
+    for n, dtype, precision in configs:
+        torch.set_num_threads(n)
+        ours(target.to(dtype), (repeats + 1) // 2, samples[n, dtype, precision], precision=precision)
+    torch.set_num_threads(1)
+    rows: dict[str, dict] = {}
+    peer_rows(target, rows)
+    for n, dtype, precision in configs:
+        torch.set_num_threads(n)
+        row = ours(target.to(dtype), (repeats + 1) // 2, samples[n, dtype, precision], precision=precision)
         iterated = "float32 iterations" if precision == "auto" and dtype == torch.float64 else "same-dtype iterations"
         label = f"{str(dtype)[6:]} ({iterated})" if dtype == torch.float64 else "float32"
-        report(f"iiwa-torch solve, {label}, {threads} thread{'s' if threads > 1 else ''}", row)
+        report(rows, f"iiwa-torch solve, {label}, {n} thread{'s' if n > 1 else ''}", row)
     torch.set_num_threads(1)
+    return rows
 
-    # Success/time trade-off of ours (float32, 1 thread) as seeds and iterations vary.
+
+def tradeoff_rows(target: torch.Tensor, repeats: int) -> list[dict]:
+    """Success/time trade-off of ours (float32, 1 thread) as seeds and iterations vary."""
     tradeoff = []
-    for seeds in (1, 2, 4, 8) if preset else (8, 16, 32, 64):
+    for seeds in (1, 2, 4, 8) if ROBOT.path is None else (8, 16, 32, 64):
         for iterations in (8, 12, 16, 24):
             row = ours(target.float(), max(1, repeats // 2), seeds=seeds, iterations=iterations)
             tradeoff.append({"seeds": seeds, "iterations per seed": iterations} | row)
             print(f"trade-off seeds={seeds} iterations={iterations}: {row}", flush=True)
+    return tradeoff
 
-    # With a world (float64 targets, float32 iterations, 1 thread); the solve without the world on
-    # the same targets shows how often a plain answer collides.
-    # (A URDF arm has no preset capsule model: no world.)
-    world_rows = {}
-    if preset:
+
+def world_rows(count: int, repeats: int) -> dict[str, dict]:
+    """Ours with a world (float64 targets, float32 iterations, 1 thread); the solve without the world on
+    the same targets shows how often a plain answer collides. (A URDF arm has no preset capsule model: none.)"""
+    rows = {}
+    if ROBOT.path is None:
         world_target, world = world_problems(count, 7)
         for name, options in (("with world, margin 1 cm", {"world": world, "margin": MARGIN}),
                               ("without world (answers checked against it)", {})):  # fmt: skip
             row = ours(world_target, repeats, **options)
-            world_rows[name] = row | world_score(solve(CHAIN, world_target, **options).q, world_target, world)
-    for name, row in world_rows.items():
+            rows[name] = row | world_score(solve(CHAIN, world_target, **options).q, world_target, world)
+    for name, row in rows.items():
         print(f"world: {name}: {row}", flush=True)
+    return rows
 
+
+def solver_table(rows: dict[str, dict]) -> str:
+    """Every solver's times, successes and ratios against our fastest 1-thread row, ours first."""
     best_ours = min(
         (r for k, r in rows.items() if k.startswith("iiwa-torch") and k.endswith("1 thread")),
         key=lambda r: r["seconds"],
@@ -300,70 +300,64 @@ def main() -> None:
             f"{100 * row['within limits']:.2f}%", f"{row['seconds'] / best_ours['seconds']:.1f}x",
             f"{row['cpu seconds'] / best_ours['cpu seconds']:.1f}x",
         ])  # fmt: skip
-    trade_table = [
-        [
-            r["seeds"],
-            r["iterations per seed"],
-            f"{r['per target ms']:.4f}",
-            f"{r['per target cpu ms']:.4f}",
-            f"{100 * r[f'success {tight}']:.2f}%",
-        ]
+    return markdown_table(headers, table)
+
+
+def tradeoff_table(tradeoff: list[dict]) -> str:
+    tight = next(iter(TOLERANCES))
+    headers = ["seeds", "iterations per seed", "per target, wall (ms)", "per target, CPU (ms)", f"success {tight}"]
+    return markdown_table(headers, [
+        [r["seeds"], r["iterations per seed"], f"{r['per target ms']:.4f}", f"{r['per target cpu ms']:.4f}",
+         f"{100 * r[f'success {tight}']:.2f}%"]
         for r in tradeoff
-    ]
-    info = machine_info() | {"IIWA_TORCH_NUMBA": os.environ.get("IIWA_TORCH_NUMBA", "unset (on)")}
-    command = " ".join(["python benchmarks/bench_ik.py", *sys.argv[1:]])
-    source = "the DH preset" if preset else f"`{ROBOT.path.parent.name}/{ROBOT.path.name}`, end link `{ROBOT.end_link}`"
-    markdown = (
-        f"IK on {count:,} random reachable {ROBOT.name} poses ({source}; `{command}`), solved at {tight} "
-        f"(m and rad: {SOLVE_TOL['pos_tol']:g} / {SOLVE_TOL['rot_tol']:g}). Ours: median of "
-        f"{2 * ((repeats + 1) // 2)} runs taken before and after the peers; peers: one run. CPU = process time "
-        "(with 2 threads, both threads' time). Ratios against our fastest 1-thread row.\n\n"
-        + markdown_table(headers, table)
-        + "\nOurs, float32, 1 thread, as seeds and iterations per seed vary:\n\n"
-        + markdown_table(
-            [
-                "seeds",
-                "iterations per seed",
-                "per target, wall (ms)",
-                "per target, CPU (ms)",
-                f"success {tight}",
-            ],
-            trade_table,
-        )
-    )
-    if world_rows:
-        markdown += (
+    ])  # fmt: skip
+
+
+def world_table(count: int, rows: dict[str, dict]) -> str:
+    headers = ["solve", "per target, wall (ms)", "per target, CPU (ms)", "success 0.1 mm / 1 mrad, clear",
+               "clearance >= margin", "mean iterations"]  # fmt: skip
+    return (
         f"\nOurs with a world: {count:,} poses of random collision-free configurations, each with the floor "
         "and 3 random spheres near the arm (clear of that configuration), margin 1 cm; float64 targets, "
         "float32 iterations, 1 thread; success needs 0.1 mm / 1 mrad by our FK and clearance >= margin by "
         "`collision.clearance`:\n\n"
-        + markdown_table(
-            [
-                "solve",
-                "per target, wall (ms)",
-                "per target, CPU (ms)",
-                "success 0.1 mm / 1 mrad, clear",
-                "clearance >= margin",
-                "mean iterations",
-            ],
-            [
-                [
-                    name,
-                    f"{r['per target ms']:.4f}",
-                    f"{r['per target cpu ms']:.4f}",
-                    f"{100 * r['success 0.1mm/1mrad, clear']:.2f}%",
-                    f"{100 * r['clear']:.2f}%",
-                    f"{r['mean iterations']:.1f}",
-                ]
-                for name, r in world_rows.items()
-            ],
-        )
-        )  # fmt: skip
-    markdown += f"\nMachine: {info}\n"
+        + markdown_table(headers, [
+            [name, f"{r['per target ms']:.4f}", f"{r['per target cpu ms']:.4f}",
+             f"{100 * r['success 0.1mm/1mrad, clear']:.2f}%", f"{100 * r['clear']:.2f}%",
+             f"{r['mean iterations']:.1f}"]
+            for name, r in rows.items()
+        ])
+    )  # fmt: skip
+
+
+def main() -> None:
+    args = parse_args()
+    setup(args.robot)
+    count, repeats = (1_000, 2) if args.quick else (10_000, 5)
+    target = CHAIN.fk(CHAIN.random_q(count, generator=torch.Generator().manual_seed(2024)))
+    rows = solver_rows(target, repeats, args.threads)
+    tradeoff = tradeoff_rows(target, repeats)
+    world = world_rows(count, repeats)
+    info, run = machine(), command(__file__)
+    tight = next(iter(TOLERANCES))
+    source = "the DH preset"
+    if ROBOT.path is not None:
+        source = f"`{ROBOT.path.parent.name}/{ROBOT.path.name}`, end link `{ROBOT.end_link}`"
+    markdown = (
+        f"IK on {count:,} random reachable {ROBOT.name} poses ({source}; `{run}`), solved at {tight} "
+        f"(m and rad: {SOLVE_TOL['pos_tol']:g} / {SOLVE_TOL['rot_tol']:g}). Ours: median of "
+        f"{2 * ((repeats + 1) // 2)} runs taken before and after the peers; peers: one run. CPU = process time "
+        "(with 2 threads, both threads' time). Ratios against our fastest 1-thread row.\n\n"
+        + solver_table(rows)
+        + "\nOurs, float32, 1 thread, as seeds and iterations per seed vary:\n\n"
+        + tradeoff_table(tradeoff)
+        + (world_table(count, world) if world else "")
+        + f"\nMachine: {info}\n"
+    )
     name = "ik" if args.robot == "iiwa14" else f"ik_{args.robot}"
     name += "_quick" if args.quick else ""
-    payload = {"robot": args.robot, "tolerance": SOLVE_TOL, "machine": info, "targets": count, "command": command,
-               "solvers": rows, "tradeoff": tradeoff, "world": world_rows}  # fmt: skip
+    payload = {"robot": args.robot, "tolerance": SOLVE_TOL, "machine": info, "targets": count, "command": run,
+               "solvers": rows, "tradeoff": tradeoff, "world": world}  # fmt: skip
     path = save(name, payload, markdown)
     print(markdown)
     print(f"wrote {path}", file=sys.stderr)

@@ -27,7 +27,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import markdown_table, save, timeit  # noqa: E402
+from common import Robot, markdown_table, save, timeit  # noqa: E402
 
 from iiwa_torch import robots, so3  # noqa: E402
 from iiwa_torch.collision import World  # noqa: E402
@@ -37,16 +37,6 @@ from iiwa_torch.trajectory import ctraj, jtraj, path_clearance, track  # noqa: E
 F64 = torch.float64
 CHAIN = robots.iiwa14()
 Q_START = torch.tensor([0.1, 0.5, 0.1, -1.2, 0.2, 0.8, 0.3], dtype=F64)
-
-
-def peer_ets():
-    import roboticstoolbox as rtb
-
-    links = [
-        rtb.RevoluteDH(a=a, alpha=al, d=d, offset=o, qlim=[lo, hi])
-        for (a, al, d, o), lo, hi in zip(CHAIN.dh.tolist(), *CHAIN.limits.tolist())
-    ]
-    return rtb.DHRobot(links, tool=CHAIN.tool.numpy()).ets()
 
 
 def per_call(fn, items, repeats: int) -> float:
@@ -126,7 +116,7 @@ def bench_track_one(repeats: int) -> dict:
     for method in ("analytic", "gradient"):
         seconds = timeit(lambda m=method: track(CHAIN, path, Q_START, method=m), repeats=repeats, min_time=0.0)
         rows[f"ours track({method})"] = {"s/line": seconds} | score(track(CHAIN, path, Q_START, method=method).q, path)
-    ets = peer_ets()
+    ets = Robot("iiwa14").rtb_ets()
     goals = path.numpy()
 
     def peer() -> torch.Tensor:
@@ -179,26 +169,10 @@ def bench_track_world(repeats: int) -> dict:
     return rows
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smaller batches, fewer repeats (a smoke run)")
-    args = parser.parse_args()
-    pairs, peer_pairs, lines, repeats = (1_000, 50, 32, 1) if args.quick else (10_000, 300, 256, 3)
-    results = {"machine": machine_info()}
-    results["jtraj"] = bench_jtraj(pairs, peer_pairs, repeats)
-    print("jtraj", results["jtraj"], flush=True)
-    results["ctraj"] = bench_ctraj(pairs, peer_pairs, repeats)
-    print("ctraj", results["ctraj"], flush=True)
-    results["track one line"] = bench_track_one(repeats)
-    print("track one line", results["track one line"], flush=True)
-    results["track many lines"] = bench_track_batch(lines, repeats)
-    print("track many lines", results["track many lines"], flush=True)
-    results["track past a sphere"] = bench_track_world(repeats)
-    print("track past a sphere", results["track past a sphere"], flush=True)
-    results["machine"]["loadavg_at_end"] = os.getloadavg()
-
-    md = ["# Trajectory benchmark\n", f"`python benchmarks/bench_trajectory.py{' --quick' if args.quick else ''}`; "]
+def markdown(results: dict, quick: bool) -> str:
+    """The header (command, machine) and one table per part of ``results``."""
     m = results["machine"]
+    md = ["# Trajectory benchmark\n", f"`python benchmarks/bench_trajectory.py{' --quick' if quick else ''}`; "]
     md.append(f"{m['cpu']}, torch {m['torch']}, {m['torch_threads']} threads, load {m['loadavg']}\n\n")
     rows = [
         [name, r["pairs"], f"{r['ours us/pair']:.2f}", f"{r['roboticstoolbox us/pair']:.0f}", f"{r['speed-up']:.0f}x"]
@@ -242,8 +216,29 @@ def main() -> None:
             rows,
         )
     )
-    path = save("trajectory_quick" if args.quick else "trajectory", results, "".join(md))
-    print("".join(md))
+    return "".join(md)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smaller batches, fewer repeats (a smoke run)")
+    args = parser.parse_args()
+    pairs, peer_pairs, lines, repeats = (1_000, 50, 32, 1) if args.quick else (10_000, 300, 256, 3)
+    results = {"machine": machine_info()}
+    parts = {
+        "jtraj": lambda: bench_jtraj(pairs, peer_pairs, repeats),
+        "ctraj": lambda: bench_ctraj(pairs, peer_pairs, repeats),
+        "track one line": lambda: bench_track_one(repeats),
+        "track many lines": lambda: bench_track_batch(lines, repeats),
+        "track past a sphere": lambda: bench_track_world(repeats),
+    }
+    for name, run in parts.items():
+        results[name] = run()
+        print(name, results[name], flush=True)
+    results["machine"]["loadavg_at_end"] = os.getloadavg()
+    md = markdown(results, args.quick)
+    path = save("trajectory_quick" if args.quick else "trajectory", results, md)
+    print(md)
     print(f"written: {path}")
 
 

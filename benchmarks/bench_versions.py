@@ -25,7 +25,7 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
-from common import markdown_table, save  # noqa: E402
+from common import machine, markdown_table, save  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 VECTOR_N = 65_536
@@ -138,9 +138,7 @@ def main() -> None:
         .stdout.strip()
         for tree in args.trees
     }
-    from iiwa_torch.runtime import machine_info
-
-    info = machine_info() | {"IIWA_TORCH_NUMBA": os.environ.get("IIWA_TORCH_NUMBA", "unset (on)")}
+    info = machine()
     payload = {"trees": commits, "rounds": args.rounds, "runs": runs, "medians": medians, "loads": loads,
                "machine": info}  # fmt: skip
     md = markdown(payload)

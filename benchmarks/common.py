@@ -8,8 +8,10 @@ process busy on the cores, OpenMP's spin-wait makes 2-thread ops wait on spinnin
 from __future__ import annotations
 
 import json
+import os
 import re
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -33,6 +35,18 @@ def timeit(fn, *, min_time: float = 0.2, repeats: int = 5, max_calls: int | None
     return statistics.median(samples)
 
 
+class Clock:
+    """Wall and CPU (process) seconds since it was made. The machine is shared: CPU time is what the
+    code itself used, wall time also holds the waits for the cores."""
+
+    def __init__(self) -> None:
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+
+    def stop(self) -> tuple[float, float]:
+        """``(wall, cpu)`` seconds since the clock was made."""
+        return time.perf_counter() - self.wall, time.process_time() - self.cpu
+
+
 def save(name: str, payload: dict, markdown: str) -> Path:
     """Write ``results/<name>.json`` and ``results/<name>.md``; return the JSON path."""
     RESULTS.mkdir(exist_ok=True)
@@ -40,6 +54,19 @@ def save(name: str, payload: dict, markdown: str) -> Path:
     path.write_text(json.dumps(payload, indent=2) + "\n")
     (RESULTS / f"{name}.md").write_text(markdown)
     return path
+
+
+def machine() -> dict:
+    """``runtime.machine_info()`` plus ``IIWA_TORCH_NUMBA`` (whether the compiled paths were on).
+    Imports torch when called, so a script that first runs child processes can call it after them."""
+    from iiwa_torch.runtime import machine_info
+
+    return machine_info() | {"IIWA_TORCH_NUMBA": os.environ.get("IIWA_TORCH_NUMBA", "unset (on)")}
+
+
+def command(script: str) -> str:
+    """The command line of this run: ``python benchmarks/<script's file name> <its arguments>``."""
+    return " ".join([f"python benchmarks/{Path(script).name}", *sys.argv[1:]])
 
 
 def markdown_table(headers: list[str], rows: list[list]) -> str:

@@ -17,13 +17,10 @@ PACKAGES = ("iiwa_torch", "envs", "train", "benchmarks")
 MAX_LINES = 60
 
 LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came in
-    "benchmarks/bench_ik.py:main": 162,
     "train/kernels.py:features": 146,
     "iiwa_torch/ik/gradient.py:solve": 119,
-    "benchmarks/bench_fk.py:main": 113,
     "iiwa_torch/ik/gradient.py:minimize": 110,
     "benchmarks/bench_env.py:main": 89,
-    "benchmarks/bench_collision.py:main": 107,
     "iiwa_torch/trajectory.py:track": 98,
     "iiwa_torch/workspace.py:plot_workspace": 89,
     "train/features.py:__init__": 84,
@@ -35,10 +32,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "train/evaluate.py:_rollouts_obstacles": 71,
     "iiwa_torch/collision.py:_distances": 70,
     "envs/core.py:_new_episodes": 64,
-    "benchmarks/bench_workspace.py:main": 68,
-    "benchmarks/bench_analytic.py:main": 67,
-    "benchmarks/bench_trajectory.py:main": 66,
-    "benchmarks/bench_busy.py:main": 66,
 }
 
 
