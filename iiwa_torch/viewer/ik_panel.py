@@ -22,8 +22,8 @@ from ..ik import analytic
 
 _F64 = torch.float64
 OUTCOMES = ("reached", "unreachable", "outside the joint limits", "colliding")
-ARM_ANGLES = 72  # analytic IK with a free arm angle: candidates every 5 degrees, plus the current one
-BRANCH_LABELS = tuple(f"{k} {'+-'[k >> 2 & 1]}{'+-'[k >> 1 & 1]}{'+-'[k & 1]}" for k in range(8))
+_ARM_ANGLES = 72  # analytic IK with a free arm angle: candidates every 5 degrees, plus the current one
+_BRANCH_LABELS = tuple(f"{k} {'+-'[k >> 2 & 1]}{'+-'[k >> 1 & 1]}{'+-'[k & 1]}" for k in range(8))
 
 
 @dataclass(frozen=True)
@@ -51,7 +51,7 @@ class TargetResult:
         return text + ")"
 
 
-def closed_form(chain: Chain, q: torch.Tensor) -> tuple[str | None, DHChain | None, torch.Tensor | None]:
+def _closed_form(chain: Chain, q: torch.Tensor) -> tuple[str | None, DHChain | None, torch.Tensor | None]:
     """``chain``'s closed form: ``"iiwa"`` (S-R-S) or ``"pieper"``, the DH chain it runs on and
     ``(n,)`` signs (``q_dh = signs * q``); a DH preset's own table and branches (tried at ``q (n,)``),
     else those of :func:`~iiwa_torch.ik.analytic.structure`. ``(None, None, None)`` if there is none."""
@@ -87,7 +87,7 @@ class TargetSolver:
     def __init__(self, chain: Chain, q: torch.Tensor, capsules: collision.Capsules | None,
                  world: collision.World | None):  # fmt: skip
         self.chain, self.capsules, self.world = chain, capsules, world
-        self.kind, self._dh, self._signs = closed_form(chain, q)
+        self.kind, self._dh, self._signs = _closed_form(chain, q)
         self.method, self.branch, self.arm_angle = "gradient", None, None
 
     @property
@@ -135,7 +135,7 @@ class TargetSolver:
             return self.chain.clamp(q), None if ok else "unreachable"
         if self.kind == "iiwa":
             if self.arm_angle is None:
-                grid = torch.linspace(-math.pi, math.pi, ARM_ANGLES + 1, dtype=_F64)[:-1]
+                grid = torch.linspace(-math.pi, math.pi, _ARM_ANGLES + 1, dtype=_F64)[:-1]
                 psi = torch.cat([self.arm_angle_at(q_now)[None], grid])
             else:
                 psi = torch.tensor([self.arm_angle], dtype=_F64)
@@ -190,7 +190,7 @@ class IKPanel:
         self._guard, self._solver = guard, solver
         with gui.add_folder("IK target"):
             self.method = gui.add_dropdown("method", solver.methods, initial_value="gradient")
-            self.branch = gui.add_dropdown("branch", ("nearest", *BRANCH_LABELS), initial_value="nearest")
+            self.branch = gui.add_dropdown("branch", ("nearest", *_BRANCH_LABELS), initial_value="nearest")
             srs = solver.kind == "iiwa"
             self.hold_psi = gui.add_checkbox("hold arm angle", False, visible=srs)
             self.psi_slider = gui.add_slider("arm angle (deg)", min=-180, max=180, step=0.5, initial_value=0.0,
@@ -201,7 +201,7 @@ class IKPanel:
 
     def chosen(self) -> tuple[str, int | None, float | None]:
         """``(method, branch, arm angle in rad)`` as the widgets show them (None: nearest, or not held)."""
-        branch = None if self.branch.value == "nearest" else BRANCH_LABELS.index(self.branch.value)
+        branch = None if self.branch.value == "nearest" else _BRANCH_LABELS.index(self.branch.value)
         psi = math.radians(self.psi_slider.value) if self.hold_psi.value else None
         return self.method.value, branch, psi if self._solver.kind == "iiwa" else None
 
@@ -210,7 +210,7 @@ class IKPanel:
         solver = self._solver
         with self._guard.quiet():
             self.method.value = solver.method
-            self.branch.value = "nearest" if solver.branch is None else BRANCH_LABELS[solver.branch]
+            self.branch.value = "nearest" if solver.branch is None else _BRANCH_LABELS[solver.branch]
             self.hold_psi.value = solver.arm_angle is not None
             if solver.arm_angle is not None:
                 self.psi_slider.value = math.degrees(solver.arm_angle)

@@ -20,18 +20,18 @@ from ..chain import Chain, z_onto
 from ..dh import Convention, DHChain
 
 _F64 = torch.float64
-LINK_COLOUR = (170, 175, 185)
-JOINT_COLOUR = (240, 130, 30)
-OBSTACLE_COLOUR = (90, 140, 200)
-CAPSULE_COLOUR = (60, 180, 120)
-HIT_COLOUR = (220, 30, 30)
-IDLE_COLOUR = (150, 150, 150)  # the target ball with nothing to report
-TRACE_COLOUR = (200, 40, 200)
-TARGET_COLOURS = {"reached": (40, 180, 60), "colliding": (250, 170, 0)}  # any other outcome: HIT_COLOUR
-MIN_SEGMENT = 1e-6  # metres: consecutive frame origins closer than this get no link cylinder
+_LINK_COLOUR = (170, 175, 185)
+_JOINT_COLOUR = (240, 130, 30)
+_OBSTACLE_COLOUR = (90, 140, 200)
+_CAPSULE_COLOUR = (60, 180, 120)
+_HIT_COLOUR = (220, 30, 30)
+_IDLE_COLOUR = (150, 150, 150)  # the target ball with nothing to report
+_TRACE_COLOUR = (200, 40, 200)
+_TARGET_COLOURS = {"reached": (40, 180, 60), "colliding": (250, 170, 0)}  # any other outcome: _HIT_COLOUR
+_MIN_SEGMENT = 1e-6  # metres: consecutive frame origins closer than this get no link cylinder
 
 
-def segment_quaternions(direction: np.ndarray) -> np.ndarray:
+def _segment_quaternions(direction: np.ndarray) -> np.ndarray:
     """Unit directions ``(k, 3)`` -> quaternions ``(k, 4)`` (w, x, y, z) turning +z onto each one."""
     w = 1.0 + direction[:, 2]
     quat = np.stack([w, -direction[:, 1], direction[:, 0], np.zeros_like(w)], 1)
@@ -40,25 +40,25 @@ def segment_quaternions(direction: np.ndarray) -> np.ndarray:
     return quat / np.linalg.norm(quat, axis=1, keepdims=True)
 
 
-def quaternions(rot: torch.Tensor) -> np.ndarray:
+def _quaternions(rot: torch.Tensor) -> np.ndarray:
     """Rotations ``(..., 3, 3)`` -> ``(..., 4)`` (w, x, y, z) numpy, viser's order."""
     return so3.matrix_to_quaternion(rot).cpu().numpy()
 
 
-def segment_placement(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _segment_placement(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Segments ``a, b (k, 3)`` -> midpoints, quaternions turning +z along them, lengths ``(k,)``."""
     d = b - a
     length = np.linalg.norm(d, axis=1)
-    unit = np.where(length[:, None] > MIN_SEGMENT, d / np.maximum(length, MIN_SEGMENT)[:, None], (0.0, 0.0, 1.0))
-    return (a + b) / 2, segment_quaternions(unit), length
+    unit = np.where(length[:, None] > _MIN_SEGMENT, d / np.maximum(length, _MIN_SEGMENT)[:, None], (0.0, 0.0, 1.0))
+    return (a + b) / 2, _segment_quaternions(unit), length
 
 
-def origins(frames: torch.Tensor, end: torch.Tensor) -> np.ndarray:
+def _origins(frames: torch.Tensor, end: torch.Tensor) -> np.ndarray:
     """``(n + 2, 3)`` origins of the frames ``(n + 1, 4, 4)``, then of the end effector ``end (4, 4)`` (metres)."""
     return torch.cat([frames[:, :3, 3], end[None, :3, 3]]).cpu().numpy()
 
 
-class CapsuleNodes:
+class _CapsuleNodes:
     """A capsule drawn as a cylinder and two end spheres."""
 
     def __init__(self, scene, name: str, radius: float, colour, opacity: float | None, visible: bool = True):
@@ -69,9 +69,9 @@ class CapsuleNodes:
 
     def place(self, a: np.ndarray, b: np.ndarray) -> None:
         """Between the end points ``a, b (3,)`` (metres)."""
-        mid, quat, length = segment_placement(a[None], b[None])
+        mid, quat, length = _segment_placement(a[None], b[None])
         self.body.position, self.body.wxyz = mid[0], quat[0]
-        self.body.scale = (1.0, 1.0, max(float(length[0]), MIN_SEGMENT))
+        self.body.scale = (1.0, 1.0, max(float(length[0]), _MIN_SEGMENT))
         self.ends[0].position, self.ends[1].position = a, b
 
 
@@ -89,10 +89,10 @@ def urdf_parts(chain: Chain, source, capsules: collision.Capsules | None):
     return visuals, capsules
 
 
-def add_visual(scene, name: str, element: urdf_io.UrdfCollision, mesh):
+def _add_visual(scene, name: str, element: urdf_io.UrdfCollision, mesh):
     """A scene node of a URDF ``<visual>`` element, in its own frame: its material colour if it
     names one, else a mesh's own colours (or grey)."""
-    colour = LINK_COLOUR if element.rgba is None else tuple(round(255 * v) for v in element.rgba[:3])
+    colour = _LINK_COLOUR if element.rgba is None else tuple(round(255 * v) for v in element.rgba[:3])
     opts = dict(color=colour, opacity=None if element.rgba is None or element.rgba[3] >= 1 else element.rgba[3])
     size = element.size
     if element.shape == "mesh":
@@ -121,17 +121,18 @@ class ArmScene:
 
     Public node lists, for the panel's checkboxes and for tests: ``links``, ``joints`` (the
     skeleton), ``visual_nodes`` ``[(element, node)]``, ``frame_nodes``, ``capsule_nodes``
-    ``{name: CapsuleNodes}``, ``world_nodes`` ``{name: [nodes]}``; ``target`` (the gizmo),
-    ``target_marker``, ``goal_marker`` and ``trace`` (None until :meth:`draw_trace`).
+    ``{name: capsule}`` (its ``nodes``: a body, two ends), ``world_nodes`` ``{name: [nodes]}``;
+    ``target`` (the gizmo), ``target_marker``, ``goal_marker`` and ``trace`` (None until
+    :meth:`draw_trace`).
     """
 
     def __init__(self, server, chain: Chain, frames: torch.Tensor, end: torch.Tensor, *, visuals, capsules,
                  world, show_capsules: bool, show_frames: bool, on_drag: Callable):  # fmt: skip
         self.chain, self.capsules, self.world = chain, capsules, world
         self.server, scene = server, server.scene
-        points = origins(frames, end)
+        points = _origins(frames, end)
         lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)  # fixed by the geometry, not by q
-        self._segments = np.flatnonzero(lengths > MIN_SEGMENT)
+        self._segments = np.flatnonzero(lengths > _MIN_SEGMENT)
         self.reach = reach = max(float(lengths.sum()), 0.1)
         scene.set_up_direction("+z")
         floor = 0.0 if world is None or world.floor is None else float(world.floor)
@@ -142,10 +143,10 @@ class ArmScene:
         self._build_skeleton(scene, lengths, visible=not visuals)  # inside the meshes where there are some
         self._build_visuals(scene, visuals)
         self._build_markers(scene, show_frames, on_drag)
-        self.capsule_nodes = {}  # capsule name -> CapsuleNodes, placed at every draw
+        self.capsule_nodes = {}  # capsule name -> _CapsuleNodes, placed at every draw
         if capsules is not None:
             for name, r in zip(capsules.names, capsules.radii.tolist()):
-                self.capsule_nodes[name] = CapsuleNodes(scene, f"/capsules/{name}", r, CAPSULE_COLOUR, 0.45,
+                self.capsule_nodes[name] = _CapsuleNodes(scene, f"/capsules/{name}", r, _CAPSULE_COLOUR, 0.45,
                                                         show_capsules)  # fmt: skip
         self.world_nodes = self._build_world(scene)
         self.trace = None
@@ -157,7 +158,7 @@ class ArmScene:
         """A grey cylinder per link segment, an orange one along each joint axis."""
         radius = 0.03 * self.reach
         self.links = [
-            scene.add_cylinder(f"/arm/link{i}", radius=radius, height=float(lengths[i]), color=LINK_COLOUR,
+            scene.add_cylinder(f"/arm/link{i}", radius=radius, height=float(lengths[i]), color=_LINK_COLOUR,
                                visible=visible)  # fmt: skip
             for i in self._segments
         ]
@@ -171,14 +172,14 @@ class ArmScene:
             self._axis_frames, turns = list(range(1, n + 1)), torch.stack([z_onto(a) for a in chain.axes.to(_F64)])
         self._axis_turns = turns  # (n, 3, 3): the joint cylinder's z onto the axis, in its frame
         self.joints = [
-            scene.add_cylinder(f"/arm/joint{i + 1}", radius=1.5 * radius, height=5 * radius, color=JOINT_COLOUR,
+            scene.add_cylinder(f"/arm/joint{i + 1}", radius=1.5 * radius, height=5 * radius, color=_JOINT_COLOUR,
                                visible=visible)  # fmt: skip
             for i in range(n)
         ]
 
     def _build_visuals(self, scene, visuals) -> None:
         self.visual_nodes = [  # (URDF <visual> element, its scene node), placed at every draw
-            (element, add_visual(scene, f"/visuals/{i}_{element.link}", element, mesh))
+            (element, _add_visual(scene, f"/visuals/{i}_{element.link}", element, mesh))
             for i, (element, mesh) in enumerate(visuals)
         ]
         self._visual_frames = [element.frame for element, _ in visuals]
@@ -193,9 +194,9 @@ class ArmScene:
         self.frame_nodes.append(scene.add_frame("/frames/end", **axes))
         self._end_node = scene.add_frame("/end_effector", axes_length=0.08 * reach, axes_radius=0.008 * reach)
         self.target = scene.add_transform_controls("/target", scale=0.25 * reach)
-        self.target_marker = scene.add_icosphere("/target/marker", radius=0.025 * reach, color=IDLE_COLOUR)
+        self.target_marker = scene.add_icosphere("/target/marker", radius=0.025 * reach, color=_IDLE_COLOUR)
         self.target.on_update(lambda event: on_drag(event.target.wxyz, event.target.position))
-        self.goal_marker = scene.add_icosphere("/playback/goal", radius=0.02 * reach, color=TRACE_COLOUR,
+        self.goal_marker = scene.add_icosphere("/playback/goal", radius=0.02 * reach, color=_TRACE_COLOUR,
                                                visible=False)  # fmt: skip
 
     def _build_world(self, scene) -> dict[str, list]:
@@ -204,12 +205,12 @@ class ArmScene:
         world, nodes, reach = self.world, {}, self.reach
         if world is None:
             return nodes
-        opts = dict(color=OBSTACLE_COLOUR, opacity=0.6)
+        opts = dict(color=_OBSTACLE_COLOUR, opacity=0.6)
         thick = 0.01 * reach
         if world.floor is not None:
             nodes["floor"] = [scene.add_box(
                 "/world/floor", dimensions=(3 * reach, 3 * reach, thick), position=(0.0, 0.0, world.floor - thick),
-                color=OBSTACLE_COLOUR, opacity=0.15,
+                color=_OBSTACLE_COLOUR, opacity=0.15,
             )]  # fmt: skip
         if world.spheres is not None:
             for i, (c, r) in enumerate(zip(world.spheres[0].numpy(), world.spheres[1].tolist())):
@@ -218,30 +219,30 @@ class ArmScene:
             for i, (pose, half) in enumerate(zip(world.boxes[0], world.boxes[1].numpy())):
                 nodes[f"box{i}"] = [scene.add_box(
                     f"/world/box{i}", dimensions=2 * half, position=pose[:3, 3].numpy(),
-                    wxyz=quaternions(pose[:3, :3]), **opts,
+                    wxyz=_quaternions(pose[:3, :3]), **opts,
                 )]  # fmt: skip
         if world.capsules is not None:
             for i, (ends, r) in enumerate(zip(world.capsules[0].numpy(), world.capsules[1].tolist())):
-                cap = CapsuleNodes(scene, f"/world/capsule{i}", r, OBSTACLE_COLOUR, 0.6)
+                cap = _CapsuleNodes(scene, f"/world/capsule{i}", r, _OBSTACLE_COLOUR, 0.6)
                 cap.place(ends[0], ends[1])
                 nodes[f"capsule{i}"] = cap.nodes
         if world.walls is not None:
             for i, (n, offset) in enumerate(zip(world.walls[0].numpy(), world.walls[1].tolist())):
                 nodes[f"wall{i}"] = [scene.add_box(
                     f"/world/wall{i}", dimensions=(3 * reach, 3 * reach, thick), position=n * (offset - thick / 2),
-                    wxyz=segment_quaternions(n[None])[0], color=OBSTACLE_COLOUR, opacity=0.25,
+                    wxyz=_segment_quaternions(n[None])[0], color=_OBSTACLE_COLOUR, opacity=0.25,
                 )]  # fmt: skip
         return nodes
 
     def place(self, frames: torch.Tensor, end: torch.Tensor, move_target: bool) -> None:
         """Move the arm's nodes to the link ``frames (n + 1, 4, 4)`` and end-effector pose ``end (4, 4)``;
         the target gizmo too if ``move_target``."""
-        points = origins(frames, end)
-        mids, quats, _ = segment_placement(points[self._segments], points[self._segments + 1])
-        frame_quats = quaternions(torch.cat([frames[:, :3, :3], end[None, :3, :3]]))
-        joint_quats = quaternions(frames[self._axis_frames, :3, :3] @ self._axis_turns)
+        points = _origins(frames, end)
+        mids, quats, _ = _segment_placement(points[self._segments], points[self._segments + 1])
+        frame_quats = _quaternions(torch.cat([frames[:, :3, :3], end[None, :3, :3]]))
+        joint_quats = _quaternions(frames[self._axis_frames, :3, :3] @ self._axis_turns)
         visual_poses = frames[self._visual_frames] @ self._visual_poses  # (V, 4, 4)
-        visual_points, visual_quats = visual_poses[:, :3, 3].numpy(), quaternions(visual_poses[:, :3, :3])
+        visual_points, visual_quats = visual_poses[:, :3, 3].numpy(), _quaternions(visual_poses[:, :3, :3])
         for node, mid, quat in zip(self.links, mids, quats):
             node.position, node.wxyz = mid, quat
         for node, f, quat in zip(self.joints, self._axis_frames, joint_quats):
@@ -264,11 +265,11 @@ class ArmScene:
             for (name, cap), (a, b) in zip(self.capsule_nodes.items(), ends.numpy()):
                 cap.place(a, b)
                 for node in cap.nodes:
-                    node.color = HIT_COLOUR if name in hits else CAPSULE_COLOUR
+                    node.color = _HIT_COLOUR if name in hits else _CAPSULE_COLOUR
         for name, nodes in self.world_nodes.items():
             for node in nodes:
-                node.color = HIT_COLOUR if name in hits else OBSTACLE_COLOUR
-        self.target_marker.color = IDLE_COLOUR if outcome is None else TARGET_COLOURS.get(outcome, HIT_COLOUR)
+                node.color = _HIT_COLOUR if name in hits else _OBSTACLE_COLOUR
+        self.target_marker.color = _IDLE_COLOUR if outcome is None else _TARGET_COLOURS.get(outcome, _HIT_COLOUR)
 
     def draw_trace(self, tip: np.ndarray, goal: np.ndarray | None) -> None:
         """The end-effector path ``tip (T, 3)`` of a playback path (metres), and its ``goal (3,)`` if any."""
@@ -276,7 +277,7 @@ class ArmScene:
             self.trace.remove()
         segments = np.stack([tip[:-1], tip[1:]], 1) if len(tip) > 1 else np.stack([tip, tip], 1)
         self.trace = self.server.scene.add_line_segments(
-            "/playback/trace", segments, colors=TRACE_COLOUR, thickness=0.004 * self.reach
+            "/playback/trace", segments, colors=_TRACE_COLOUR, thickness=0.004 * self.reach
         )
         if goal is not None:
             self.goal_marker.position = goal

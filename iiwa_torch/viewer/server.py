@@ -182,7 +182,7 @@ class Viewer:
     # the scene's and the panel's public parts, by their old names
     sliders = property(lambda self: self.controls.sliders, doc="One viser slider per joint (degrees; metres).")
     visual_nodes = property(lambda self: self.scene.visual_nodes, doc="``[(URDF <visual> element, node)]``.")
-    capsule_nodes = property(lambda self: self.scene.capsule_nodes, doc="``{capsule name: CapsuleNodes}``.")
+    capsule_nodes = property(lambda self: self.scene.capsule_nodes, doc="``{capsule name: its nodes}``.")
     world_nodes = property(lambda self: self.scene.world_nodes, doc="``{obstacle name: [nodes]}``.")
 
     # ------------------------------------------------------------------ state
