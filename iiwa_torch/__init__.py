@@ -1,6 +1,6 @@
 """iiwa-torch: batched, differentiable robot kinematics in PyTorch.
 
-Names are loaded on first use (PEP 562), so that ``iiwa_torch.launch`` can set OpenMP's wait
+Names are loaded on first use (PEP 562), so that ``iiwa_torch.cli.main`` can set OpenMP's wait
 policy before anything imports torch.
 """
 

@@ -303,17 +303,17 @@ def test_help_has_no_rest_markup_and_every_option_has_help(capsys):
         main(["--help"])
     top = capsys.readouterr().out
     assert "``" not in top and "::" not in top
-    from iiwa_torch.cli import _parser
+    from iiwa_torch.cli.parser import build_parser
 
-    for sub in _parser()._subparsers._group_actions[0].choices.values():
+    for sub in build_parser()._subparsers._group_actions[0].choices.values():
         for action in sub._actions:
             assert action.help, f"{sub.prog} {action.option_strings or action.dest} has no help text"
 
 
 def test_launcher_sets_the_wait_policy_before_torch_loads():
     code = (
-        "import iiwa_torch.launch as launch, os, sys; assert 'torch' not in sys.modules; "
-        "sys.argv = ['iiwa-torch', 'robots']; launch.main(); print(os.environ['OMP_WAIT_POLICY'])"
+        "import iiwa_torch.cli as cli, os, sys; assert 'torch' not in sys.modules; "
+        "sys.argv = ['iiwa-torch', 'robots']; cli.main(); print(os.environ['OMP_WAIT_POLICY'])"
     )
     env = {k: v for k, v in __import__("os").environ.items() if k != "OMP_WAIT_POLICY"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
@@ -383,7 +383,7 @@ def test_demo_larger_than_memory_is_refused_with_its_size(capsys, monkeypatch):
 
 
 def test_a_long_command_says_it_is_running_on_stderr_only(capsys):
-    from iiwa_torch.cli import Elapsed
+    from iiwa_torch.cli.output import Elapsed
 
     with Elapsed("workspace", delay=0.05):
         time.sleep(0.3)  # the command's work

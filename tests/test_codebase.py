@@ -25,8 +25,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "iiwa_torch/workspace.py:plot_workspace": 89,
     "train/features.py:__init__": 84,
     "iiwa_torch/trajectory.py:jtraj": 78,
-    "iiwa_torch/cli.py:_traj": 78,
-    "iiwa_torch/cli.py:_demo": 78,
     "envs/core.py:__init__": 72,
     "train/evaluate.py:evaluate": 71,
     "train/evaluate.py:_rollouts_obstacles": 71,

@@ -249,10 +249,10 @@ def test_unreachable_target_keeps_the_last_configuration(chain, viewer, method):
     result = viewer.solve_target(target)
     assert result.outcome == "unreachable" and viewer.status.startswith("unreachable")
     assert torch.equal(viewer.q, start)
-    assert tuple(viewer._target_marker.color) == (220, 30, 30)  # red
+    assert tuple(viewer.scene.target_marker.color) == (220, 30, 30)  # red
     assert all(math.isfinite(v) for v in viewer.readout().xyz + viewer.readout().rpy_deg)
     viewer.set_q(start)  # the target jumps back to the end effector: nothing to report
-    assert viewer.outcome is None and tuple(viewer._target_marker.color) == (150, 150, 150)
+    assert viewer.outcome is None and tuple(viewer.scene.target_marker.color) == (150, 150, 150)
 
 
 def test_analytic_nearest_solution_is_the_current_one(chain, viewer):
@@ -301,17 +301,17 @@ def test_analytic_branch_and_arm_angle_are_the_ones_chosen(chain, viewer, branch
     # branch k = 4 shoulder + 2 elbow + wrist, bit set where sin(q2), sin(q4), sin(q6) < 0
     signs = [int(math.sin(v) < 0) for v in q[[1, 3, 5]].tolist()]
     assert 4 * signs[0] + 2 * signs[1] + signs[2] == branch
-    assert viewer._branch_dd.value.startswith(str(branch))  # the panel shows the choice
-    assert viewer._psi_slider.value == pytest.approx(psi_deg)
+    assert viewer.ik_panel.branch.value.startswith(str(branch))  # the panel shows the choice
+    assert viewer.ik_panel.psi_slider.value == pytest.approx(psi_deg)
 
 
 def test_moving_the_arm_angle_slider_moves_the_elbow_not_the_hand(chain, viewer):
     viewer.set_ik("analytic")
     viewer.set_q(Q_FREE)
     hand = chain.fk(Q_FREE)
-    viewer._hold_psi.value = True  # what the browser's widgets do
+    viewer.ik_panel.hold_psi.value = True  # what the browser's widgets do
     psi = _arm_angle(chain, Q_FREE) + math.radians(20.0)
-    viewer._psi_slider.value = math.degrees(psi)
+    viewer.ik_panel.psi_slider.value = math.degrees(psi)
     q = viewer.q
     assert viewer.outcome == "reached", viewer.status
     np.testing.assert_allclose(chain.fk(q).numpy(), hand.numpy(), atol=1e-9)
@@ -399,7 +399,7 @@ def test_a_urdf_arm_is_drawn_with_its_meshes_at_pybullets_link_frames(kuka, kuka
     file, chain = kuka
     assert [e.link for e, _ in kuka_viewer.visual_nodes] == [f"lbr_iiwa_link_{i}" for i in range(8)]
     assert tuple(kuka_viewer.visual_nodes[3][1].color) == (255, 108, 10)  # its material "Orange", 1 0.4235 0.0392
-    assert not any(node.visible for node in kuka_viewer._links + kuka_viewer._joints)  # the skeleton: hidden
+    assert not any(node.visible for node in kuka_viewer.scene.links + kuka_viewer.scene.joints)  # the skeleton: hidden
     for q in chain.random_q(2, generator=torch.Generator().manual_seed(5)):
         _assert_visuals_at_pybullet_frames(kuka_viewer, file, q)
 
@@ -444,7 +444,7 @@ def test_a_urdf_arm_is_solved_in_closed_form_and_checked_against_its_capsules(ku
         theta = found.to_dh(v.q) + found.dh.dh[:, 3]
         signs = [int(math.sin(a) < 0) for a in theta[[1, 3, 5]].tolist()]
         assert 4 * signs[0] + 2 * signs[1] + signs[2] == branch
-        assert f"branch {'+-'[signs[0]]}{'+-'[signs[1]]}{'+-'[signs[2]]}" in v._readout_md.content
+        assert f"branch {'+-'[signs[0]]}{'+-'[signs[1]]}{'+-'[signs[2]]}" in v.controls.readout.content
         assert result.clearance == pytest.approx(v.clearance()[0]) and result.clearance > 0
     v.set_ik("gradient")
     v.drag_target((0.0, 1.0, 0.0, 0.0), (0.5, 0.1, 0.5))  # flange pointing down
@@ -481,8 +481,8 @@ def test_a_urdf_without_visuals_is_drawn_with_its_capsules(odd_viewer):
     assert odd_viewer.visual_nodes == []
     assert set(odd_viewer.capsule_nodes) == {"base", "l1", "l2", "l3"}
     assert all(node.visible for cap in odd_viewer.capsule_nodes.values() for node in cap.nodes)
-    assert all(node.visible for node in odd_viewer._links + odd_viewer._joints)  # and its skeleton
-    assert odd_viewer._show_capsules.value and odd_viewer.ik_methods == ("gradient",)
+    assert all(node.visible for node in odd_viewer.scene.links + odd_viewer.scene.joints)  # and its skeleton
+    assert odd_viewer.controls.show_capsules.value and odd_viewer.ik_methods == ("gradient",)
 
 
 def test_sliders_of_continuous_and_prismatic_joints(odd_viewer):
@@ -508,7 +508,7 @@ def test_joint_cylinders_lie_on_the_joint_axes(request, which):
     q = chain.random_q(1, generator=torch.Generator().manual_seed(7))[0]
     v.set_q(q)
     jacobian, end = chain.jacobian(q).numpy(), chain.fk(q)[:3, 3].numpy()
-    for i, (node, kind) in enumerate(zip(v._joints, chain.kinds)):
+    for i, (node, kind) in enumerate(zip(v.scene.joints, chain.kinds)):
         z = _quat_matrix(node.wxyz)[:, 2]
         linear, angular = jacobian[:3, i], jacobian[3:, i]
         if kind.value == "prismatic":
@@ -618,17 +618,17 @@ def test_a_colliding_target_and_configuration_are_shown(chain, world_viewer):
     result = world_viewer.solve_target(target)
     assert result.outcome == "colliding" and result.clearance < 0
     assert torch.equal(world_viewer.q, torch.zeros(7, dtype=F64))  # the arm stays where it was
-    assert tuple(world_viewer._target_marker.color) == (250, 170, 0)
+    assert tuple(world_viewer.scene.target_marker.color) == (250, 170, 0)
     # the sliders are not refused: driven into the sphere, the arm and the sphere turn red
     sol = analytic.iiwa(chain, target, torch.linspace(-math.pi, math.pi, 37, dtype=F64))
     world_viewer.set_q(sol.q[sol.valid][0])
     assert tuple(world_viewer.world_nodes["sphere0"][0].color) == (220, 30, 30)
     assert all(tuple(n.color) == (220, 30, 30) for n in world_viewer.capsule_nodes["wrist"].nodes)
     assert tuple(world_viewer.capsule_nodes["base"].body.color) != (220, 30, 30)
-    assert world_viewer._clearance_md.content.startswith("**COLLIDING**")
+    assert world_viewer.controls.clearance.content.startswith("**COLLIDING**")
     world_viewer.set_q(Q_FREE)
     assert tuple(world_viewer.world_nodes["sphere0"][0].color) != (220, 30, 30)
-    assert world_viewer._clearance_md.content.startswith("clearance +")
+    assert world_viewer.controls.clearance.content.startswith("clearance +")
     world_viewer.set_ik("gradient")
 
 
@@ -648,7 +648,7 @@ def test_analytic_ik_reaches_around_an_obstacle_the_gradient_ik_stays_in(chain):
         np.testing.assert_allclose(chain.fk(v.q).numpy(), target.numpy(), atol=1e-9)
         assert float(collision.clearance(chain, v.q, world)) >= 0
         assert abs(_arm_angle(chain, v.q) - _arm_angle(chain, Q_FREE)) > 0.1
-        assert tuple(v._target_marker.color) == (40, 180, 60)
+        assert tuple(v.scene.target_marker.color) == (40, 180, 60)
     finally:
         v.stop()
 
@@ -669,8 +669,8 @@ def test_playback_steps_through_a_jtraj(chain, viewer):
         viewer.seek(k)
         torch.testing.assert_close(viewer.q, path[k])
         np.testing.assert_allclose(viewer.readout().xyz, chain.fk(path[k])[:3, 3].numpy(), atol=1e-12)
-        assert viewer._time_slider.value == pytest.approx(0.1 * k)
-    viewer._time_slider.value = 1.2  # the browser's time slider: step 12
+        assert viewer.player.time_slider.value == pytest.approx(0.1 * k)
+    viewer.player.time_slider.value = 1.2  # the browser's time slider: step 12
     torch.testing.assert_close(viewer.q, path[12])
     with pytest.raises(ValueError, match="step"):
         viewer.seek(21)
@@ -685,7 +685,7 @@ def test_play_advances_in_time_and_stops_at_the_end(viewer):
         time.sleep(0.02)
     assert not viewer.playing and viewer.step == 5
     torch.testing.assert_close(viewer.q, path[5])
-    assert viewer._play_button.label == "play"
+    assert viewer.player.play_button.label == "play"
 
 
 def test_playback_of_several_paths_with_goals(chain, viewer):
@@ -695,8 +695,8 @@ def test_playback_of_several_paths_with_goals(chain, viewer):
     viewer.set_path(paths, dt=0.1, goals=goals)
     viewer.seek(4, 1)
     torch.testing.assert_close(viewer.q, paths[1, 4])
-    np.testing.assert_allclose(viewer._goal_marker.position, goals[1].numpy())
-    viewer._path_slider.value = 0  # the browser's path slider keeps the step
+    np.testing.assert_allclose(viewer.scene.goal_marker.position, goals[1].numpy())
+    viewer.player.path_slider.value = 0  # the browser's path slider keeps the step
     torch.testing.assert_close(viewer.q, paths[0, 4])
 
 
@@ -940,7 +940,7 @@ def test_headless_chromium_draws_the_arm_and_follows_the_sliders(request, robot)
     q0 = torch.zeros(7, dtype=F64)
     q1 = torch.tensor([70.0, 50.0, 0.0, -80.0, 0.0, 35.0, 0.0], dtype=F64).deg2rad()
     v = Viewer(chain, q0, port=_free_port(), **kwargs)
-    assert any(node.visible for node in v._joints) == (robot == "preset")
+    assert any(node.visible for node in v.scene.joints) == (robot == "preset")
     # Software WebGL takes 2-20 s (machine load) to prefilter viser's environment map for the first
     # frame; plain lights without shadows draw the same arm in well under a second.
     v.server.scene.configure_environment_map(hdri=None)
