@@ -1,30 +1,23 @@
 """What the two Levenberg-Marquardt solvers of :func:`~iiwa_torch.ik.solve` share: the batched
-torch one (:mod:`iiwa_torch.ik.gradient`) and the small-batch CPU one (:mod:`iiwa_torch.ik.small`):
-the damping schedule, the option checks, the seed pool's ranking and the joint limits."""
+torch one (:mod:`iiwa_torch.ik.lm`) and the small-batch CPU one (:mod:`iiwa_torch.ik.small`):
+the seed pool and its ranking, the joint limits and the working dtype (the damping schedule and
+the other settings: :class:`~iiwa_torch.ik.options.SolveOptions`)."""
 
 from __future__ import annotations
 
 import math
-from typing import Literal, get_args
 
 import numpy as np
 import torch
 
 from ..chain import Chain
-from ..checks import check_choice, check_positive, is_number
 from .limits import shift_into_limits
+from .options import SolveOptions
 
 __all__ = [
-    "DAMP_DOWN",
-    "DAMP_UP",
-    "FREE_STEPS",
-    "LAMBDA0",
     "MIN_BATCH",
     "POOL",
-    "Mode",
-    "Precision",
     "broadcast_q",
-    "check_solve_options",
     "inner_limits",
     "into_limits",
     "pool_distance",
@@ -35,14 +28,9 @@ __all__ = [
 ]
 
 Tensor = torch.Tensor
-Mode = Literal["pose", "position"]
-Precision = Literal["auto", "input"]
 
 POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
 MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
-FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
-LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
-DAMP_DOWN, DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
 
 
 def inner_limits(chain: Chain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -113,19 +101,7 @@ def round_width(seeds: int, next_seed: int, remaining: int) -> int:
     return min(seeds - next_seed, max(1, -(-MIN_BATCH // remaining)))
 
 
-def work_dtype(dtype: torch.dtype, precision: str, pos_tol: float, rot_tol: float) -> torch.dtype:
-    """The dtype :func:`~iiwa_torch.ik.solve` iterates in for targets of ``dtype`` (see its ``precision``)."""
-    loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
-    return torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
-
-
-def check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
-    """Raise ``ValueError`` unless :func:`~iiwa_torch.ik.solve`'s options of these names are valid."""
-    check_choice(mode, get_args(Mode), "mode")
-    for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
-        check_positive(value, name)
-    for value, name in ((iterations, "iterations"), (check_every, "check_every")):
-        check_positive(value, name, integer=True)
-    if not is_number(rest_gain) or not 0 <= rest_gain <= 1:
-        raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
-    check_choice(precision, get_args(Precision), "precision")
+def work_dtype(dtype: torch.dtype, options: SolveOptions) -> torch.dtype:
+    """The dtype :func:`~iiwa_torch.ik.solve` iterates in for targets of ``dtype`` (see ``precision``)."""
+    loose = min(options.pos_tol, options.rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
+    return torch.float32 if options.precision == "auto" and dtype == torch.float64 and loose else dtype

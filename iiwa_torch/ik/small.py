@@ -13,6 +13,7 @@ batch takes the torch loop. :func:`track_small` runs the gradient method of
 
 from __future__ import annotations
 
+from functools import lru_cache
 from weakref import WeakKeyDictionary
 
 import numpy as np
@@ -21,21 +22,8 @@ import torch
 from .. import compiled
 from ..chain import Chain
 from ..kinematics import end_pose, untracked_cpu
-from .lm_setup import (
-    DAMP_DOWN,
-    DAMP_UP,
-    FREE_STEPS,
-    LAMBDA0,
-    POOL,
-    broadcast_q,
-    check_solve_options,
-    inner_limits,
-    into_limits,
-    pool_distance,
-    pool_features,
-    seed_ranks,
-    work_dtype,
-)
+from .lm_setup import POOL, broadcast_q, inner_limits, into_limits, pool_distance, pool_features, seed_ranks, work_dtype
+from .options import SolveOptions
 from .result import IKResult
 
 __all__ = ["COMPILED_BATCH", "applies", "solve_small", "track_small"]
@@ -59,22 +47,18 @@ class _Problems:
     """What every round shares, as :func:`iiwa_torch.compiled.numba_kernels.lm_rounds` takes it:
     targets ``pos (b, 3)`` and ``rot (b, 3, 3)`` (or None) in float64, the rest posture
     ``rest (b, n)`` or None, inner limits ``lo, hi (n,)``, the options of :func:`~iiwa_torch.ik.solve`
-    (``kernel_options``, ``kernel_counts``), and the answers so far: ``q (b, n)``, key ``E (b,)``
-    (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``. ``work``:
-    the dtype the batched loop would iterate in, which sets the smallest damping and the rounding
-    ``eps``."""
+    as the kernel takes them (:func:`_kernel_arrays`), and the answers so far: ``q (b, n)``, key
+    ``E (b,)`` (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``.
+    ``work``: the dtype the batched loop would iterate in, which sets the smallest damping and the
+    rounding ``eps``."""
 
-    def __init__(self, chain: Chain, pos, rot, rest, lo, hi, options: dict, work: torch.dtype):
+    def __init__(self, chain: Chain, pos, rot, rest, lo, hi, options: SolveOptions, work: torch.dtype):
         self.g = chain.geometry(torch.float64)
         self.rest, self.lo, self.hi = rest, lo, hi
-        lam_min, self.eps = 1e-12 if work == torch.float64 else 1e-6, torch.finfo(work).eps
-        iterations = options["iterations"]
+        self.eps = torch.finfo(work).eps
         self.q = np.empty((pos.shape[0], chain.n_joints))
         self.aim(pos, rot)
-        self.kernel_options = np.array([float(options["rot_weight"]), options["rest_gain"], self.eps, lam_min, LAMBDA0,
-                                        DAMP_DOWN, DAMP_UP, options["pos_tol"], options["rot_tol"]])
-        self.kernel_counts = np.array([iterations, options["check_every"], min(FREE_STEPS, iterations // 2),
-                                       options["seeds"]])
+        self.kernel_options, self.kernel_counts = _kernel_arrays(options, work)
 
     def aim(self, pos, rot) -> None:
         """New targets ``pos (b, 3)``, ``rot (b, 3, 3)`` (or None) for the same problems: no answer yet."""
@@ -95,6 +79,20 @@ class _Problems:
         pool, first = (none if x is None else x for x in (pool, first))
         compiled.kernels().lm_rounds(*self.g.float_arrays, pool, order, first, self.pos, rot, rest, self.lo, self.hi,
                                      self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
+
+
+@lru_cache(maxsize=64)
+def _kernel_arrays(options: SolveOptions, work: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """``options`` as :func:`~iiwa_torch.compiled.numba_kernels.lm_rounds` takes them, computed once
+    per options and ``work`` dtype (the kernel only reads them): float64 ``(rot_weight,
+    rest_gain, eps, lam_min, damping, damping_down, damping_up, pos_tol, rot_tol)`` and int64
+    ``(iterations, check_every, unconstrained steps, seeds)``."""
+    lam_min = 1e-12 if work == torch.float64 else 1e-6
+    o = options
+    values = np.array([o.rot_weight, o.rest_gain, torch.finfo(work).eps, lam_min, o.damping, o.damping_down,
+                       o.damping_up, o.pos_tol, o.rot_tol], dtype=np.float64)
+    counts = np.array([o.iterations, o.check_every, o.unconstrained_steps, o.seeds], dtype=np.int64)
+    return values, counts
 
 
 _NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
@@ -124,14 +122,12 @@ def _pool(chain: Chain, size: int, generator, work: torch.dtype, mode: str):
     return pool.double().numpy(), tuple(x.numpy() for x in pool_features(chain, pool, mode))
 
 
-def solve_small(
-    chain: Chain, target: torch.Tensor, q0, rest, *, mode: str, work: torch.dtype, generator, **options
-) -> IKResult:
+def solve_small(chain: Chain, target: torch.Tensor, q0, rest, options: SolveOptions, work: torch.dtype, generator
+                ) -> IKResult:
     """:func:`~iiwa_torch.ik.solve` for checked inputs that :func:`applies` to: ``target`` as
     given, ``q0`` as given or None, ``rest (b, n)`` in ``work`` (or None), ``work`` the dtype
-    the batched loop would iterate in (the seed pool is drawn and ranked in it), ``options``
-    the remaining options of :func:`~iiwa_torch.ik.solve` (``seeds`` resolved)."""
-    dtype, n, seeds = target.dtype, chain.n_joints, options["seeds"]
+    the batched loop would iterate in (the seed pool is drawn and ranked in it)."""
+    dtype, n, seeds, mode = target.dtype, chain.n_joints, options.seeds, options.mode
     batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
     flat = target.detach().numpy().reshape(-1, *target.shape[len(batch) :])
     b = flat.shape[0]
@@ -164,30 +160,26 @@ def solve_small(
     pose = end_pose(chain.geometry(dtype), q_flat).numpy().astype(np.float64, copy=False)
     rot_in = np.empty((0, 3, 3)) if rot is None else rot
     pos_err, rot_err = compiled.kernels().pose_errors(pose, pos, rot_in, problems.eps)
-    success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
+    success = (pos_err <= options.pos_tol) & (rot_err <= options.rot_tol)
     pos_err, rot_err = (x.astype(out_dtype, copy=False) for x in (pos_err, rot_err))
     success, pos_err, rot_err, used = (torch.from_numpy(x.reshape(batch)) for x in (success, pos_err, rot_err,
                                                                                     problems.used))  # fmt: skip
     return IKResult(q_flat.reshape(*batch, n), success, pos_err, rot_err, used)
 
 
-def track_small(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, *, pos_tol: float, rot_tol: float,
-                rest_gain: float, iterations: int) -> torch.Tensor:
+def track_small(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, options: SolveOptions) -> torch.Tensor:
     """The gradient method of :func:`~iiwa_torch.trajectory.track` for checked ``poses (..., T, 4, 4)``
     and ``q0 (..., n)`` of the poses' batch shape that :func:`applies` to: each pose solved as
-    :func:`~iiwa_torch.ik.solve` (here :func:`solve_small`) solves it with the one seed of the
-    previous answer (``q0`` first) and ``rest=q0``, so the same iterations and answers, without
-    each call's checks, set-up and error report -> ``q (..., T, n)`` in the poses' dtype."""
-    check_solve_options("pose", 1.0, pos_tol, rot_tol, iterations, 2, rest_gain, "auto")
+    :func:`~iiwa_torch.ik.solve` (here :func:`solve_small`) solves it with ``options`` (one seed)
+    from the previous answer (``q0`` first) and ``rest=q0``, so the same iterations and answers,
+    without each call's checks, set-up and error report -> ``q (..., T, n)`` in the poses' dtype."""
     dtype, n = poses.dtype, chain.n_joints
     batch, steps = poses.shape[:-3], poses.shape[-3]
-    work = work_dtype(dtype, "auto", pos_tol, rot_tol)
+    work = work_dtype(dtype, options)
     flat = poses.reshape(-1, steps, 4, 4).transpose(0, 1).double().numpy()  # (T, b, 4, 4)
     pos, rot = np.ascontiguousarray(flat[..., :3, 3]), np.ascontiguousarray(flat[..., :3, :3])
     start = q0.to(dtype)
-    rest = None if rest_gain == 0 else broadcast_q(start, chain, batch, "rest", work).double().numpy()
-    options = {"rot_weight": 1.0, "rest_gain": rest_gain, "iterations": iterations, "check_every": 2, "seeds": 1,
-               "pos_tol": pos_tol, "rot_tol": rot_tol}  # fmt: skip
+    rest = None if options.rest_gain == 0 else broadcast_q(start, chain, batch, "rest", work).double().numpy()
     lo, hi = _limits(chain, dtype)
     problems = _Problems(chain, pos[0], rot[0], rest, lo, hi, options, work)
     q = np.empty((steps, pos.shape[1], n), dtype=_NUMPY[dtype])
