@@ -234,3 +234,12 @@ def test_seed_ranks_in_numpy_as_in_torch(mode):
     assert isinstance(by_numpy, np.ndarray) and np.allclose(by_numpy, by_torch.numpy(), atol=1e-5, rtol=0)
     for count in (1, 5):
         assert np.array_equal(lm_setup.seed_ranks(by_numpy, count), lm_setup.seed_ranks(by_torch, count).numpy())
+    # the definition: squared position distance plus 0.3^2 times the squared Frobenius rotation distance
+    pose = chain.fk(pool).double()
+    if mode == "pose":
+        t = target.double()
+        full = ((pose[:, None, :3, 3] - t[None, :, :3, 3]).square().sum(-1)
+                + 0.09 * (pose[:, None, :3, :3] - t[None, :, :3, :3]).square().sum((-2, -1)))
+    else:
+        full = (pose[:, None, :3, 3] - target.double()[None]).square().sum(-1)
+    assert np.array_equal(lm_setup.seed_ranks(by_numpy, 5), lm_setup.seed_ranks(full, 5).numpy())

@@ -66,25 +66,28 @@ def broadcast_q(value: Tensor, chain: Chain, batch: torch.Size, name: str, dtype
 
 
 def pool_distance(chain: Chain, pool: Tensor, target: Tensor, mode: str, features=None) -> Tensor:
-    """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
-    squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
-    less terms that are the same for every pool entry. ``features``: the pool's
-    :func:`pool_features`, if computed already. Numpy ``target`` and ``features`` in give a
-    numpy array, by the same formula."""
-    sq, twice_feat = pool_features(chain, pool, mode) if features is None else features
-    if mode == "pose":
-        cat = np.concatenate if isinstance(target, np.ndarray) else torch.cat
-        target = cat([target[:, :3, 3], 0.3 * target[:, :3, :3].reshape(target.shape[0], 9)], 1)
-    return sq - twice_feat @ target.T
+    """``(pool, b)``: how far each pool configuration's end pose is from each target (poses
+    ``(b, 4, 4)`` or positions ``(b, 3)``), as the squared position distance plus ``0.3^2``
+    times the squared Frobenius rotation distance, less terms that are the same for every pool
+    entry. ``features``: the pool's :func:`pool_features`, if computed already. Numpy
+    ``target`` and ``features`` in give a numpy array, by the same formula."""
+    sq, weights = pool_features(chain, pool, mode) if features is None else features
+    return sq - weights @ target.reshape(target.shape[0], -1).T
 
 
 def pool_features(chain: Chain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
-    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and twice
-    the features ``(pool, 12)`` (position, 0.3 times the rotation; position only: ``(pool, 3)``)."""
+    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and the
+    weights of a target's entries, ``(pool, 16)`` on its flattened pose (twice the position
+    in the last column, ``2 * 0.3^2`` times the rotation, zero on the bottom row) or
+    ``(pool, 3)`` on its position (twice the position): one product ranks the pool."""
     pose = chain.fk(pool)
     position = pose[:, :3, 3]
-    feat = torch.cat([position, 0.3 * pose[:, :3, :3].flatten(1)], 1) if mode == "pose" else position
-    return position.square().sum(1, keepdim=True), 2 * feat
+    if mode == "pose":
+        weights = torch.cat([2 * 0.09 * pose[:, :3, :3], 2 * position[:, :, None]], 2)  # (pool, 3, 4)
+        weights = torch.cat([weights.flatten(1), torch.zeros_like(weights[:, 0])], 1)  # the bottom row: 0
+    else:
+        weights = 2 * position
+    return position.square().sum(1, keepdim=True), weights
 
 
 def seed_ranks(distance: Tensor, count: int) -> Tensor:
