@@ -493,3 +493,12 @@ def test_input_errors():
         minimize(chain, lambda q, p: q.sum(-1), torch.zeros(2, 7, dtype=torch.float64), target=target, optimizer="sgd")
     with pytest.raises(ValueError, match="one value per problem"):
         minimize(chain, lambda q, p: q.sum(), torch.zeros(2, 7, dtype=torch.float64), target=target, steps=2)
+
+
+@pytest.mark.parametrize("mode", ["pose", "position"])
+def test_no_targets_give_an_empty_answer(mode):
+    """A batch of 0 targets (e.g. none left to solve) ranks an empty pool product and returns (0, n)."""
+    chain = robots.iiwa14()
+    target = torch.empty((0, 4, 4) if mode == "pose" else (0, 3), dtype=torch.float64)
+    result = solve(chain, target, mode=mode)
+    assert result.q.shape == (0, 7) and result.success.shape == (0,)

@@ -72,7 +72,7 @@ def pool_distance(chain: Chain, pool: Tensor, target: Tensor, mode: str, feature
     entry. ``features``: the pool's :func:`pool_features`, if computed already. Numpy
     ``target`` and ``features`` in give a numpy array, by the same formula."""
     sq, weights = pool_features(chain, pool, mode) if features is None else features
-    return sq - weights @ target.reshape(target.shape[0], -1).T
+    return sq - weights @ target.reshape(target.shape[0], weights.shape[1]).T  # (b, 16) or (b, 3): also for b = 0
 
 
 def pool_features(chain: Chain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
