@@ -154,6 +154,19 @@ def jtraj(
         ``ValueError`` (as in :func:`ctraj` and :func:`track`), and so is a duration so short
         that the velocities or accelerations overflow.
     """
+    _check_jtraj_inputs(q0, q1, qd0, qd1, t, chain, world, capsules)
+    s, duration = _times(t, q0.dtype, q0.device)  # (..., T), (..., 1)
+    q, qd, qdd = _quintic(q0, q1, qd0, qd1, s, duration)
+    if not (all_finite(qd) and all_finite(qdd)):
+        raise ValueError(f"t spans {float(duration.min()):g} s, too short for finite velocities and accelerations "
+                         f"in {q0.dtype} (or the motion too large)")  # fmt: skip
+    lowest = None if world is None else path_clearance(chain, q, world, capsules).amin(-1)
+    return JointTrajectory(q=q, qd=qd, qdd=qdd, min_clearance=lowest)
+
+
+def _check_jtraj_inputs(q0, q1, qd0, qd1, t, chain, world, capsules) -> None:
+    """:func:`jtraj`'s input checks: finite float ``(..., n)`` tensors of one dtype and device that
+    broadcast together, a world only with its chain, and outputs that fit in memory."""
     check_world(world, 0.0, capsules)
     if (world is None) != (chain is None):
         raise ValueError("jtraj needs both chain= and world= to report the clearance (World() is the floor at z = 0)")
@@ -172,8 +185,13 @@ def jtraj(
     steps = int(t) if is_integer(t) else (t.shape[-1] if isinstance(t, torch.Tensor) and t.ndim else 0)
     # q, qd, qdd (T, *ends) and the three (T, 6) bases with their factors (T each)
     check_memory(steps * (3 * ends.numel() + 24) * q0.element_size(), f"jtraj with {steps} steps")
-    s, duration = _times(t, q0.dtype, q0.device)  # (..., T), (..., 1)
-    shape = torch.broadcast_shapes(*(x.shape for x in given), duration.shape)  # (..., n)
+
+
+def _quintic(q0: Tensor, q1: Tensor, qd0, qd1, s: Tensor, duration: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The quintic from ``q0`` to ``q1`` (boundary velocities ``qd0, qd1`` or zero, accelerations
+    zero) at normalised times ``s (..., T)`` of a move lasting ``duration (..., 1)`` -> ``q, qd,
+    qdd``, each ``(..., T, n)``."""
+    shape = torch.broadcast_shapes(*(x.shape for x in (q0, q1, qd0, qd1) if x is not None), duration.shape)
     delta = (q1 - q0).expand(shape)
     v0 = torch.zeros_like(delta) if qd0 is None else (qd0 * duration).expand(shape)  # d q / d s at the ends
     v1 = torch.zeros_like(delta) if qd1 is None else (qd1 * duration).expand(shape)
@@ -197,14 +215,7 @@ def jtraj(
     d_basis = torch.stack([nil, one, 2 * s, 3 * s2, 4 * s3, 5 * s3 * s], -1)
     dd_basis = torch.stack([nil, nil, 2 * one, 6 * s, 12 * s2, 20 * s3], -1)
     scale = duration[..., None]  # (..., 1, 1)
-    q = basis @ coeffs
-    qd = d_basis @ coeffs / scale
-    qdd = dd_basis @ coeffs / (scale * scale)
-    if not (all_finite(qd) and all_finite(qdd)):
-        raise ValueError(f"t spans {float(duration.min()):g} s, too short for finite velocities and accelerations "
-                         f"in {q0.dtype} (or the motion too large)")  # fmt: skip
-    lowest = None if world is None else path_clearance(chain, q, world, capsules).amin(-1)
-    return JointTrajectory(q=q, qd=qd, qdd=qdd, min_clearance=lowest)
+    return basis @ coeffs, d_basis @ coeffs / scale, dd_basis @ coeffs / (scale * scale)
 
 
 def _check_same_kind(names: tuple[str, ...], values: tuple) -> None:
@@ -335,6 +346,19 @@ def track(
         requires it) and the path's smallest clearance. Check ``max_step``: a large value means
         a branch switch, a swing around an obstacle or a failure along the way.
     """
+    batch, options = _check_track(chain, poses, q0, method, pos_tol, rot_tol, rest_gain, world, margin, capsules)
+    if method == "gradient":
+        q = _track_gradient(chain, poses, q0, batch, options, (world, margin, capsules))
+    else:
+        q = _track_loop(poses, q0, _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules))
+    return _track_result(chain, q, poses, pos_tol, rot_tol, world, margin, capsules)
+
+
+def _check_track(chain, poses, q0, method, pos_tol, rot_tol, rest_gain, world, margin, capsules):
+    """:func:`track`'s input checks -> the paths' batch shape and, for the gradient method, the
+    :class:`~iiwa_torch.ik.SolveOptions` of each pose's solve (else None)."""
+    from .ik import SolveOptions
+
     check_instance(chain, Chain, "chain")
     check_choice(method, get_args(Method), "method")
     check_world(world, margin, capsules)
@@ -342,6 +366,10 @@ def track(
     check_positive(rot_tol, "rot_tol")
     if method == "analytic" and rest_gain != 0:  # the gradient solver checks it in [0, 1]
         raise ValueError(f"rest_gain applies to method='gradient' only, got {rest_gain!r} with method='analytic'")
+    options = None
+    if method == "gradient":  # one seed: the previous answer, no random restart elsewhere
+        options = SolveOptions(pos_tol=pos_tol, rot_tol=rot_tol, seeds=1, iterations=_TRACK_ITERATIONS,
+                               rest_gain=rest_gain)
     so3.check_rigid(poses, "poses")
     chain.check_q(q0, "q0")
     if poses.ndim < 3 or poses.shape[-3] == 0:
@@ -353,23 +381,41 @@ def track(
             f"the batch shapes of poses {tuple(poses.shape)} (..., T, 4, 4) and q0 {tuple(q0.shape)} (..., n) "
             "do not broadcast"
         ) from None
-    from .ik import small
+    return batch, options
 
-    if method == "gradient" and batch == poses.shape[:-3] and small.applies(poses, q0, q0, world, batch.numel()):
+
+def _track_gradient(chain: Chain, poses: Tensor, q0: Tensor, batch: torch.Size, options, obstacle_args) -> Tensor:
+    """The gradient method's joint path ``(..., T, n)``: :func:`iiwa_torch.ik.solve` at each pose
+    with ``options``, from the previous answer, ``rest=q0``."""
+    from .ik import small, solve
+
+    world, margin, capsules = obstacle_args
+    if batch == poses.shape[:-3] and small.applies(poses, q0, q0, world, batch.numel()):
         # a few CPU paths: every step of the loop below in one call, the same answers
-        q = small.track_small(chain, poses, q0, pos_tol=pos_tol, rot_tol=rot_tol, rest_gain=rest_gain,
-                              iterations=_TRACK_ITERATIONS)
-    else:
-        if method == "gradient":
-            step = _gradient_stepper(chain, q0, pos_tol, rot_tol, rest_gain, world, margin, capsules)
-        else:
-            step = _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules)
-        q_prev = q0.to(poses.dtype)
-        qs = []
-        for k in range(poses.shape[-3]):  # sequential by nature: each step starts from the last
-            q_prev = step(poses[..., k, :, :], q_prev)
-            qs.append(q_prev)
-        q = torch.stack(qs, -2)  # (..., T, n)
+        return small.track_small(chain, poses, q0, options)
+    rest = q0.to(poses.dtype)
+
+    def step(pose: Tensor, q_prev: Tensor) -> Tensor:
+        return solve(chain, pose, q_prev, rest=rest, world=world, margin=margin, capsules=capsules,
+                     options=options).q
+
+    return _track_loop(poses, q0, step)
+
+
+def _track_loop(poses: Tensor, q0: Tensor, step) -> Tensor:
+    """``step(pose (..., 4, 4), q_prev (..., n)) -> q`` at every pose in turn, from ``q0`` -> ``(..., T, n)``."""
+    q_prev = q0.to(poses.dtype)
+    qs = []
+    for k in range(poses.shape[-3]):  # sequential by nature: each step starts from the last
+        q_prev = step(poses[..., k, :, :], q_prev)
+        qs.append(q_prev)
+    return torch.stack(qs, -2)
+
+
+def _track_result(chain: Chain, q: Tensor, poses: Tensor, pos_tol: float, rot_tol: float, world, margin: float,
+                  capsules) -> TrackResult:
+    """Score a joint path ``q (..., T, n)`` against ``poses``: errors, success, largest joint
+    step and, with a world, each step's clearance."""
     pos_vec, rot_vec = so3.pose_error(chain.fk(q), poses)
     pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
     steps = q.diff(dim=-2).abs().amax(-1)  # (..., T - 1)
@@ -380,42 +426,8 @@ def track(
         clear = path_clearance(chain, q, world, capsules)
         free = clear >= margin
         success, lowest = success & free, clear.amin(-1)
-    return TrackResult(
-        q=q,
-        success=success,
-        pos_err=pos_err,
-        rot_err=rot_err,
-        max_step=max_step,
-        clearance=clear,
-        collision_free=free,
-        min_clearance=lowest,
-    )
-
-
-def _gradient_stepper(
-    chain: Chain, q0: Tensor, pos_tol: float, rot_tol: float, rest_gain: float, world: World | None, margin: float,
-    capsules: Capsules | None,
-):
-    from .ik import solve
-
-    def step(pose: Tensor, q_prev: Tensor) -> Tensor:
-        result = solve(
-            chain,
-            pose,
-            q_prev,
-            pos_tol=pos_tol,
-            rot_tol=rot_tol,
-            seeds=1,
-            iterations=_TRACK_ITERATIONS,
-            rest=q0.to(pose.dtype),
-            rest_gain=rest_gain,
-            world=world,
-            margin=margin,
-            capsules=capsules,
-        )
-        return result.q
-
-    return step
+    return TrackResult(q=q, success=success, pos_err=pos_err, rot_err=rot_err, max_step=max_step, clearance=clear,
+                       collision_free=free, min_clearance=lowest)
 
 
 def _nearest(chain: Chain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:

@@ -433,16 +433,34 @@ def plot_workspace(
     and, if given, the datasheet's dimensions (a :data:`DATASHEET` entry, mm) marked. With
     ``manipulability_path``, also a map of the mean and max manipulability over the r-z plane.
     """
-    FigureCanvasAgg = require("matplotlib.backends.backend_agg", "viz").FigureCanvasAgg
-    Figure = require("matplotlib.figure", "viz").Figure
-
     gen = torch.Generator().manual_seed(seed)
     occ = occupancy(chain, n_samples, h, section=Section.RZ, point=point, generator=gen)
+    fig = _figure((10, 6.5), layout="constrained")
+    _side_view(fig.add_subplot(), chain, occ, h, point_label, datasheet)
+    fig.savefig(path)
+    if manipulability_path is None:
+        return
+    dm = dexterity_map(chain, min(n_samples, 1 << 21), 4 * h, point=point, generator=gen)
+    fig = _figure((11, 5.5))
+    for k, (name, data) in enumerate((("mean", dm.mean), ("max", dm.max))):
+        _manipulability_view(fig, fig.add_subplot(1, 2, k + 1), chain, dm, name, data, point_label)
+    fig.tight_layout()
+    fig.savefig(manipulability_path)
+
+
+def _figure(size: tuple[float, float], **kwargs):
+    """A matplotlib ``Figure`` of ``size`` inches at 120 dpi on the Agg canvas (no display needed)."""
+    FigureCanvasAgg = require("matplotlib.backends.backend_agg", "viz").FigureCanvasAgg
+    fig = require("matplotlib.figure", "viz").Figure(figsize=size, dpi=120, **kwargs)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _side_view(ax, chain: Chain, occ: Occupancy, h: float, point_label: str, datasheet: dict | None) -> None:
+    """:func:`plot_workspace`'s side view on ``ax``: the occupied r-z cells mirrored to both sides,
+    the outer and inner envelopes, the datasheet's marks if given, labels and title."""
     est, low, high = _measure(occ)
     z, r_out, r_in = envelopes(occ)
-    fig = Figure(figsize=(10, 6.5), dpi=120, layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
     occ_rz = occ.occupied.T.astype(float)
     image = np.concatenate([occ_rz[:, ::-1], occ_rz], 1)
     nr, nz = occ.counts.shape
@@ -450,25 +468,10 @@ def plot_workspace(
     ax.imshow(np.ma.masked_equal(image, 0), origin="lower", extent=box, cmap="Blues", vmin=0, vmax=2, alpha=0.8)
     for sign in (1, -1):
         ax.plot(sign * r_out, z, color="tab:blue", lw=1.5, label="outer envelope" if sign > 0 else None)
-        ax.plot(
-            sign * np.where(r_in > 0, r_in, np.nan),
-            z,
-            color="tab:orange",
-            lw=1.5,
-            label="inner envelope" if sign > 0 else None,
-        )
+        ax.plot(sign * np.where(r_in > 0, r_in, np.nan), z, color="tab:orange", lw=1.5,
+                label="inner envelope" if sign > 0 else None)
     if datasheet is not None:
-        ds = {k: v / 1000 for k, v in datasheet.items() if k != "volume"}
-        marks = {
-            "A (height at home)": (0, ds["A"]),
-            "B (top)": (0, ds["B"]),
-            "C (shoulder)": (0, ds["C"]),
-            "C+D (elbow)": (0, ds["C"] + ds["D"]),
-            "G (reach at C)": (ds["G"], ds["C"]),
-        }
-        for i, (label, (r, zz)) in enumerate(marks.items()):
-            ax.plot([r], [zz], marker="x^sDo"[i], ls="none", ms=8, label=f"datasheet {label}")
-        ax.axhline(-ds["F"], color="tab:brown", ls="--", lw=1, label="datasheet -F (depth below the base)")
+        _datasheet_marks(ax, datasheet)
     ax.axhline(0, color="0.4", lw=0.8)
     top = max(z.max(), datasheet["A"] / 1000 if datasheet else -math.inf) + 0.1
     ax.set_xlim(-r_out.max() - 0.1, r_out.max() + 0.1)
@@ -482,26 +485,37 @@ def plot_workspace(
     )
     ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1), fontsize=8)
     ax.grid(alpha=0.3)
-    fig.savefig(path)
-    if manipulability_path is None:
-        return
-    dm = dexterity_map(chain, min(n_samples, 1 << 21), 4 * h, point=point, generator=gen)
-    fig = Figure(figsize=(11, 5.5), dpi=120)
-    FigureCanvasAgg(fig)
+
+
+def _datasheet_marks(ax, datasheet: dict) -> None:
+    """The datasheet's side-view dimensions (a :data:`DATASHEET` entry, mm) marked on ``ax`` (m)."""
+    ds = {k: v / 1000 for k, v in datasheet.items() if k != "volume"}
+    marks = {
+        "A (height at home)": (0, ds["A"]),
+        "B (top)": (0, ds["B"]),
+        "C (shoulder)": (0, ds["C"]),
+        "C+D (elbow)": (0, ds["C"] + ds["D"]),
+        "G (reach at C)": (ds["G"], ds["C"]),
+    }
+    for i, (label, (r, zz)) in enumerate(marks.items()):
+        ax.plot([r], [zz], marker="x^sDo"[i], ls="none", ms=8, label=f"datasheet {label}")
+    ax.axhline(-ds["F"], color="tab:brown", ls="--", lw=1, label="datasheet -F (depth below the base)")
+
+
+def _manipulability_view(fig, ax, chain: Chain, dm: DexterityMap, name: str, data: np.ndarray,
+                         point_label: str) -> None:
+    """One panel of :func:`plot_workspace`'s manipulability map on ``ax``: ``data`` (the ``name``
+    statistic of ``dm``, ``(nr, nz)``) over the r-z plane, with its colour bar."""
     nr, nz = dm.count.shape
     box = (0, nr * dm.h, dm.z_lower, dm.z_lower + nz * dm.h)
-    for k, (name, data) in enumerate((("mean", dm.mean), ("max", dm.max))):
-        ax = fig.add_subplot(1, 2, k + 1)
-        shown = ax.imshow(np.ma.masked_where(dm.count.T == 0, data.T), origin="lower", extent=box, cmap="viridis")
-        fig.colorbar(shown, ax=ax, label=f"{name} sqrt(det(J J$^T$)), 6 x n J (linear rows in m)")
-        ax.set_xlabel("r: distance from the joint-1 axis (m)")
-        ax.set_ylabel("z: height above the base (m)")
-        ax.set_title(
-            f"{chain.name}: {name} Yoshikawa manipulability\nbinned by {point_label} position, {dm.h * 1000:g} mm cells"
-        )
-        ax.set_aspect("equal")
-        rows = np.flatnonzero(dm.count.any(0))
-        ax.set_xlim(0, (np.flatnonzero(dm.count.any(1)).max() + 2) * dm.h)
-        ax.set_ylim(dm.z_lower + (rows.min() - 2) * dm.h, dm.z_lower + (rows.max() + 3) * dm.h)
-    fig.tight_layout()
-    fig.savefig(manipulability_path)
+    shown = ax.imshow(np.ma.masked_where(dm.count.T == 0, data.T), origin="lower", extent=box, cmap="viridis")
+    fig.colorbar(shown, ax=ax, label=f"{name} sqrt(det(J J$^T$)), 6 x n J (linear rows in m)")
+    ax.set_xlabel("r: distance from the joint-1 axis (m)")
+    ax.set_ylabel("z: height above the base (m)")
+    ax.set_title(
+        f"{chain.name}: {name} Yoshikawa manipulability\nbinned by {point_label} position, {dm.h * 1000:g} mm cells"
+    )
+    ax.set_aspect("equal")
+    rows = np.flatnonzero(dm.count.any(0))
+    ax.set_xlim(0, (np.flatnonzero(dm.count.any(1)).max() + 2) * dm.h)
+    ax.set_ylim(dm.z_lower + (rows.min() - 2) * dm.h, dm.z_lower + (rows.max() + 3) * dm.h)

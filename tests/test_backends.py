@@ -23,7 +23,7 @@ from urdf_samples import ODD_URDF
 from iiwa_torch import collision, compiled, robots, so3
 from iiwa_torch import kinematics as kin
 from iiwa_torch.dh import DHChain
-from iiwa_torch.ik import analytic, gradient, lm_setup, small, solve
+from iiwa_torch.ik import analytic, lm, lm_setup, small, solve
 
 F64 = torch.float64
 
@@ -163,7 +163,7 @@ def both_ways(monkeypatch, fn, one_seed_per_round: bool = False):
     with monkeypatch.context() as m:
         m.setattr(compiled, "ENABLED", False)
         if one_seed_per_round:
-            m.setattr(gradient, "round_width", lambda *args: 1)
+            m.setattr(lm, "round_width", lambda *args: 1)
         slow = fn()
     return fast, slow
 

@@ -26,7 +26,7 @@ from envs.goals import decode_pose_goal, encode_pose_goal
 from envs.reach import IiwaReachEnv, IiwaReachVectorEnv, goal_env_spaces
 from envs.sb3 import IiwaReachVecEnv
 from iiwa_torch import Chain, DHChain, capsule_fit, collision, robots, so3, trajectory, urdf, workspace
-from iiwa_torch.ik import analytic, dls_step, minimize, solve
+from iiwa_torch.ik import MinimizeOptions, SolveOptions, analytic, dls_step, minimize, solve
 
 CHAIN = robots.iiwa14()
 PUMA = robots.puma560()
@@ -255,7 +255,8 @@ ENTRIES: dict[str, Entry] = {
         lambda: {"chain": CHAIN, "target": POSE, "q0": Q, "iterations": 2, "rest": Q, "rest_gain": 0.1},
         tensors=("q0", "rest"),
         poses=("target",),
-        bad=(("mode", "orientation"), ("precision", "half"), ("rest_gain", 2.0), ("world", _TWO_WORLDS))
+        bad=(("mode", "orientation"), ("precision", "half"), ("rest_gain", 2.0), ("world", _TWO_WORLDS),
+             ("options", {"seeds": 2}), ("options", MinimizeOptions()), ("damping_up", 0.9), ("colour", 1))
         + _GENERATORS
         + _counts("seeds", "iterations", "check_every")
         + _tols("pos_tol", "rot_tol", "rot_weight"),
@@ -267,9 +268,24 @@ ENTRIES: dict[str, Entry] = {
         poses=("target",),
         bad=(("mode", "orientation"), ("optimizer", "sgd"), ("loss", None), ("world", _TWO_WORLDS),
              ("loss", lambda q, p: torch.ones(q.shape[:-1], dtype=q.dtype)),  # does not depend on q
-             ("loss", lambda q, p: p.detach()[..., 2, 3]))
+             ("loss", lambda q, p: p.detach()[..., 2, 3]), ("options", SolveOptions()), ("seeds", 2))
         + _counts("steps")
         + _tols("pos_tol", "rot_tol", "lr"),
+    ),
+    "iiwa_torch.ik:SolveOptions": Entry(
+        SolveOptions,
+        lambda: {"pos_tol": 1e-5, "free_steps": 0},
+        bad=(("mode", "orientation"), ("precision", "half"), ("rest_gain", 2.0), ("rest_gain", -0.1),
+             ("damping_down", 1.0), ("damping_down", 0.0), ("damping_up", 1.0), ("damping_up", math.inf))
+        + _counts("seeds", "iterations", "check_every")
+        + _counts("free_steps", allow_zero=True)
+        + _tols("pos_tol", "rot_tol", "rot_weight", "damping"),
+    ),
+    "iiwa_torch.ik:MinimizeOptions": Entry(
+        MinimizeOptions,
+        lambda: {"optimizer": "lbfgs"},
+        bad=(("mode", "orientation"), ("optimizer", "sgd")) + _counts("steps")
+        + _tols("pos_tol", "rot_tol", "lr", "clearance_weight"),
     ),
     "iiwa_torch.ik:dls_step": Entry(
         dls_step,

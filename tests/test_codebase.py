@@ -18,13 +18,8 @@ MAX_LINES = 60
 
 LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came in
     "train/kernels.py:features": 146,
-    "iiwa_torch/ik/gradient.py:solve": 119,
-    "iiwa_torch/ik/gradient.py:minimize": 110,
     "benchmarks/bench_env.py:main": 89,
-    "iiwa_torch/trajectory.py:track": 98,
-    "iiwa_torch/workspace.py:plot_workspace": 89,
     "train/features.py:__init__": 84,
-    "iiwa_torch/trajectory.py:jtraj": 78,
     "envs/core.py:__init__": 72,
     "train/evaluate.py:evaluate": 71,
     "train/evaluate.py:_rollouts_obstacles": 71,

@@ -13,7 +13,7 @@ import torch
 
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
-from iiwa_torch.ik import IKResult, minimize, solve
+from iiwa_torch.ik import IKResult, MinimizeOptions, SolveOptions, minimize, small, solve
 from iiwa_torch.ik.dls import cholesky_solve_batch_last, dls_step, dls_step_numpy
 
 DTYPES = [torch.float64, torch.float32]
@@ -30,13 +30,13 @@ def within_limits(chain, q):
     return chain.within_limits(q.double()).all()
 
 
-def first_step(chain, q0, target, weight):
+def first_step(chain, q0, target, weight, damping=1e-2):
     """The first LM step from ``q0`` by hand, from the public Jacobian, pose error and DLS step:
-    rotation rows weighted by ``weight``, damping 1% of the squared weighted error (at most 1e-2)."""
+    rotation rows weighted by ``weight``, damping 1% of the squared weighted error (at most ``damping``)."""
     e_pos, e_rot = so3.pose_error(chain.fk(q0), target)
     scale = torch.tensor([1, 1, 1, weight, weight, weight], dtype=q0.dtype)
     e = torch.cat([e_pos, e_rot], -1) * scale
-    lam = (0.01 * e.square().sum(-1)).clamp(1e-12, 1e-2)
+    lam = (0.01 * e.square().sum(-1)).clamp(1e-12, damping)
     return q0 + dls_step(chain.jacobian(q0) * scale[:, None], e, lam)
 
 
@@ -64,6 +64,55 @@ def test_first_step_is_the_dls_step_of_chain_jacobian_and_pose_error(name):
     q0 = mid_q(chain, 64, 0)
     target = near(chain, q0, 1)
     torch.testing.assert_close(one_step(chain, target, q0, 0.5), first_step(chain, q0, target, 0.5), atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("compiled_rounds", [True, False])
+def test_first_step_follows_the_damping_setting(monkeypatch, compiled_rounds):
+    """``damping`` caps the initial damping on both paths: a far target (1% of its squared error
+    above the cap) takes the hand-computed step with the smaller cap."""
+    if not compiled_rounds:
+        monkeypatch.setattr(small, "COMPILED_BATCH", 0)
+    chain = robots.iiwa14()
+    q0 = mid_q(chain, 16, 4)
+    target = near(chain, q0, 5, size=0.05)
+    options = SolveOptions(seeds=1, iterations=1, precision="input", damping=1e-6)
+    expected = first_step(chain, q0, target, 1.0, damping=1e-6)
+    torch.testing.assert_close(solve(chain, target, q0, options=options).q, expected, atol=1e-9, rtol=0)
+    assert (first_step(chain, q0, target, 1.0) - expected).abs().max() > 1e-4  # the cap mattered
+
+
+def test_options_object_and_keywords_are_one_setting():
+    """``options=SolveOptions(...)`` solves as the same keywords do; keywords beside it replace
+    its fields; the defaults are the dataclass's; the object is frozen and hashable."""
+    chain = robots.iiwa14()
+    target, _ = reachable(chain, 20, 11)
+    opts = SolveOptions(seeds=4, iterations=10, pos_tol=1e-6, rot_tol=1e-6)
+    by_object = solve(chain, target, options=opts)
+    by_keywords = solve(chain, target, seeds=4, iterations=10, pos_tol=1e-6, rot_tol=1e-6)
+    for field in ("q", "success", "iterations"):
+        assert torch.equal(getattr(by_object, field), getattr(by_keywords, field))
+    mixed = solve(chain, target, options=SolveOptions(seeds=4, iterations=3), iterations=10, pos_tol=1e-6,
+                  rot_tol=1e-6)
+    assert torch.equal(mixed.q, by_object.q)
+    assert torch.equal(solve(chain, target, options=SolveOptions()).q, solve(chain, target).q)
+    with pytest.raises(AttributeError):
+        opts.seeds = 8
+    assert hash(opts) == hash(SolveOptions(seeds=4, iterations=10, pos_tol=1e-6, rot_tol=1e-6))
+    assert opts.unconstrained_steps == 4 and SolveOptions(iterations=5).unconstrained_steps == 2
+
+
+def test_minimize_options_object_and_keywords_are_one_setting():
+    chain = robots.iiwa14()
+    target, q = reachable(chain, 3, 12)
+    q0 = q + 0.05
+
+    def loss(q, pose):
+        return (pose[..., :3, 3] - target[..., :3, 3]).square().sum(-1)
+
+    by_object = minimize(chain, loss, q0, target=target[..., :3, 3],
+                         options=MinimizeOptions(mode="position", optimizer="lbfgs", steps=20))
+    by_keywords = minimize(chain, loss, q0, target=target[..., :3, 3], mode="position", optimizer="lbfgs", steps=20)
+    assert torch.equal(by_object.q, by_keywords.q) and bool(by_object.success.all())
 
 
 def test_first_step_with_modified_dh_base_and_tool():
@@ -444,3 +493,12 @@ def test_input_errors():
         minimize(chain, lambda q, p: q.sum(-1), torch.zeros(2, 7, dtype=torch.float64), target=target, optimizer="sgd")
     with pytest.raises(ValueError, match="one value per problem"):
         minimize(chain, lambda q, p: q.sum(), torch.zeros(2, 7, dtype=torch.float64), target=target, steps=2)
+
+
+@pytest.mark.parametrize("mode", ["pose", "position"])
+def test_no_targets_give_an_empty_answer(mode):
+    """A batch of 0 targets (e.g. none left to solve) ranks an empty pool product and returns (0, n)."""
+    chain = robots.iiwa14()
+    target = torch.empty((0, 4, 4) if mode == "pose" else (0, 3), dtype=torch.float64)
+    result = solve(chain, target, mode=mode)
+    assert result.q.shape == (0, 7) and result.success.shape == (0,)

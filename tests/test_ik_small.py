@@ -14,7 +14,7 @@ import torch
 
 from iiwa_torch import compiled, robots, so3
 from iiwa_torch.collision import World
-from iiwa_torch.ik import gradient, lm_setup, small, solve
+from iiwa_torch.ik import lm, lm_setup, small, solve
 
 needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
 
@@ -97,7 +97,7 @@ def test_one_thousand_iiwa_poses(monkeypatch):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_q0_rest_and_options(monkeypatch, dtype):
     """A first seed (some angles a turn outside the limits), a rest posture, a rotation weight,
-    fewer iterations and seeds; tight tolerances iterated in the target's dtype."""
+    fewer iterations and seeds; another damping schedule; tight tolerances iterated in the target's dtype."""
     chain = CHAINS["iiwa14"]
     target, q = targets(chain, 40, 3, dtype, "pose")
     gen = torch.Generator().manual_seed(4)
@@ -107,7 +107,8 @@ def test_q0_rest_and_options(monkeypatch, dtype):
     # tolerances near float32's resolution only in float64: there the rounding of a float64
     # answer to float32 decides some borderline targets
     tight = {"pos_tol": 1e-6, "rot_tol": 1e-5, "precision": "input"}
-    for extra in ({}, tight) if dtype == torch.float64 else ({},):
+    schedule = {"damping": 1e-3, "damping_down": 0.5, "damping_up": 4.0, "free_steps": 2}
+    for extra in ({}, schedule, tight) if dtype == torch.float64 else ({}, schedule):
         fast = in_chunks(chain, target, q0, **options, **extra)
         slow = batched(monkeypatch, chain, target, q0, **options, **extra)
         check_answers(chain, target, fast, "pose", extra.get("pos_tol", 1e-4), extra.get("rot_tol", 1e-3))
@@ -131,7 +132,7 @@ def test_round_width_changes_no_answer(monkeypatch, with_q0):
     options = dict(iterations=6, seeds=5, precision="input")
     wide = solve(chain, target, q0, **options)
     with monkeypatch.context() as m:
-        m.setattr(gradient, "round_width", lambda *args: 1)
+        m.setattr(lm, "round_width", lambda *args: 1)
         narrow = solve(chain, target, q0, **options)
     # not bit for bit in torch: its vectorised sine and cosine round differently from the scalar tail
     assert (wide.q - narrow.q).abs().max() < 1e-9 and torch.equal(wide.success, narrow.success)
@@ -233,3 +234,12 @@ def test_seed_ranks_in_numpy_as_in_torch(mode):
     assert isinstance(by_numpy, np.ndarray) and np.allclose(by_numpy, by_torch.numpy(), atol=1e-5, rtol=0)
     for count in (1, 5):
         assert np.array_equal(lm_setup.seed_ranks(by_numpy, count), lm_setup.seed_ranks(by_torch, count).numpy())
+    # the definition: squared position distance plus 0.3^2 times the squared Frobenius rotation distance
+    pose = chain.fk(pool).double()
+    if mode == "pose":
+        t = target.double()
+        full = ((pose[:, None, :3, 3] - t[None, :, :3, 3]).square().sum(-1)
+                + 0.09 * (pose[:, None, :3, :3] - t[None, :, :3, :3]).square().sum((-2, -1)))
+    else:
+        full = (pose[:, None, :3, 3] - target.double()[None]).square().sum(-1)
+    assert np.array_equal(lm_setup.seed_ranks(by_numpy, 5), lm_setup.seed_ranks(full, 5).numpy())

@@ -1,30 +1,23 @@
 """What the two Levenberg-Marquardt solvers of :func:`~iiwa_torch.ik.solve` share: the batched
-torch one (:mod:`iiwa_torch.ik.gradient`) and the small-batch CPU one (:mod:`iiwa_torch.ik.small`):
-the damping schedule, the option checks, the seed pool's ranking and the joint limits."""
+torch one (:mod:`iiwa_torch.ik.lm`) and the small-batch CPU one (:mod:`iiwa_torch.ik.small`):
+the seed pool and its ranking, the joint limits and the working dtype (the damping schedule and
+the other settings: :class:`~iiwa_torch.ik.options.SolveOptions`)."""
 
 from __future__ import annotations
 
 import math
-from typing import Literal, get_args
 
 import numpy as np
 import torch
 
 from ..chain import Chain
-from ..checks import check_choice, check_positive, is_number
 from .limits import shift_into_limits
+from .options import SolveOptions
 
 __all__ = [
-    "DAMP_DOWN",
-    "DAMP_UP",
-    "FREE_STEPS",
-    "LAMBDA0",
     "MIN_BATCH",
     "POOL",
-    "Mode",
-    "Precision",
     "broadcast_q",
-    "check_solve_options",
     "inner_limits",
     "into_limits",
     "pool_distance",
@@ -35,14 +28,9 @@ __all__ = [
 ]
 
 Tensor = torch.Tensor
-Mode = Literal["pose", "position"]
-Precision = Literal["auto", "input"]
 
 POOL = 64  # random configurations ranked by pose distance to pick each target's seeds
 MIN_BATCH = 1024  # below this many problems, run several seeds of each side by side
-FREE_STEPS = 4  # LM steps of each seed without joint limits, before projecting into them
-LAMBDA0 = 1e-2  # largest initial damping (m^2): the entries of J J^T are of order 1 m^2 for an arm
-DAMP_DOWN, DAMP_UP = 0.25, 3.0  # damping factors after a kept / a rejected step
 
 
 def inner_limits(chain: Chain, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -78,25 +66,28 @@ def broadcast_q(value: Tensor, chain: Chain, batch: torch.Size, name: str, dtype
 
 
 def pool_distance(chain: Chain, pool: Tensor, target: Tensor, mode: str, features=None) -> Tensor:
-    """``(pool, b)``: how far each pool configuration's end pose is from each target, as the
-    squared position distance plus ``0.3^2`` times the squared Frobenius rotation distance,
-    less terms that are the same for every pool entry. ``features``: the pool's
-    :func:`pool_features`, if computed already. Numpy ``target`` and ``features`` in give a
-    numpy array, by the same formula."""
-    sq, twice_feat = pool_features(chain, pool, mode) if features is None else features
-    if mode == "pose":
-        cat = np.concatenate if isinstance(target, np.ndarray) else torch.cat
-        target = cat([target[:, :3, 3], 0.3 * target[:, :3, :3].reshape(target.shape[0], 9)], 1)
-    return sq - twice_feat @ target.T
+    """``(pool, b)``: how far each pool configuration's end pose is from each target (poses
+    ``(b, 4, 4)`` or positions ``(b, 3)``), as the squared position distance plus ``0.3^2``
+    times the squared Frobenius rotation distance, less terms that are the same for every pool
+    entry. ``features``: the pool's :func:`pool_features`, if computed already. Numpy
+    ``target`` and ``features`` in give a numpy array, by the same formula."""
+    sq, weights = pool_features(chain, pool, mode) if features is None else features
+    return sq - weights @ target.reshape(target.shape[0], weights.shape[1]).T  # (b, 16) or (b, 3): also for b = 0
 
 
 def pool_features(chain: Chain, pool: Tensor, mode: str) -> tuple[Tensor, Tensor]:
-    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and twice
-    the features ``(pool, 12)`` (position, 0.3 times the rotation; position only: ``(pool, 3)``)."""
+    """The pool's part of :func:`pool_distance`: squared end positions ``(pool, 1)`` and the
+    weights of a target's entries, ``(pool, 16)`` on its flattened pose (twice the position
+    in the last column, ``2 * 0.3^2`` times the rotation, zero on the bottom row) or
+    ``(pool, 3)`` on its position (twice the position): one product ranks the pool."""
     pose = chain.fk(pool)
     position = pose[:, :3, 3]
-    feat = torch.cat([position, 0.3 * pose[:, :3, :3].flatten(1)], 1) if mode == "pose" else position
-    return position.square().sum(1, keepdim=True), 2 * feat
+    if mode == "pose":
+        weights = torch.cat([2 * 0.09 * pose[:, :3, :3], 2 * position[:, :, None]], 2)  # (pool, 3, 4)
+        weights = torch.cat([weights.flatten(1), torch.zeros_like(weights[:, 0])], 1)  # the bottom row: 0
+    else:
+        weights = 2 * position
+    return position.square().sum(1, keepdim=True), weights
 
 
 def seed_ranks(distance: Tensor, count: int) -> Tensor:
@@ -113,19 +104,7 @@ def round_width(seeds: int, next_seed: int, remaining: int) -> int:
     return min(seeds - next_seed, max(1, -(-MIN_BATCH // remaining)))
 
 
-def work_dtype(dtype: torch.dtype, precision: str, pos_tol: float, rot_tol: float) -> torch.dtype:
-    """The dtype :func:`~iiwa_torch.ik.solve` iterates in for targets of ``dtype`` (see its ``precision``)."""
-    loose = min(pos_tol, rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
-    return torch.float32 if precision == "auto" and dtype == torch.float64 and loose else dtype
-
-
-def check_solve_options(mode, rot_weight, pos_tol, rot_tol, iterations, check_every, rest_gain, precision) -> None:
-    """Raise ``ValueError`` unless :func:`~iiwa_torch.ik.solve`'s options of these names are valid."""
-    check_choice(mode, get_args(Mode), "mode")
-    for value, name in ((rot_weight, "rot_weight"), (pos_tol, "pos_tol"), (rot_tol, "rot_tol")):
-        check_positive(value, name)
-    for value, name in ((iterations, "iterations"), (check_every, "check_every")):
-        check_positive(value, name, integer=True)
-    if not is_number(rest_gain) or not 0 <= rest_gain <= 1:
-        raise ValueError(f"rest_gain must be a number in [0, 1], got {rest_gain!r}")
-    check_choice(precision, get_args(Precision), "precision")
+def work_dtype(dtype: torch.dtype, options: SolveOptions) -> torch.dtype:
+    """The dtype :func:`~iiwa_torch.ik.solve` iterates in for targets of ``dtype`` (see ``precision``)."""
+    loose = min(options.pos_tol, options.rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
+    return torch.float32 if options.precision == "auto" and dtype == torch.float64 and loose else dtype

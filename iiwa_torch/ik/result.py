@@ -1,10 +1,15 @@
-"""The result type every IK solver returns, gradient-based or analytic."""
+"""The result type every IK solver returns, gradient-based or analytic, and how the gradient-based
+ones score an answer (:func:`ik_result`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import torch
+
+from .. import so3
+
+__all__ = ["IKResult", "ik_result"]
 
 
 @dataclass(frozen=True)
@@ -26,3 +31,19 @@ class IKResult:
     rot_err: torch.Tensor
     iterations: torch.Tensor
     clearance: torch.Tensor | None = None
+
+
+def ik_result(chain, q: torch.Tensor, target: torch.Tensor, mode: str, pos_tol: float, rot_tol: float,
+              iterations: torch.Tensor) -> IKResult:
+    """Errors and success from the public ``chain.fk`` of the answer ``q (..., n)`` against
+    ``target`` (poses or positions, per ``mode``), tolerances in metres and radians."""
+    pose = chain.fk(q)
+    if mode == "pose":
+        pos_vec, rot_vec = so3.pose_error(pose, target)
+        rot_err = rot_vec.norm(dim=-1)
+    else:
+        pos_vec = target - pose[..., :3, 3]
+        rot_err = torch.zeros_like(pos_vec[..., 0])
+    pos_err = pos_vec.norm(dim=-1)
+    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
+    return IKResult(q=q, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)

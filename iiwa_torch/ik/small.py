@@ -13,6 +13,7 @@ batch takes the torch loop. :func:`track_small` runs the gradient method of
 
 from __future__ import annotations
 
+from functools import lru_cache
 from weakref import WeakKeyDictionary
 
 import numpy as np
@@ -20,22 +21,9 @@ import torch
 
 from .. import compiled
 from ..chain import Chain
-from ..kinematics import end_pose, untracked_cpu
-from .lm_setup import (
-    DAMP_DOWN,
-    DAMP_UP,
-    FREE_STEPS,
-    LAMBDA0,
-    POOL,
-    broadcast_q,
-    check_solve_options,
-    inner_limits,
-    into_limits,
-    pool_distance,
-    pool_features,
-    seed_ranks,
-    work_dtype,
-)
+from ..kinematics import Geometry, untracked_cpu
+from .lm_setup import POOL, broadcast_q, inner_limits, into_limits, pool_distance, pool_features, seed_ranks, work_dtype
+from .options import SolveOptions
 from .result import IKResult
 
 __all__ = ["COMPILED_BATCH", "applies", "solve_small", "track_small"]
@@ -59,27 +47,26 @@ class _Problems:
     """What every round shares, as :func:`iiwa_torch.compiled.numba_kernels.lm_rounds` takes it:
     targets ``pos (b, 3)`` and ``rot (b, 3, 3)`` (or None) in float64, the rest posture
     ``rest (b, n)`` or None, inner limits ``lo, hi (n,)``, the options of :func:`~iiwa_torch.ik.solve`
-    (``kernel_options``, ``kernel_counts``), and the answers so far: ``q (b, n)``, key ``E (b,)``
-    (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``. ``work``:
-    the dtype the batched loop would iterate in, which sets the smallest damping and the rounding
-    ``eps``."""
+    as the kernel takes them (:func:`_kernel_arrays`), and the answers so far: ``q (b, n)``, key
+    ``E (b,)`` (below 0: converged, the seed number minus ``seeds``) and iterations ``used (b,)``.
+    ``work``: the dtype the batched loop would iterate in, which sets the smallest damping and the
+    rounding ``eps``."""
 
-    def __init__(self, chain: Chain, pos, rot, rest, lo, hi, options: dict, work: torch.dtype):
-        self.g = chain.geometry(torch.float64)
+    def __init__(self, g: Geometry, pos, rot, rest, lo, hi, options: SolveOptions, work: torch.dtype):
+        self.g = g  # the chain's float64 geometry
         self.rest, self.lo, self.hi = rest, lo, hi
-        lam_min, self.eps = 1e-12 if work == torch.float64 else 1e-6, torch.finfo(work).eps
-        iterations = options["iterations"]
-        self.q = np.empty((pos.shape[0], chain.n_joints))
+        self.eps = torch.finfo(work).eps
+        b = pos.shape[0]
+        self.q, self.E, self.used = np.empty((b, g.n_joints)), np.empty(b), np.empty(b, dtype=np.int64)
         self.aim(pos, rot)
-        self.kernel_options = np.array([float(options["rot_weight"]), options["rest_gain"], self.eps, lam_min, LAMBDA0,
-                                        DAMP_DOWN, DAMP_UP, options["pos_tol"], options["rot_tol"]])
-        self.kernel_counts = np.array([iterations, options["check_every"], min(FREE_STEPS, iterations // 2),
-                                       options["seeds"]])
+        self.kernel_options, self.kernel_counts = _kernel_arrays(options, work)
 
     def aim(self, pos, rot) -> None:
-        """New targets ``pos (b, 3)``, ``rot (b, 3, 3)`` (or None) for the same problems: no answer yet."""
+        """New targets ``pos (b, 3)``, ``rot (b, 3, 3)`` (or None) for the same problems: no answer
+        yet (the answer arrays are reset in place: a caller keeps what it needs before)."""
         self.pos, self.rot = pos, rot
-        self.E, self.used = np.full(pos.shape[0], np.inf), np.zeros(pos.shape[0], dtype=np.int64)
+        self.E.fill(np.inf)
+        self.used.fill(0)
 
     def run(self, pool, order, first) -> None:
         """Every round of seeds in one kernel call: each problem tries its next seed (``first (b, n)``,
@@ -88,31 +75,54 @@ class _Problems:
         slot costs the same alone as beside others, so a later seed runs only if the earlier ones
         failed), where the torch loop runs seeds side by side: the work differs, not the answers."""
         b, n = self.q.shape
-        none = np.empty((0, n))  # an absent input: no rows
-        rot = np.empty((0, 3, 3)) if self.rot is None else self.rot
+        none = _no_rows((0, n), np.float64)  # an absent input: no rows
+        rot = _no_rows((0, 3, 3), np.float64) if self.rot is None else self.rot
         rest = none if self.rest is None else np.ascontiguousarray(self.rest)
-        order = np.empty((0, b), dtype=np.int64) if order is None else order
-        pool, first = (none if x is None else x for x in (pool, first))
+        order = _no_rows((0, b), np.int64) if order is None else order
+        pool = none if pool is None else pool
+        first = none if first is None else first
         compiled.kernels().lm_rounds(*self.g.float_arrays, pool, order, first, self.pos, rot, rest, self.lo, self.hi,
                                      self.kernel_options, self.kernel_counts, self.q, self.E, self.used)
 
 
+@lru_cache(maxsize=64)
+def _no_rows(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An empty array of ``shape`` (its first dimension 0): an absent input of the kernels, which
+    never write to it, so one per shape serves every call."""
+    return np.empty(shape, dtype=dtype)
+
+
+@lru_cache(maxsize=64)
+def _kernel_arrays(options: SolveOptions, work: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """``options`` as :func:`~iiwa_torch.compiled.numba_kernels.lm_rounds` takes them, computed once
+    per options and ``work`` dtype (the kernel only reads them): float64 ``(rot_weight,
+    rest_gain, eps, lam_min, damping, damping_down, damping_up, pos_tol, rot_tol)`` and int64
+    ``(iterations, check_every, unconstrained steps, seeds)``."""
+    lam_min = 1e-12 if work == torch.float64 else 1e-6
+    o = options
+    values = np.array([o.rot_weight, o.rest_gain, torch.finfo(work).eps, lam_min, o.damping, o.damping_down,
+                       o.damping_up, o.pos_tol, o.rot_tol], dtype=np.float64)
+    counts = np.array([o.iterations, o.check_every, o.unconstrained_steps, o.seeds], dtype=np.int64)
+    return values, counts
+
+
 _NUMPY = {torch.float32: np.float32, torch.float64: np.float64}
-_CACHE: WeakKeyDictionary = WeakKeyDictionary()  # Geometry -> {key: value}
+_CACHE: WeakKeyDictionary = WeakKeyDictionary()  # float64 Geometry -> {key: value}
 
 
-def _cached(chain: Chain, dtype: torch.dtype, key, make):
-    """``make()``, computed once per ``key`` and chain geometry in ``dtype``: the geometry is
-    rebuilt whenever the chain's buffers change, so the value is computed again then."""
-    entries = _CACHE.setdefault(chain.geometry(dtype), {})
+def _cached(g: Geometry, key, make):
+    """``make()``, computed once per ``key`` and chain geometry ``g`` (float64): the chain
+    rebuilds its geometries (every dtype's) whenever its buffers change, so the value is
+    computed again then."""
+    entries = _CACHE.setdefault(g, {})
     if key not in entries:
         entries[key] = make()
     return entries[key]
 
 
-def _limits(chain: Chain, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+def _limits(chain: Chain, g: Geometry, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
     """:func:`~iiwa_torch.ik.lm_setup.inner_limits` for ``dtype``, as float64 numpy ``(n,)`` each."""
-    return _cached(chain, dtype, "limits", lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
+    return _cached(g, ("limits", dtype), lambda: tuple(x.double().numpy() for x in inner_limits(chain, dtype)))
 
 
 def _pool(chain: Chain, size: int, generator, work: torch.dtype, mode: str):
@@ -124,77 +134,93 @@ def _pool(chain: Chain, size: int, generator, work: torch.dtype, mode: str):
     return pool.double().numpy(), tuple(x.numpy() for x in pool_features(chain, pool, mode))
 
 
-def solve_small(
-    chain: Chain, target: torch.Tensor, q0, rest, *, mode: str, work: torch.dtype, generator, **options
-) -> IKResult:
+def solve_small(chain: Chain, target: torch.Tensor, q0, rest, options: SolveOptions, work: torch.dtype, generator
+                ) -> IKResult:
     """:func:`~iiwa_torch.ik.solve` for checked inputs that :func:`applies` to: ``target`` as
     given, ``q0`` as given or None, ``rest (b, n)`` in ``work`` (or None), ``work`` the dtype
-    the batched loop would iterate in (the seed pool is drawn and ranked in it), ``options``
-    the remaining options of :func:`~iiwa_torch.ik.solve` (``seeds`` resolved)."""
-    dtype, n, seeds = target.dtype, chain.n_joints, options["seeds"]
+    the batched loop would iterate in (the seed pool is drawn and ranked in it)."""
+    dtype, mode = target.dtype, options.mode
+    g = chain.geometry(torch.float64)  # once: each call checks the chain's buffers for changes
     batch = target.shape[:-2] if mode == "pose" else target.shape[:-1]
-    flat = target.detach().numpy().reshape(-1, *target.shape[len(batch) :])
-    b = flat.shape[0]
-    lo, hi = _limits(chain, dtype)
+    flat = (target.detach() if target.requires_grad else target).numpy().reshape(-1, *target.shape[len(batch) :])
+    lo, hi = _limits(chain, g, dtype)
     first = None if q0 is None else into_limits(broadcast_q(q0, chain, batch, "q0", torch.float64).numpy(), lo, hi)
-    shift = 0 if first is None else 1
-    pool = order = None
-    if seeds > shift:
-        size = max(POOL, seeds)
-        if generator is None:  # a fresh generator seeded with 0 draws the same pool every time
-            pool, features = _cached(chain, work, (size, mode), lambda: _pool(chain, size, None, work, mode))
-        else:
-            pool, features = _pool(chain, size, generator, work, mode)
-        # numpy's product runs on OpenBLAS's own threads above 2^18 multiply-adds (some 340 targets),
-        # whose wake-up on a busy machine can cost milliseconds; torch's keeps to torch's threads
-        xp = (lambda x: x) if b <= 256 else torch.from_numpy
-        distance = pool_distance(chain, pool, xp(flat.astype(_NUMPY[work])), mode, tuple(map(xp, features)))
-        order = np.asarray(seed_ranks(distance, seeds - shift))  # (ranks, b)
+    pool, order = _seed_order(chain, g, flat, options, work, generator, 0 if first is None else 1)
     flat = flat.astype(np.float64, copy=False)
     # contiguous copies: the compiled kernels are typed (and compiled) for C-ordered arrays
     pos, rot = (np.ascontiguousarray(flat), None) if mode == "position" else (flat[:, :3, 3].copy(),
                                                                             flat[:, :3, :3].copy())
     rest = None if rest is None else rest.double().numpy()
-    problems = _Problems(chain, pos, rot, rest, lo, hi, options, work)
+    problems = _Problems(g, pos, rot, rest, lo, hi, options, work)
     problems.run(pool, order, first)
+    return _answer(chain.geometry(dtype) if dtype != torch.float64 else g, problems, batch, dtype, options)
+
+
+def _seed_order(chain: Chain, g: Geometry, flat: np.ndarray, options: SolveOptions, work: torch.dtype, generator,
+                shift: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The seeds after the first ``shift`` (q0): the pool ``(P, n)`` drawn from ``generator`` (the
+    default one's cached per geometry) and the ranks ``(seeds - shift, b)`` of its entries
+    nearest each target ``flat``; ``(None, None)`` when q0 is the only seed."""
+    seeds, mode = options.seeds, options.mode
+    if seeds <= shift:
+        return None, None
+    size = max(POOL, seeds)
+    if generator is None:  # a fresh generator seeded with 0 draws the same pool every time
+        pool, features = _cached(g, (size, mode, work), lambda: _pool(chain, size, None, work, mode))
+    else:
+        pool, features = _pool(chain, size, generator, work, mode)
+    # numpy's product runs on OpenBLAS's own threads above 2^18 multiply-adds (some 340 targets),
+    # whose wake-up on a busy machine can cost milliseconds; torch's keeps to torch's threads
+    xp = (lambda x: x) if flat.shape[0] <= 256 else torch.from_numpy
+    distance = pool_distance(chain, pool, xp(flat.astype(_NUMPY[work])), mode, tuple(map(xp, features)))
+    return pool, np.asarray(seed_ranks(distance, seeds - shift))  # (ranks, b)
+
+
+def _answer(g: Geometry, problems: _Problems, batch: torch.Size, dtype: torch.dtype, options: SolveOptions
+            ) -> IKResult:
+    """The kernel's answers as :class:`IKResult` in ``dtype``: errors and success from the end
+    pose of ``q`` in ``dtype`` by ``chain.fk``'s compiled kernel on the chain's geometry ``g`` in
+    ``dtype`` (float64 inside, the pose rounded to ``dtype`` as ``chain.fk`` returns it; its
+    input checks are moot on the kernel's own answers)."""
     out_dtype = _NUMPY[dtype]
-    q_flat = torch.from_numpy(problems.q.astype(out_dtype, copy=False))
-    # errors and success from the answer's end pose by chain.fk's kernel (the batched path calls
-    # chain.fk; its input checks are moot on the kernels' own answers)
-    pose = end_pose(chain.geometry(dtype), q_flat).numpy().astype(np.float64, copy=False)
-    rot_in = np.empty((0, 3, 3)) if rot is None else rot
-    pos_err, rot_err = compiled.kernels().pose_errors(pose, pos, rot_in, problems.eps)
-    success = (pos_err <= options["pos_tol"]) & (rot_err <= options["rot_tol"])
-    pos_err, rot_err = (x.astype(out_dtype, copy=False) for x in (pos_err, rot_err))
-    success, pos_err, rot_err, used = (torch.from_numpy(x.reshape(batch)) for x in (success, pos_err, rot_err,
-                                                                                    problems.used))  # fmt: skip
-    return IKResult(q_flat.reshape(*batch, n), success, pos_err, rot_err, used)
+    q = problems.q.astype(out_dtype, copy=False)
+    kernels = compiled.kernels()
+    pose = kernels.end_poses(*g.float_arrays, q if dtype == torch.float64 else q.astype(np.float64))
+    if dtype != torch.float64:
+        pose = pose.astype(out_dtype).astype(np.float64)
+    rot = _no_rows((0, 3, 3), np.float64) if problems.rot is None else problems.rot
+    pos_err, rot_err = kernels.pose_errors(pose, problems.pos, rot, problems.eps)
+    success = (pos_err <= options.pos_tol) & (rot_err <= options.rot_tol)
+    shape = (*batch, q.shape[1])
+    return IKResult(torch.from_numpy(q.reshape(shape)), torch.from_numpy(success.reshape(batch)),
+                    torch.from_numpy(pos_err.astype(out_dtype, copy=False).reshape(batch)),
+                    torch.from_numpy(rot_err.astype(out_dtype, copy=False).reshape(batch)),
+                    torch.from_numpy(problems.used.reshape(batch)))
 
 
-def track_small(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, *, pos_tol: float, rot_tol: float,
-                rest_gain: float, iterations: int) -> torch.Tensor:
+def track_small(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, options: SolveOptions) -> torch.Tensor:
     """The gradient method of :func:`~iiwa_torch.trajectory.track` for checked ``poses (..., T, 4, 4)``
     and ``q0 (..., n)`` of the poses' batch shape that :func:`applies` to: each pose solved as
-    :func:`~iiwa_torch.ik.solve` (here :func:`solve_small`) solves it with the one seed of the
-    previous answer (``q0`` first) and ``rest=q0``, so the same iterations and answers, without
-    each call's checks, set-up and error report -> ``q (..., T, n)`` in the poses' dtype."""
-    check_solve_options("pose", 1.0, pos_tol, rot_tol, iterations, 2, rest_gain, "auto")
+    :func:`~iiwa_torch.ik.solve` (here :func:`solve_small`) solves it with ``options`` (one seed)
+    from the previous answer (``q0`` first) and ``rest=q0``, so the same iterations and answers,
+    without each call's checks, set-up and error report -> ``q (..., T, n)`` in the poses' dtype."""
     dtype, n = poses.dtype, chain.n_joints
     batch, steps = poses.shape[:-3], poses.shape[-3]
-    work = work_dtype(dtype, "auto", pos_tol, rot_tol)
+    work = work_dtype(dtype, options)
     flat = poses.reshape(-1, steps, 4, 4).transpose(0, 1).double().numpy()  # (T, b, 4, 4)
     pos, rot = np.ascontiguousarray(flat[..., :3, 3]), np.ascontiguousarray(flat[..., :3, :3])
     start = q0.to(dtype)
-    rest = None if rest_gain == 0 else broadcast_q(start, chain, batch, "rest", work).double().numpy()
-    options = {"rot_weight": 1.0, "rest_gain": rest_gain, "iterations": iterations, "check_every": 2, "seeds": 1,
-               "pos_tol": pos_tol, "rot_tol": rot_tol}  # fmt: skip
-    lo, hi = _limits(chain, dtype)
-    problems = _Problems(chain, pos[0], rot[0], rest, lo, hi, options, work)
+    rest = None if options.rest_gain == 0 else broadcast_q(start, chain, batch, "rest", work).double().numpy()
+    g = chain.geometry(torch.float64)
+    lo, hi = _limits(chain, g, dtype)
+    problems = _Problems(g, pos[0], rot[0], rest, lo, hi, options, work)
     q = np.empty((steps, pos.shape[1], n), dtype=_NUMPY[dtype])
-    previous = broadcast_q(start, chain, batch, "q0", torch.float64).numpy()
+    # q0 into the limits; every later start is an answer, within them already (also rounded
+    # to float32: the float32 limits lo, hi are representable, and rounding keeps the order)
+    previous = into_limits(broadcast_q(start, chain, batch, "q0", torch.float64).numpy(), lo, hi)
     for k in range(steps):  # sequential by nature: each step starts from the last
         problems.aim(pos[k], rot[k])
-        problems.run(None, None, into_limits(previous, lo, hi))
+        problems.run(None, None, previous)
         q[k] = problems.q
         previous = q[k].astype(np.float64)
     return torch.from_numpy(q).transpose(0, 1).reshape(*batch, steps, n)
