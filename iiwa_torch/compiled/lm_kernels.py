@@ -16,7 +16,7 @@ __all__ = ["cholesky_solve", "into_limits", "lm_round", "lm_rounds"]
 def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
     """``q (n,)`` -> weighted Jacobian into ``J (m, n)`` and weighted error into ``e (m,)`` (m = 6,
     or 3 without ``has_rot``); returns the squared weighted error, position and rotation error.
-    The torch loop's ``_evaluate`` (:mod:`iiwa_torch.ik.gradient`) for one slot."""
+    The torch loop's ``_evaluate`` (:mod:`iiwa_torch.ik.lm`) for one slot."""
     transforms, params, base, tool = arrays
     pose, Z, P, J6 = scratch
     frames_of(transforms, params, base, tool, q, pose, Z, P, np.empty((0, 4, 3)))
@@ -75,8 +75,8 @@ def cholesky_solve(A, y, k, floor):
 def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest, opts, limits, lo, hi, work):
     """One LM step of one slot, in place on its ``q (n,)``, ``J (m, n)``, ``e (m,)``; returns the
     new ``E``, position and rotation errors and damping (the old ones but the damping if the
-    step is rejected). ``opts``: weight, rest gain, eps, lam_min, LAMBDA0, DAMP_DOWN, DAMP_UP.
-    The torch loop's ``_lm_step`` (:mod:`iiwa_torch.ik.gradient`) for one slot: ``J diag(free) J^T + lam I`` solved by
+    step is rejected). ``opts``: weight, rest gain, eps, lam_min, then SolveOptions.damping, damping_down, damping_up (:mod:`iiwa_torch.ik.options`).
+    The torch loop's ``_lm_step`` (:mod:`iiwa_torch.ik.lm`) for one slot: ``J diag(free) J^T + lam I`` solved by
     Cholesky (pivots floored at lam_min, as :func:`~iiwa_torch.ik.dls.cholesky_solve_batch_last`)."""
     weight, rest_gain, eps, lam_min, lambda0, damp_down, damp_up = opts
     m, n = J.shape
@@ -129,7 +129,7 @@ def _rank_slots(q, problem, number, status, key, done, lowest, used, lo, hi, ste
     every error, the lowest seed number first) and whether it converged into ``done``, each
     problem's lowest key into ``lowest`` (from its best so far), the iterations since the last
     check into ``used``. ``status``: E, pos_err, rot_err, active ``(s,)``; ``bounds``: free_steps,
-    seeds, pos_tol, rot_tol. The torch loop's ``_check_slots`` (:mod:`iiwa_torch.ik.gradient`)."""
+    seeds, pos_tol, rot_tol. The torch loop's ``_check_slots`` (:mod:`iiwa_torch.ik.lm`)."""
     E, pos_err, rot_err, active = status
     free_steps, seeds, pos_tol, rot_tol = bounds
     for k in range(q.shape[0]):
@@ -180,7 +180,7 @@ def lm_round(transforms, params, base, tool, q, problem, number, pos, rot, rest,
     ``opts`` as :func:`_lm_step` then pos_tol, rot_tol; ``counts`` iterations, check_every,
     free_steps, seeds. Records each problem's best slot in ``best_q (b, n)``, its key
     ``best_E (b,)`` and iterations ``used (b,)``, in place.
-    The torch loop's ``_run_round`` (:mod:`iiwa_torch.ik.gradient`)."""
+    The torch loop's ``_run_round`` (:mod:`iiwa_torch.ik.lm`)."""
     arrays = (transforms, params, base, tool)
     iterations, check_every, free_steps, seeds = counts[0], counts[1], counts[2], counts[3]
     weight, eps, lam_min, lambda0 = opts[0], opts[2], opts[3], opts[4]
@@ -237,7 +237,7 @@ def lm_rounds(transforms, params, base, tool, pool, order, first, pos, rot, rest
     """Every round of seeds of ``b = best_q.shape[0]`` problems, one seed per problem a round:
     ``first (b, n)`` (q0; 0 rows: none), then the pool ``(P, n)`` entries of ranks ``order (ranks, b)``,
     until a problem converges or runs out of its ``counts[3]`` seeds; the rest as :func:`lm_round`.
-    The torch loop's ``_run_rounds`` (:mod:`iiwa_torch.ik.gradient`) with rounds one seed wide."""
+    The torch loop's ``_run_rounds`` (:mod:`iiwa_torch.ik.lm`) with rounds one seed wide."""
     b, n = best_q.shape
     shift = 1 if first.shape[0] else 0
     remaining = np.arange(b)
