@@ -75,7 +75,8 @@ def cholesky_solve(A, y, k, floor):
 def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest, opts, limits, lo, hi, work):
     """One LM step of one slot, in place on its ``q (n,)``, ``J (m, n)``, ``e (m,)``; returns the
     new ``E``, position and rotation errors and damping (the old ones but the damping if the
-    step is rejected). ``opts``: weight, rest gain, eps, lam_min, then SolveOptions.damping, damping_down, damping_up (:mod:`iiwa_torch.ik.options`).
+    step is rejected). ``opts``: weight, rest gain, eps, lam_min, then
+    :class:`~iiwa_torch.ik.options.SolveOptions`' damping, damping_down and damping_up.
     The torch loop's ``_lm_step`` (:mod:`iiwa_torch.ik.lm`) for one slot: ``J diag(free) J^T + lam I`` solved by
     Cholesky (pivots floored at lam_min, as :func:`~iiwa_torch.ik.dls.cholesky_solve_batch_last`)."""
     weight, rest_gain, eps, lam_min, lambda0, damp_down, damp_up = opts
