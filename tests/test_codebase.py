@@ -36,7 +36,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "envs/core.py:__init__": 72,
     "train/evaluate.py:evaluate": 71,
     "train/evaluate.py:_rollouts_obstacles": 71,
-    "iiwa_torch/collision.py:_distances": 70,
     "envs/core.py:_new_episodes": 64,
     "iiwa_torch/ik/analytic/planar.py:planar3r": 68,
     "benchmarks/bench_workspace.py:main": 68,
