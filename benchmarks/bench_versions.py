@@ -10,7 +10,7 @@ Calls: ``fk`` of one configuration (``(7,)``, one call) and of 100,000, float32 
 ``jacobian`` of 10,000 (both dtypes); ``ik.solve`` of 10,000 random reachable poses (float64
 targets, ``bench_ik``'s) and of one (``bench_small``'s); ``analytic.iiwa_solve`` of one pose and
 ``trajectory.track`` of one 50-pose line (``bench_small``'s); a step of the vector env at N =
-65,536 with collisions checked. ``--calls clearance`` times ``collision.clearance`` instead, float64
+65,536 with collisions checked. ``--calls clearance`` times (CPU time) ``collision.clearance`` instead, float64
 on 1 (``(7,)``), 8 and 32 configurations against the floor and itself, with two spheres and two
 boxes besides, and with them again with ``CLEARANCE_NUMPY_BATCH`` set to 0 (the numpy obstacles
 off: the torch path); and one single-env step of ``IiwaReach-v0`` and ``IiwaReachObstacles-v0``.
@@ -91,15 +91,21 @@ def _obstacles(dtype):
 
 
 def clearance_child() -> dict:
-    """``--calls clearance``: seconds per call of each clearance call and env step."""
+    """``--calls clearance``: CPU seconds per call of each clearance call and env step (1 thread:
+    the process's CPU time is the call's, whatever else runs on the cores)."""
+    import time
+    from functools import partial
+
     import gymnasium as gym
     import numpy as np
     import torch
     from bench_env import single_env_runner
-    from common import timeit
+    from common import timeit as wall_timeit
 
     import envs  # noqa: F401  (registers the ids)
     from iiwa_torch import collision, robots
+
+    timeit = partial(wall_timeit, clock=time.process_time)
 
     torch.set_num_threads(1)
     chain = robots.iiwa14()
@@ -149,6 +155,7 @@ def markdown(payload: dict) -> str:
     (before, old_commit), (after, new_commit) = payload["trees"].items()
     medians, info = payload["medians"], payload["machine"]
     calls = "" if payload.get("calls", "headline") == "headline" else f" --calls {payload['calls']}"
+    clock = ", CPU time" if calls else ""
     rows = []
     for key, old in medians[before].items():
         new = medians[after][key]
@@ -156,7 +163,8 @@ def markdown(payload: dict) -> str:
     return (
         f"`python benchmarks/bench_versions.py {before} {after} --rounds {payload['rounds']}{calls}`: the iiwa 14 "
         f"preset's calls under {before} ({old_commit}) and {after} ({new_commit}), one child process per tree and "
-        "round, alternating; medians over the rounds of each child's median (`common.timeit`), 1 thread in each child, "
+        f"round, alternating; medians over the rounds of each child's median (`common.timeit`{clock}), 1 thread in "
+        "each child, "
         f"IIWA_TORCH_NUMBA {info['IIWA_TORCH_NUMBA']}. Load (1 min) at each child's start: "
         f"{', '.join(f'{x:.1f}' for x in payload['loads'])}.\n\n"
         + markdown_table(["call", "before", "after", "speed-up (before / after)"], rows)
