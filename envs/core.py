@@ -414,11 +414,10 @@ class ReachTask:
         if self.observe_clearance:  # the rows' capsule clearances say whether it collides
             clearance, collision = self.clearance_rows(q_t, state.obstacles)
             collision = xp.of(collision)
-        if xp is NUMPY:  # one env: its frames once, in Python floats, for the goal and the clearance
-            frames, end = kin.frame_lists(self.robot.geometry(self.dtype), q_t)
-            achieved = self.goals.goal_of_frame(end, self.dtype)
+        if xp is NUMPY:  # one env: its end frame in Python floats for the goal
+            achieved = self.goals.goal_of_frame(kin.frame_lists(self.robot.geometry(self.dtype), q_t)[1], self.dtype)
             if world is not None and collision is None:
-                collision = np.array([world.clearance_of_one(q_t, block, frames) < 0])
+                collision = np.array([world.clearance_of_one(q_t, block) < 0])
         else:
             achieved = self.goal_of(q_t, (cos_t, sin_t))
             if world is not None and collision is None:  # one clearance call for the batch

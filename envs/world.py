@@ -25,8 +25,8 @@ from iiwa_torch.collision import (
     Capsules,
     World,
     clearance,
-    clearance_of_frames,
-    obstacle_clearance_of_frames,
+    clearance_of_one,
+    obstacle_clearance_of_one,
     own_clearance_of_one,
     pairwise_clearance,
 )
@@ -140,15 +140,13 @@ class ObstacleWorld:
         obstacles of ``block`` (one batched :func:`~iiwa_torch.collision.clearance` call)."""
         return clearance(self.chain, q, self.world_of(block, extra), self.capsules)
 
-    def clearance_of_one(self, q: Tensor, block: Tensor | None = None, frames: list[tuple] | None = None) -> float:
+    def clearance_of_one(self, q: Tensor, block: Tensor | None = None) -> float:
         """:meth:`clearance` of one CPU configuration ``q`` (nj numbers, nothing to differentiate)
         and one env's ``block`` ``(SLOT_SIZE * M, 1)``, unchecked, exact where negative: a value >= 0
         only has the clearance's sign (0 for 0), which is all the envs ask of it. Without active
-        obstacles, :func:`~iiwa_torch.collision.own_clearance_of_one` (compiled); with them,
-        :func:`~iiwa_torch.collision.clearance_of_frames` from ``frames`` (the first of
-        :func:`iiwa_torch.kinematics.frame_lists` of ``q``, computed if not given), the block's
-        active obstacles made float64 arrays once per block (the stand-ins of absent ones are left
-        out: they are never the minimum)."""
+        obstacles, :func:`~iiwa_torch.collision.own_clearance_of_one`; with them,
+        :func:`~iiwa_torch.collision.clearance_of_one`, the block's active obstacles made float64
+        arrays once per block (the stand-ins of absent ones are left out: they are never the minimum)."""
         spheres = boxes = None
         if block is not None and block.shape[0]:
             last, (spheres, boxes) = self._last_solids
@@ -157,9 +155,7 @@ class ObstacleWorld:
                 self._last_solids = (block, (spheres, boxes))
         if spheres is None and boxes is None:
             return own_clearance_of_one(self.chain, q, self.floor, self.capsules)
-        if frames is None:
-            frames = kin.frame_lists(self.chain.geometry(q.dtype), q)[0]
-        return clearance_of_frames(self.capsules, frames, self.floor, spheres, boxes, exact_below=0.0)
+        return clearance_of_one(self.chain, q, self.floor, self.capsules, spheres, boxes, exact_below=0.0)
 
     def _active_solids(self, block: Tensor) -> tuple:
         """One env's block ``(SLOT_SIZE * M, 1)`` -> its active spheres and boxes as
@@ -171,7 +167,7 @@ class ObstacleWorld:
 
     def is_free(self, q: Tensor, block: Tensor | None = None, extra: int = 0) -> Tensor:
         """``clearance(q, block, extra) > 0``, bools ``(m, *extra)``; for one env on the CPU
-        (``m = 1``, nothing to differentiate) by the float path of each configuration
+        (``m = 1``, nothing to differentiate) one configuration at a time
         (:meth:`clearance_of_one`), with the obstacles built once for the episode's steps."""
         if q.shape[0] != 1 or not kin.untracked_cpu(q):
             return self.clearance(q, block, extra) > 0
@@ -190,9 +186,7 @@ class ObstacleWorld:
         env = torch.arange(n, device=key.device).repeat_interleave(m)  # one item per (env, slot)
         item_slot = slot.repeat(n)
         pending = (item_slot < count[env]).nonzero().squeeze(-1)
-        # one env on the CPU: its start's frames once, each item by the float path
-        frames = kin.frame_lists(self.chain.geometry(start.dtype), start)[0] if n == 1 and kin.untracked_cpu(start) \
-            else None
+        one = n == 1 and kin.untracked_cpu(start)  # one env on the CPU: each item in numpy
         for r in range(rounds):
             if not pending.numel():
                 break
@@ -201,9 +195,9 @@ class ObstacleWorld:
             u = u.view(-1, m, _DRAWS_PER_SLOT)[torch.arange(e.shape[0], device=e.device), s]  # (p, 8)
             rows = self._slot_rows(u)
             # each item alone against its env's start (rows.T: one slot per column)
-            if frames is not None:
-                d = obstacle_clearance_of_frames(self.capsules, frames, *_numpy_solids(rows.T),
-                                                 exact_below=START_MARGIN)
+            if one:
+                d = obstacle_clearance_of_one(self.chain, start, self.capsules, *_numpy_solids(rows.T),
+                                              exact_below=START_MARGIN)
                 ok = torch.from_numpy(d > START_MARGIN)
             else:
                 d = pairwise_clearance(self.chain, start[e], obstacle_world(rows.T, None), self.capsules)

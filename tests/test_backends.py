@@ -278,11 +278,11 @@ def test_capsule_clearance_of_one_configuration(monkeypatch, name):
 
 
 @pytest.mark.parametrize("name", ["iiwa14", "panda"])
-@pytest.mark.parametrize("kernels", ["compiled", "floats"])
+@pytest.mark.parametrize("kernels", ["compiled", "torch"])
 def test_own_clearance_of_one_configuration(monkeypatch, name, kernels):
     """collision.own_clearance_of_one (the single env's collision flag) against the torch path of
     collision.clearance in float64, with the floor at three heights or none: the compiled kernel,
-    or without numba the Python floats of its frames."""
+    or without numba torch's own distances."""
     if name not in CHAINS:
         pytest.skip("pybullet_data (the Panda's URDF) not installed")
     if kernels == "compiled":

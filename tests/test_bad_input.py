@@ -581,11 +581,12 @@ EXEMPT = {
     "iiwa_torch.collision:Capsules": "a model type, built by robot_capsules",
     "iiwa_torch.collision:Clearances": "a result type",
     "iiwa_torch.collision:CLEARANCE_NUMPY_BATCH": "a constant",
-    "iiwa_torch.collision:clearance_of_frames": "documented unchecked kernel of one configuration (the single env's "
-    "step); clearance is the checked entry and runs it",
+    "iiwa_torch.collision:MAX_EXTENT": "a constant",
+    "iiwa_torch.collision:clearance_of_one": "documented unchecked kernel of one configuration (the single env's "
+    "step); clearance is the checked entry and runs the same functions",
     "iiwa_torch.collision:capsule_clearance_of_one": "documented unchecked kernel of one configuration (the single "
     "env's clearance rows); capsule_clearance is the checked entry and runs it",
-    "iiwa_torch.collision:obstacle_clearance_of_frames": "documented unchecked kernel of one configuration (the "
+    "iiwa_torch.collision:obstacle_clearance_of_one": "documented unchecked kernel of one configuration (the "
     "single env's obstacle draws); pairwise_clearance is the checked entry",
     "iiwa_torch.collision:own_clearance_of_one": "documented unchecked kernel of one configuration (the single "
     "env's collision flag); clearance is the checked entry",

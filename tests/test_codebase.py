@@ -23,7 +23,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "envs/core.py:__init__": 72,
     "train/evaluate.py:evaluate": 71,
     "train/evaluate.py:_rollouts_obstacles": 71,
-    "iiwa_torch/collision.py:_distances": 70,
     "envs/core.py:_new_episodes": 64,
 }
 

@@ -1,7 +1,8 @@
 """The paths clearance takes without autograd on the CPU against its torch path (itself tested
-against coal in test_collision.py), which runs whenever something requires grad: numpy for small
-batches, the compiled kernel (numba) for larger ones against the floor alone, both with numba on
-and off (``small_kernel``: off, the larger batches take the torch path)."""
+against coal in test_collision.py), which runs whenever something requires grad: for small batches
+the own distances compiled (numba; without it torch's) and the spheres and boxes in numpy, for
+larger ones the compiled kernel against the floor alone, both with numba on and off
+(``small_kernel``: off, the larger batches take the torch path)."""
 
 from __future__ import annotations
 
@@ -20,16 +21,16 @@ PRESETS = sorted(robots.PRESETS)
 
 @pytest.fixture
 def numpy_calls(monkeypatch):
-    """Counts the calls of the numpy path (each call's number of configurations), to tell which
-    path a query took."""
+    """Counts the calls of the small-batch path (each call's number of configurations), to tell
+    which path a query took."""
     calls = []
-    real = collision._clearance_numpy
+    real = collision.small._clearance_small
 
     def spy(chain, q, world, capsules):
         calls.append(q.numel() // chain.n_joints)
         return real(chain, q, world, capsules)
 
-    monkeypatch.setattr(collision, "_clearance_numpy", spy)
+    monkeypatch.setattr(collision.small, "_clearance_small", spy)
     return calls
 
 
@@ -67,7 +68,7 @@ def _spheres_touching(chain, q: torch.Tensor) -> World:
 
 
 @pytest.mark.parametrize("name", PRESETS)
-def test_numpy_path_equals_torch_path_floor_and_spheres(name, numpy_calls):
+def test_numpy_path_equals_torch_path_floor_and_spheres(name, small_kernel, numpy_calls):
     chain = robots.PRESETS[name]()
     rng = np.random.default_rng(7)
     q = _configurations(chain, 3000, rng)
@@ -161,9 +162,9 @@ def _boxes_around(chain, q: torch.Tensor, rng: np.random.Generator) -> World:
 
 
 @pytest.mark.parametrize("name", ["iiwa14", "puma560"])
-def test_numpy_path_equals_torch_path_with_boxes(name, numpy_calls):
-    """Boxes (with spheres and the floor) per configuration, in batches and one by one (the
-    float path for a configuration's own distances): the torch path's values to 1e-12 m."""
+def test_numpy_path_equals_torch_path_with_boxes(name, small_kernel, numpy_calls):
+    """Boxes (with spheres and the floor) per configuration, in batches and one by one: the torch
+    path's values to 1e-12 m."""
     chain = robots.PRESETS[name]()
     rng = np.random.default_rng(5)
     q = _configurations(chain, 640, rng)
@@ -211,13 +212,13 @@ def test_the_shared_model_first_used_in_inference_mode_still_differentiates(monk
 def compiled_calls(monkeypatch):
     """The batch sizes the compiled path of clearance ran, to tell which path a query took."""
     calls = []
-    real = collision._clearance_compiled
+    real = collision.small._clearance_compiled
 
     def spy(chain, q, world, capsules):
         calls.append(q.numel() // chain.n_joints)
         return real(chain, q, world, capsules)
 
-    monkeypatch.setattr(collision, "_clearance_compiled", spy)
+    monkeypatch.setattr(collision.small, "_clearance_compiled", spy)
     return calls
 
 

@@ -1,0 +1,289 @@
+"""Capsule models: K capsules (a segment and a radius) fixed in a chain's frames, the self pairs
+worth checking, the presets' models (sizes and sources: docs/collision.md), and every capsule
+placed in the world for a batch of configurations."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import kinematics as kin
+from ..chain import Chain
+from ..checks import check_finite, check_instance, check_nonnegative, check_positive, is_number
+from ..dh import DHChain
+from .primitives import segment_gap
+
+__all__ = ["Capsules", "capsule_segments", "pair_gaps", "robot_capsules", "self_collision_pairs"]
+
+
+@dataclass(frozen=True)
+class Capsules:
+    """K capsules fixed in a chain's frames, and which pairs are checked.
+
+    Attributes:
+        names: K names.
+        frames: K indices into ``chain.fk_all(q)``'s frames (0 = base, i = link frame i).
+        points: ``(K, 2, 3)`` float64 end points of each segment in its frame, metres.
+        radii: ``(K,)`` float64 radii, metres, > 0.
+        pairs: self-collision pairs ``(i, j)``, ``i < j``, that are checked.
+        world: ``(K,)`` bool, capsules checked against walls, spheres, boxes and capsules.
+        floor: ``(K,)`` bool, capsules checked against the floor.
+        floor_height: the floor a query with ``world=None`` uses (``None``: no floor).
+
+    Use :meth:`build` to make one; it validates everything.
+    """
+
+    names: tuple[str, ...]
+    frames: tuple[int, ...]
+    points: Tensor
+    radii: Tensor
+    pairs: tuple[tuple[int, int], ...]
+    world: Tensor
+    floor: Tensor
+    floor_height: float | None = 0.0
+
+    def __post_init__(self) -> None:
+        k = len(self.names)
+        if k == 0 or len(set(self.names)) != k:
+            raise ValueError(f"names must be K >= 1 distinct names, got {self.names}")
+        if len(self.frames) != k or not all(isinstance(f, int) and f >= 0 for f in self.frames):
+            raise ValueError(f"frames must be {k} non-negative frame indices, got {self.frames}")
+        for name, value, shape in (("points", self.points, (k, 2, 3)), ("radii", self.radii, (k,))):
+            if not isinstance(value, Tensor) or value.dtype != torch.float64 or tuple(value.shape) != shape:
+                raise ValueError(f"{name} must be a float64 tensor of shape {shape}, got {_describe(value)}")
+            check_finite(value, name)
+        if not (self.radii > 0).all():
+            raise ValueError(f"radii must be positive, got {self.radii.tolist()}")
+        for name, mask in (("world", self.world), ("floor", self.floor)):
+            if not isinstance(mask, Tensor) or mask.dtype != torch.bool or tuple(mask.shape) != (k,):
+                raise ValueError(f"{name} must be a bool tensor of shape ({k},), got {_describe(mask)}")
+        for pair in self.pairs:
+            if len(pair) != 2 or not (0 <= pair[0] < pair[1] < k):
+                raise ValueError(f"pairs must be (i, j) with 0 <= i < j < {k}, got {pair}")
+        if len(set(self.pairs)) != len(self.pairs):
+            raise ValueError(f"pairs contains duplicates: {self.pairs}")
+        if self.floor_height is not None and not (
+            is_number(self.floor_height) and math.isfinite(self.floor_height)
+        ):
+            raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
+        if self.floor_height is not None:
+            object.__setattr__(self, "floor_height", float(self.floor_height))
+        object.__setattr__(self, "_cache", {})
+
+    def tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+        """Index and geometry tensors of the queries in ``dtype`` on ``device``, built once
+        (the model is frozen): ``frames (K,)``, ``local (K, 4, 2)`` homogeneous end points,
+        ``first``/``second (P,)`` and ``pair_radius (P, 1)`` of the self pairs,
+        ``floor (F,)`` and ``floor_radius (F, 1)``, ``world (W,)`` and ``world_radius (W, 1)``."""
+        key = (dtype, device)
+        if key not in self._cache:
+            with torch.inference_mode(False):  # the model is shared (robot_capsules): no inference tensors in it
+                self._cache[key] = self._build_tables(dtype, device)
+        return self._cache[key]
+
+    def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+        """:meth:`tables`, built."""
+        options = {"device": device}
+        index = {"dtype": torch.long, **options}
+        radii = self.radii.to(dtype=dtype, **options)
+        first, second = (
+            (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
+        )
+        floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
+        ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
+        return {
+            "frames": torch.tensor(self.frames, **index),
+            "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
+            "first": first,
+            "second": second,
+            "pair_radius": (radii[first] + radii[second])[:, None],
+            "floor": floor,
+            "floor_radius": radii[floor, None],
+            "world": world,
+            "world_radius": radii[world, None],
+        }
+
+    def numpy_tables(self) -> dict[str, np.ndarray]:
+        """:meth:`tables` in float64 on the CPU as numpy arrays, built once."""
+        if "numpy" not in self._cache:
+            tables = self.tables(torch.float64, torch.device("cpu"))
+            self._cache["numpy"] = {k: v.numpy() for k, v in tables.items()}
+        return self._cache["numpy"]
+
+    @classmethod
+    def build(
+        cls,
+        chain: Chain,
+        names,
+        frames,
+        points,
+        radii,
+        *,
+        pairs=None,
+        world=None,
+        floor=None,
+        floor_height: float | None = 0.0,
+    ) -> Capsules:
+        """Capsules for ``chain``, validated against it.
+
+        ``points (K, 2, 3)`` and ``radii (K,)`` in metres; ``frames`` index ``chain.fk_all``'s
+        ``n + 1`` frames. ``pairs=None`` takes :func:`self_collision_pairs`; ``world``/``floor``
+        default to every capsule.
+        """
+        names = tuple(str(n) for n in names)
+        k = len(names)
+        frames = tuple(int(f) for f in frames)
+        if any(f > chain.n_joints for f in frames):
+            raise ValueError(f"frames must index the {chain.n_joints + 1} frames of fk_all, got {frames}")
+        model = cls(
+            names=names,
+            frames=frames,
+            points=torch.as_tensor(points, dtype=torch.float64),
+            radii=torch.as_tensor(radii, dtype=torch.float64),
+            pairs=(),
+            world=torch.ones(k, dtype=torch.bool) if world is None else torch.as_tensor(world),
+            floor=torch.ones(k, dtype=torch.bool) if floor is None else torch.as_tensor(floor),
+            floor_height=floor_height,
+        )
+        chosen = self_collision_pairs(chain, model) if pairs is None else tuple(tuple(int(i) for i in p) for p in pairs)
+        return dataclasses.replace(model, pairs=chosen)
+
+
+def _describe(x) -> str:
+    if isinstance(x, Tensor):
+        return f"{x.dtype} tensor of shape {tuple(x.shape)}"
+    return type(x).__name__
+
+
+def self_collision_pairs(
+    chain: Chain, capsules: Capsules, samples: int = 4096, seed: int = 0
+) -> tuple[tuple[int, int], ...]:
+    """Pairs worth checking: every ``(i, j)`` except neighbours in the list (``j = i + 1``, the
+    links on either side of a joint) and pairs that overlap in every one of ``samples``
+    uniform in-limit configurations (drawn with ``seed``): those touch by construction."""
+    check_instance(chain, Chain, "chain")
+    check_instance(capsules, Capsules, "capsules")
+    check_positive(samples, "samples", integer=True)
+    check_nonnegative(seed, "seed", integer=True)
+    q = chain.random_q(samples, generator=torch.Generator().manual_seed(seed))
+    start, direction = capsule_segments(chain, capsules, q)  # components (K, samples)
+    k = len(capsules.names)
+    candidates = [(i, j) for i in range(k) for j in range(i + 2, k)]
+    if not candidates:
+        return ()
+    first, second = (torch.tensor(c) for c in zip(*candidates))
+    radii = capsules.radii.to(start)
+    gap = pair_gaps(start, direction, (radii[first] + radii[second])[:, None], first, second)
+    keep = (gap > 0).any(1).tolist()
+    return tuple(pair for pair, ok in zip(candidates, keep) if ok)
+
+
+def capsule_segments(chain: Chain, capsules: Capsules, q: Tensor) -> tuple[Tensor, Tensor]:
+    """``q (..., n)`` -> each capsule's start point and start-to-end vector in the world frame,
+    component first, ``(3, K, B)`` each over the ``B`` flattened configurations (this layout
+    keeps every elementwise op of the distance kernels contiguous). A fixed number of tensor
+    ops: the capsule frames are gathered and one batched product places both end points. Up
+    to ``SMALL_BATCH`` configurations the frames come from ``fk_all``'s 4x4 kernel, above from
+    the batch-last elementwise kernel, which computes only what the capsules use and is far faster
+    than ``fk_all`` at large batches (benchmarks/results/fk.md)."""
+    tables = capsules.tables(q.dtype, q.device)
+    flat = q.reshape(-1, chain.n_joints)
+    geometry = chain.geometry(q.dtype)
+    if flat.shape[0] <= kin.SMALL_BATCH:
+        frames = kin.all_poses(geometry, flat)[:, tables["frames"], :3]  # (B, K, 3, 4)
+        ends = (frames @ tables["local"]).permute(3, 2, 1, 0)  # (2, 3, K, B)
+    else:  # large batches: per capsule, multiply-adds of the nonzero local coordinates only (fewer bytes moved)
+        frames, _ = kin.frames_batch_last(geometry, flat.T.contiguous())  # (x, y, z, p), (3, B) each
+        ends = torch.stack(
+            [
+                torch.stack(
+                    [
+                        sum((c * axis for c, axis in zip(local, frames[frame][:3]) if c), frames[frame][3])
+                        for frame, local in zip(capsules.frames, capsules.points[:, e].tolist())
+                    ],
+                    1,
+                )
+                for e in (0, 1)
+            ]
+        )  # (2, 3, K, B)
+    return ends[0], ends[1] - ends[0]
+
+
+def pair_gaps(start: Tensor, direction: Tensor, radii: Tensor, first: Tensor, second: Tensor) -> Tensor:
+    """Signed distances ``(P, B)`` of the capsule pairs ``(first, second)`` (indices ``(P,)``,
+    radius sums ``radii (P, 1)``) from :func:`capsule_segments`'s output."""
+    return segment_gap(start[:, first], direction[:, first], start[:, second], direction[:, second]) - radii
+
+
+def _z_capsule(frame: int, z0: float, z1: float):
+    return frame, ((0.0, 0.0, z0), (0.0, 0.0, z1))
+
+
+def robot_capsules(chain: DHChain) -> Capsules:
+    """The conservative capsule model of a preset (``chain.name`` in iiwa14, iiwa7, puma560,
+    lrmate200ic, planar3r), sized from the chain's own DH lengths; radii and their sources
+    are in docs/collision.md. The base capsule is not checked against the floor it stands on;
+    the planar arm lies in the z = 0 plane, so its default world has no floor. Self pairs:
+    every pair but neighbours in the list (no other pair overlaps in every posture). Built
+    once per chain name and DH table, then shared (the model is frozen). Another arm (a URDF
+    chain) has no preset model: fit one to its URDF (:func:`iiwa_torch.capsule_fit.urdf_capsules`)
+    and pass it as ``capsules=`` to the functions that take one."""
+    check_instance(chain, Chain, "chain")
+    if not isinstance(chain, DHChain):
+        raise ValueError(f"chain {chain.name!r} is not a DH preset, so it has no preset capsule model; fit one to its "
+                         "URDF with capsule_fit.urdf_capsules(chain, source) and pass capsules=")
+    dh = chain.dh.tolist()
+    key = (chain.name, tuple(map(tuple, dh)))  # all the model depends on; it is frozen, so shared
+    if key not in _MODELS:
+        with torch.inference_mode(False):  # shared: no inference tensors in it, whoever asks first
+            _MODELS[key] = _preset_capsules(chain, dh)
+    return _MODELS[key]
+
+
+_MODELS: dict[tuple, Capsules] = {}  # robot_capsules' models, by chain name and DH table
+
+
+def _preset_capsules(chain: DHChain, dh: list[list[float]]) -> Capsules:
+    """:func:`robot_capsules`, built (validated by :meth:`Capsules.build`)."""
+    floor_height: float | None = 0.0
+    if chain.name in ("iiwa14", "iiwa7"):
+        l_bs, l_se, l_ew, l_wf = dh[0][2], dh[2][2], dh[4][2], dh[6][2]
+        spec = [
+            ("base", *_z_capsule(0, 0.0, l_bs), 0.11),
+            ("upper_arm", *_z_capsule(2, 0.0, l_se), 0.09),
+            ("forearm", *_z_capsule(4, 0.0, l_ew), 0.08),
+            ("wrist", *_z_capsule(6, 0.0, l_wf), 0.075),
+        ]
+    elif chain.name == "puma560":
+        d1, a2, d3, d4 = dh[0][2], dh[1][0], dh[2][2], dh[3][2]
+        spec = [
+            ("base", *_z_capsule(0, 0.0, d1), 0.13),
+            ("upper_arm", 2, ((-a2, 0.0, d3), (0.0, 0.0, d3)), 0.10),
+            ("forearm", *_z_capsule(3, -0.05, d4), 0.07),
+            ("wrist", *_z_capsule(6, 0.0, 0.06), 0.06),
+        ]
+    elif chain.name == "lrmate200ic":
+        d1, a2, a3, d4, d6 = dh[0][2], dh[1][0], dh[2][0], dh[3][2], dh[5][2]
+        spec = [
+            ("base", *_z_capsule(0, 0.0, d1), 0.10),
+            ("upper_arm", 2, ((-a2, 0.0, 0.0), (0.0, 0.0, 0.0)), 0.07),
+            ("forearm", 3, ((-a3, 0.0, 0.0), (0.0, 0.0, d4)), 0.06),
+            ("wrist", *_z_capsule(6, -d6, 0.0), 0.05),
+        ]
+    elif chain.name == "planar3r":
+        spec = [(f"link{i + 1}", i + 1, ((-row[0], 0.0, 0.0), (0.0, 0.0, 0.0)), 0.05) for i, row in enumerate(dh)]
+        floor_height = None
+    else:
+        raise ValueError(
+            f"no capsule model for a chain named {chain.name!r}; build one with Capsules.build(chain, ...)"
+        )
+    names, frames, points, radii = zip(*spec)
+    floor = [name != "base" for name in names]
+    # what self_collision_pairs finds for each preset (tested), fixed so a query samples nothing
+    pairs = ((0, 2),) if chain.name == "planar3r" else ((0, 2), (0, 3), (1, 3))
+    return Capsules.build(chain, names, frames, points, radii, pairs=pairs, floor=floor, floor_height=floor_height)
