@@ -9,7 +9,8 @@ it; :func:`kernels` imports numba and the kernels (:mod:`iiwa_torch.compiled.num
 the first call that uses them, never at ``import iiwa_torch``, and each kernel compiles on its
 first call (``cache=True``: numba's on-disk cache serves later processes). Without numba, or
 with the environment variable ``IIWA_TORCH_NUMBA=0``, :data:`ENABLED` is False and the callers
-run their numpy / Python-float / torch code instead: the same method, which the kernels restate.
+run their torch code instead (or numpy, where docs/kinematics.md lists a kept twin): the same
+method, which the kernels restate.
 """
 
 from __future__ import annotations

@@ -188,10 +188,10 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
     (P,)`` (``pair_radius (P, 1)`` radius sums) and ``min(z_start, z_end) - (r + height)`` over the
     capsules ``floor (F,)`` (``floor_radius (F, 1)``). Capsule k joins the homogeneous points
     ``local[k] (4, 2)`` (columns) of frame ``frames[k]`` (0 the base, i link i; the tool is not
-    used). The arguments are :meth:`iiwa_torch.collision.Capsules._numpy_tables`' and the chain's
-    ``float_arrays``. Mirrors :func:`iiwa_torch.collision._distances` without obstacles: the
+    used). The arguments are :meth:`iiwa_torch.collision.Capsules.numpy_tables`' and the chain's
+    ``float_arrays``. Mirrors :func:`iiwa_torch.collision.distances.own_distances`: the
     frames of :func:`iiwa_torch.kinematics.frames_batch_last`, the segments of
-    :func:`iiwa_torch.collision._segment_gap` (:func:`iiwa_torch.segments.closest_parameters`
+    :func:`iiwa_torch.collision.primitives.segment_gap` (:func:`iiwa_torch.segments.closest_parameters`
     itself, compiled). Each block of configurations goes through every step as a loop over the
     block, straight-line and branch-free, which LLVM vectorises. A pair's exact distance is
     computed only where it can be the minimum: each segment lies within half its length of its
@@ -235,9 +235,9 @@ def capsule_clearance(transforms, params, base, tool, q, frames, local, first, s
                       height, distance, gradient):
     """One configuration ``q (n,)`` -> each capsule's smallest signed distance (m) to itself and the
     floor into ``distance (K,)`` and its gradient (m/rad) into ``gradient (K, n)`` (``inf`` and
-    zeros for a capsule in no pair); the capsules as in :func:`own_clearance`. Mirrors
-    :func:`iiwa_torch.collision._capsule_clearance_floats`: the same closest points, the same
-    envelope-theorem gradients, the same order of comparisons."""
+    zeros for a capsule in no pair); the capsules as in :func:`own_clearance`. The torch
+    path is :func:`iiwa_torch.collision.capsule_clearance` (the same closest points and
+    envelope-theorem gradients; tests/test_backends.py holds them equal)."""
     n, k_all = q.shape[0], frames.shape[0]
     F, pose, Z, P = np.empty((n + 1, 4, 3)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
     frames_of(transforms, params, base, tool, q, pose, Z, P, F)
