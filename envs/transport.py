@@ -16,9 +16,28 @@ import torch
 
 from iiwa_torch.checks import all_finite
 
-__all__ = ["Transition", "Transport"]
+__all__ = ["Transition", "Transport", "joint_angles"]
 
 Tensor = torch.Tensor
+
+TURN = 2 * np.pi
+ANGLE_TOL = 1e-5  # rad: a joint on its limit, read back through float32 cos and sin, is not turned
+
+
+def joint_angles(observation, lower, upper):
+    """The joint angles ``(..., nj)`` (rad) of observations ``(..., D)``, which start with ``cos q``, ``sin q``,
+    within the limits ``lower``, ``upper (nj,)`` (rad): ``atan2``'s ``(-pi, pi]`` turned by a full turn where a
+    joint's range reaches past pi (the Franka Panda's joint 6 runs to 3.82 rad). Numpy arrays or tensors
+    (all of one kind), in the wider dtype of the observation's and the limits'."""
+    nj = lower.shape[-1]
+    cos, sin = observation[..., :nj], observation[..., nj : 2 * nj]
+    if isinstance(observation, np.ndarray):
+        q = np.arctan2(sin, cos).astype(np.result_type(observation, lower))
+        where = np.where
+    else:
+        q = torch.atan2(sin, cos).to(torch.promote_types(observation.dtype, lower.dtype))
+        where = torch.where
+    return where(q < lower - ANGLE_TOL, q + TURN, where(q > upper + ANGLE_TOL, q - TURN, q))
 
 
 class Transition(NamedTuple):

@@ -18,7 +18,6 @@ MAX_LINES = 60
 
 LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came in
     "benchmarks/bench_ik.py:main": 162,
-    "train/kernels.py:features": 146,
     "iiwa_torch/ik/gradient.py:solve": 119,
     "benchmarks/bench_fk.py:main": 113,
     "iiwa_torch/ik/gradient.py:minimize": 110,
@@ -29,7 +28,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "iiwa_torch/compiled/numba_kernels.py:own_clearance": 89,
     "iiwa_torch/ik/analytic/srs.py:iiwa_solve": 85,
     "iiwa_torch/compiled/numba_kernels.py:lm_round": 85,
-    "train/features.py:__init__": 84,
     "iiwa_torch/trajectory.py:jtraj": 78,
     "iiwa_torch/cli.py:_traj": 78,
     "iiwa_torch/cli.py:_demo": 78,

@@ -22,6 +22,8 @@ import numpy as np
 import torch
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
+from envs.transport import joint_angles
+
 
 def _positive(**values) -> None:
     for name, value in values.items():
@@ -77,9 +79,10 @@ class ClearancePenalty(VecEnvWrapper):
 
     def clearance(self, observation: np.ndarray) -> np.ndarray:
         """Observations ``(n, D)`` -> clearance ``(n,)``, m."""
-        nj, world = self.task.arm.n_joints, self.task.world
+        arm, world = self.task.arm, self.task.world
+        nj = arm.n_joints
         obs = torch.as_tensor(observation, dtype=self.task.dtype)
-        q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
+        q = joint_angles(obs, arm.lower, arm.upper)
         block = obs[:, 3 * nj : 3 * nj + world.block_size].T if world.slots else None
         with torch.no_grad():
             return world.clearance(q, block).double().numpy()
