@@ -31,8 +31,6 @@ LONG_FUNCTIONS = {  # "path:function" -> its length in lines when the check came
     "iiwa_torch/trajectory.py:jtraj": 78,
     "iiwa_torch/cli.py:_traj": 78,
     "iiwa_torch/cli.py:_demo": 78,
-    "train/evaluate.py:evaluate": 71,
-    "train/evaluate.py:_rollouts_obstacles": 71,
     "iiwa_torch/collision.py:_distances": 70,
     "iiwa_torch/ik/analytic/planar.py:planar3r": 68,
     "benchmarks/bench_workspace.py:main": 68,

@@ -46,7 +46,7 @@ def test_joint_angles_past_pi(past_pi):
     got = joint_angles(obs["observation"][None], lower.double().numpy(), upper.double().numpy())
     np.testing.assert_allclose(got[0], q, atol=1e-5, rtol=0)
     assert got.dtype == np.float64
-    tensor = joint_angles(torch.as_tensor(obs["observation"][None]), lower, upper)
+    tensor = joint_angles(torch.as_tensor(obs["observation"][None]), lower.double().numpy(), upper.double().numpy())
     np.testing.assert_allclose(tensor[0].double().numpy(), q, atol=1e-5, rtol=0)
     # a joint inside (-pi, pi] is read as atan2 reads it: the other six
     naive = np.arctan2(obs["observation"][7:14], obs["observation"][:7])

@@ -551,7 +551,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         differentiate (:func:`numpy_ok`: one env's policy step) the same formulas run in numpy, which
         costs a fraction of torch's per-op overhead (the DLS solves, by ``dls_step_numpy``, and the
         Jacobian are computed another way there: the same values to rounding)."""
-        _, _, lower, upper = self._constants(torch)
+        _, _, lower, upper = self._constants(np)
         # torch's float32 atan2 on both paths: numpy's may differ in the last bit
         q = joint_angles(observations["observation"], lower, upper)
         if numpy_ok(*observations.values()):
@@ -590,20 +590,29 @@ class JointGoalExtractor(GoalDeltaExtractor):
     def _compiled_features(self, q: np.ndarray, observations: dict[str, np.ndarray], error: np.ndarray) -> np.ndarray:
         """:meth:`_features` on numpy arrays, by :func:`train.policy_kernels.features` (imported, numba
         with it, on the first call)."""
-        from train.policy_kernels import FeatureOptions, features
+        from train.policy_kernels import features
 
         max_step, damping_sq, lower, upper = self._constants(np)
-        settings = self.settings
-        avoidance, (start, k) = settings.avoidance, settings.clearance_rows or (0, 0)
-        options = FeatureOptions(
-            self._buffers["inv_scales"].numpy()[:, 0], max_step, damping_sq, lower, upper, settings.error_damping,
-            settings.step_bound == "clip", settings.limit_rounds, settings.orientation_weight,
-            settings.null_space_centering, settings.centering_twist, settings.clip_guard is not None,
-            settings.clip_guard or 0.0, settings.limit_hold == "limit",
-            np.empty(0) if avoidance is None else np.array(avoidance), start, k)
         arrays = (np.ascontiguousarray(observations[key]) for key in ("observation", "achieved_goal", "desired_goal"))
-        return features(*arrays, np.ascontiguousarray(error, dtype=np.float64), q.astype(np.float64), options,
-                        self.chain.geometry().float_arrays)
+        return features(*arrays, np.ascontiguousarray(error, dtype=np.float64), q.astype(np.float64),
+                        self._buffers["inv_scales"].numpy()[:, 0], damping_sq, np.stack([max_step, lower, upper]),
+                        self._kernel_scalars(), *self.chain.geometry().float_arrays)
+
+    def _kernel_scalars(self) -> np.ndarray:
+        """The settings as :func:`train.policy_kernels.features` reads them (made once: the settings are frozen)."""
+        scalars = self.__dict__.get("_scalars")
+        if scalars is None:
+            from train.policy_kernels import pack_scalars
+
+            s = self.settings
+            avoidance, (start, k) = s.avoidance or Avoidance(0.0, 0.0, 0.0), s.clearance_rows or (0, 0)
+            scalars = self._scalars = pack_scalars({
+                "error_damping": s.error_damping, "clip": s.step_bound == "clip", "limit_rounds": s.limit_rounds,
+                "orientation_weight": s.orientation_weight, "centering": s.null_space_centering,
+                "twist": s.centering_twist, "guarded": s.clip_guard is not None, "guard": s.clip_guard or 0.0,
+                "hold_at_limit": s.limit_hold == "limit", **avoidance._asdict(), "clearance_start": start,
+                "K": k if s.avoidance is not None else 0})
+        return scalars
 
 
 def _rotation_error(desired: torch.Tensor, achieved: torch.Tensor) -> torch.Tensor:

@@ -23,7 +23,7 @@ import numpy as np
 
 from iiwa_torch.compiled.numba_kernels import cholesky_solve, jacobians
 
-__all__ = ["FeatureOptions", "features", "residual_mean"]
+__all__ = ["SCALARS", "pack_scalars", "FeatureOptions", "features", "residual_mean"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
 _TINY = float(np.finfo(np.float64).tiny)  # the torch path's pivot floor (never reached: damping > 0)
@@ -123,15 +123,27 @@ def _hildreth(x, normal, scaled, bound, sweeps):
             break
 
 
+#: The extractor's scalar options in :func:`features`' ``scalars`` array, in this order (flags as 0 or 1):
+#: ``error_damping``, ``clip`` (``step_bound == "clip"``, else shrink), ``limit_rounds``, ``orientation_weight``
+#: (m/rad), ``centering`` (``null_space_centering``, 0: none), ``twist`` (``centering_twist``), ``guarded``
+#: (``clip_guard`` set), ``guard`` (its value), ``hold_at_limit`` (``limit_hold == "limit"``), the damper's
+#: ``xi``, ``safe``, ``influence`` (m), ``clearance_start`` (the first clearance column of the observation)
+#: and ``K`` (capsules; 0: no avoidance).
+SCALARS = ("error_damping", "clip", "limit_rounds", "orientation_weight", "centering", "twist", "guarded", "guard",
+           "hold_at_limit", "xi", "safe", "influence", "clearance_start", "K")
+
+
+def pack_scalars(values: dict) -> np.ndarray:
+    """The options ``values`` (by the names of :data:`SCALARS`) -> :func:`features`' ``scalars (14,)`` float64."""
+    return np.array([float(values[name]) for name in SCALARS])
+
+
 class FeatureOptions(NamedTuple):
-    """:class:`train.features.JointSettings` and the extractor's constants as :func:`features` reads them.
+    """The options as :func:`features`' parts read them (built inside the kernel: a tuple argument would
+    cost the call more than its arithmetic, typed in Python field by field).
 
     ``inv_scales (S,)`` in the goals' dtype; ``max_step`` (rad per step), ``lower``, ``upper`` (rad) ``(nj,)``
-    and ``damping_sq (L,)`` (m^2), float64; ``error_damping``, ``orientation_weight`` (m/rad); ``clip`` (else
-    shrink); ``limit_rounds``; ``centering`` (``null_space_centering``, 0: none) and ``twist``
-    (``centering_twist``); ``guarded`` (``clip_guard`` set) and ``guard`` (its value); ``hold_at_limit``
-    (``limit_hold == "limit"``); ``damper (3,)`` = ``xi, safe, influence`` (m) or empty (no avoidance), with
-    the ``K`` capsules' rows from column ``clearance_start`` of the observation."""
+    and ``damping_sq (L,)`` (m^2), float64; the :data:`SCALARS`, ``damper = (xi, safe, influence)``."""
 
     inv_scales: np.ndarray
     max_step: np.ndarray
@@ -153,18 +165,23 @@ class FeatureOptions(NamedTuple):
 
 
 @_jit
-def features(observation, achieved, desired, e, q, o, chain):
+def features(observation, achieved, desired, e, q, inv_scales, damping_sq, joints, scalars, transforms, params, base,
+             tool):
     """The extractor's features ``(B, F)`` in ``observation``'s dtype.
 
     ``observation (B, O)``, ``achieved``, ``desired (B, G)`` as observed; ``e (B, k)`` float64, the
     error (position, then the weighted rotation error for pose goals, k = 6); ``q (B, nj)`` rad;
-    ``o`` a :class:`FeatureOptions`; ``chain`` the chain's ``float_arrays``."""
+    ``inv_scales (S,)`` in the goals' dtype; ``damping_sq (L,)`` (m^2); ``joints (3, nj)``: ``max_step``
+    (rad per step), ``lower``, ``upper`` (rad); ``scalars`` (:func:`pack_scalars`); the chain's
+    ``float_arrays``."""
+    o = FeatureOptions(inv_scales, joints[0], damping_sq, joints[1], joints[2], scalars[0], scalars[1] != 0.0,
+                       int(scalars[2]), scalars[3], scalars[4], scalars[5] != 0.0, scalars[6] != 0.0, scalars[7],
+                       scalars[8] != 0.0, scalars[9:12], int(scalars[12]), int(scalars[13]))
     B, width_obs = observation.shape
-    G, S, k = desired.shape[1], o.inv_scales.shape[0], e.shape[1]
-    nj, L = q.shape[1], o.damping_sq.shape[0]
-    K = o.K if o.damper.shape[0] > 0 else 0
+    G, S, k = desired.shape[1], inv_scales.shape[0], e.shape[1]
+    nj, L, K = q.shape[1], damping_sq.shape[0], o.K
     out = np.empty((B, width_obs + (2 + S) * G + (L + 2) * nj + 1 + K * (nj + 1)), dtype=observation.dtype)
-    jac = jacobians(chain[0], chain[1], chain[2], chain[3], q)
+    jac = jacobians(transforms, params, base, tool, q)
     jp, row, prior, gain = np.empty((k, nj)), np.empty(k), np.zeros(nj), np.empty(nj)
     normal, bound = np.zeros((K, nj)), np.empty(K)
     scratch = (np.empty((k, k)), np.empty((k, 1)), np.empty(nj), np.empty(nj), np.empty(nj), np.zeros(nj),

@@ -73,6 +73,8 @@ class ClearancePenalty(VecEnvWrapper):
         if self.task.world is None:
             raise ValueError("ClearancePenalty needs an env with collision checks (collision='off' has no world)")
         self.margin, self.weight = float(margin), float(weight)
+        #: the arm's joint limits ``(nj,)`` each, rad, as numpy arrays
+        self.limits = tuple(x.double().cpu().numpy() for x in (self.task.arm.lower, self.task.arm.upper))
 
     def reset(self):
         return self.venv.reset()
@@ -82,7 +84,7 @@ class ClearancePenalty(VecEnvWrapper):
         arm, world = self.task.arm, self.task.world
         nj = arm.n_joints
         obs = torch.as_tensor(observation, dtype=self.task.dtype)
-        q = joint_angles(obs, arm.lower, arm.upper)
+        q = joint_angles(obs, *self.limits)
         block = obs[:, 3 * nj : 3 * nj + world.block_size].T if world.slots else None
         with torch.no_grad():
             return world.clearance(q, block).double().numpy()
