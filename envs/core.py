@@ -20,7 +20,7 @@ environments and one transfer to numpy, for the vector envs). The envs (``envs.r
 from __future__ import annotations
 
 import math
-from enum import Enum
+from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
@@ -28,13 +28,14 @@ import torch
 
 from iiwa_torch import kinematics as kin
 from iiwa_torch.chain import Chain
-from iiwa_torch.checks import as_device, check_bool, is_integer, is_number
+from iiwa_torch.checks import as_device, check_instance
 from iiwa_torch.collision import Capsules, capsule_clearance, capsule_clearance_of_one
 
 from .arrays import NUMPY, TORCH, ArrayOps
-from .goals import PANDA_GYM_BOX, GoalKind, GoalRegion, ReachGoals, RewardKind, enum_option
+from .goals import PANDA_GYM_BOX, GoalKind, GoalRegion, ReachGoals
 from .robot import JointVelocityArm, default_home, resolve_robot
 from .seeding import keys_from_seeds, uniform
+from .settings import CollisionKind, ReachSettings, StartKind
 from .transport import Transition, Transport
 from .world import ObstacleWorld, obstacle_world
 
@@ -48,24 +49,6 @@ CLEARANCE_RANGE = 1.0  # m: the observed clearance of a capsule saturates here (
 _ROUNDS = 32  # rounds of draws for a collision-free start, goal or obstacle before the fallback
 # Where in each (key, episode) counter stream the redraws of later rounds and the obstacles start
 _START_REDRAWS, _GOAL_REDRAWS, _OBSTACLE_DRAWS = 1 << 24, 2 << 24, 3 << 24
-
-
-class StartKind(str, Enum):
-    """Where episodes start: the fixed ``home`` posture or a ``random`` one within the limits."""
-
-    HOME = "home"
-    RANDOM = "random"
-
-
-class CollisionKind(str, Enum):
-    """What a step into the floor, an obstacle or the arm itself does (``info["collision"]``):
-    ``terminate`` the episode (default) or only ``penalize`` it (both subtract
-    ``collision_penalty`` from that step's reward); ``off``: nothing is checked (the kinematic
-    task of the first versions: goals anywhere in the joint limits, no ``info["collision"]``)."""
-
-    TERMINATE = "terminate"
-    PENALIZE = "penalize"
-    OFF = "off"
 
 
 # ---------------------------------------------------------------------------- state
@@ -114,28 +97,6 @@ class StepResult(NamedTuple):
     collision: Tensor | None = None
 
 
-def _check_numbers(dt, distance_threshold, orientation_threshold, orientation_weight, goal_min_distance,
-                   max_episode_steps, floor, collision_penalty, obstacles) -> None:
-    """:class:`ReachTask`'s numeric options, each in its range (else a ``ValueError`` naming it)."""
-    for name, value in [("dt", dt), ("distance_threshold", distance_threshold),
-                        ("orientation_threshold", orientation_threshold)]:
-        if not (is_number(value) and math.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    if not (is_number(orientation_weight) and math.isfinite(orientation_weight)
-            and orientation_weight >= 0):
-        raise ValueError(f"orientation_weight must be >= 0, got {orientation_weight!r}")
-    if not (is_number(goal_min_distance) and 0 <= goal_min_distance < math.inf):
-        raise ValueError(f"goal_min_distance must be >= 0 (metres), got {goal_min_distance!r}")
-    if max_episode_steps is not None and (not is_integer(max_episode_steps) or max_episode_steps < 1):
-        raise ValueError(f"max_episode_steps must be a positive int or None, got {max_episode_steps!r}")
-    if floor is not None and (not is_number(floor) or not math.isfinite(floor)):
-        raise ValueError(f"floor must be a finite height in metres or None, got {floor!r}")
-    if not (is_number(collision_penalty) and math.isfinite(collision_penalty) and collision_penalty >= 0):
-        raise ValueError(f"collision_penalty must be a finite number >= 0, got {collision_penalty!r}")
-    if not is_integer(obstacles) or not 0 <= obstacles <= 8:
-        raise ValueError(f"obstacles must be an int in [0, 8], got {obstacles!r}")
-
-
 # ---------------------------------------------------------------------------- task
 class ReachTask:
     """Immutable configuration of the reaching task plus its pure batched functions.
@@ -144,37 +105,13 @@ class ReachTask:
         robot: the arm (default ``iiwa14()``): a preset name (``"iiwa14"``, ...), ``"panda"`` (the
             Franka Panda of pybullet_data), a URDF file path or a :class:`~iiwa_torch.chain.Chain`;
             it must have ``velocity_limits`` (:func:`envs.robot.resolve_robot`).
+        settings: the task's options, a :class:`envs.settings.ReachSettings` (goal, reward, start, dt,
+            thresholds, floor, collisions, obstacles, ...: documented there, with their units);
+            ``options``, its fields as keywords (``ReachTask(goal="pose", dt=0.02)``), override it.
         end_link: a URDF robot's end link (needed where the file branches; the Panda's default:
             ``panda_grasptarget``, between the fingertips).
         capsules: the arm's :class:`~iiwa_torch.collision.Capsules` (default: a preset's model, or
             one fitted to the URDF's collision meshes; a plain ``Chain`` that checks collisions needs it).
-        goal: ``"position"`` (3 numbers) or ``"pose"`` (position and the first two columns
-            of the rotation matrix: 9 numbers).
-        goal_region: ``"joint_limits"`` (the FK of configurations within the limits) or
-            ``"panda_gym"`` (positions in panda-gym's box, :data:`envs.goals.PANDA_GYM_BOX`;
-            :class:`envs.goals.GoalRegion`).
-        reward: ``"dense"`` or ``"sparse"`` (see :class:`envs.goals.RewardKind`).
-        start: ``"home"`` (``home``) or ``"random"`` (uniform within the joint limits).
-        dt: control period, s: an action ``a`` in ``[-1, 1]^n`` moves joint ``i`` by
-            ``a_i * velocity_limits_i * dt``.
-        distance_threshold: success radius, m.
-        orientation_threshold: success angle for pose goals, rad.
-        orientation_weight: metres per radian of orientation error in the dense pose reward.
-        goal_min_distance: goals closer than this to the start position (m) are redrawn
-            (the farthest of 8 candidates is kept if none is far enough).
-        max_episode_steps: truncate after this many steps (``None``: never).
-        terminate_on_success: end the episode when the goal is reached (as panda-gym).
-        floor: height of the floor (m, base frame; ``None``: no floor).
-        collision: ``"terminate"``, ``"penalize"`` or ``"off"`` (:class:`CollisionKind`): a step
-            whose clearance (:func:`iiwa_torch.collision.clearance`: the arm's capsules against
-            themselves, the floor and the obstacles) is negative. Unless ``"off"``, starts and
-            goals are drawn collision-free.
-        collision_penalty: subtracted from the reward of a colliding step (>= 0).
-        obstacles: at most this many random spheres or boxes per episode (1 to ``obstacles``
-            drawn, 0: none), in the observation's obstacle block (:mod:`envs.world`).
-        observe_clearance: append each capsule's clearance and its joint gradient to the observation
-            (after the obstacle block: K distances, m, then K x nj gradients, m/rad; see
-            :meth:`clearance_rows`), computed once per step, for controllers that keep every link clear.
         home: start posture for ``start="home"`` (default :func:`envs.robot.default_home`:
             :data:`iiwa_torch.robots.IIWA_HOME` for the iiwa presets, else zeros if free, else the middle of
             the limits; it must lie within the limits).
@@ -186,70 +123,44 @@ class ReachTask:
         self,
         robot: Chain | str | None = None,
         *,
+        settings: ReachSettings | None = None,
         end_link: str | None = None,
         capsules: Capsules | None = None,
-        goal: GoalKind | str = GoalKind.POSITION,
-        goal_region: GoalRegion | str = GoalRegion.JOINT_LIMITS,
-        reward: RewardKind | str = RewardKind.DENSE,
-        start: StartKind | str = StartKind.HOME,
-        dt: float = 0.05,
-        distance_threshold: float = 0.01,
-        orientation_threshold: float = 0.1,
-        orientation_weight: float = 0.1,
-        goal_min_distance: float = 0.0,
-        max_episode_steps: int | None = None,
-        terminate_on_success: bool = True,
-        floor: float | None = 0.0,
-        collision: CollisionKind | str = CollisionKind.TERMINATE,
-        collision_penalty: float = 1.0,
-        obstacles: int = 0,
-        observe_clearance: bool = False,
         home=None,
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
+        **options,
     ) -> None:
-        goal, reward = enum_option(GoalKind, goal, "goal"), enum_option(RewardKind, reward, "reward")
-        self.start_kind = enum_option(StartKind, start, "start")
-        self.goal_region = enum_option(GoalRegion, goal_region, "goal_region")
-        _check_numbers(dt, distance_threshold, orientation_threshold, orientation_weight, goal_min_distance,
-                       max_episode_steps, floor, collision_penalty, obstacles)
-        if self.goal_region is GoalRegion.PANDA_GYM and (goal is not GoalKind.POSITION or goal_min_distance):
-            raise ValueError("goal_region='panda_gym' draws positions: it takes goal='position' and no "
-                             "goal_min_distance")
+        unknown = sorted(set(options) - set(ReachSettings.names()))
+        if unknown:
+            raise TypeError(f"ReachTask got unknown options {unknown}; the options are {list(ReachSettings.names())}")
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
-        self.collision = enum_option(CollisionKind, collision, "collision")
-        if obstacles and self.collision is CollisionKind.OFF:
-            raise ValueError("obstacles need collision checks: use collision='terminate' or 'penalize', not 'off'")
-        check_bool(observe_clearance, "observe_clearance")
-        check_bool(terminate_on_success, "terminate_on_success")
-        if observe_clearance and self.collision is CollisionKind.OFF:
-            raise ValueError("observe_clearance needs collision checks: use collision='terminate' or 'penalize'")
-        self.observe_clearance = observe_clearance
-        self.collision_penalty = float(collision_penalty)
-        self.dt = float(dt)
-        self.goal_min_distance = float(goal_min_distance)
-        self.max_episode_steps = None if max_episode_steps is None else int(max_episode_steps)
-        self.terminate_on_success = bool(terminate_on_success)
-        self.dtype = dtype
-        self.device = as_device(device)
-        floor = None if floor is None else float(floor)
-        chain, capsules = resolve_robot(robot, end_link, capsules, checked=self.collision is not CollisionKind.OFF)
-        if home is None:
-            home = default_home(chain, capsules, floor)
-        self.arm = JointVelocityArm(chain, self.dt, home, dtype, self.device)
-        self.goals = ReachGoals(goal, reward, float(distance_threshold), float(orientation_threshold),
-                                float(orientation_weight))
+        if settings is not None:
+            check_instance(settings, ReachSettings, "settings")
+        s = ReachSettings(**options) if settings is None else replace(settings, **options)
+        #: the options, checked
+        self.settings = s
+        # the options the step reads, as attributes
+        self.start_kind, self.goal_region, self.collision = s.start, s.goal_region, s.collision
+        self.observe_clearance, self.collision_penalty, self.dt = s.observe_clearance, s.collision_penalty, s.dt
+        self.goal_min_distance, self.max_episode_steps = s.goal_min_distance, s.max_episode_steps
+        self.terminate_on_success = s.terminate_on_success
+        self.dtype, self.device = dtype, as_device(device)
+        chain, capsules = resolve_robot(robot, end_link, capsules, checked=s.collision is not CollisionKind.OFF)
+        self.arm = JointVelocityArm(chain, s.dt, default_home(chain, capsules, s.floor) if home is None else home,
+                                    dtype, self.device)
+        self.goals = ReachGoals(s.goal, s.reward, s.distance_threshold, s.orientation_threshold, s.orientation_weight)
         #: the chain (the task's own copy, in its dtype and device)
         self.robot = self.arm.chain
         #: the floor, the capsules and the obstacles (``None`` when collisions are off)
         self.world = None
-        if self.collision is not CollisionKind.OFF:
-            self.world = ObstacleWorld(self.robot, capsules, floor, obstacles)
+        if s.collision is not CollisionKind.OFF:
+            self.world = ObstacleWorld(self.robot, capsules, s.floor, s.obstacles)
             if not bool(self.world.clearance(self.arm.home[None]) > 0):
                 raise ValueError(f"home {self.arm.home.tolist()} collides with the floor or the arm itself")
         block = 0 if self.world is None else self.world.block_size
-        sensed = len(self.world.capsules.names) * (1 + self.arm.n_joints) if observe_clearance else 0
+        sensed = len(self.world.capsules.names) * (1 + self.arm.n_joints) if s.observe_clearance else 0
         self.transport = Transport(self.arm.n_joints, self.goals.size, dtype, self.device, block, sensed)
         #: ``(nj,)`` rad per step at ``|a| = 1``
         self.max_step = self.arm.max_step
@@ -348,6 +259,28 @@ class ReachTask:
         blank = start.new_zeros(0, n)
         obstacles = blank if world is None or not world.slots else world.draw(key, episode, start, _OBSTACLE_DRAWS,
                                                                               _ROUNDS)
+        goal = self._goals(key, episode, start, start_goal, obstacles)
+        q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
+        clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
+        return ReachState(
+            q=q,
+            cos_q=torch.cos(q),
+            sin_q=torch.sin(q),
+            velocity=torch.zeros(nj, n, dtype=self.dtype, device=self.device),
+            goal=goal.contiguous(),
+            achieved=start_goal["all"].clone(memory_format=torch.contiguous_format),
+            t=torch.zeros(n, dtype=torch.int64, device=self.device),
+            key=key,
+            episode=episode,
+            obstacles=obstacles,
+            clearance=clearance,
+        )
+
+    def _goals(self, key: Tensor, episode: Tensor, start: Tensor, start_goal: dict, obstacles: Tensor) -> Tensor:
+        """The goals ``(g, n)`` of new episodes from ``start (n, nj)`` among ``obstacles`` (their block); fills
+        ``start_goal["all"]``, the start's goal ``(g, n)``, if it is not there (with the first candidates)."""
+        arm, world = self.arm, self.world
+        n, nj = key.shape[0], arm.n_joints
         far = self.goal_min_distance > 0
         k = _GOAL_CANDIDATES if far else (1 if world is None else _FREE_CANDIDATES)
 
@@ -374,27 +307,11 @@ class ReachTask:
 
         if self.goal_region is GoalRegion.PANDA_GYM:  # draws nj.. as the candidates would; nothing to check
             low, high = (start.new_tensor(corner)[:, None] for corner in PANDA_GYM_BOX)
-            goal = low + uniform(key, episode, nj, 3, self.dtype).T * (high - low)  # (3, n)
             start_goal.setdefault("all", self.goal_of(start.T))
-        elif world is not None:  # the last resort (never seen: 32 rounds of collisions): the start's own goal
-            goal = _first_found(n, draw_goal, lambda: start_goal["all"], self.device)
-        else:
-            goal = draw_goal(torch.arange(n, device=self.device), 0)[1]
-        q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
-        clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
-        return ReachState(
-            q=q,
-            cos_q=torch.cos(q),
-            sin_q=torch.sin(q),
-            velocity=torch.zeros(nj, n, dtype=self.dtype, device=self.device),
-            goal=goal.contiguous(),
-            achieved=start_goal["all"].clone(memory_format=torch.contiguous_format),
-            t=torch.zeros(n, dtype=torch.int64, device=self.device),
-            key=key,
-            episode=episode,
-            obstacles=obstacles,
-            clearance=clearance,
-        )
+            return low + uniform(key, episode, nj, 3, self.dtype).T * (high - low)  # (3, n)
+        if world is not None:  # the last resort (never seen: 32 rounds of collisions): the start's own goal
+            return _first_found(n, draw_goal, lambda: start_goal["all"], self.device)
+        return draw_goal(torch.arange(n, device=self.device), 0)[1]
 
     def step(self, state: ReachState, action: Tensor) -> tuple[ReachState, StepResult]:
         """Apply actions ``(nj, n)`` (clipped to ``[-1, 1]``): integrate, clamp to the limits, FK.

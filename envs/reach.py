@@ -123,7 +123,8 @@ class IiwaReachEnv(gym.Env):
     ## Arguments
 
     ``gymnasium.make("IiwaReach-v0", render_mode=None, **options)`` where ``options`` are
-    :class:`envs.core.ReachTask`'s: ``robot`` (a preset name, ``"panda"``, a URDF path or a ``Chain``
+    :class:`envs.core.ReachTask`'s (the task's own, with their units and ranges:
+    :class:`envs.settings.ReachSettings`): ``robot`` (a preset name, ``"panda"``, a URDF path or a ``Chain``
     with velocity limits, default ``iiwa14()``; the action space then has one entry per joint),
     ``end_link``, ``capsules``, ``goal`` (``"position"``/``"pose"``), ``goal_region``
     (``"joint_limits"``/``"panda_gym"``), ``reward`` (``"dense"``/``"sparse"``),

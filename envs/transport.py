@@ -16,9 +16,32 @@ import torch
 
 from iiwa_torch.checks import all_finite
 
-__all__ = ["Transition", "Transport"]
+__all__ = ["Transition", "Transport", "joint_angles"]
 
 Tensor = torch.Tensor
+
+TURN = 2 * np.pi
+ANGLE_TOL = 1e-5  # rad: a joint on its limit, read back through float32 cos and sin, is not turned
+
+
+def joint_angles(observation, lower: np.ndarray, upper: np.ndarray):
+    """The joint angles ``(..., nj)`` (rad) of observations ``(..., D)``, which start with ``cos q``, ``sin q``,
+    within the limits ``lower``, ``upper`` (``(nj,)`` numpy arrays, rad): ``atan2``'s ``(-pi, pi]``, turned by a
+    full turn where a joint's range reaches past pi (the Franka Panda's joint 6 runs to 3.82 rad). A numpy
+    array in: numpy out, in the wider dtype of the observation's and the limits'; a tensor in: a tensor
+    (torch's ``atan2``) in its dtype. Arms whose limits lie within ``[-pi, pi]`` skip the turn (a policy
+    step reads the angles of one env: a few ops fewer)."""
+    nj = lower.shape[-1]
+    cos, sin = observation[..., :nj], observation[..., nj : 2 * nj]
+    if isinstance(observation, np.ndarray):
+        q, where = np.arctan2(sin, cos).astype(np.result_type(observation, lower)), np.where
+    else:
+        q, where = torch.atan2(sin, cos), torch.where
+    if not ((lower < -np.pi).any() or (upper > np.pi).any()):
+        return q
+    if where is torch.where:
+        lower, upper = (torch.as_tensor(x, dtype=q.dtype, device=q.device) for x in (lower, upper))
+    return where(q < lower - ANGLE_TOL, q + TURN, where(q > upper + ANGLE_TOL, q - TURN, q))
 
 
 class Transition(NamedTuple):

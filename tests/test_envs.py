@@ -507,3 +507,26 @@ def test_ppo_and_sac_her_smoke_run_on_the_vecenv():
     )
     model.learn(2_000)
     assert model.num_timesteps >= 2_000 and model.replay_buffer.size() > 0
+
+
+def test_the_options_are_one_checked_settings_object():
+    """``ReachTask(**options)`` and ``ReachTask(settings=ReachSettings(...))`` build the same frozen settings;
+    option strings become their enums; a wrong option is refused once, by name."""
+    import dataclasses
+
+    from envs.goals import GoalKind
+    from envs.settings import CollisionKind, ReachSettings
+
+    by_keywords = ReachTask(goal="pose", dt=0.02, collision="penalize")
+    by_object = ReachTask(settings=ReachSettings(goal="pose", dt=0.02, collision="penalize"))
+    assert by_keywords.settings == by_object.settings
+    assert by_object.settings.goal is GoalKind.POSE and by_object.settings.collision is CollisionKind.PENALIZE
+    assert by_object.dt == 0.02 and by_object.goal_kind is GoalKind.POSE
+    # keywords override a settings object
+    assert ReachTask(settings=by_object.settings, dt=0.1).settings.dt == 0.1
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        by_object.settings.dt = 1.0
+    with pytest.raises(TypeError, match="unknown options \\['speed'\\]"):
+        ReachTask(speed=2)
+    with pytest.raises(ValueError, match="dt must be a positive finite number"):
+        ReachSettings(dt=-1)

@@ -540,3 +540,31 @@ def test_numpy_path_equals_the_torch_path(goal_dim, avoidance, limit_rounds, err
             held += int((steps[:-1][at_limit] == 0).sum())
     if limit_rounds and extra.get("limit_hold", "still") == "still":
         assert held > 0  # some joints at their limits were held by the limit rounds
+
+
+def test_the_options_are_one_checked_settings_object():
+    """Keywords (a config's features_extractor_kwargs) and a JointSettings build the same frozen settings;
+    the avoidance mapping becomes its named gains; every shipped joint-feature config still constructs."""
+    import dataclasses
+    from pathlib import Path
+
+    import yaml
+
+    from train.features import Avoidance, JointSettings
+
+    gains = {"xi": 0.3, "safe": 0.02, "influence": 0.15}
+    by_keywords = JointGoalExtractor(_space(60), "iiwa14", MAX_STEP, dampings=(0.1,), clearance_rows=[21, 4],
+                                     avoidance=gains)
+    settings = JointSettings(dampings=(0.1,), clearance_rows=(21, 4), avoidance=Avoidance(**gains))
+    assert JointGoalExtractor(_space(60), "iiwa14", MAX_STEP, settings=settings).settings == by_keywords.settings
+    assert by_keywords.settings.avoidance == Avoidance(0.3, 0.02, 0.15)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        settings.limit_rounds = 3
+    policies = Path(__file__).resolve().parents[1] / "train" / "policies"
+    configs = [yaml.safe_load(p.read_text()) for p in sorted(policies.glob("*/config.yaml"))]
+    joint = [c["hyperparams"]["features_extractor_kwargs"] for c in configs
+             if c["hyperparams"].get("features_extractor") == "joint"]
+    assert len(joint) >= 3
+    for kwargs in joint:
+        options = {k: v for k, v in kwargs.items() if k not in ("robot", "max_step", "scales")}
+        assert JointSettings(**options).dampings == tuple(kwargs["dampings"])

@@ -14,7 +14,9 @@ Because the difference is computed inside the network, it stays correct when HER
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -22,6 +24,7 @@ from gymnasium import spaces
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 from envs.goals import decode_pose_goal
+from envs.transport import joint_angles
 from iiwa_torch import compiled, so3
 from iiwa_torch import kinematics as kin
 from iiwa_torch.checks import check_bool
@@ -150,6 +153,138 @@ def velocity_damper(dq, jac, damping_sq, distance, gradient, xi: float, safe: fl
     return hildreth(dq, normal, xp.linalg.solve(H, normal.mT).mT, bound[:, None], sweeps)
 
 
+class Avoidance(NamedTuple):
+    """The velocity damper's gains (:func:`damper_constraints`): ``xi`` in ``(0, 1]`` (dimensionless),
+    ``safe >= 0`` and ``influence > safe`` (m)."""
+
+    xi: float
+    safe: float
+    influence: float
+
+
+def _number(value, name: str, low: float = 0.0) -> float:
+    """``value`` as a float if it is a finite number >= ``low`` (not a bool), else ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value < math.inf:
+        raise ValueError(f"{name} must be a finite number >= {low:g}, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class JointSettings:
+    """:class:`JointGoalExtractor`'s options beyond the robot, each checked once, on construction (a
+    ``ValueError`` naming it); the extractor also takes them as keywords (a config's
+    ``features_extractor_kwargs``).
+
+    dampings: the ``lambda`` values, m, all > 0.
+    orientation_weight: ``w``, m/rad (> 0), for pose goals only.
+    clearance_rows: where the capsules' clearances and gradients start in ``observation`` and
+        the number K of capsules (filled in from the env by ``train.train``); None: not observed.
+    avoidance: the velocity damper's ``xi`` (in (0, 1]), ``safe`` and ``influence`` (m), or None.
+    limit_rounds: how many times a DLS step is solved again without the joints it would push
+        past their limits (:meth:`JointGoalExtractor.bounded_step`; 0: never).
+    error_damping: ``c >= 0`` (dimensionless): each damping grows with the error, ``lambda + c |e|``
+        (m), the Levenberg-Marquardt rule of damping in proportion to the error (Sugihara's damps by
+        its square); 0: constant dampings.
+    step_bound: how a DLS step larger than full speed is brought into ``[-1, 1]`` (in actions):
+        ``"shrink"`` divides the whole step by its largest entry (the direction kept), ``"clip"``
+        clips each joint (the joints that do not saturate keep their own speed: the wrist goes on
+        turning while the shoulder moves at full speed).
+    null_space_centering: ``k >= 0`` (dimensionless): each DLS step also moves the joints towards the
+        middle of their ranges inside the Jacobian's null space (:meth:`JointGoalExtractor.centering_step`, at ``k``
+        times full speed at a limit; :meth:`JointGoalExtractor.bounded_step`), so the redundant arm keeps away from the
+        joint limits where the pose task has local minima; 0: off.
+    centering_twist: with ``null_space_centering`` and pose goals, the last joint is centred on
+        where the rotation error would take it, ``q_n + phi`` (:meth:`JointGoalExtractor.last_joint_twist`), instead of
+        on ``q_n``: a goal that the arm's present branch reaches only past that joint's limit moves
+        the other joints early, while they can still carry the turn.
+    limit_hold: with ``limit_rounds``, where a held joint goes: ``"still"``, nowhere; ``"limit"``, onto
+        the limit it would have passed (the other joints' step solved for the rest of the error). A
+        joint held still short of its limit leaves the step a fixed point wherever the other joints
+        alone cannot lower the error: the arm stalls there, within a step of the limit.
+    clip_guard: ``c`` in ``[0, 1]`` or None (off), with ``step_bound = "clip"``: a clipped step whose
+        first-order progress ``e . J dq`` is below ``c`` times the shrunk step's is shrunk instead
+        (:meth:`JointGoalExtractor.bounded_by_progress`). Clipping some joints of a large step turns its direction and
+        can leave it no descent at all (the arm then stalls, above all where the velocity damper
+        takes away the rest); shrinking keeps the DLS direction, a descent direction.
+
+    """
+
+    dampings: tuple[float, ...] = (0.1, 0.01)
+    orientation_weight: float = 0.5
+    clearance_rows: tuple[int, int] | None = None
+    avoidance: Avoidance | None = None
+    limit_rounds: int = 0
+    error_damping: float = 0.0
+    step_bound: str = "shrink"
+    null_space_centering: float = 0.0
+    centering_twist: bool = False
+    limit_hold: str = "still"
+    clip_guard: float | None = None
+
+    def __post_init__(self) -> None:
+        if len(self.dampings) == 0 or any(float(d) <= 0 for d in self.dampings):
+            raise ValueError(f"dampings must be a non-empty list of positive numbers (m), got {list(self.dampings)}")
+        if not float(self.orientation_weight) > 0:
+            raise ValueError(f"orientation_weight must be a positive number (m/rad), got {self.orientation_weight!r}")
+        rows = None if self.clearance_rows is None else tuple(int(c) for c in self.clearance_rows)
+        if self.avoidance is not None:
+            if rows is None:
+                raise ValueError("avoidance needs the env's clearances: make the env with observe_clearance=True")
+            gains = dict(self.avoidance._asdict() if isinstance(self.avoidance, Avoidance) else self.avoidance)
+            if set(gains) != {"xi", "safe", "influence"} or not 0 < float(gains["xi"]) <= 1 \
+                    or not 0 <= float(gains["safe"]) < float(gains["influence"]):
+                raise ValueError("avoidance must be {xi: in (0, 1], safe: >= 0, influence: > safe} (m), "
+                                 f"got {gains!r}")
+            object.__setattr__(self, "avoidance", Avoidance(**{key: float(v) for key, v in gains.items()}))
+        if isinstance(self.limit_rounds, bool) or not isinstance(self.limit_rounds, int) or self.limit_rounds < 0:
+            raise ValueError(f"limit_rounds must be an int >= 0, got {self.limit_rounds!r}")
+        numbers = {"dampings": tuple(float(d) for d in self.dampings), "clearance_rows": rows,
+                   "orientation_weight": float(self.orientation_weight),
+                   "error_damping": _number(self.error_damping, "error_damping"),
+                   "null_space_centering": _number(self.null_space_centering, "null_space_centering")}
+        for name, value in numbers.items():
+            object.__setattr__(self, name, value)
+        self._check_bounds()
+
+    def _check_bounds(self) -> None:
+        """The options of how a step is bounded and held at the limits."""
+        if self.step_bound not in STEP_BOUNDS:
+            raise ValueError(f"step_bound must be one of {STEP_BOUNDS}, got {self.step_bound!r}")
+        check_bool(self.centering_twist, "centering_twist")
+        if self.centering_twist and not self.null_space_centering:
+            raise ValueError("centering_twist needs pose goals (9 numbers) and null_space_centering > 0")
+        if self.limit_hold not in LIMIT_HOLDS:
+            raise ValueError(f"limit_hold must be one of {LIMIT_HOLDS}, got {self.limit_hold!r}")
+        if self.clip_guard is not None:
+            guard = self.clip_guard
+            if isinstance(guard, bool) or not isinstance(guard, (int, float)) or not 0 <= guard <= 1:
+                raise ValueError(f"clip_guard must be a number in [0, 1] or None, got {guard!r}")
+            if self.step_bound != "clip":
+                raise ValueError("clip_guard needs step_bound: clip")
+            object.__setattr__(self, "clip_guard", float(guard))
+
+    def check_space(self, nj: int, obs_dim: int, goal_dim: int) -> None:
+        """ValueError unless these options fit an arm of ``nj`` joints, observations of ``obs_dim`` numbers and
+        goals of ``goal_dim``."""
+        if self.centering_twist and goal_dim != 9:
+            raise ValueError("centering_twist needs pose goals (9 numbers) and null_space_centering > 0")
+        if self.avoidance is not None:
+            start, k = self.clearance_rows
+            if start < 3 * nj or start + k * (1 + nj) > obs_dim:
+                raise ValueError(f"clearance_rows {list(self.clearance_rows)} lie outside the observation ({obs_dim})")
+
+
+def _named_chain(robot: str):
+    """The chain of an env's robot by name (a preset or a URDF arm of :mod:`envs.robot`)."""
+    from envs.robot import URDF_ARMS, resolve_robot
+    from iiwa_torch.robots import PRESETS
+
+    names = sorted(PRESETS) + sorted(URDF_ARMS)
+    if robot not in names:
+        raise ValueError(f"robot must be one of {names}, got {robot!r}")
+    return resolve_robot(robot, checked=False)[0]
+
+
 class JointGoalExtractor(GoalDeltaExtractor):
     """:class:`GoalDeltaExtractor` plus joint-space features of the position error, from the robot's Jacobian.
 
@@ -173,7 +308,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     Everything is computed inside the network from the observation, so it stays correct when
     HER relabels ``desired_goal``. It needs the raw observation: its first ``2 nj`` entries are
-    ``cos q``, ``sin q`` (``q = atan2(sin q, cos q)``), so train without ``VecNormalize`` (the
+    ``cos q``, ``sin q`` (read by :func:`envs.transport.joint_angles`), so train without ``VecNormalize`` (the
     observation entries are all O(1): cosines, sines, velocities in ``[-1, 1]``, metres).
 
     With ``avoidance`` (``{"xi", "safe", "influence"}``, see :func:`damper_constraints`) and an env
@@ -186,128 +321,54 @@ class JointGoalExtractor(GoalDeltaExtractor):
     Args:
         observation_space: a ``Dict`` with ``observation`` (starting with ``cos q, sin q``),
             ``achieved_goal`` and ``desired_goal`` (3 numbers, a position in m, or 9, a pose).
-        robot: name of the chain in ``iiwa_torch.robots.PRESETS`` (the env's robot).
+        robot: the env's robot by name: one of ``iiwa_torch.robots.PRESETS`` or of ``envs.robot.URDF_ARMS``
+            (``"panda"``).
         max_step: ``(nj,)`` joint motion per step at full action, rad (the env task's ``max_step``).
         scales: goal-delta scales, m (see :class:`GoalDeltaExtractor`).
-        dampings: the ``lambda`` values, m, all > 0.
-        orientation_weight: ``w``, m/rad (> 0), for pose goals only.
-        clearance_rows: where the capsules' clearances and gradients start in ``observation`` and
-            the number K of capsules (filled in from the env by ``train.train``); None: not observed.
-        avoidance: the velocity damper's ``xi`` (in (0, 1]), ``safe`` and ``influence`` (m), or None.
-        limit_rounds: how many times a DLS step is solved again without the joints it would push
-            past their limits (:meth:`bounded_step`; 0: never).
-        error_damping: ``c >= 0`` (dimensionless): each damping grows with the error, ``lambda + c |e|``
-            (m), the Levenberg-Marquardt rule of damping in proportion to the error (Sugihara's damps by
-            its square); 0: constant dampings.
-        step_bound: how a DLS step larger than full speed is brought into ``[-1, 1]`` (in actions):
-            ``"shrink"`` divides the whole step by its largest entry (the direction kept), ``"clip"``
-            clips each joint (the joints that do not saturate keep their own speed: the wrist goes on
-            turning while the shoulder moves at full speed).
-        null_space_centering: ``k >= 0`` (dimensionless): each DLS step also moves the joints towards the
-            middle of their ranges inside the Jacobian's null space (:meth:`centering_step`, at ``k``
-            times full speed at a limit; :meth:`bounded_step`), so the redundant arm keeps away from the
-            joint limits where the pose task has local minima; 0: off.
-        centering_twist: with ``null_space_centering`` and pose goals, the last joint is centred on
-            where the rotation error would take it, ``q_n + phi`` (:meth:`last_joint_twist`), instead of
-            on ``q_n``: a goal that the arm's present branch reaches only past that joint's limit moves
-            the other joints early, while they can still carry the turn.
-        limit_hold: with ``limit_rounds``, where a held joint goes: ``"still"``, nowhere; ``"limit"``, onto
-            the limit it would have passed (the other joints' step solved for the rest of the error). A
-            joint held still short of its limit leaves the step a fixed point wherever the other joints
-            alone cannot lower the error: the arm stalls there, within a step of the limit.
-        clip_guard: ``c`` in ``[0, 1]`` or None (off), with ``step_bound = "clip"``: a clipped step whose
-            first-order progress ``e . J dq`` is below ``c`` times the shrunk step's is shrunk instead
-            (:meth:`bounded_by_progress`). Clipping some joints of a large step turns its direction and
-            can leave it no descent at all (the arm then stalls, above all where the velocity damper
-            takes away the rest); shrinking keeps the DLS direction, a descent direction.
+        settings: a :class:`JointSettings`; ``options``, its fields as keywords (a config's
+            ``features_extractor_kwargs``), override it.
 
     Output: ``(batch, GoalDeltaExtractor's features + (len(dampings) + 2) * nj + 1)`` features.
     """
 
     def __init__(self, observation_space: spaces.Dict, robot: str = "iiwa14",
                  max_step: Sequence[float] | None = None, scales: Sequence[float] = (0.3, 0.03, 0.003),
-                 dampings: Sequence[float] = (0.1, 0.01), orientation_weight: float = 0.5,
-                 clearance_rows: Sequence[int] | None = None, avoidance: Mapping[str, float] | None = None,
-                 limit_rounds: int = 0, error_damping: float = 0.0, step_bound: str = "shrink",
-                 null_space_centering: float = 0.0, centering_twist: bool = False, limit_hold: str = "still",
-                 clip_guard: float | None = None):
-        from iiwa_torch.robots import PRESETS
-
+                 settings: JointSettings | None = None, **options):
         super().__init__(observation_space, scales)
-        if robot not in PRESETS:
-            raise ValueError(f"robot must be one of {sorted(PRESETS)}, got {robot!r}")
-        chain = PRESETS[robot]()
-        nj = chain.n_joints
+        settings = JointSettings(**options) if settings is None else replace(settings, **options)
+        self.chain = chain = _named_chain(robot)  # float64 buffers; the joint features are computed in float64
+        self.nj = nj = chain.n_joints
         if max_step is None or len(max_step) != nj or any(float(s) <= 0 for s in max_step):
             raise ValueError(f"max_step must be {nj} positive numbers (rad per step), got {max_step!r}")
-        if len(dampings) == 0 or any(float(d) <= 0 for d in dampings):
-            raise ValueError(f"dampings must be a non-empty list of positive numbers (m), got {list(dampings)}")
-        if not float(orientation_weight) > 0:
-            raise ValueError(f"orientation_weight must be a positive number (m/rad), got {orientation_weight!r}")
         obs_dim = int(observation_space["observation"].shape[0])
         goal_dim = int(observation_space["desired_goal"].shape[0])
         if obs_dim < 2 * nj or goal_dim not in (3, 9):
             raise ValueError(f"robot {robot!r} has {nj} joints: the observation needs >= {2 * nj} entries "
                              f"(cos q, sin q) and the goal 3 (a position) or 9 (a pose) numbers; got {obs_dim} "
                              f"and {goal_dim}")
-        if avoidance is not None:
-            if clearance_rows is None:
-                raise ValueError("avoidance needs the env's clearances: make the env with observe_clearance=True")
-            if set(avoidance) != {"xi", "safe", "influence"} or not 0 < float(avoidance["xi"]) <= 1 \
-                    or not 0 <= float(avoidance["safe"]) < float(avoidance["influence"]):
-                raise ValueError("avoidance must be {xi: in (0, 1], safe: >= 0, influence: > safe} (m), "
-                                 f"got {dict(avoidance)!r}")
-            start, k = (int(c) for c in clearance_rows)
-            if start < 3 * nj or start + k * (1 + nj) > obs_dim:
-                raise ValueError(f"clearance_rows {list(clearance_rows)} lie outside the observation ({obs_dim})")
-        if isinstance(limit_rounds, bool) or not isinstance(limit_rounds, int) or limit_rounds < 0:
-            raise ValueError(f"limit_rounds must be an int >= 0, got {limit_rounds!r}")
-        if isinstance(error_damping, bool) or not isinstance(error_damping, (int, float)) \
-                or not 0 <= error_damping < math.inf:
-            raise ValueError(f"error_damping must be a finite number >= 0, got {error_damping!r}")
-        self.error_damping = float(error_damping)
-        if step_bound not in STEP_BOUNDS:
-            raise ValueError(f"step_bound must be one of {STEP_BOUNDS}, got {step_bound!r}")
-        self.step_bound = step_bound
-        if isinstance(null_space_centering, bool) or not isinstance(null_space_centering, (int, float)) \
-                or not 0 <= null_space_centering < math.inf:
-            raise ValueError(f"null_space_centering must be a finite number >= 0, got {null_space_centering!r}")
-        self.null_space_centering = float(null_space_centering)
-        check_bool(centering_twist, "centering_twist")
-        if centering_twist and (goal_dim != 9 or not null_space_centering):
-            raise ValueError("centering_twist needs pose goals (9 numbers) and null_space_centering > 0")
-        self.centering_twist = centering_twist
-        if limit_hold not in LIMIT_HOLDS:
-            raise ValueError(f"limit_hold must be one of {LIMIT_HOLDS}, got {limit_hold!r}")
-        self.limit_hold = limit_hold
-        if clip_guard is not None:
-            if isinstance(clip_guard, bool) or not isinstance(clip_guard, (int, float)) or not 0 <= clip_guard <= 1:
-                raise ValueError(f"clip_guard must be a number in [0, 1] or None, got {clip_guard!r}")
-            if step_bound != "clip":
-                raise ValueError("clip_guard needs step_bound: clip")
-            clip_guard = float(clip_guard)
-        self.clip_guard = clip_guard
-        self.limit_rounds = limit_rounds
-        self.avoidance = None if avoidance is None else {key: float(v) for key, v in avoidance.items()}
-        self.clearance_rows = None if clearance_rows is None else tuple(int(c) for c in clearance_rows)
+        settings.check_space(nj, obs_dim, goal_dim)
+        #: the options, checked
+        self.settings = settings
         self.pose = goal_dim == 9
-        self.orientation_weight = float(orientation_weight)
-        self.chain = chain  # float64 buffers; the joint features are computed in float64
-        self.nj = nj
+        self._add_columns(nj, len(settings.dampings))
+        self.register_buffer("max_step", torch.tensor([float(s) for s in max_step], dtype=torch.float64))
+        self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in settings.dampings],
+                                                        dtype=torch.float64))
+
+    def _add_columns(self, nj: int, dampings: int) -> None:
+        """Name the joint features' columns, after the goal features, and count them in ``features_dim``."""
         #: columns of the output holding the DLS step (in actions) at the first damping
         self.step_columns = (self._features_dim, self._features_dim + nj)
         #: columns of ``J^T e / |e|`` (m), after the steps of every damping
-        self.gradient_columns = (self._features_dim + len(dampings) * nj, self._features_dim + (len(dampings) + 1) * nj)
-        self._features_dim += (len(dampings) + 2) * nj + 1
+        self.gradient_columns = (self._features_dim + dampings * nj, self._features_dim + (dampings + 1) * nj)
+        self._features_dim += (dampings + 2) * nj + 1
         #: the column of the distance |e| (m)
         self.distance_column = self._features_dim - 1
         #: ``(first column, K)`` of the damper's constraints in actions, or None without avoidance
         self.damper_columns = None
-        if avoidance is not None:
-            self.damper_columns = (self._features_dim, self.clearance_rows[1])
-            self._features_dim += self.clearance_rows[1] * (nj + 1)
-        self.register_buffer("max_step", torch.tensor([float(s) for s in max_step], dtype=torch.float64))
-        self.register_buffer("damping_sq", torch.tensor([float(d) ** 2 for d in dampings], dtype=torch.float64))
+        if self.settings.avoidance is not None:
+            self.damper_columns = (self._features_dim, self.settings.clearance_rows[1])
+            self._features_dim += self.settings.clearance_rows[1] * (nj + 1)
 
     def _constants(self, xp) -> tuple:
         """``max_step``, ``damping_sq`` and the chain's lower and upper limits, float64, in ``xp``'s arrays."""
@@ -323,11 +384,11 @@ class JointGoalExtractor(GoalDeltaExtractor):
         ``(lambda + c |e|)^2`` with ``c = error_damping``."""
         xp = np if isinstance(error, np.ndarray) else torch
         damping_sq = self._constants(xp)[1]  # (L,)
-        if not self.error_damping:  # numpy: a copy (np.broadcast_to costs more than copying these few rows)
+        if not self.settings.error_damping:  # numpy: a copy (np.broadcast_to costs more than copying a few rows)
             return damping_sq[None].repeat(error.shape[0], 0) if xp is np else \
                 damping_sq.expand(error.shape[0], damping_sq.shape[0])
         size = xp.sqrt((error * error).sum(-1))[:, None]  # (B, 1)
-        return (xp.sqrt(damping_sq) + self.error_damping * size) ** 2
+        return (xp.sqrt(damping_sq) + self.settings.error_damping * size) ** 2
 
     def _dls_solver(self, jac, damping):
         """``(free, rhs)`` -> the DLS steps ``(B, L, nj)`` (rad) per squared damping ``damping (B, L)`` for
@@ -351,18 +412,19 @@ class JointGoalExtractor(GoalDeltaExtractor):
 
     def _bounded(self, u, xp):
         """Steps in actions ``u (..., nj)`` brought into ``[-1, 1]`` as ``step_bound`` says."""
-        return u.clip(-1.0, 1.0) if self.step_bound == "clip" else shrink(u, xp)
+        return u.clip(-1.0, 1.0) if self.settings.step_bound == "clip" else shrink(u, xp)
 
     def bounded_by_progress(self, u, jac, error):
         """Steps in actions ``u (B, L, nj)`` brought into ``[-1, 1]`` as ``step_bound`` says, but with
         ``clip_guard = c``, each clipped step whose first-order progress ``e . J dq`` (``dq = u max_step``;
         ``jac (B, k, nj)``, ``error (B, k)``) is below ``c`` times the shrunk step's is shrunk instead."""
         xp = np if isinstance(u, np.ndarray) else torch
-        if self.clip_guard is None:
+        if self.settings.clip_guard is None:
             return self._bounded(u, xp)
         clipped, shrunk = u.clip(-1.0, 1.0), shrink(u, xp)
         gain = (jac * error[..., None]).sum(-2) * self._constants(xp)[0]  # (B, nj): J^T e max_step
-        behind = (clipped * gain[:, None]).sum(-1) < self.clip_guard * (shrunk * gain[:, None]).sum(-1)  # (B, L)
+        guard = self.settings.clip_guard
+        behind = (clipped * gain[:, None]).sum(-1) < guard * (shrunk * gain[:, None]).sum(-1)  # (B, L)
         return xp.where(behind[..., None], shrunk, clipped)
 
     def bounded_step(self, q, jac, error, damping_sq=None):
@@ -390,8 +452,9 @@ class JointGoalExtractor(GoalDeltaExtractor):
         max_step, _, lower, upper = self._constants(xp)
         solver = self._dls_solver(jac, self.squared_dampings(error) if damping_sq is None else damping_sq)
         prior = None  # (B, nj) rad
-        if self.null_space_centering:
-            prior = self.centering_step(q, self.last_joint_twist(jac, error) if self.centering_twist else None)
+        if self.settings.null_space_centering:
+            twist = self.last_joint_twist(jac, error) if self.settings.centering_twist else None
+            prior = self.centering_step(q, twist)
 
         def solve(free, hold=None):  # hold (B, L, nj) rad: the held joints' steps (limit_hold "limit")
             held = None if prior is None else prior[:, None] if free is None else prior[:, None] * free
@@ -402,10 +465,10 @@ class JointGoalExtractor(GoalDeltaExtractor):
             return held + solver(free, error[:, None] - (held[..., None, :] * jac[:, None]).sum(-1))
 
         dq = solve(None)  # (B, L, nj) rad
-        if self.limit_rounds:
+        if self.settings.limit_rounds:
             free = xp.ones_like(dq)
-            hold = xp.zeros_like(dq) if self.limit_hold == "limit" else None
-            for _ in range(self.limit_rounds):
+            hold = xp.zeros_like(dq) if self.settings.limit_hold == "limit" else None
+            for _ in range(self.settings.limit_rounds):
                 step = self.bounded_by_progress(dq / max_step, jac, error) * max_step
                 end = q[:, None] + step
                 blocked = ((end > upper) & (step > 0)) | ((end < lower) & (step < 0))
@@ -432,7 +495,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         if twist is not None:
             q = xp.concatenate([q[:, :-1], (q[:, -1] + twist)[:, None]], -1)
         place = self.joint_place(q)
-        return -self.null_space_centering * self._constants(xp)[0] * place * abs(place)
+        return -self.settings.null_space_centering * self._constants(xp)[0] * place * abs(place)
 
     def joint_place(self, q):
         """``q (B, nj)`` rad (tensor or numpy array) -> each joint's place within its limits,
@@ -451,7 +514,7 @@ class JointGoalExtractor(GoalDeltaExtractor):
         rotation, axis = error[:, 3:], jac[:, 3:, -1]  # w e_r, w z
         size = xp.sqrt((rotation * rotation).sum(-1))  # w theta
         along = (rotation * axis).sum(-1) / (size * xp.sqrt((axis * axis).sum(-1))).clip(min=1e-300)  # u.z
-        half = size / (2.0 * self.orientation_weight)
+        half = size / (2.0 * self.settings.orientation_weight)
         return 2.0 * xp.arctan2(xp.sin(half) * along, xp.cos(half))
 
     def joint_features(self, q, error, clearance: tuple | None = None):
@@ -471,12 +534,13 @@ class JointGoalExtractor(GoalDeltaExtractor):
             jac = kin.jacobian(self.chain.geometry(), torch.from_numpy(q)).numpy()
         max_step = self._constants(xp)[0]
         k = e.shape[-1]
-        w = self.orientation_weight
+        w = self.settings.orientation_weight
         jp = jac[..., :3, :] if k == 3 else xp.concatenate([jac[..., :3, :], w * jac[..., 3:, :]], -2)
         damping_sq = self.squared_dampings(e)  # (B, L)
         u = self.bounded_step(q, jp, e, damping_sq)  # (B, L, nj) in actions
-        if self.avoidance is not None:
-            u = velocity_damper(u * max_step, jp, damping_sq, *clearance, **self.avoidance) / max_step
+        if self.settings.avoidance is not None:
+            gains = self.settings.avoidance._asdict()
+            u = velocity_damper(u * max_step, jp, damping_sq, *clearance, **gains) / max_step
             u = self._bounded(u, xp)
         distance = xp.sqrt((e * e).sum(-1))[:, None]  # (B, 1)
         grad = (jp.mT @ e[..., None])[..., 0] / distance.clip(min=1e-6)
@@ -487,16 +551,16 @@ class JointGoalExtractor(GoalDeltaExtractor):
         differentiate (:func:`numpy_ok`: one env's policy step) the same formulas run in numpy, which
         costs a fraction of torch's per-op overhead (the DLS solves, by ``dls_step_numpy``, and the
         Jacobian are computed another way there: the same values to rounding)."""
-        obs, nj = observations["observation"], self.nj
+        _, _, lower, upper = self._constants(np)
         # torch's float32 atan2 on both paths: numpy's may differ in the last bit
-        q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
+        q = joint_angles(observations["observation"], lower, upper)
         if numpy_ok(*observations.values()):
             return torch.from_numpy(self._features(q.numpy(), {key: v.numpy() for key, v in observations.items()}))
         return self._features(q, observations)
 
     def _features(self, q, observations: dict):
         """:meth:`forward` from ``q (B, nj)``, on tensors or numpy arrays (with numba, numpy arrays by
-        one compiled kernel: :func:`train.kernels.features`, the same formulas)."""
+        one compiled kernel: :func:`train.policy_kernels.features`, the same formulas)."""
         xp = np if isinstance(q, np.ndarray) else torch
         obs, nj = observations["observation"], self.nj
         desired, achieved = observations["desired_goal"], observations["achieved_goal"]
@@ -506,17 +570,17 @@ class JointGoalExtractor(GoalDeltaExtractor):
                 rotation = _rotation_error(*(torch.from_numpy(g) for g in (desired, achieved))).numpy() \
                     if xp is np else _rotation_error(desired, achieved)
                 error = xp.concatenate([error.astype(np.float64) if xp is np else error.double(),
-                                        self.orientation_weight * rotation], -1)
+                                        self.settings.orientation_weight * rotation], -1)
             if xp is np and compiled.ENABLED:
                 return self._compiled_features(q, observations, error)
             base = self.goal_features(observations, xp)
             clearance, damper = None, []
-            if self.avoidance is not None:
-                start, k = self.clearance_rows
+            if self.settings.avoidance is not None:
+                start, k = self.settings.clearance_rows
                 rows = obs[:, start : start + k * (1 + nj)]
                 rows = rows.astype(np.float64) if xp is np else rows.double()
                 clearance = rows[:, :k], rows[:, k:].reshape(-1, k, nj)
-                normal, bound = damper_constraints(*clearance, **self.avoidance)
+                normal, bound = damper_constraints(*clearance, **self.settings.avoidance._asdict())
                 damper = [(normal * self._constants(xp)[0]).reshape(normal.shape[0], -1), bound]
             joint = self.joint_features(q, error, clearance)
         parts = [joint, *damper]
@@ -524,21 +588,31 @@ class JointGoalExtractor(GoalDeltaExtractor):
         return xp.concatenate([base, *parts], -1)
 
     def _compiled_features(self, q: np.ndarray, observations: dict[str, np.ndarray], error: np.ndarray) -> np.ndarray:
-        """:meth:`_features` on numpy arrays, by :func:`train.kernels.features` (imported, numba
+        """:meth:`_features` on numpy arrays, by :func:`train.policy_kernels.features` (imported, numba
         with it, on the first call)."""
-        from train.kernels import features
+        from train.policy_kernels import features
 
         max_step, damping_sq, lower, upper = self._constants(np)
-        avoidance, (start, k) = self.avoidance, self.clearance_rows or (0, 0)
-        damper = np.empty(0) if avoidance is None else \
-            np.array([avoidance["xi"], avoidance["safe"], avoidance["influence"]])
         arrays = (np.ascontiguousarray(observations[key]) for key in ("observation", "achieved_goal", "desired_goal"))
         return features(*arrays, np.ascontiguousarray(error, dtype=np.float64), q.astype(np.float64),
-                        self._buffers["inv_scales"].numpy()[:, 0], max_step, damping_sq, lower, upper,
-                        self.error_damping, self.step_bound == "clip", self.limit_rounds, self.orientation_weight,
-                        self.null_space_centering, self.centering_twist, self.clip_guard is not None,
-                        self.clip_guard or 0.0, self.limit_hold == "limit", damper, start, k,
-                        *self.chain.geometry().float_arrays)
+                        self._buffers["inv_scales"].numpy()[:, 0], damping_sq, np.stack([max_step, lower, upper]),
+                        self._kernel_scalars(), *self.chain.geometry().float_arrays)
+
+    def _kernel_scalars(self) -> np.ndarray:
+        """The settings as :func:`train.policy_kernels.features` reads them (made once: the settings are frozen)."""
+        scalars = self.__dict__.get("_scalars")
+        if scalars is None:
+            from train.policy_kernels import pack_scalars
+
+            s = self.settings
+            avoidance, (start, k) = s.avoidance or Avoidance(0.0, 0.0, 0.0), s.clearance_rows or (0, 0)
+            scalars = self._scalars = pack_scalars({
+                "error_damping": s.error_damping, "clip": s.step_bound == "clip", "limit_rounds": s.limit_rounds,
+                "orientation_weight": s.orientation_weight, "centering": s.null_space_centering,
+                "twist": s.centering_twist, "guarded": s.clip_guard is not None, "guard": s.clip_guard or 0.0,
+                "hold_at_limit": s.limit_hold == "limit", **avoidance._asdict(), "clearance_start": start,
+                "K": k if s.avoidance is not None else 0})
+        return scalars
 
 
 def _rotation_error(desired: torch.Tensor, achieved: torch.Tensor) -> torch.Tensor:

@@ -92,10 +92,10 @@ class _ResidualHead(nn.Module):
     def mean_numpy(self, correction, step, distance, damper, gradient) -> torch.Tensor:
         """The mean (a tensor) from float32 numpy arrays: ``correction = linear(latent)``, ``step (B, nj)``,
         ``distance (B, 1)``, ``damper (B, K (nj + 1))`` (``(B, 0)`` without constraints), ``gradient (B, nj)``
-        (``(B, 0)`` without ``max_step``); by :func:`train.kernels.residual_mean` (imported, numba with it, on
+        (``(B, 0)`` without ``max_step``); by :func:`train.policy_kernels.residual_mean` (imported, numba with it, on
         the first call) when :data:`iiwa_torch.compiled.ENABLED`."""
         if compiled.ENABLED:
-            from train.kernels import residual_mean
+            from train.policy_kernels import residual_mean
 
             scale = np.empty(0, np.float32) if self.ahead_scale is None else self.ahead_scale.numpy()
             return torch.from_numpy(residual_mean(step, distance, correction, damper, gradient, scale,

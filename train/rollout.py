@@ -158,23 +158,18 @@ def make_goal_set(env_id: str, n: int, seed: int, env_kwargs: dict[str, Any] | N
 
 
 Actor = Callable[[dict[str, np.ndarray]], np.ndarray]
-TURN = 2 * np.pi
-ANGLE_TOL = 1e-5  # rad: a joint on its limit, read back through float32 cos and sin, stays put
 
 
 def rollout(goals: GoalSet, act: Actor) -> Rollout:
     """Run ``act`` (observation dict of ``(n, ...)`` arrays -> ``(n, nj)`` actions) on every goal."""
+    from envs.transport import joint_angles
+
     env = _env(goals.env_id, goals.n, goals.seed, goals.env_kwargs)
     steps = env.task.max_episode_steps
-    nj = env.action_space.shape[0]
-
     lower, upper = (x.double().cpu().numpy() for x in (env.task.arm.lower, env.task.arm.upper))
 
-    def joints(observation: np.ndarray) -> np.ndarray:  # observation starts with cos q, sin q
-        """The joint angles, from their cosines and sines, within the limits: atan2's (-pi, pi] turned by
-        a full turn where a joint's range reaches past pi (the Panda's joint 6 runs to 3.82 rad)."""
-        q = np.arctan2(observation[..., nj : 2 * nj], observation[..., :nj])
-        return q + TURN * (q < lower - ANGLE_TOL) - TURN * (q > upper + ANGLE_TOL)
+    def joints(observation: np.ndarray) -> np.ndarray:
+        return joint_angles(observation, lower, upper)
 
     start = time.perf_counter()
     obs = env.reset()

@@ -22,6 +22,8 @@ import numpy as np
 import torch
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
+from envs.transport import joint_angles
+
 
 def _positive(**values) -> None:
     for name, value in values.items():
@@ -71,15 +73,18 @@ class ClearancePenalty(VecEnvWrapper):
         if self.task.world is None:
             raise ValueError("ClearancePenalty needs an env with collision checks (collision='off' has no world)")
         self.margin, self.weight = float(margin), float(weight)
+        #: the arm's joint limits ``(nj,)`` each, rad, as numpy arrays
+        self.limits = tuple(x.double().cpu().numpy() for x in (self.task.arm.lower, self.task.arm.upper))
 
     def reset(self):
         return self.venv.reset()
 
     def clearance(self, observation: np.ndarray) -> np.ndarray:
         """Observations ``(n, D)`` -> clearance ``(n,)``, m."""
-        nj, world = self.task.arm.n_joints, self.task.world
+        arm, world = self.task.arm, self.task.world
+        nj = arm.n_joints
         obs = torch.as_tensor(observation, dtype=self.task.dtype)
-        q = torch.atan2(obs[:, nj : 2 * nj], obs[:, :nj])
+        q = joint_angles(obs, *self.limits)
         block = obs[:, 3 * nj : 3 * nj + world.block_size].T if world.slots else None
         with torch.no_grad():
             return world.clearance(q, block).double().numpy()
