@@ -298,3 +298,12 @@ def test_large_batches_with_many_pairs_equal_the_torch_path(small_kernel, compil
         got, want = clearance(chain, q, world, caps), _torch_path(chain, q, world, caps)
         assert (want < 0).any() and (want > 0).any()
         assert torch.allclose(got, want, rtol=0, atol=1e-12), (got - want).abs().max()
+
+
+@pytest.mark.parametrize("world", [World(floor=0.0), None])
+def test_an_empty_batch_has_an_empty_clearance(small_kernel, world):
+    """Zero configurations (a filter that kept none): an empty answer on every path, as torch's."""
+    chain = robots.iiwa14().double()
+    q = torch.zeros(0, chain.n_joints, dtype=torch.float64)
+    assert clearance(chain, q, world).shape == (0,)
+    assert _torch_path(chain, q, world).shape == (0,)

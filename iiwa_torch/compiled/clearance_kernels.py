@@ -203,7 +203,7 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
         last = max(last, frames[k])
         d0, d1, d2 = local[k, 0, 1] - local[k, 0, 0], local[k, 1, 1] - local[k, 1, 0], local[k, 2, 1] - local[k, 2, 0]
         half[k] = 0.5 * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    w = min(_LANES, count)  # lanes: one configuration (the single env) allocates one lane
+    w = max(1, min(_LANES, count))  # lanes: one configuration (the single env) allocates one, none still one
     angle, cs, state = np.empty((last, w)), np.empty((2, last, w)), np.empty((12, w))
     ends = np.empty((k_all, 9, w))  # per capsule: start point, start-to-end vector, mid-point
     gap, lanes, best = np.empty((first.shape[0], w)), np.empty(w, dtype=np.int64), np.empty(w)
