@@ -32,6 +32,7 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     policy's time, as an IK solver's set-up is not its solve's).
     Collisions are counted at every configuration of the rollout in ``goals.world()`` (the preset's default
     floor if the env checks none)."""
+    from envs.transport import ANGLE_TOL
     from train.rollout import PolicyEvaluator, make_goal_set, policy_actor, rollout
 
     pose = goals.pose_goals
@@ -46,7 +47,7 @@ def run_policy(goals, model, vec_normalize, chain) -> tuple[dict[str, Any], dict
     path = np.linalg.norm(np.diff(r.q, axis=0), axis=-1).sum(0)  # (n,) rad
     steps_hit = steps_to_reach(r.distance, TOLERANCES["1cm"])
     batched = float(np.median([x.seconds for x in runs])) / goals.n
-    metrics = summarise(final, steps_hit, path, limit_violations(chain, r.q), batched, single, goals.n)
+    metrics = summarise(final, steps_hit, path, limit_violations(chain, r.q, ANGLE_TOL), batched, single, goals.n)
     # the policy network alone, all steps
     metrics["network_time_per_goal_batched_s"] = float(np.median([x.act_seconds for x in runs])) / goals.n
     lo, hi = chain.limits.numpy()

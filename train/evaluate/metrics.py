@@ -53,11 +53,13 @@ def summarise(final_error: np.ndarray, steps: np.ndarray, path: np.ndarray, viol
     return out
 
 
-def limit_violations(chain, q) -> int:
-    """Configurations (rows of ``q (..., nj)``) outside the joint limits by more than 1e-9 rad."""
+def limit_violations(chain, q, tol: float = 1e-9) -> int:
+    """Configurations (rows of ``q (..., nj)``) outside the joint limits by more than ``tol`` rad (a policy's
+    angles, read back from its float32 observation, need the precision of that reading:
+    ``envs.transport.ANGLE_TOL``)."""
     import torch
 
-    return int((~chain.within_limits(torch.as_tensor(q, dtype=torch.float64), tol=1e-9)).sum())
+    return int((~chain.within_limits(torch.as_tensor(q, dtype=torch.float64), tol=tol)).sum())
 
 
 def collision_metrics(chain, q_path: np.ndarray, world=None, capsules=None) -> tuple[dict, np.ndarray,
