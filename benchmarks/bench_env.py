@@ -175,6 +175,73 @@ def write_results(args, results: list, checks: dict, panda: float | None, rounds
     print(f"wrote {path}")
 
 
+class Recorder:
+    """The rows of the table, ``(name, arms per call, seconds per call)``, printed as they come."""
+
+    def __init__(self, timing: dict) -> None:
+        self.timing, self.results = timing, []
+
+    def report(self, name: str, n: int, seconds: float) -> float:
+        self.results.append((name, n, seconds))
+        print(f"{name:<40} N={n:>6}  {n / seconds:>14,.0f} env-steps/s  {seconds * 1e6:>10,.1f} us/call", flush=True)
+        return seconds
+
+    def record(self, name: str, n: int, fn) -> float:
+        return self.report(name, n, timeit(fn, **self.timing))
+
+
+def time_vector_envs(rec: Recorder) -> tuple[dict, float, str, dict]:
+    """The vector env at every N, unchecked at the largest, and the obstacle envs -> seconds per
+    step by N, the unchecked step's, the obstacle rows' label and their seconds by N."""
+    raw = {n: rec.record("IiwaReachVectorEnv (make_vec)", n, vector_runner(n)) for n in VECTOR_SIZES}
+    unchecked = rec.record("IiwaReachVectorEnv (make_vec), collision='off'", VECTOR_SIZES[-1],
+                           vector_runner(VECTOR_SIZES[-1], collision="off"))
+    label = f"{OBSTACLES}{', obstacles=4' if OBSTACLE_OPTIONS else ''}"
+    rec.record(f"{label} (gymnasium.make)", 1, single_env_runner(gym.make(OBSTACLES, **OBSTACLE_OPTIONS)))
+    obstacles = {n: rec.record(f"{label} (make_vec)", n, vector_runner(n, OBSTACLES, **OBSTACLE_OPTIONS))
+                 for n in (256, 4_096)}
+    return raw, unchecked, label, obstacles
+
+
+def time_largest(rec: Recorder) -> dict:
+    """Seconds per step at the largest N: on 1 thread, and on 2 threads with other wait policies."""
+    largest = {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # on a busy machine 2 threads can lose
+    largest["1 thread"] = rec.record("IiwaReachVectorEnv (make_vec), 1 thread", VECTOR_SIZES[-1],
+                                     vector_runner(VECTOR_SIZES[-1]))
+    torch.set_num_threads(threads)
+    for policy in (None, "ACTIVE"):
+        setting = f"2 threads, OMP_WAIT_POLICY={policy or 'unset'}"
+        largest[setting] = rec.report(f"IiwaReachVectorEnv (make_vec), {setting}", VECTOR_SIZES[-1],
+                                      largest_in_child(rec.timing, policy))
+    return largest
+
+
+def time_floor(rec: Recorder) -> None:
+    """The floor of a step: the kinematics of the batch (float32, as the env's state), which for
+    position goals is the position-only kernel; the full pose for comparison."""
+    chain = envs.make_task(REACH).robot  # the env's chain, in the state's dtype (float32)
+    for n in (1, VECTOR_SIZES[-1]):
+        q = chain.random_q(n, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
+        rec.record("chain.position alone (the step's floor)", n, lambda q=q: chain.position_batch_last(q.T))
+        rec.record("chain.fk alone (full pose)", n, lambda q=q: chain.fk(q))
+
+
+def time_alternating(single_peer, sb3_runner) -> tuple[list, list]:
+    """The two ratios with targets again, timed in alternation: single env / PandaReach-v3 (if
+    ``single_peer``) and SB3 VecEnv / vector env at N = 256, 7 rounds each."""
+    rounds = []
+    if single_peer is not None:
+        rounds = alternating_ratios(single_env_runner(single_peer), single_env_runner(gym.make(REACH)))
+        print("single env / PandaReach-v3, alternating rounds:", ", ".join(f"{r:.1f}x" for r in rounds))
+    vec = gym.make_vec(REACH, num_envs=256)
+    vec.reset(seed=0)
+    sb3_rounds = alternating_ratios(sb3_runner, batched_runner(vec.step, 256))
+    print("SB3 VecEnv / vector env at N=256, alternating rounds:", ", ".join(f"{r:.2f}" for r in sb3_rounds))
+    return rounds, sb3_rounds
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small sizes, short timings (a smoke run)")
@@ -186,76 +253,31 @@ def main() -> None:
         min_time, repeats = args.largest_only
         print(timeit(vector_runner(VECTOR_SIZES[-1]), min_time=min_time, repeats=int(repeats)))
         return
-    vector_sizes = VECTOR_SIZES
-    timing = {"min_time": 0.05, "repeats": 3} if args.quick else {"min_time": 1.0, "repeats": 5}
     warnings.filterwarnings("ignore")
-    results = []  # (name, arms per call, seconds per call)
-
-    def report(name: str, n: int, seconds: float) -> float:
-        results.append((name, n, seconds))
-        print(f"{name:<40} N={n:>6}  {n / seconds:>14,.0f} env-steps/s  {seconds * 1e6:>10,.1f} us/call", flush=True)
-        return seconds
-
-    def record(name: str, n: int, fn) -> float:
-        return report(name, n, timeit(fn, **timing))
-
+    rec = Recorder({"min_time": 0.05, "repeats": 3} if args.quick else {"min_time": 1.0, "repeats": 5})
     found = peers()
     for name, env in found.items():
-        record(name, 1, single_env_runner(env))
-    single = record(f"{REACH} (gymnasium.make)", 1, single_env_runner(gym.make(REACH)))
-    raw = {}
-    for n in vector_sizes:
-        raw[n] = record("IiwaReachVectorEnv (make_vec)", n, vector_runner(n))
-    unchecked = record("IiwaReachVectorEnv (make_vec), collision='off'", vector_sizes[-1],
-                       vector_runner(vector_sizes[-1], collision="off"))
-    obstacle_name = f"{OBSTACLES}{', obstacles=4' if OBSTACLE_OPTIONS else ''}"
-    record(f"{obstacle_name} (gymnasium.make)", 1, single_env_runner(gym.make(OBSTACLES, **OBSTACLE_OPTIONS)))
-    obstacles = {n: record(f"{obstacle_name} (make_vec)", n, vector_runner(n, OBSTACLES, **OBSTACLE_OPTIONS))
-                 for n in (256, 4_096)}
-    largest = {}  # seconds per step at the largest N: 1 thread; 2 threads with other wait policies
-    if not args.quick:
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)  # on a busy machine 2 threads can lose
-        largest["1 thread"] = record("IiwaReachVectorEnv (make_vec), 1 thread", VECTOR_SIZES[-1],
-                                     vector_runner(VECTOR_SIZES[-1]))
-        torch.set_num_threads(threads)
-        for policy in (None, "ACTIVE"):
-            setting = f"2 threads, OMP_WAIT_POLICY={policy or 'unset'}"
-            largest[setting] = report(f"IiwaReachVectorEnv (make_vec), {setting}", VECTOR_SIZES[-1],
-                                      largest_in_child(timing, policy))
-    # the floor of a step: the kinematics of the batch (float32, as the env's state), which for
-    # position goals is the position-only kernel; the full pose for comparison
-    chain = envs.make_task(REACH).robot  # the env's chain, in the state's dtype (float32)
-    for n in (1, vector_sizes[-1]):
-        q = chain.random_q(n, generator=torch.Generator().manual_seed(0), dtype=torch.float32)
-        record("chain.position alone (the step's floor)", n, lambda q=q: chain.position_batch_last(q.T))
-        record("chain.fk alone (full pose)", n, lambda q=q: chain.fk(q))
+        rec.record(name, 1, single_env_runner(env))
+    panda = next((s for name, n, s in rec.results if name.startswith("panda-gym")), None)
+    single = rec.record(f"{REACH} (gymnasium.make)", 1, single_env_runner(gym.make(REACH)))
+    raw, unchecked, obstacle_name, obstacles = time_vector_envs(rec)
+    largest = {} if args.quick else time_largest(rec)
+    time_floor(rec)
     sb3, sb3_runners = {}, {}
     for n in SB3_SIZES:
         venv = IiwaReachVecEnv(n, REACH, seed=0)
         venv.reset()
         sb3_runners[n] = batched_runner(venv.step, n)
-        sb3[n] = record("envs.sb3.IiwaReachVecEnv", n, sb3_runners[n])
-
-    panda = next((s for name, n, s in results if name.startswith("panda-gym")), None)
-    # The two ratios with targets again, timed in alternation: the median of per-round ratios.
-    rounds, sb3_rounds = [], []
-    if not args.quick:
-        if panda is not None:
-            panda_env = single_env_runner(found["panda-gym PandaReach-v3"])
-            rounds = alternating_ratios(panda_env, single_env_runner(gym.make(REACH)))
-            print("single env / PandaReach-v3, alternating rounds:", ", ".join(f"{r:.1f}x" for r in rounds))
-        vec = gym.make_vec(REACH, num_envs=256)
-        vec.reset(seed=0)
-        sb3_rounds = alternating_ratios(sb3_runners[256], batched_runner(vec.step, 256))
-        print("SB3 VecEnv / vector env at N=256, alternating rounds:", ", ".join(f"{r:.2f}" for r in sb3_rounds))
+        sb3[n] = rec.record("envs.sb3.IiwaReachVecEnv", n, sb3_runners[n])
+    rounds, sb3_rounds = ([], []) if args.quick else time_alternating(found.get("panda-gym PandaReach-v3"),
+                                                                      sb3_runners[256])  # fmt: skip
     checks = {
         "single env >= 5x PandaReach-v3 steps/s (collisions checked)": None if panda is None else panda / single,
         "single env vs PandaReach-v3, median of 7 alternating rounds": statistics.median(rounds) if rounds else None,
         "vector env env-steps/s at N=65,536, 2 threads, OMP_WAIT_POLICY=PASSIVE, collisions checked (>= 2M)": (
             65_536 / raw[65_536]
         ),
-        "the same with collision='off'": vector_sizes[-1] / unchecked,
+        "the same with collision='off'": VECTOR_SIZES[-1] / unchecked,
         f"{obstacle_name} vector env env-steps/s at N=4,096": 4_096 / obstacles[4_096],
         **{f"vector env env-steps/s at N=65,536, {setting}": 65_536 / s for setting, s in largest.items()},
         "SB3 VecEnv / vector env time per step at N=256 (target <= 2)": sb3[256] / raw[256],
@@ -263,7 +285,7 @@ def main() -> None:
             statistics.median(sb3_rounds) if sb3_rounds else None
         ),
     }
-    write_results(args, results, checks, panda, rounds, sb3_rounds)
+    write_results(args, rec.results, checks, panda, rounds, sb3_rounds)
 
 
 if __name__ == "__main__":

@@ -487,7 +487,7 @@ def _analytic_stepper(
     capsules: Capsules | None,
 ):
     from .ik import analytic
-    from .ik.analytic.srs import Obstacles
+    from .ik.analytic.srs_sweep import Obstacles
 
     if chain.n_joints not in (6, 7):
         raise ValueError(

@@ -13,9 +13,9 @@ from conftest import placed
 from iiwa_torch import robots
 from iiwa_torch.collision import World
 from iiwa_torch.ik import analytic
-from iiwa_torch.ik.analytic import srs
+from iiwa_torch.ik.analytic import srs_sweep
 
-BATCH = min(64, srs.SOLVE_NUMPY_BATCH)  # poses per call, all on the numpy path
+BATCH = min(64, srs_sweep.SOLVE_NUMPY_BATCH)  # poses per call, all on the numpy path
 
 
 pytestmark = pytest.mark.usefixtures("small_kernel")  # every test twice: compiled and numpy
@@ -30,12 +30,12 @@ CHAINS = {"plain": robots.iiwa14(), "placed": placed(robots.iiwa14())}  # placed
 
 def _batched(chain, target, **kwargs):
     """The batched torch path: the numpy path switched off."""
-    old = srs.SOLVE_NUMPY_BATCH, srs.SOLVE_COMPILED_BATCH
-    srs.SOLVE_NUMPY_BATCH = srs.SOLVE_COMPILED_BATCH = 0
+    old = srs_sweep.SOLVE_NUMPY_BATCH, srs_sweep.SOLVE_COMPILED_BATCH
+    srs_sweep.SOLVE_NUMPY_BATCH = srs_sweep.SOLVE_COMPILED_BATCH = 0
     try:
         return analytic.iiwa_solve(chain, target, **kwargs)
     finally:
-        srs.SOLVE_NUMPY_BATCH, srs.SOLVE_COMPILED_BATCH = old
+        srs_sweep.SOLVE_NUMPY_BATCH, srs_sweep.SOLVE_COMPILED_BATCH = old
 
 
 def _stable(chain, target, kwargs: dict, q_tol: float, ulps: float) -> torch.Tensor:

@@ -51,7 +51,7 @@ def _zxzxz_c(ab, m00, m10, m20, sig_a, sig_b):
 def _iiwa_pose(rot, sw, d3, d5, sig, tol):
     """What the closed form takes from one pose: ``rot (3, 3)`` and ``W - S`` ``sw (3,)`` ->
     ``(dist, c4, s4_abs, theta4 of both elbow branches, reachable, u, v_ref, w_ref)`` (``w_ref``'s
-    third entry is 0). Mirrors the psi-independent part of :func:`iiwa_torch.ik.analytic.srs._closed_form`
+    third entry is 0). Mirrors the psi-independent part of :func:`iiwa_torch.ik.analytic.srs.closed_form`
     (``_elbow``, ``_reference``)."""
     sx, sy, sz = sw[0], sw[1], sw[2]
     dist = _safe_norm2(_safe_norm2(sx, sy), sz)
@@ -71,7 +71,7 @@ def _iiwa_pose(rot, sw, d3, d5, sig, tol):
 
 @inline
 def _dot_col(r, rot, col):
-    """``r . rot[:, col]``, summed left to right as :func:`iiwa_torch.ik.analytic.srs._dot`."""
+    """``r . rot[:, col]``, summed left to right as in :func:`iiwa_torch.ik.analytic.srs.closed_form`."""
     return r[0] * rot[0, col] + r[1] * rot[1, col] + r[2] * rot[2, col]
 
 
@@ -81,7 +81,7 @@ def _iiwa_branches(pose, rot, psi, d3, d5, sig, theta):
     distinct values (as the array code holds each joint at the size its branches need), branch
     ``(s, e, w)`` taking joints 1-2 from column ``s``, joint 3 from ``2 s + e``, joint 4 from ``e``
     and joints 5-7 from ``2 e + w``; ``pose`` from :func:`_iiwa_pose`. Mirrors
-    :func:`iiwa_torch.ik.analytic.srs._closed_form`."""
+    :func:`iiwa_torch.ik.analytic.srs.closed_form`."""
     dist, c4, s4_abs, theta4s, _, u, v_ref, w_ref = pose
     cp, sp = math.cos(psi), math.sin(psi)
     v0, v1, v2 = cp * v_ref[0] + sp * w_ref[0], cp * v_ref[1] + sp * w_ref[1], cp * v_ref[2] + sp * 0.0
@@ -142,7 +142,7 @@ def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, singl
     ``best_q (7,)``, clamped into the limits; returns ``(found, psi_best)``. ``limits (7, 7)``: the
     joints' offsets, lows and highs to check against, mid-points, half-widths, and the limits to
     clamp into; ``single``: rank in float32; ``work``: scratch ``(7, 4)`` arrays for the angles, the
-    wrapped joints, their limit checks and scores. Mirrors :func:`iiwa_torch.ik.analytic.srs._pick`,
+    wrapped joints, their limit checks and scores. Mirrors :func:`iiwa_torch.ik.analytic.srs_sweep._pick`,
     whose sum of squares it adds in the same order (``_common.reduce_grouped``: joint 4, then 1 + 2,
     3, then 5 + 6 + 7)."""
     theta, q, inside, score = work
@@ -182,12 +182,12 @@ def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, singl
 
 @jit
 def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, limits, single):
-    """:func:`iiwa_torch.ik.analytic.srs._solve_all` for ``rot (B, 3, 3)``, ``sw (B, 3)``, ``q0 (B, 7)``
+    """:func:`iiwa_torch.ik.analytic.srs_sweep._solve_all` for ``rot (B, 3, 3)``, ``sw (B, 3)``, ``q0 (B, 7)``
     and its arm angles ``psi0 (B,)`` (both 0 rows: none) -> ``q (B, 7)``: per pose the sweep over
     ``grid (K,)`` (after ``psi0``) and the refining passes ``local (P, 9)`` from the best so far, then,
-    where nothing valid was found, over ``fine_grid`` and ``fine_local`` (``srs._angles``).
+    where nothing valid was found, over ``fine_grid`` and ``fine_local`` (``srs_sweep._angles``).
     ``consts``: ``d3, d5``, the six ``sin(alpha)`` and the reach tolerance; ``limits`` as
-    :func:`_iiwa_pick`. Mirrors :func:`iiwa_torch.ik.analytic.srs._sweep`."""
+    :func:`_iiwa_pick`. Mirrors :func:`iiwa_torch.ik.analytic.srs_sweep._sweep`."""
     b = rot.shape[0]
     d3, d5, sig, tol = consts[0], consts[1], consts[2:8], consts[8]
     has_q0 = q0.shape[0] > 0

@@ -17,7 +17,8 @@ from ._common import AnalyticSolutions
 from .detect import ClosedForm, Structure, solve, structure
 from .planar import planar3r
 from .spherical6r import pieper
-from .srs import iiwa, iiwa_arm_angle, iiwa_q3_locked, iiwa_solve
+from .srs import iiwa, iiwa_arm_angle, iiwa_q3_locked
+from .srs_sweep import iiwa_solve
 
 __all__ = [
     "AnalyticSolutions",
