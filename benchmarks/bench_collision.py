@@ -1,15 +1,17 @@
-"""Self + floor clearance of the iiwa 14's capsule model: iiwa-torch batched against coal and pybullet.
+"""Self + floor clearance of an arm's capsule model: iiwa-torch batched against coal and pybullet.
 
-    python benchmarks/bench_collision.py [--quick]
+    python benchmarks/bench_collision.py [--quick] [--robot panda]
 
 Ours: ``clearance(chain, q)`` on a batch of configurations (FK included), one thread, float64
 and float32, by each of its two paths for such a batch: the compiled kernel (numba, the default
 when installed) and the torch ops (``compiled.ENABLED`` switched off, as ``IIWA_TORCH_NUMBA=0``
-does; also what any query with gradients runs). Peers, on the same capsules and pairs (3 self
-pairs, 3 capsule-floor pairs): coal (FCL's successor, C++) and pybullet (``getClosestPoints``),
+does; also what any query with gradients runs). Peers, on the same capsules and pairs (the iiwa
+14's preset model: 3 self pairs, 3 capsule-floor pairs; ``--robot panda``: pybullet_data's Panda
+with the capsules ``capsule_fit.urdf_capsules`` fits to its meshes, 31 self pairs and the floor
+pairs): coal (FCL's successor, C++) and pybullet (``getClosestPoints``),
 called from a Python loop over a subset of the configurations. The peers get their capsule poses
 precomputed (our FK, outside the timing), so their times are their distance queries alone: the
-ratios favour them. Writes results/collision.json and results/collision.md.
+ratios favour them. Writes results/collision.json and .md (``collision_panda`` with ``--robot panda``).
 """
 
 from __future__ import annotations
@@ -21,9 +23,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch is imported
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from common import markdown_table, save, timeit  # noqa: E402
+from common import Robot, markdown_table, save, timeit  # noqa: E402
 
-from iiwa_torch import compiled, robots  # noqa: E402
+from iiwa_torch import compiled  # noqa: E402
+from iiwa_torch.capsule_fit import urdf_capsules  # noqa: E402
 from iiwa_torch.collision import clearance, pairwise_clearance, robot_capsules  # noqa: E402
 from iiwa_torch.runtime import machine_info  # noqa: E402
 
@@ -36,7 +39,7 @@ def capsule_poses(chain, caps, q: torch.Tensor):
     b = np.einsum("nkij,kj->nki", frames[..., :3, :3], pts[:, 1]) + frames[..., :3, 3]
     axis = b - a
     length = np.linalg.norm(axis, axis=-1)
-    z = axis / length[..., None]
+    z = np.where(length[..., None] > 0, axis / np.maximum(length, 1e-300)[..., None], [0.0, 0, 1.0])  # a sphere: any
     helper = np.where(np.abs(z[..., :1]) < 0.9, [1.0, 0, 0], [0, 1.0, 0])
     x = np.cross(z, helper)
     x /= np.linalg.norm(x, axis=-1, keepdims=True)
@@ -145,17 +148,27 @@ def compare(name: str, run, ref: np.ndarray, ours: dict, rows: list, payload: di
     payload[f"speedup_vs_{name}"] = ratios
 
 
+def arm(name: str):
+    """``(chain, capsules)``: the iiwa 14 preset and its model, or a pybullet_data URDF arm and the
+    capsules fitted to its collision meshes."""
+    robot = Robot(name)
+    if robot.path is None:
+        return robot.chain, robot_capsules(robot.chain)
+    return robot.chain, urdf_capsules(robot.chain, robot.path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="20,000 configurations, 200 for the peers")
+    parser.add_argument("--robot", default="iiwa14", help="iiwa14 (default) or panda (pybullet_data's URDF)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     batch, subset = (20_000, 200) if args.quick else (100_000, 2_000)
-    chain = robots.iiwa14()
-    caps = robot_capsules(chain)
+    chain, caps = arm(args.robot)
     q = chain.random_q(batch, generator=torch.Generator().manual_seed(0))
     pairs = pairwise_clearance(chain, q[:1], capsules=caps).pairs
-    rows, payload = [], {"batch": batch, "peer_subset": subset, "pairs": pairs, "machine": machine_info()}
+    rows, payload = [], {"robot": args.robot, "batch": batch, "peer_subset": subset, "pairs": pairs,
+                         "machine": machine_info()}  # fmt: skip
     ours = time_ours(chain, caps, q, rows)
 
     qs = q[:subset]
@@ -176,12 +189,14 @@ def main() -> None:
     pb.disconnect(client)
     payload["ours_s_per_config"] = ours
     payload["loadavg_after"] = list(os.getloadavg())
+    floor = sum(b == "floor" for _, b in pairs)
     md = (
-        "# Self + floor clearance, iiwa 14 capsule model (3 self pairs + 3 floor pairs), 1 thread\n\n"
+        f"# Self + floor clearance, {args.robot} capsule model ({len(pairs) - floor} self pairs + {floor} floor "
+        "pairs), 1 thread\n\n"
         + markdown_table(["method", "configs", "ns/config", "note"], rows)
         + f"\nMachine: {payload['machine']}; load average after the run: {payload['loadavg_after']}\n"
     )
-    print(save("collision", payload, md))
+    print(save("collision" if args.robot == "iiwa14" else f"collision_{args.robot}", payload, md))
 
 
 if __name__ == "__main__":
