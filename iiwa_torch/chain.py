@@ -35,6 +35,7 @@ __all__ = ["Chain", "JointKind"]
 
 Tensor = torch.Tensor
 _FLOAT64 = torch.float64
+_FLOAT_DTYPES = (torch.float64, torch.float32)  # the dtypes of Chain._one_by_kernel
 _version = attrgetter("_version")
 
 
@@ -232,7 +233,7 @@ class Chain(nn.Module):
             prismatic = [k is JointKind.PRISMATIC for k in self.kinds]
             g = Geometry.build(before, after, prismatic, offsets, self.base, self.tool, self.limits, dtype)
             self._geometry[dtype] = g
-            if dtype is _FLOAT64 and g.limits.is_cpu:
+            if g.limits.is_cpu:  # float64 arrays of the buffers, the same in either dtype's geometry
                 self._one_arrays = g.float_arrays
         return g
 
@@ -300,9 +301,10 @@ class Chain(nn.Module):
     def _one_by_kernel(self, q, kernel: str) -> Tensor | None:
         """The common case of ``fk``/``jacobian``, checked at a fraction of :meth:`check_q`'s cost:
         the compiled ``kernel`` (a name in :mod:`iiwa_torch.compiled.numba_kernels`) of ``q``, a new
-        float64 tensor, if the kernels are on and ``q`` is one finite configuration, ``(n,)`` or
-        ``(1, n)``, a plain float64 CPU tensor without ``requires_grad``, and the chain's float64
-        geometry is built, current and on the CPU; else ``None``, and the caller runs
+        tensor in ``q``'s dtype (computed in float64, as the kernels always are), if the kernels are
+        on and ``q`` is one finite configuration, ``(n,)`` or ``(1, n)``, a plain float64 or float32
+        CPU tensor without ``requires_grad``, and the chain's geometry is built, current and on the
+        CPU; else ``None``, and the caller runs
         :meth:`check_q`, :meth:`geometry` and its ordinary path, which raises for every bad input
         and rebuilds a stale geometry. Finite: the Python sum of the n values is (a NaN or inf
         makes it NaN or inf; an overflow of huge finite values only sends ``q`` to the ordinary
@@ -310,7 +312,7 @@ class Chain(nn.Module):
         read, and ``q`` is read by ``tolist`` (a third of ``numpy()``'s cost), which the sum needs
         anyway (benchmarks/results/small.md, fk at batch 1)."""
         arrays = self._one_arrays
-        if (arrays is None or type(q) is not Tensor or q.dtype is not _FLOAT64 or not q.is_cpu or q.requires_grad
+        if (arrays is None or type(q) is not Tensor or q.dtype not in _FLOAT_DTYPES or not q.is_cpu or q.requires_grad
                 or q.shape not in self._one_shapes or not compiled.ENABLED):  # fmt: skip
             return None
         try:
@@ -323,7 +325,8 @@ class Chain(nn.Module):
         if not math.isfinite(sum(values)) or self._buffer_stamp() != self._stamp:
             return None
         out = getattr(compiled.kernels(), kernel)(*arrays, np.array(values)[None])
-        return torch.from_numpy(out if row else out[0])
+        out = out if row else out[0]
+        return torch.from_numpy(out if q.dtype is _FLOAT64 else out.astype(np.float32))
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""

@@ -188,17 +188,19 @@ def test_fk_and_jacobian_of_a_few_configurations(monkeypatch, name, dtype):
 
 
 @needs_numba
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("shape", [(7,), (1, 7)])
-def test_one_configuration_shortcut(shape):
-    """fk/jacobian of one plain float64 configuration skip check_q (Chain._one_by_kernel): the same
-    numbers, bit for bit, as the checked path (taken by a Parameter), the chain's current buffers
-    (load_state_dict), and the same errors: a NaN or inf makes the Python sum of q NaN or inf, so q
-    goes to check_q; huge finite values whose sum overflows go there too, and pass."""
+def test_one_configuration_shortcut(shape, dtype):
+    """fk/jacobian of one plain float64 or float32 configuration skip check_q (Chain._one_by_kernel):
+    the same numbers and dtype, bit for bit, as the checked path (taken by a Parameter), the chain's
+    current buffers (load_state_dict), and the same errors: a NaN or inf makes the Python sum of q
+    NaN or inf, so q goes to check_q; huge finite values whose sum overflows go there too, and pass."""
     chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
-    q = chain.random_q(1, generator=torch.Generator().manual_seed(5)).reshape(shape)
+    q = chain.random_q(1, generator=torch.Generator().manual_seed(5), dtype=dtype).reshape(shape)
     assert chain._one_by_kernel(q, "end_poses") is not None
     for method in (chain.fk, chain.jacobian):
-        assert torch.equal(method(q), method(torch.nn.Parameter(q, requires_grad=False)))
+        fast = method(q)
+        assert fast.dtype == dtype and torch.equal(fast, method(torch.nn.Parameter(q, requires_grad=False)))
     other = robots.iiwa7()
     chain.load_state_dict(other.state_dict())
     assert torch.equal(chain.fk(q), other.fk(torch.nn.Parameter(q, requires_grad=False)))
@@ -210,8 +212,9 @@ def test_one_configuration_shortcut(shape):
             for method in (chain.fk, chain.jacobian):
                 with pytest.raises(ValueError, match=re.escape(f"q contains NaN or inf (first at index {index})")):
                     method(x)
-    huge = torch.full(shape, 1e308, dtype=torch.float64)
-    assert chain._one_by_kernel(huge, "end_poses") is None and torch.isfinite(chain.fk(huge)).all()
+    if dtype == torch.float64:  # float32 values cannot overflow a sum in Python's float64
+        huge = torch.full(shape, 1e308, dtype=torch.float64)
+        assert chain._one_by_kernel(huge, "end_poses") is None and torch.isfinite(chain.fk(huge)).all()
     strided = torch.stack([q.reshape(-1), q.reshape(-1)], -1)[..., 0].reshape(shape)  # not contiguous: the same
     assert not strided.is_contiguous() and torch.equal(chain.fk(strided), chain.fk(q))
 
