@@ -46,7 +46,7 @@ Tensor = torch.Tensor
 _GOAL_CANDIDATES = 8  # goals drawn per reset when a minimum goal distance is asked for
 _FREE_CANDIDATES = 2  # goals drawn per round when they must be collision-free (the floor rules out ~11%)
 CLEARANCE_RANGE = 1.0  # m: the observed clearance of a capsule saturates here (its gradient reads 0)
-_ROUNDS = 32  # rounds of draws for a collision-free start, goal or obstacle before the fallback
+_DRAW_ROUNDS = 32  # rounds of draws for a collision-free start, goal or obstacle before the fallback
 # Where in each (key, episode) counter stream the redraws of later rounds and the obstacles start
 _START_REDRAWS, _GOAL_REDRAWS, _OBSTACLE_DRAWS = 1 << 24, 2 << 24, 3 << 24
 
@@ -258,7 +258,7 @@ class ReachTask:
         start = arm.home.expand(n, nj) if home else self._random_starts(key, episode)
         blank = start.new_zeros(0, n)
         obstacles = blank if world is None or not world.slots else world.draw(key, episode, start, _OBSTACLE_DRAWS,
-                                                                              _ROUNDS)
+                                                                              _DRAW_ROUNDS)
         goal = self._goals(key, episode, start, start_goal, obstacles)
         q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
         clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
@@ -410,17 +410,17 @@ class ReachTask:
 
 def _first_found(n: int, draw, fallback, device: torch.device) -> Tensor:
     """Rounds of ``draw(idx, r) -> (found (m,) bool, values (c, m))`` for the environments ``idx``
-    still without a value (round 0: all ``n``), up to ``_ROUNDS``; the rest take the columns of
+    still without a value (round 0: all ``n``), up to ``_DRAW_ROUNDS``; the rest take the columns of
     ``fallback() (c, n)``. -> ``(c, n)``."""
     pending = torch.arange(n, device=device)
     found, values = draw(pending, 0)
     out = values.new_empty(values.shape[0], n)
-    for r in range(1, _ROUNDS + 1):
+    for r in range(1, _DRAW_ROUNDS + 1):
         out[:, pending[found]] = values[:, found]
         pending = pending[~found]
         if not pending.numel():
             return out
-        if r < _ROUNDS:
+        if r < _DRAW_ROUNDS:
             found, values = draw(pending, r)
     out[:, pending] = fallback()[:, pending]
     return out

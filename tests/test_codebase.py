@@ -139,3 +139,29 @@ def test_every_path_threshold_is_in_the_table():
     assert len(names) >= 10
     missing = [name for name in names if f"`{name}`" not in table]
     assert not missing, f"add to docs/kinematics.md's Path thresholds: {missing}"
+
+
+#: Module constants that share a name with different values on purpose: each subsystem's array
+#: namespace over torch or numpy (``iiwa_torch.ik.analytic._common`` for the closed forms,
+#: ``envs.arrays`` for the env step).
+SHARED_CONSTANTS = {"NUMPY", "TORCH"}
+
+
+def test_no_two_constants_share_a_name():
+    """In the packages (not the benchmark scripts, each its own program), a module-level UPPER_CASE
+    name means one thing: the same name in two modules must have the same value (an alias such as
+    ``_F64 = torch.float64``). Two thresholds both called ``SMALL_BATCH`` with different meanings
+    were how this check came about."""
+    values: dict[str, dict[str, str]] = {}
+    for path, tree in MODULES:
+        if path.startswith("benchmarks/"):
+            continue
+        for node in tree.body:
+            if isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None:
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                for target in targets:
+                    if isinstance(target, ast.Name) and target.id.lstrip("_").isupper() and len(target.id) > 2:
+                        values.setdefault(target.id, {})[path] = ast.unparse(node.value)
+    clashes = {name: found for name, found in values.items()
+               if len(set(found.values())) > 1 and name not in SHARED_CONSTANTS}
+    assert not clashes, clashes

@@ -26,7 +26,7 @@ from iiwa_torch.compiled.numba_kernels import cholesky_solve, jacobians
 __all__ = ["SCALARS", "pack_scalars", "FeatureOptions", "features", "residual_mean"]
 
 _jit = numba.njit(cache=True, error_model="numpy")
-_TINY = float(np.finfo(np.float64).tiny)  # the torch path's pivot floor (never reached: damping > 0)
+_PIVOT_FLOOR = float(np.finfo(np.float64).tiny)  # the torch path's pivot floor (never reached: damping > 0)
 
 
 @_jit
@@ -49,7 +49,7 @@ def _dls(jp, e, damping_sq, free, prior, hold, dq, A, y):
                 total += jp[r, j] * free[j] * jp[c, j]
             A[r, c] = total
         A[r, r] += damping_sq
-    cholesky_solve(A, y, 1, _TINY)
+    cholesky_solve(A, y, 1, _PIVOT_FLOOR)
     for j in range(nj):
         total = 0.0
         for r in range(k):
@@ -330,7 +330,7 @@ def _damped(step, jp, d, normal, bound, o, scratch):
     for c in range(K):
         for j in range(nj):
             columns[j, c] = normal[c, j]
-    cholesky_solve(H, columns, K, _TINY)
+    cholesky_solve(H, columns, K, _PIVOT_FLOOR)
     for c in range(K):
         for j in range(nj):
             scaled[c, j] = columns[j, c]

@@ -22,12 +22,12 @@ from ..dh import Convention, DHChain
 _F64 = torch.float64
 _LINK_COLOUR = (170, 175, 185)
 _JOINT_COLOUR = (240, 130, 30)
-_OBSTACLE_COLOUR = (90, 140, 200)
-_CAPSULE_COLOUR = (60, 180, 120)
-_HIT_COLOUR = (220, 30, 30)
+_OBSTACLE_RGB = (90, 140, 200)
+_CAPSULE_RGB = (60, 180, 120)
+_HIT_RGB = (220, 30, 30)
 _IDLE_COLOUR = (150, 150, 150)  # the target ball with nothing to report
 _TRACE_COLOUR = (200, 40, 200)
-_TARGET_COLOURS = {"reached": (40, 180, 60), "colliding": (250, 170, 0)}  # any other outcome: _HIT_COLOUR
+_TARGET_COLOURS = {"reached": (40, 180, 60), "colliding": (250, 170, 0)}  # any other outcome: _HIT_RGB
 _MIN_SEGMENT = 1e-6  # metres: consecutive frame origins closer than this get no link cylinder
 
 
@@ -146,7 +146,7 @@ class ArmScene:
         self.capsule_nodes = {}  # capsule name -> _CapsuleNodes, placed at every draw
         if capsules is not None:
             for name, r in zip(capsules.names, capsules.radii.tolist()):
-                self.capsule_nodes[name] = _CapsuleNodes(scene, f"/capsules/{name}", r, _CAPSULE_COLOUR, 0.45,
+                self.capsule_nodes[name] = _CapsuleNodes(scene, f"/capsules/{name}", r, _CAPSULE_RGB, 0.45,
                                                         show_capsules)  # fmt: skip
         self.world_nodes = self._build_world(scene)
         self.trace = None
@@ -205,12 +205,12 @@ class ArmScene:
         world, nodes, reach = self.world, {}, self.reach
         if world is None:
             return nodes
-        opts = dict(color=_OBSTACLE_COLOUR, opacity=0.6)
+        opts = dict(color=_OBSTACLE_RGB, opacity=0.6)
         thick = 0.01 * reach
         if world.floor is not None:
             nodes["floor"] = [scene.add_box(
                 "/world/floor", dimensions=(3 * reach, 3 * reach, thick), position=(0.0, 0.0, world.floor - thick),
-                color=_OBSTACLE_COLOUR, opacity=0.15,
+                color=_OBSTACLE_RGB, opacity=0.15,
             )]  # fmt: skip
         if world.spheres is not None:
             for i, (c, r) in enumerate(zip(world.spheres[0].numpy(), world.spheres[1].tolist())):
@@ -223,14 +223,14 @@ class ArmScene:
                 )]  # fmt: skip
         if world.capsules is not None:
             for i, (ends, r) in enumerate(zip(world.capsules[0].numpy(), world.capsules[1].tolist())):
-                cap = _CapsuleNodes(scene, f"/world/capsule{i}", r, _OBSTACLE_COLOUR, 0.6)
+                cap = _CapsuleNodes(scene, f"/world/capsule{i}", r, _OBSTACLE_RGB, 0.6)
                 cap.place(ends[0], ends[1])
                 nodes[f"capsule{i}"] = cap.nodes
         if world.walls is not None:
             for i, (n, offset) in enumerate(zip(world.walls[0].numpy(), world.walls[1].tolist())):
                 nodes[f"wall{i}"] = [scene.add_box(
                     f"/world/wall{i}", dimensions=(3 * reach, 3 * reach, thick), position=n * (offset - thick / 2),
-                    wxyz=_segment_quaternions(n[None])[0], color=_OBSTACLE_COLOUR, opacity=0.25,
+                    wxyz=_segment_quaternions(n[None])[0], color=_OBSTACLE_RGB, opacity=0.25,
                 )]  # fmt: skip
         return nodes
 
@@ -265,11 +265,11 @@ class ArmScene:
             for (name, cap), (a, b) in zip(self.capsule_nodes.items(), ends.numpy()):
                 cap.place(a, b)
                 for node in cap.nodes:
-                    node.color = _HIT_COLOUR if name in hits else _CAPSULE_COLOUR
+                    node.color = _HIT_RGB if name in hits else _CAPSULE_RGB
         for name, nodes in self.world_nodes.items():
             for node in nodes:
-                node.color = _HIT_COLOUR if name in hits else _OBSTACLE_COLOUR
-        self.target_marker.color = _IDLE_COLOUR if outcome is None else _TARGET_COLOURS.get(outcome, _HIT_COLOUR)
+                node.color = _HIT_RGB if name in hits else _OBSTACLE_RGB
+        self.target_marker.color = _IDLE_COLOUR if outcome is None else _TARGET_COLOURS.get(outcome, _HIT_RGB)
 
     def draw_trace(self, tip: np.ndarray, goal: np.ndarray | None) -> None:
         """The end-effector path ``tip (T, 3)`` of a playback path (metres), and its ``goal (3,)`` if any."""

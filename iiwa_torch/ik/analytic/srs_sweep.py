@@ -56,7 +56,7 @@ SOLVE_COMPILED_BATCH = 1024
 _CANDIDATES = 1 << 20  # candidate solutions per chunk in iiwa_solve (~60 MB in float64)
 _LOCAL = 9  # arm angles of each of iiwa_solve's refining passes, centred on the best so far
 _REFINE = 3  # refining passes when a reference q0 is given
-_ROUNDS = ((0, 1), (1, 4), (4, 16), (16, 1 << 30))  # candidate ranks whose clearance iiwa_solve checks, round by round
+_CLEARANCE_ROUNDS = ((0, 1), (1, 4), (4, 16), (16, 1 << 30))  # candidate ranks whose clearance is checked, by round
 
 
 def iiwa_solve(
@@ -456,7 +456,7 @@ def _free_pick(
     clear = key.new_full((batch, n), -math.inf)
     best, found = order[:, 0].clone(), torch.zeros(batch, dtype=torch.bool, device=key.device)
     undecided = n_valid > 0
-    for lo, hi in _ROUNDS:
+    for lo, hi in _CLEARANCE_ROUNDS:
         ranks = torch.arange(lo, min(hi, n), device=key.device)
         todo = undecided[:, None] & (ranks < n_valid[:, None])  # (B, R)
         if not todo.any():
