@@ -387,12 +387,12 @@ def _check_track(chain, poses, q0, method, pos_tol, rot_tol, rest_gain, world, m
 def _track_gradient(chain: Chain, poses: Tensor, q0: Tensor, batch: torch.Size, options, obstacle_args) -> Tensor:
     """The gradient method's joint path ``(..., T, n)``: :func:`iiwa_torch.ik.solve` at each pose
     with ``options``, from the previous answer, ``rest=q0``."""
-    from .ik import small, solve
+    from .ik import lm_compiled, solve
 
     world, margin, capsules = obstacle_args
-    if batch == poses.shape[:-3] and small.applies(poses, q0, q0, world, batch.numel()):
+    if batch == poses.shape[:-3] and lm_compiled.handles(poses, q0, q0, world, batch.numel()):
         # a few CPU paths: every step of the loop below in one call, the same answers
-        return small.track_small(chain, poses, q0, options)
+        return lm_compiled.track_compiled(chain, poses, q0, options)
     rest = q0.to(poses.dtype)
 
     def step(pose: Tensor, q_prev: Tensor) -> Tensor:

@@ -23,7 +23,7 @@ from urdf_samples import ODD_URDF
 from iiwa_torch import collision, compiled, robots, so3
 from iiwa_torch import kinematics as kin
 from iiwa_torch.dh import DHChain
-from iiwa_torch.ik import analytic, lm, lm_setup, small, solve
+from iiwa_torch.ik import analytic, lm, lm_compiled, lm_setup, solve
 
 F64 = torch.float64
 
@@ -365,7 +365,7 @@ def _targets(chain, count, seed, mode):
 def test_solve_takes_the_same_steps(monkeypatch, case):
     """The same method: the same answers (to rounding), iterations and success as the torch loop
     taking one seed per round as the compiled rounds do (the width changes no answer:
-    test_ik_small.py::test_round_width_changes_no_answer), iterating in float64 as they do."""
+    test_ik_lm_compiled.py::test_round_width_changes_no_answer), iterating in float64 as they do."""
     _, chain, target, options = case
     options = dict(options)
     q0 = options.pop("q0", None)
@@ -442,7 +442,7 @@ def test_fallback_without_the_kernels(monkeypatch):
     monkeypatch.setattr(compiled, "ENABLED", False)
     chain = robots.iiwa14()
     target, q = _targets(chain, 10, 11, "pose")
-    assert not small.applies(target, None, None, None, 10)
+    assert not lm_compiled.handles(target, None, None, None, 10)
     assert solve(chain, target).success.float().mean() > 0.8
     with torch.enable_grad():  # the torch kernels, through autograd
         q_grad = q[:1].clone().requires_grad_(True)

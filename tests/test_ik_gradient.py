@@ -13,7 +13,7 @@ import torch
 
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
-from iiwa_torch.ik import IKResult, MinimizeOptions, SolveOptions, minimize, small, solve
+from iiwa_torch.ik import IKResult, MinimizeOptions, SolveOptions, lm_compiled, minimize, solve
 from iiwa_torch.ik.dls import cholesky_solve_batch_last, dls_step, dls_step_numpy
 
 DTYPES = [torch.float64, torch.float32]
@@ -71,7 +71,7 @@ def test_first_step_follows_the_damping_setting(monkeypatch, compiled_rounds):
     """``damping`` caps the initial damping on both paths: a far target (1% of its squared error
     above the cap) takes the hand-computed step with the smaller cap."""
     if not compiled_rounds:
-        monkeypatch.setattr(small, "COMPILED_BATCH", 0)
+        monkeypatch.setattr(lm_compiled, "COMPILED_BATCH", 0)
     chain = robots.iiwa14()
     q0 = mid_q(chain, 16, 4)
     target = near(chain, q0, 5, size=0.05)

@@ -247,7 +247,7 @@ def _solve_per_pose(arm, path, q0, pos_tol=1e-7, rot_tol=1e-6, rest_gain=0.0):
     ["one line", "three lines", "rest gain", "float32", "loose tolerances", "q0 outside the limits"],
 )
 def test_track_small_path_equals_one_solve_per_pose(arm, monkeypatch, case, compiled_on):
-    """A few CPU paths take the whole loop in one call (ik.small.track_small): the answers of one
+    """A few CPU paths take the whole loop in one call (ik.lm_compiled.track_compiled): the answers of one
     ik.solve per pose (the loop it replaces), bit for bit, and of the batched torch loop that a
     q0 requiring grad takes, to rounding."""
     if not compiled_on:

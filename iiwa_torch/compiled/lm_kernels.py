@@ -1,5 +1,5 @@
 """Compiled Levenberg-Marquardt rounds of :func:`iiwa_torch.ik.solve` (the small-batch path of
-:mod:`iiwa_torch.ik.small`), one slot at a time."""
+:mod:`iiwa_torch.ik.lm_compiled`), one slot at a time."""
 
 from __future__ import annotations
 

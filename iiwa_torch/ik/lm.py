@@ -8,7 +8,7 @@ How :func:`solve` is fast on a CPU: the inner loop keeps every quantity batch la
 damped ``6x6`` normal equations are solved by a Cholesky factorisation written out over the
 batch). Problems that converge leave the batch every ``check_every`` iterations, and the ones
 that stall restart from their next seed, so the batch shrinks as the solve goes on. Up to
-``small.COMPILED_BATCH`` CPU targets take the compiled rounds of :mod:`iiwa_torch.ik.small`.
+``lm_compiled.COMPILED_BATCH`` CPU targets take the compiled rounds of :mod:`iiwa_torch.ik.lm_compiled`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 from ..chain import Chain
 from ..checks import check_generator, check_instance
 from ..collision import Capsules, World
-from . import small
+from . import lm_compiled
 from .clearance import COLLIDING_RANK, Obstacles, clearance_row, with_clearance
 from .dls import dls_step_batch_last
 from .inputs import check_target, check_world_for
@@ -266,8 +266,8 @@ def solve(
     check_world_for(world, margin, target, batch, capsules)
     work = work_dtype(target.dtype, opts)
     rest_flat = None if rest is None or opts.rest_gain == 0 else broadcast_q(rest, chain, batch, "rest", work)
-    if small.applies(target, q0, rest, world, batch.numel()):  # it caches the default generator's pool
-        return small.solve_small(chain, target, q0, rest_flat, opts, work, generator)
+    if lm_compiled.handles(target, q0, rest, world, batch.numel()):  # it caches the default generator's pool
+        return lm_compiled.solve_compiled(chain, target, q0, rest_flat, opts, work, generator)
     with torch.no_grad():
         return _solve_batched(chain, target, batch, q0, rest_flat, generator, (world, margin, capsules), opts, work)
 

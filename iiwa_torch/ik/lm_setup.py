@@ -1,5 +1,5 @@
 """What the two Levenberg-Marquardt solvers of :func:`~iiwa_torch.ik.solve` share: the batched
-torch one (:mod:`iiwa_torch.ik.lm`) and the small-batch CPU one (:mod:`iiwa_torch.ik.small`):
+torch one (:mod:`iiwa_torch.ik.lm`) and the small-batch CPU one (:mod:`iiwa_torch.ik.lm_compiled`):
 the seed pool and its ranking, the joint limits and the working dtype (the damping schedule and
 the other settings: :class:`~iiwa_torch.ik.options.SolveOptions`)."""
 

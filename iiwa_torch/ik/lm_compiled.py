@@ -1,13 +1,13 @@
 """The compiled path of :func:`~iiwa_torch.ik.solve` for up to ``COMPILED_BATCH`` targets on the CPU.
 
 With the compiled kernels (:data:`iiwa_torch.compiled.ENABLED`), a batch of ``COMPILED_BATCH``
-targets or fewer, on the CPU, with no world and nothing to differentiate (:func:`applies`), runs
+targets or fewer, on the CPU, with no world and nothing to differentiate (:func:`handles`), runs
 its Levenberg-Marquardt iteration in one call of :func:`iiwa_torch.compiled.numba_kernels.lm_rounds`
 instead of the torch loop: the same seeds (the same pool, drawn from the same generator, in the
 same order), damping schedule, free steps and projection into the limits, convergence checks and
 choice of answer. A torch op has a fixed cost however small its tensors, and an iteration takes
 a few dozen ops; the kernel's whole iteration costs about one (benchmarks/results/small.md). Without numba every
-batch takes the torch loop. :func:`track_small` runs the gradient method of
+batch takes the torch loop. :func:`track_compiled` runs the gradient method of
 :func:`~iiwa_torch.trajectory.track` (one such solve per pose) in one call.
 """
 
@@ -26,14 +26,14 @@ from .lm_setup import POOL, broadcast_q, inner_limits, into_limits, pool_distanc
 from .options import SolveOptions
 from .result import IKResult
 
-__all__ = ["COMPILED_BATCH", "applies", "solve_small", "track_small"]
+__all__ = ["COMPILED_BATCH", "handles", "solve_compiled", "track_compiled"]
 
 # up to this many targets per call: at 1,000 the compiled rounds are still ahead of the torch loop
 # (the ik.solve rows of benchmarks/results/small.md; the torch loop's: IIWA_TORCH_NUMBA=0)
 COMPILED_BATCH = 1024
 
 
-def applies(target: torch.Tensor, q0, rest, world, size: int) -> bool:
+def handles(target: torch.Tensor, q0, rest, world, size: int) -> bool:
     """Whether :func:`~iiwa_torch.ik.solve` takes this path for ``size`` targets: the compiled
     kernels enabled, at most ``COMPILED_BATCH``, no world, and ``target``, ``q0`` and ``rest`` on
     the CPU with nothing to differentiate (:func:`~iiwa_torch.kinematics.untracked_cpu`)."""
@@ -134,9 +134,9 @@ def _pool(chain: Chain, size: int, generator, work: torch.dtype, mode: str):
     return pool.double().numpy(), tuple(x.numpy() for x in pool_features(chain, pool, mode))
 
 
-def solve_small(chain: Chain, target: torch.Tensor, q0, rest, options: SolveOptions, work: torch.dtype, generator
+def solve_compiled(chain: Chain, target: torch.Tensor, q0, rest, options: SolveOptions, work: torch.dtype, generator
                 ) -> IKResult:
-    """:func:`~iiwa_torch.ik.solve` for checked inputs that :func:`applies` to: ``target`` as
+    """:func:`~iiwa_torch.ik.solve` for checked inputs that :func:`handles`: ``target`` as
     given, ``q0`` as given or None, ``rest (b, n)`` in ``work`` (or None), ``work`` the dtype
     the batched loop would iterate in (the seed pool is drawn and ranked in it)."""
     dtype, mode = target.dtype, options.mode
@@ -198,10 +198,10 @@ def _answer(g: Geometry, problems: _Problems, batch: torch.Size, dtype: torch.dt
                     torch.from_numpy(problems.used.reshape(batch)))
 
 
-def track_small(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, options: SolveOptions) -> torch.Tensor:
+def track_compiled(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, options: SolveOptions) -> torch.Tensor:
     """The gradient method of :func:`~iiwa_torch.trajectory.track` for checked ``poses (..., T, 4, 4)``
-    and ``q0 (..., n)`` of the poses' batch shape that :func:`applies` to: each pose solved as
-    :func:`~iiwa_torch.ik.solve` (here :func:`solve_small`) solves it with ``options`` (one seed)
+    and ``q0 (..., n)`` of the poses' batch shape that :func:`handles`: each pose solved as
+    :func:`~iiwa_torch.ik.solve` (here :func:`solve_compiled`) solves it with ``options`` (one seed)
     from the previous answer (``q0`` first) and ``rest=q0``, so the same iterations and answers,
     without each call's checks, set-up and error report -> ``q (..., T, n)`` in the poses' dtype."""
     dtype, n = poses.dtype, chain.n_joints

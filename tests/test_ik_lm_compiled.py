@@ -1,4 +1,4 @@
-"""The compiled path of ik.solve (iiwa_torch.ik.small) against the batched torch loop.
+"""The compiled path of ik.solve (iiwa_torch.ik.lm_compiled) against the batched torch loop.
 
 Both run on the same targets (FK of random configurations within the limits, so reachable),
 the batched loop forced by setting the threshold to 0; every answer is verified by its own
@@ -14,7 +14,7 @@ import torch
 
 from iiwa_torch import compiled, robots, so3
 from iiwa_torch.collision import World
-from iiwa_torch.ik import lm, lm_setup, small, solve
+from iiwa_torch.ik import lm, lm_compiled, lm_setup, solve
 
 needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
 
@@ -28,8 +28,8 @@ def targets(chain, count, seed, dtype, mode):
 
 
 def in_chunks(chain, target, q0=None, **options):
-    """solve on ``target`` in calls of at most small.COMPILED_BATCH targets, concatenated."""
-    size, rest = small.COMPILED_BATCH, options.pop("rest", None)
+    """solve on ``target`` in calls of at most lm_compiled.COMPILED_BATCH targets, concatenated."""
+    size, rest = lm_compiled.COMPILED_BATCH, options.pop("rest", None)
     parts = [
         solve(chain, target[i : i + size], *(None if x is None else x[i : i + size] for x in (q0,)), **options,
               rest=None if rest is None else rest[i : i + size])
@@ -40,7 +40,7 @@ def in_chunks(chain, target, q0=None, **options):
 
 def batched(monkeypatch, chain, target, q0=None, **options):
     with monkeypatch.context() as m:
-        m.setattr(small, "COMPILED_BATCH", 0)
+        m.setattr(lm_compiled, "COMPILED_BATCH", 0)
         return solve(chain, target, q0, **options)
 
 
@@ -156,22 +156,22 @@ def test_shapes_and_iterations(monkeypatch):
 
 @pytest.fixture
 def calls(monkeypatch):
-    """How many times solve took the small path."""
+    """How many times solve took the compiled path."""
     seen = []
-    original = small.solve_small
+    original = lm_compiled.solve_compiled
 
     def spy(*args, **kwargs):
         seen.append(1)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(small, "solve_small", spy)
+    monkeypatch.setattr(lm_compiled, "solve_compiled", spy)
     return seen
 
 
 @needs_numba
 def test_which_path(calls):
     chain = CHAINS["iiwa14"]
-    target, q = targets(chain, small.COMPILED_BATCH + 1, 6, torch.float64, "pose")
+    target, q = targets(chain, lm_compiled.COMPILED_BATCH + 1, 6, torch.float64, "pose")
     solve(chain, target[:3])
     assert len(calls) == 1
     solve(chain, target)  # above the threshold
