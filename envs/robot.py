@@ -127,7 +127,11 @@ class JointVelocityArm:
     def __init__(self, chain: Chain, dt: float, home, dtype: torch.dtype, device: torch.device) -> None:
         check_instance(chain, Chain, "robot")
         if chain.velocity_limits is None:
-            raise ValueError(f"robot {chain.name!r} has no velocity_limits; the action scale needs them")
+            raise ValueError(
+                f"robot {chain.name!r} has no velocity_limits (joint speeds, rad/s), which scale the actions; "
+                f"give the chain its own, e.g. chain.velocity_limits = torch.full(({chain.n_joints},), 2.0, "
+                "dtype=torch.float64), and pass the chain as robot="
+            )
         same = chain.limits.device == device and chain.limits.dtype == dtype
         self.chain = chain if same else copy.deepcopy(chain).to(device=device, dtype=dtype)
         self.n_joints = n = self.chain.n_joints

@@ -293,3 +293,25 @@ def test_a_chain_without_capsules_needs_them_or_no_collisions():
     with pytest.raises(ValueError, match="capsules index frames up to 7"):
         ReachTask(from_urdf(PANDA_URDF, end_link="panda_link4"), capsules=ReachTask("panda").world.capsules)
     assert resolve_robot(iiwa14())[1].names == ("base", "upper_arm", "forearm", "wrist")  # a preset's own model
+
+
+def test_a_preset_without_joint_speeds_drives_the_env_once_given_some():
+    """The PUMA 560 preset has no joint speeds (its sources give none): the env says how to give it
+    some, and then runs it with a 6-entry action that moves each joint by at most speed * dt."""
+    from gymnasium.utils.env_checker import check_env
+
+    from iiwa_torch.robots import puma560
+
+    with pytest.raises(ValueError, match="chain.velocity_limits = torch.full"):
+        ReachTask("puma560")
+    arm = puma560()
+    arm.velocity_limits = torch.full((6,), 2.0, dtype=torch.float64)
+    env = gym.make("IiwaReach-v0", robot=arm, collision="off")
+    obs, _ = env.reset(seed=0)
+    assert env.action_space.shape == (6,) and obs["observation"].shape == (21,)
+    q0 = np.arctan2(obs["observation"][6:12], obs["observation"][:6])
+    obs, *_ = env.step(np.ones(6, dtype=np.float32))
+    step = np.arctan2(obs["observation"][6:12], obs["observation"][:6]) - q0
+    dt = env.unwrapped.task.dt
+    assert np.all(np.abs(step) <= 2.0 * dt + 1e-5) and np.abs(step).max() > 0.5 * 2.0 * dt
+    check_env(gym.make("IiwaReach-v0", robot=arm).unwrapped, skip_render_check=True)
