@@ -69,7 +69,8 @@ def ship(run: Path, name: str, best: bool = False, root: Path = POLICIES) -> Pat
         f"    {config['command']}",
         "",
         f"- seed: {config['seed']}",
-        f"- commit: {config['commit']} (\"+dirty\": train/ or envs/ had uncommitted changes when the run started)",
+        f"- commit: {config['commit']}" + (" (\"+dirty\": train/ or envs/ had uncommitted changes when the run started)"
+                                           if config["commit"].endswith("+dirty") else ""),
         f"- env steps: {info['num_timesteps']:,}; training wall time: {info['wall_time']:.0f} s "
         f"({info['steps_per_second']:,.0f} env steps/s)",
         f"- machine: {info['machine']['cpu']}, {info['machine']['cpu_count']} CPUs shared with other users, "
