@@ -2,16 +2,17 @@
 
     python benchmarks/bench_collision.py [--quick] [--robot panda]
 
-Ours: ``clearance(chain, q)`` on a batch of configurations (FK included), one thread, float64
-and float32, by each of its two paths for such a batch: the compiled kernel (numba, the default
-when installed) and the torch ops (``compiled.ENABLED`` switched off, as ``IIWA_TORCH_NUMBA=0``
-does; also what any query with gradients runs). Peers, on the same capsules and pairs (the iiwa
-14's preset model: 3 self pairs, 3 capsule-floor pairs; ``--robot panda``: pybullet_data's Panda
-with the capsules ``capsule_fit.urdf_capsules`` fits to its meshes, 31 self pairs and the floor
-pairs): coal (FCL's successor, C++) and pybullet (``getClosestPoints``),
-called from a Python loop over a subset of the configurations. The peers get their capsule poses
-precomputed (our FK, outside the timing), so their times are their distance queries alone: the
-ratios favour them. Writes results/collision.json and .md (``collision_panda`` with ``--robot panda``).
+Ours: ``clearance(chain, q)`` on a batch of configurations (FK included), one thread (and the
+compiled float64 row again on two), float64 and float32, by each of its two paths for such a
+batch: the compiled kernel (numba, the default when installed) and the torch ops
+(``compiled.ENABLED`` switched off, as ``IIWA_TORCH_NUMBA=0`` does; also what any query with
+gradients runs). Peers, on the same capsules and pairs (the iiwa 14's preset model: 3 self pairs,
+3 capsule-floor pairs; ``--robot panda``: pybullet_data's Panda with the capsules
+``capsule_fit.urdf_capsules`` fits to its meshes, 31 self pairs and the floor pairs): coal (FCL's
+successor, C++) and pybullet (``getClosestPoints``), called from a Python loop over a subset of the
+configurations. The peers get their capsule poses precomputed (our FK, outside the timing), so
+their times are their distance queries alone: the ratios favour them. Writes results/collision.json
+and .md (``collision_panda`` with ``--robot panda``).
 """
 
 from __future__ import annotations
@@ -72,6 +73,14 @@ def time_ours(chain, caps, q: torch.Tensor, rows: list) -> dict:
             rows.append([f"iiwa-torch, {key}", batch, f"{seconds / batch * 1e9:,.0f}", note])
             print(" | ".join(map(str, rows[-1])), flush=True)
     compiled.ENABLED = enabled
+    if enabled and (os.cpu_count() or 1) > 1:  # the compiled kernel over 2 threads (CLEARANCE_THREADS_BATCH)
+        torch.set_num_threads(2)
+        seconds = timeit(lambda: clearance(chain, q, capsules=caps), repeats=5)
+        torch.set_num_threads(1)
+        ratio = ours["compiled float64"] * batch / seconds
+        rows.append(["iiwa-torch, compiled float64, 2 threads", batch, f"{seconds / batch * 1e9:,.0f}",
+                     f"{ratio:.2f}x its 1-thread time"])
+        print(" | ".join(map(str, rows[-1])), flush=True)
     return ours
 
 

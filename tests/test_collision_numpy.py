@@ -307,3 +307,32 @@ def test_an_empty_batch_has_an_empty_clearance(small_kernel, world):
     q = torch.zeros(0, chain.n_joints, dtype=torch.float64)
     assert clearance(chain, q, world).shape == (0,)
     assert _torch_path(chain, q, world).shape == (0,)
+
+
+@pytest.mark.skipif(not compiled.ENABLED, reason="the compiled kernels are off (no numba, or IIWA_TORCH_NUMBA=0)")
+@pytest.mark.parametrize("size", [8, 3000 + 37])
+def test_threads_split_a_large_batch_without_changing_it(monkeypatch, size):
+    """From ``CLEARANCE_THREADS_BATCH`` configurations the compiled self + floor clearance runs one
+    part of the batch per torch thread (the kernel releases the GIL): bit for bit the answer of one
+    call, with parts of unequal size, and the threads were used."""
+    chain, caps = _many_pairs()
+    q = _configurations(chain, size, np.random.default_rng(15))
+    world = World(floor=0.0)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = clearance(chain, q, world, caps)
+        monkeypatch.setattr(collision.small, "CLEARANCE_THREADS_BATCH", 1)
+        names = []
+        real = collision.small._pool
+
+        def spy(n):
+            names.append(n)
+            return real(n)
+
+        monkeypatch.setattr(collision.small, "_pool", spy)
+        torch.set_num_threads(3)
+        split = clearance(chain, q, world, caps)
+    finally:
+        torch.set_num_threads(threads)
+    assert names == [3] and torch.equal(split, one)

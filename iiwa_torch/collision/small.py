@@ -7,6 +7,8 @@ env are here too."""
 
 from __future__ import annotations
 
+import concurrent.futures
+import functools
 import math
 
 import numpy as np
@@ -33,6 +35,9 @@ __all__ = [
 ]
 
 CLEARANCE_NUMPY_BATCH = 32  # clearance: spheres and boxes in numpy up to this many CPU configurations without autograd
+# from this many configurations the compiled self + floor clearance splits the batch over torch's threads
+# (benchmarks/results/clearance_threads.md)
+CLEARANCE_THREADS_BATCH = 16384
 
 NumpyPair = tuple[np.ndarray, np.ndarray]
 
@@ -95,11 +100,24 @@ def _own_clearance(chain: Chain, x: np.ndarray, floor: float | None, capsules: C
     tables = capsules.numpy_tables()
     transforms, params, base, _ = chain.geometry().float_arrays
     out = np.empty(x.shape[0])
-    compiled.kernels().own_clearance(x, transforms, params, base, tables["frames"], tables["local"], tables["first"],
-                                     tables["second"], tables["pair_radius"],
-                                     tables["floor"] if floor is not None else tables["floor"][:0],
-                                     tables["floor_radius"], 0.0 if floor is None else float(floor), out)
+    kernel = compiled.kernels().own_clearance
+    floors = tables["floor"] if floor is not None else tables["floor"][:0]
+    args = (transforms, params, base, tables["frames"], tables["local"], tables["first"], tables["second"],
+            tables["pair_radius"], floors, tables["floor_radius"], 0.0 if floor is None else float(floor))
+    threads = torch.get_num_threads()
+    if x.shape[0] < CLEARANCE_THREADS_BATCH or threads == 1:
+        kernel(x, *args, out)
+        return out
+    size = -(-x.shape[0] // threads)  # the kernel releases the GIL: one part per thread, each its rows of out
+    parts = [slice(start, start + size) for start in range(0, x.shape[0], size)]
+    list(_pool(len(parts)).map(lambda part: kernel(x[part], *args, out[part]), parts))
     return out
+
+
+@functools.cache
+def _pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
+    """A pool of ``threads`` threads for :func:`_own_clearance`'s parts, kept for the process."""
+    return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="iiwa_torch-clearance")
 
 
 def _least(values: list):

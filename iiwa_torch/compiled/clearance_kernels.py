@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from .. import segments
-from .decorators import inline, jit
+from .decorators import inline, jit, jit_nogil
 from .kinematics_kernels import apply_transform, frames_of, turn
 
 __all__ = ["SIN_COS_RANGE", "capsule_clearance", "own_clearance", "sin_cos"]
@@ -180,7 +180,7 @@ def _block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radiu
             best[j] = min(best[j], _pair_clearance(e1, e2, j, radius))
 
 
-@jit
+@jit_nogil
 def own_clearance(q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius, height,
                   out):  # fmt: skip
     """Self and floor clearance of ``q (N, n)`` (float32 or float64; computed in float64) into
