@@ -111,7 +111,7 @@ def clearance_child() -> dict:
     chain = robots.iiwa14()
     q = chain.random_q(32, generator=torch.Generator().manual_seed(0))
     world = _obstacles(torch.float64)
-    home = getattr(collision, "small", collision)  # the module that holds CLEARANCE_NUMPY_BATCH
+    home = getattr(collision, "cpu_paths", getattr(collision, "small", collision))  # where CLEARANCE_NUMPY_BATCH lives
     out = {}
     for size in (1, 8, 32):
         x = q[0] if size == 1 else q[:size]

@@ -24,13 +24,13 @@ def numpy_calls(monkeypatch):
     """Counts the calls of the small-batch path (each call's number of configurations), to tell
     which path a query took."""
     calls = []
-    real = collision.small._clearance_small
+    real = collision.cpu_paths._clearance_small
 
     def spy(chain, q, world, capsules):
         calls.append(q.numel() // chain.n_joints)
         return real(chain, q, world, capsules)
 
-    monkeypatch.setattr(collision.small, "_clearance_small", spy)
+    monkeypatch.setattr(collision.cpu_paths, "_clearance_small", spy)
     return calls
 
 
@@ -212,13 +212,13 @@ def test_the_shared_model_first_used_in_inference_mode_still_differentiates(monk
 def compiled_calls(monkeypatch):
     """The batch sizes the compiled path of clearance ran, to tell which path a query took."""
     calls = []
-    real = collision.small._clearance_compiled
+    real = collision.cpu_paths._clearance_compiled
 
     def spy(chain, q, world, capsules):
         calls.append(q.numel() // chain.n_joints)
         return real(chain, q, world, capsules)
 
-    monkeypatch.setattr(collision.small, "_clearance_compiled", spy)
+    monkeypatch.setattr(collision.cpu_paths, "_clearance_compiled", spy)
     return calls
 
 
@@ -322,15 +322,15 @@ def test_threads_split_a_large_batch_without_changing_it(monkeypatch, size):
     try:
         torch.set_num_threads(1)
         one = clearance(chain, q, world, caps)
-        monkeypatch.setattr(collision.small, "CLEARANCE_THREADS_BATCH", 1)
+        monkeypatch.setattr(collision.cpu_paths, "CLEARANCE_THREADS_BATCH", 1)
         names = []
-        real = collision.small._pool
+        real = collision.cpu_paths._pool
 
         def spy(n):
             names.append(n)
             return real(n)
 
-        monkeypatch.setattr(collision.small, "_pool", spy)
+        monkeypatch.setattr(collision.cpu_paths, "_pool", spy)
         torch.set_num_threads(3)
         split = clearance(chain, q, world, caps)
     finally:

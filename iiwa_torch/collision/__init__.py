@@ -14,22 +14,22 @@ and stay finite when segments are parallel, of zero length or touching.
 
 Modules: :mod:`.capsules` (the capsule model, presets), :mod:`.world` (obstacles),
 :mod:`.primitives` (segment-segment, -point, -box distances), :mod:`.distances` (every pair's
-distance in torch), :mod:`.small` (CPU calls without autograd: compiled, numpy obstacles),
+distance in torch), :mod:`.cpu_paths` (CPU calls without autograd: compiled, numpy obstacles),
 :mod:`.queries` (the public queries). Every public name is here.
 """
 
 from __future__ import annotations
 
 from .capsules import Capsules, robot_capsules, self_collision_pairs
-from .primitives import segment_box_distance, segment_distance
-from .queries import Clearances, capsule_clearance, capsule_clearance_of_one, clearance, pairwise_clearance
-from .small import (
+from .cpu_paths import (
     CLEARANCE_NUMPY_BATCH,
     clearance_of_one,
     obstacle_clearance_of_one,
     own_clearance_of_one,
     solids_numpy,
 )
+from .primitives import segment_box_distance, segment_distance
+from .queries import Clearances, capsule_clearance, capsule_clearance_of_one, clearance, pairwise_clearance
 from .world import MAX_EXTENT, World, check_world
 
 __all__ = [

@@ -13,8 +13,8 @@ from torch import Tensor
 from .. import compiled
 from ..chain import Chain
 from .capsules import Capsules
+from .cpu_paths import capsule_clearance_compiled, plain_path
 from .distances import distances, resolve
-from .small import capsule_clearance_compiled, plain_path
 from .world import World
 
 __all__ = ["Clearances", "capsule_clearance", "capsule_clearance_of_one", "clearance", "pairwise_clearance"]
@@ -53,7 +53,7 @@ def clearance(chain: Chain, q: Tensor, world: World | None = None, capsules: Cap
     and the obstacles' tensors. On the CPU with nothing to differentiate, the robot's own
     distances run compiled when numba is enabled, and up to ``CLEARANCE_NUMPY_BATCH``
     configurations the spheres and boxes in numpy float64 (no walls or obstacle capsules; above
-    it, the floor must be the only obstacle) (:func:`iiwa_torch.collision.small.plain_path`)."""
+    it, the floor must be the only obstacle) (:func:`iiwa_torch.collision.cpu_paths.plain_path`)."""
     world, capsules = resolve(chain, q, world, capsules)
     plain = plain_path(chain, q, world, capsules)
     if plain is not None:
