@@ -326,9 +326,9 @@ def test_threads_split_a_large_batch_without_changing_it(monkeypatch, size):
         names = []
         real = collision.cpu_paths._pool
 
-        def spy(n):
+        def spy(n, pid):
             names.append(n)
-            return real(n)
+            return real(n, pid)
 
         monkeypatch.setattr(collision.cpu_paths, "_pool", spy)
         torch.set_num_threads(3)
@@ -336,3 +336,33 @@ def test_threads_split_a_large_batch_without_changing_it(monkeypatch, size):
     finally:
         torch.set_num_threads(threads)
     assert names == [3] and torch.equal(split, one)
+
+
+@pytest.mark.skipif(not compiled.ENABLED, reason="the compiled kernels are off (no numba, or IIWA_TORCH_NUMBA=0)")
+def test_a_forked_process_splits_with_threads_of_its_own(monkeypatch):
+    """A process forked after the split has run (its thread pool built) has none of those threads:
+    it builds its own pool and returns the same answer instead of waiting forever."""
+    import multiprocessing
+
+    chain, caps = _many_pairs()
+    q = _configurations(chain, 64, np.random.default_rng(16))
+    monkeypatch.setattr(collision.cpu_paths, "CLEARANCE_THREADS_BATCH", 1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        want = clearance(chain, q, World(floor=0.0), caps)  # builds this process's pool
+        _FORKED.update(chain=chain, caps=caps, q=q)  # the child inherits them: nothing to pickle
+        with multiprocessing.get_context("fork").Pool(1) as pool:
+            got = pool.apply_async(_clearance_in_child).get(timeout=120)
+    finally:
+        torch.set_num_threads(threads)
+        _FORKED.clear()
+    assert np.array_equal(got, want.numpy())
+
+
+_FORKED: dict = {}
+
+
+def _clearance_in_child():
+    torch.set_num_threads(2)
+    return clearance(_FORKED["chain"], _FORKED["q"], World(floor=0.0), _FORKED["caps"]).numpy()

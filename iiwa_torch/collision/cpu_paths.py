@@ -10,6 +10,7 @@ from __future__ import annotations
 import concurrent.futures
 import functools
 import math
+import os
 
 import numpy as np
 import torch
@@ -110,13 +111,14 @@ def _own_clearance(chain: Chain, x: np.ndarray, floor: float | None, capsules: C
         return out
     size = -(-x.shape[0] // threads)  # the kernel releases the GIL: one part per thread, each its rows of out
     parts = [slice(start, start + size) for start in range(0, x.shape[0], size)]
-    list(_pool(len(parts)).map(lambda part: kernel(x[part], *args, out[part]), parts))
+    list(_pool(len(parts), os.getpid()).map(lambda part: kernel(x[part], *args, out[part]), parts))
     return out
 
 
 @functools.cache
-def _pool(threads: int) -> concurrent.futures.ThreadPoolExecutor:
-    """A pool of ``threads`` threads for :func:`_own_clearance`'s parts, kept for the process."""
+def _pool(threads: int, pid: int) -> concurrent.futures.ThreadPoolExecutor:
+    """A pool of ``threads`` threads for :func:`_own_clearance`'s parts, kept for the process
+    ``pid``: a process forked from this one has none of its threads, so it builds its own."""
     return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="iiwa_torch-clearance")
 
 
