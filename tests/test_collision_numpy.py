@@ -323,11 +323,11 @@ def test_threads_split_a_large_batch_without_changing_it(monkeypatch, size):
         torch.set_num_threads(1)
         one = clearance(chain, q, world, caps)
         monkeypatch.setattr(collision.cpu_paths, "CLEARANCE_THREADS_BATCH", 1)
-        names = []
+        pool_sizes = []
         real = collision.cpu_paths._pool
 
         def spy(n, pid):
-            names.append(n)
+            pool_sizes.append(n)
             return real(n, pid)
 
         monkeypatch.setattr(collision.cpu_paths, "_pool", spy)
@@ -335,7 +335,7 @@ def test_threads_split_a_large_batch_without_changing_it(monkeypatch, size):
         split = clearance(chain, q, world, caps)
     finally:
         torch.set_num_threads(threads)
-    assert names == [3] and torch.equal(split, one)
+    assert pool_sizes == [3] and torch.equal(split, one)
 
 
 @pytest.mark.skipif(not compiled.ENABLED, reason="the compiled kernels are off (no numba, or IIWA_TORCH_NUMBA=0)")

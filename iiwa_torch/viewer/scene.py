@@ -25,9 +25,9 @@ _JOINT_COLOUR = (240, 130, 30)
 _OBSTACLE_RGB = (90, 140, 200)
 _CAPSULE_RGB = (60, 180, 120)
 _HIT_RGB = (220, 30, 30)
-_IDLE_COLOUR = (150, 150, 150)  # the target ball with nothing to report
+_IDLE_RGB = (150, 150, 150)  # the target ball with nothing to report
 _TRACE_COLOUR = (200, 40, 200)
-_TARGET_COLOURS = {"reached": (40, 180, 60), "colliding": (250, 170, 0)}  # any other outcome: _HIT_RGB
+_TARGET_RGB = {"reached": (40, 180, 60), "colliding": (250, 170, 0)}  # any other outcome: _HIT_RGB
 _MIN_SEGMENT = 1e-6  # metres: consecutive frame origins closer than this get no link cylinder
 
 
@@ -194,7 +194,7 @@ class ArmScene:
         self.frame_nodes.append(scene.add_frame("/frames/end", **axes))
         self._end_node = scene.add_frame("/end_effector", axes_length=0.08 * reach, axes_radius=0.008 * reach)
         self.target = scene.add_transform_controls("/target", scale=0.25 * reach)
-        self.target_marker = scene.add_icosphere("/target/marker", radius=0.025 * reach, color=_IDLE_COLOUR)
+        self.target_marker = scene.add_icosphere("/target/marker", radius=0.025 * reach, color=_IDLE_RGB)
         self.target.on_update(lambda event: on_drag(event.target.wxyz, event.target.position))
         self.goal_marker = scene.add_icosphere("/playback/goal", radius=0.02 * reach, color=_TRACE_COLOUR,
                                                visible=False)  # fmt: skip
@@ -269,7 +269,7 @@ class ArmScene:
         for name, nodes in self.world_nodes.items():
             for node in nodes:
                 node.color = _HIT_RGB if name in hits else _OBSTACLE_RGB
-        self.target_marker.color = _IDLE_COLOUR if outcome is None else _TARGET_COLOURS.get(outcome, _HIT_RGB)
+        self.target_marker.color = _IDLE_RGB if outcome is None else _TARGET_RGB.get(outcome, _HIT_RGB)
 
     def draw_trace(self, tip: np.ndarray, goal: np.ndarray | None) -> None:
         """The end-effector path ``tip (T, 3)`` of a playback path (metres), and its ``goal (3,)`` if any."""
