@@ -7,11 +7,12 @@ The step's formulas (:meth:`envs.robot.JointVelocityArm.integrate`,
 (about 1 us against 3-5 us here). Operators (``+ - * / < |``) are the arrays' own. The
 functions whose names differ between the libraries are the only ones here; the ``_`` ones
 write into their first argument, which must be a temporary of the formula. The multiply-add
-(fused), square root, arcsine and cross product of :data:`NUMPY` are torch's (as are the
-step's cosine and sine of q), run on views of the
-arrays: torch's float32 results differ from numpy's in the last bit for 1 in 5 inputs or more
-(measured), and one env's observations must equal a batch's, and its rewards
-``compute_reward``'s (torch), bit for bit.
+(fused), arcsine and cross product of :data:`NUMPY` are torch's (as are the step's cosine and
+sine of q), run on views of the arrays: torch's float32 results differ from numpy's in the last
+bit for 1 in 5 inputs or more (measured), and one env's observations must equal a batch's, and
+its rewards ``compute_reward``'s (torch), bit for bit. The square root is correctly rounded on
+both (torch's own float32 one is not, for 1 in 5 inputs: :data:`TORCH` takes it in float64), as
+the compiled single-env step (:mod:`envs.compiled_step`) computes it.
 """
 
 from __future__ import annotations
@@ -65,7 +66,8 @@ class ArrayOps:
 
     @staticmethod
     def sqrt_(x):
-        return x.sqrt_()
+        """The square root, correctly rounded: a float32 one through float64 (exact once rounded back)."""
+        return x.sqrt_() if x.dtype == torch.float64 else x.copy_(x.double().sqrt_())
 
     @staticmethod
     def at_most(x, high: float):
@@ -106,7 +108,7 @@ class _NumpyOps(ArrayOps):
         return np.maximum(np.minimum(x, high, out=x), low, out=x)
 
     @staticmethod
-    def multiply_add(x, a, b):  # torch's, as for sqrt_: addcmul is fused (one rounding)
+    def multiply_add(x, a, b):  # torch's: addcmul is fused (one rounding)
         return torch.addcmul(torch.from_numpy(x), torch.from_numpy(a), torch.from_numpy(b)).numpy()
 
     @staticmethod
@@ -119,8 +121,7 @@ class _NumpyOps(ArrayOps):
 
     @staticmethod
     def sqrt_(x):
-        torch.from_numpy(x).sqrt_()  # torch's: its float32 sqrt is not numpy's (which rounds exactly) in ~1 of 5
-        return x
+        return np.sqrt(x, out=x)
 
     @staticmethod
     def at_most(x, high: float):
@@ -133,10 +134,10 @@ class _NumpyOps(ArrayOps):
 
     @staticmethod
     def asin(x):
-        return torch.asin(torch.from_numpy(x)).numpy()  # torch's, as for sqrt_
+        return torch.asin(torch.from_numpy(x)).numpy()  # torch's, as for multiply_add
 
     @staticmethod
-    def cross(u, v):  # torch's, as for sqrt_ (np.cross differs in the last bit in 4 of 5 cases)
+    def cross(u, v):  # torch's, as for multiply_add (np.cross differs in the last bit in 4 of 5 cases)
         return torch.linalg.cross(torch.from_numpy(u), torch.from_numpy(v), dim=0).numpy()
 
     @staticmethod

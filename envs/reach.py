@@ -171,14 +171,12 @@ class IiwaReachEnv(gym.Env):
             self.render()
         return obs, info
 
-    @torch.inference_mode()
     def step(self, action):
         """Apply one joint-velocity command ``(7,)``; see the class docstring."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         io = self.task.transport
-        self._state, res = self.task.step(self._state, io.check_action(action, 1))
-        floats, flags = (part.numpy(force=True)[:, 0] for part in io.pack(self._state, res))
+        self._state, floats, flags = self.task.step_one(self._state, action)
         d = io.packed_size
         reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
         term, trunc, success, *collision = flags.tolist()  # collision: one flag when checked, else none

@@ -154,6 +154,22 @@ class Transport:
         Raises ``ValueError`` on a wrong shape, a NaN/inf entry or one beyond the state dtype's
         range (finite values outside ``[-1, 1]`` are fine: the step clips them).
         """
+        a = self._checked(action, n)
+        if isinstance(a, torch.Tensor):
+            return a.reshape(n, self.n_joints).T.contiguous()
+        columns = torch.from_numpy(np.ascontiguousarray(a.reshape(n, self.n_joints).T))
+        return columns if self.device.type == "cpu" else columns.to(self.device)
+
+    def check_action_one(self, action) -> np.ndarray:
+        """One CPU env's action ``(nj,)`` (or ``(1, nj)``), numpy or torch -> a finite ``(nj,)`` numpy
+        array in the state's dtype (the caller's memory where it already is one); errors as
+        :meth:`check_action`."""
+        a = self._checked(action, 1)
+        return (a.detach().numpy() if isinstance(a, torch.Tensor) else a).reshape(self.n_joints)
+
+    def _checked(self, action, n: int):
+        """:meth:`check_action`'s checks -> the action as a numpy array or a tensor, in the state's
+        dtype (a tensor on its device), in the shape given."""
         nj = self.n_joints
         if isinstance(action, torch.Tensor):
             a = action.to(self.device, self.dtype)
@@ -167,10 +183,7 @@ class Transport:
             raise ValueError(f"action must have shape ({n}, {nj}){single}, got {tuple(a.shape)}")
         if not all_finite(a):
             raise ValueError(self._non_finite_message(action))
-        if isinstance(a, torch.Tensor):
-            return a.reshape(n, nj).T.contiguous()
-        columns = torch.from_numpy(np.ascontiguousarray(a.reshape(n, nj).T))
-        return columns if self.device.type == "cpu" else columns.to(self.device)
+        return a
 
     def _non_finite_message(self, action) -> str:
         """Why an action that became non-finite in the state's dtype was rejected."""

@@ -42,12 +42,13 @@ def _policy(obs: dict, rng: np.random.Generator) -> np.ndarray:
 
 def _assert_obs_equal(a: dict, b: dict) -> None:
     """Equal up to float32 rounding of the FK: one environment alone and a batch of them go
-    through different 4x4-product kernels (``mm`` and ``bmm``), which round differently in the
-    last bits. Joint angles, integrated without FK, are equal exactly."""
+    through different FK kernels, which round differently in the last bits. Joint angles,
+    integrated without FK, are equal exactly, so their cosines and sines are within one unit in
+    the last place (one env's are correctly rounded, the batch's torch's vectorised float32)."""
     assert a.keys() == b.keys()
     for k in a:
         np.testing.assert_allclose(a[k], b[k], rtol=0, atol=1e-6, err_msg=k)
-    np.testing.assert_array_equal(a["observation"][..., :14], b["observation"][..., :14], err_msg="cos q, sin q")
+    np.testing.assert_array_max_ulp(a["observation"][..., :14], b["observation"][..., :14], maxulp=1)
 
 
 # ------------------------------------------------------------------ registration and checkers

@@ -100,3 +100,59 @@ def test_single_env_reward_is_compute_reward_bit_for_bit():
             if terminated or truncated:
                 env.reset()
         assert collided > 10
+
+
+@pytest.mark.parametrize("options", [
+    {"env_id": "IiwaReach-v0", "floor": 0.2},
+    {"env_id": "IiwaReachSparse-v0", "collision": "penalize", "terminate_on_success": False, "floor": 0.2},
+    {"env_id": "IiwaReach-v0", "collision": "off", "max_episode_steps": None},
+    {"env_id": "IiwaReach-v0", "floor": None},
+    {"env_id": "FrankaReach-v0", "floor": 0.1, "goal_region": "panda_gym"},
+])
+def test_compiled_single_env_step_equals_the_numpy_step(options):
+    """envs.compiled_step's one-call step against the step's numpy formulas (task.step, then pack) from
+    the same states: every result bit for bit, but the cosines and sines of q within one unit in the
+    last place (the kernel's are correctly rounded, torch's not always); collisions, successes,
+    truncations and the sparse reward all occur."""
+    options = dict(options)
+    # a wide success radius: successes among random actions
+    options.setdefault("max_episode_steps", 10)
+    task = envs.make_task(options.pop("env_id"), start="random", distance_threshold=0.3, **options)
+    assert task._one_step is not None  # the compiled path applies to these tasks
+    rng = np.random.default_rng(5)
+    nj, seen = task.arm.n_joints, np.zeros(4, dtype=np.int64)
+    with torch.inference_mode():
+        states = task.reset_all(None, list(range(40)), rng)
+    for i in range(40):
+        state = _column(states, i)
+        for _ in range(12):
+            action = rng.uniform(-1.3, 1.3, size=nj).astype(np.float32)
+            action[1] = 1.0  # the shoulder down: into the floor
+            got_state, got_floats, got_flags = task.step_one(state, action)
+            with torch.inference_mode():
+                want_state, res = task.step(state, task.transport.check_action(action, 1))
+                want_floats, want_flags = (p.numpy()[:, 0] for p in task.transport.pack(want_state, res))
+            np.testing.assert_array_max_ulp(got_floats[: 2 * nj], want_floats[: 2 * nj], maxulp=1)
+            np.testing.assert_array_equal(got_floats[2 * nj :], want_floats[2 * nj :])
+            np.testing.assert_array_equal(got_flags, want_flags)
+            for name in ("q", "velocity", "goal", "achieved", "t", "key", "episode"):
+                assert torch.equal(getattr(got_state, name), getattr(want_state, name)), name
+            seen[: len(got_flags)] += got_flags
+            state = got_state
+    terminated, truncated, success, collision = seen
+    assert success and (collision or task.world is None or task.world.floor is None)
+    assert terminated or not (task.terminate_on_success or task.collision == "terminate")
+    assert truncated or task.max_episode_steps is None
+
+
+@pytest.mark.parametrize("options", [{"env_id": "IiwaReachPose-v0"}, {"env_id": "IiwaReachObstacles-v0"},
+                                     {"env_id": "IiwaReach-v0", "dtype": torch.float64},
+                                     {"env_id": "IiwaReach-v0", "observe_clearance": True}])
+def test_single_env_tasks_the_kernel_does_not_cover_take_the_numpy_step(options):
+    options = dict(options)
+    task = envs.make_task(options.pop("env_id"), **options)
+    assert task._one_step is None
+    with torch.inference_mode():
+        state = task.reset_all(None, [0], np.random.default_rng(0))
+    _, floats, flags = task.step_one(state, np.zeros(7, dtype=np.float32))
+    assert floats.shape == (task.transport.packed_size + 2 + (task.goal_kind.value == "pose"),)
