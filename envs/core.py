@@ -167,6 +167,7 @@ class ReachTask:
         self.max_step = self.arm.max_step
         self._home_goal = self.goal_of(self.arm.home[:, None])  # (g, 1): every episode from home starts there
         self._one_step = self._compiled_step_constants()
+        self._one_reset = self._compiled_reset_constants()
 
     def _compiled_step_constants(self) -> tuple | None:
         """The constant arguments of :func:`envs.compiled_step.reach_step_one` for this task, or ``None``
@@ -194,6 +195,21 @@ class ReachTask:
                              0.0 if world is None or world.floor is None else world.floor, s.terminate_on_success,
                              s.collision is CollisionKind.TERMINATE, self.goals.reward_kind is RewardKind.SPARSE])
         return reach_step_one, arm, clearance, settings
+
+    def _compiled_reset_constants(self) -> tuple | None:
+        """The constant arguments of :func:`envs.compiled_step.reach_reset_one` (after the key and the
+        episode), or ``None`` where one env's reset is :meth:`reset_all`'s: where the step is not
+        compiled, for random starts or a minimum goal distance."""
+        if self._one_step is None or self.start_kind is not StartKind.HOME or self.goal_min_distance > 0:
+            return None
+        from .compiled_step import reach_reset_one
+
+        _, _, clearance, settings = self._one_step
+        arm = self.arm
+        box = np.array(PANDA_GYM_BOX if self.goal_region is GoalRegion.PANDA_GYM else np.zeros((0, 3)), np.float32)
+        constants = (torch.stack([arm.draw_lower, arm.draw_upper]).numpy(), arm.home[:, None].numpy(),
+                     self._home_goal.numpy())
+        return reach_reset_one, constants, clearance, settings, box
 
     def clearance_rows(self, q: Tensor, obstacles: Tensor) -> tuple[Tensor, Tensor]:
         """Joint angles ``(nj, n)`` and the obstacle block ``(10 M, n)`` -> the observation's clearance rows
@@ -252,10 +268,39 @@ class ReachTask:
         an existing state goes on to the next episode of each environment; otherwise
         episode 0 starts from the keys of ``seeds`` (a ``None`` entry draws a seed from ``rng``;
         others must be ints in ``[0, 2**64)``, see :func:`envs.seeding.keys_from_seeds`)."""
+        return self._new_episodes(*self._episodes(state, seeds, rng))
+
+    def _episodes(self, state: ReachState | None, seeds: list, rng: np.random.Generator) -> tuple[Tensor, Tensor]:
+        """The keys and episode numbers ``(n,)`` each of the episodes :meth:`reset_all` starts."""
         if state is not None and all(s is None for s in seeds):
-            return self._new_episodes(state.key, state.episode + 1)  # every environment's next episode
+            return state.key, state.episode + 1  # every environment's next episode
         fresh = rng.integers(2**63, size=len(seeds)).tolist()
-        return self.initial_state(keys_from_seeds([f if s is None else s for f, s in zip(fresh, seeds)], self.device))
+        key = keys_from_seeds([f if s is None else s for f, s in zip(fresh, seeds)], self.device)
+        return key, torch.zeros_like(key)
+
+    def reset_one(self, state: ReachState | None, seed: int | None, rng: np.random.Generator
+                  ) -> tuple[ReachState, np.ndarray, np.ndarray]:
+        """One CPU environment's reset as the single env takes it (:meth:`reset_all` of ``[seed]``) -> the new
+        state and the rows of ``transport.pack`` as numpy, as :meth:`step_one`. From home (position goals, no
+        obstacles, float32, numba installed, no minimum goal distance) one compiled call
+        (:func:`envs.compiled_step.reach_reset_one`: :meth:`reset_all`'s goal bit for bit, tested)."""
+        if self._one_reset is None:
+            with torch.inference_mode():
+                state = self.reset_all(state, [seed], rng)
+                floats, flags = (part.numpy(force=True)[:, 0] for part in self._reset_rows(state))
+            return state, floats, flags
+        key, episode = self._episodes(state, [seed], rng)
+        kernel, (draw, home, home_goal), clearance, settings, box = self._one_reset
+        nj = self.arm.n_joints
+        out, flags = np.empty((3 * nj + 8, 1), dtype=np.float32), np.empty(4, dtype=np.bool_)
+        kernel(int(key), int(episode), draw, home, home_goal, *self.robot.geometry(self.dtype).float_arrays,
+               *clearance, settings, box, _DRAW_ROUNDS, _GOAL_REDRAWS, out, flags)
+        rows = (torch.from_numpy(out[i * nj : (i + 1) * nj]) for i in range(3))  # cos q, sin q, velocity
+        blank = torch.zeros(0, 1)
+        goal = torch.from_numpy(out[3 * nj + 3 : 3 * nj + 6].copy())  # the episode's own: not the observation's
+        state = ReachState(torch.from_numpy(home.copy()), *rows, goal, torch.from_numpy(out[3 * nj : 3 * nj + 3]),
+                           torch.zeros(1, dtype=torch.int64), key, episode, blank, blank)
+        return state, out[:, 0], flags if self.world is not None else flags[:3]
 
     def _random_starts(self, key: Tensor, episode: Tensor) -> Tensor:
         """Uniform starts within the limits ``(n, nj)`` (draws 0..nj-1 of each key's stream), those
@@ -428,12 +473,15 @@ class ReachTask:
 
     def reset_transition(self, state: ReachState) -> Transition:
         """The observation and status of a state just reset, as numpy (one transfer)."""
+        return self.transport.unpack(*(part.numpy(force=True) for part in self._reset_rows(state)))
+
+    def _reset_rows(self, state: ReachState) -> tuple[Tensor, Tensor]:
+        """``transport.pack`` of a state just reset: its observation, reward and errors, and its flags."""
         dist, angle, success = self.goals.errors(state.achieved.float(), state.goal.float())
         no = torch.zeros_like(success)
         collision = None if self.world is None else no  # starts are collision-free by construction
         status = StepResult(self.goals.reward_of(dist, angle, success), no, no, success, dist, angle, collision)
-        io = self.transport
-        return io.unpack(*(part.numpy(force=True) for part in io.pack(state, status)))
+        return self.transport.pack(state, status)
 
     def step_autoreset(self, state: ReachState, action: Tensor) -> tuple[ReachState, Transition]:
         """``step``, then same-step auto-reset of the environments that terminated or truncated.

@@ -154,36 +154,35 @@ class IiwaReachEnv(gym.Env):
         self._figure = None
         self._image = None
 
-    @torch.inference_mode()
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start an episode. ``reset(seed=s)``, ``s`` in ``[0, 2**64)``, makes the following episodes reproducible."""
         if options:
             raise ValueError(f"reset takes no options, got {options!r}")
-        state = self.task.reset_all(self._state, [seed], self.np_random)  # checks the seed first
+        state, floats, flags = self.task.reset_one(self._state, seed, self.np_random)  # checks the seed first
         super().reset(seed=seed)
         self._state = state
-        tr = self.task.reset_transition(self._state)
-        obs = {k: v[0] for k, v in tr.obs.items()}
-        angle = None if tr.angle is None else float(tr.angle[0])
-        collision = None if tr.collision is None else bool(tr.collision[0])
-        info = _info(self.task, bool(tr.success[0]), float(tr.distance[0]), angle, collision)
         if self.render_mode == "human":
             self.render()
+        obs, _, _, _, info = self._outputs(floats, flags)
         return obs, info
 
     def step(self, action):
         """Apply one joint-velocity command ``(7,)``; see the class docstring."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        io = self.task.transport
         self._state, floats, flags = self.task.step_one(self._state, action)
-        d = io.packed_size
-        reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
-        term, trunc, success, *collision = flags.tolist()  # collision: one flag when checked, else none
         if self.render_mode == "human":
             self.render()
+        return self._outputs(floats, flags)
+
+    def _outputs(self, floats: np.ndarray, flags: np.ndarray) -> tuple:
+        """The packed rows of a step or a reset (``transport.pack``'s, as numpy) -> observation, reward,
+        terminated, truncated and info."""
+        d = self.task.transport.packed_size
+        reward, dist, *angle = floats[d:].tolist()  # angle: one number for pose goals, none for positions
+        term, trunc, success, *collision = flags.tolist()  # collision: one flag when checked, else none
         info = _info(self.task, success, dist, angle[0] if angle else None, collision[0] if collision else None)
-        return io.split(floats[:d]), reward, term, trunc, info
+        return self.task.transport.split(floats[:d]), reward, term, trunc, info
 
     @property
     def joint_angles(self) -> np.ndarray:

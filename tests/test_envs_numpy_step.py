@@ -156,3 +156,33 @@ def test_single_env_tasks_the_kernel_does_not_cover_take_the_numpy_step(options)
         state = task.reset_all(None, [0], np.random.default_rng(0))
     _, floats, flags = task.step_one(state, np.zeros(7, dtype=np.float32))
     assert floats.shape == (task.transport.packed_size + 2 + (task.goal_kind.value == "pose"),)
+
+
+@pytest.mark.parametrize("options", [
+    {"env_id": "IiwaReach-v0", "floor": 0.2},  # a raised floor: both candidates collide at times, later rounds draw
+    {"env_id": "IiwaReachSparse-v0", "floor": None},
+    {"env_id": "IiwaReach-v0", "collision": "off"},
+    {"env_id": "FrankaReach-v0", "floor": 0.1},
+    {"env_id": "FrankaReachPandaGym-v0"},
+])
+def test_compiled_single_env_reset_equals_reset_all(options):
+    """envs.compiled_step's one-call reset against reset_all and the reset's packed rows (torch), over
+    400 episodes of 20 keys: goals, state and rows bit for bit (cos and sin of home within one unit in
+    the last place)."""
+    options = dict(options)
+    task = envs.make_task(options.pop("env_id"), **options)
+    assert task._one_reset is not None
+    nj, rng = task.arm.n_joints, np.random.default_rng(0)
+    for seed in range(20):
+        state = None
+        for episode in range(20):
+            got_state, got_floats, got_flags = task.reset_one(state, seed if episode == 0 else None, rng)
+            with torch.inference_mode():
+                want_state = task.reset_all(state, [seed if episode == 0 else None], rng)
+                want_floats, want_flags = (p.numpy()[:, 0] for p in task._reset_rows(want_state))
+            np.testing.assert_array_max_ulp(got_floats[: 2 * nj], want_floats[: 2 * nj], maxulp=1)
+            np.testing.assert_array_equal(got_floats[2 * nj :], want_floats[2 * nj :])
+            np.testing.assert_array_equal(got_flags, want_flags)
+            for name in ("q", "velocity", "goal", "achieved", "t", "key", "episode", "obstacles", "clearance"):
+                assert torch.equal(getattr(got_state, name), getattr(want_state, name)), name
+            state = got_state
