@@ -31,6 +31,8 @@ from iiwa_torch import kinematics as kin
 from iiwa_torch.chain import Chain
 from iiwa_torch.checks import as_device, check_instance
 from iiwa_torch.collision import Capsules, capsule_clearance, capsule_clearance_of_one
+from iiwa_torch.collision.cpu_paths import CLEARANCE_THREADS_BATCH
+from iiwa_torch.runtime import in_parts
 
 from .arrays import NUMPY, TORCH, ArrayOps
 from .goals import PANDA_GYM_BOX, GoalKind, GoalRegion, ReachGoals, RewardKind
@@ -170,15 +172,15 @@ class ReachTask:
         self._one_reset = self._compiled_reset_constants()
 
     def _compiled_step_constants(self) -> tuple | None:
-        """The constant arguments of :func:`envs.compiled_step.reach_step_one` for this task, or ``None``
-        where one env's step is :meth:`step` and ``pack`` instead: without numba, off the CPU, in
-        float64, for pose goals, with obstacles or with observed clearances."""
+        """The constant arguments of :func:`envs.compiled_step.reach_step` for this task, or ``None`` where
+        the envs step by :meth:`step` and ``pack`` instead: without numba, off the CPU, in float64, for
+        pose goals, with obstacles or with observed clearances."""
         world = self.world
         if not (compiled.ENABLED and self.device.type == "cpu" and self.dtype == torch.float32
                 and self.goal_kind is GoalKind.POSITION and not self.observe_clearance
                 and (world is None or not world.slots)):
             return None
-        from .compiled_step import reach_step_one
+        from .compiled_step import reach_step
 
         arm = torch.stack([self.arm.lower, self.arm.upper, self.arm.max_step]).numpy()
         if world is None:  # nothing checked: no capsules (the kernel's argument types all the same)
@@ -194,7 +196,7 @@ class ReachTask:
                              -1 if s.max_episode_steps is None else s.max_episode_steps, world is not None,
                              0.0 if world is None or world.floor is None else world.floor, s.terminate_on_success,
                              s.collision is CollisionKind.TERMINATE, self.goals.reward_kind is RewardKind.SPARSE])
-        return reach_step_one, arm, clearance, settings
+        return reach_step, arm, clearance, settings
 
     def _compiled_reset_constants(self) -> tuple | None:
         """The constant arguments of :func:`envs.compiled_step.reach_reset_one` (after the key and the
@@ -202,14 +204,14 @@ class ReachTask:
         compiled, for random starts or a minimum goal distance."""
         if self._one_step is None or self.start_kind is not StartKind.HOME or self.goal_min_distance > 0:
             return None
-        from .compiled_step import reach_reset_one
+        from .compiled_step import draw_goals, reach_reset_one
 
         _, _, clearance, settings = self._one_step
         arm = self.arm
         box = np.array(PANDA_GYM_BOX if self.goal_region is GoalRegion.PANDA_GYM else np.zeros((0, 3)), np.float32)
         constants = (torch.stack([arm.draw_lower, arm.draw_upper]).numpy(), arm.home[:, None].numpy(),
                      self._home_goal.numpy())
-        return reach_reset_one, constants, clearance, settings, box
+        return (reach_reset_one, draw_goals), constants, clearance, settings, box
 
     def clearance_rows(self, q: Tensor, obstacles: Tensor) -> tuple[Tensor, Tensor]:
         """Joint angles ``(nj, n)`` and the obstacle block ``(10 M, n)`` -> the observation's clearance rows
@@ -290,10 +292,10 @@ class ReachTask:
                 floats, flags = (part.numpy(force=True)[:, 0] for part in self._reset_rows(state))
             return state, floats, flags
         key, episode = self._episodes(state, [seed], rng)
-        kernel, (draw, home, home_goal), clearance, settings, box = self._one_reset
+        (kernel, _), (draw, home, home_goal), clearance, settings, box = self._one_reset
         nj = self.arm.n_joints
         out, flags = np.empty((3 * nj + 8, 1), dtype=np.float32), np.empty(4, dtype=np.bool_)
-        kernel(int(key), int(episode), draw, home, home_goal, *self.robot.geometry(self.dtype).float_arrays,
+        kernel(key.numpy(), episode.numpy(), draw, home, home_goal, *self.robot.geometry(self.dtype).float_arrays,
                *clearance, settings, box, _DRAW_ROUNDS, _GOAL_REDRAWS, out, flags)
         rows = (torch.from_numpy(out[i * nj : (i + 1) * nj]) for i in range(3))  # cos q, sin q, velocity
         blank = torch.zeros(0, 1)
@@ -333,7 +335,8 @@ class ReachTask:
         blank = start.new_zeros(0, n)
         obstacles = blank if world is None or not world.slots else world.draw(key, episode, start, _OBSTACLE_DRAWS,
                                                                               _DRAW_ROUNDS)
-        goal = self._goals(key, episode, start, start_goal, obstacles)
+        goal = self._goals(key, episode, start, start_goal, obstacles) if self._one_reset is None else \
+            self._goals_compiled(key, episode)
         q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
         clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
         return ReachState(
@@ -349,6 +352,18 @@ class ReachTask:
             obstacles=obstacles,
             clearance=clearance,
         )
+
+    def _goals_compiled(self, key: Tensor, episode: Tensor) -> Tensor:
+        """:meth:`_goals` of episodes from home, position goals without obstacles, in one compiled call
+        (:func:`envs.compiled_step.draw_goals`, split over torch's threads from
+        :data:`~iiwa_torch.collision.cpu_paths.CLEARANCE_THREADS_BATCH` environments): the same goals,
+        bit for bit (tested), ``(3, n)``."""
+        (_, kernel), (draw, _, home_goal), clearance, settings, box = self._one_reset
+        keys, episodes, goal = key.numpy(), episode.numpy(), np.empty((3, key.shape[0]), dtype=np.float32)
+        args = (keys, episodes, draw, home_goal, *self.robot.geometry(self.dtype).float_arrays, *clearance, settings,
+                box, _DRAW_ROUNDS, _GOAL_REDRAWS)
+        in_parts(key.shape[0], lambda start, stop: kernel(*args, start, stop, goal), CLEARANCE_THREADS_BATCH)
+        return torch.from_numpy(goal)
 
     def _goals(self, key: Tensor, episode: Tensor, start: Tensor, start_goal: dict, obstacles: Tensor) -> Tensor:
         """The goals ``(g, n)`` of new episodes from ``start (n, nj)`` among ``obstacles`` (their block); fills
@@ -430,30 +445,40 @@ class ReachTask:
     def step_one(self, state: ReachState, action) -> tuple[ReachState, np.ndarray, np.ndarray]:
         """One CPU environment's step as the single env takes it: ``action`` ``(nj,)`` as the user gave it
         (checked as :meth:`envs.transport.Transport.check_action` does) -> the new state and the rows of
-        ``transport.pack`` as numpy, floats ``(D + k,)`` and flags ``(3,)`` or ``(4,)``.
-
-        Where it applies (position goals, float32, no obstacles, no observed clearance, numba installed),
-        one compiled call (:func:`envs.compiled_step.reach_step_one`: :meth:`step`'s results bit for bit
-        but the cosines and sines, correctly rounded where torch's differ in the last bit; tested), in
-        about a fifth of the time of the step's array operations. The new state's rows are views of
-        the returned floats. Elsewhere :meth:`step`, then ``pack``."""
+        ``transport.pack`` as numpy, floats ``(D + k,)`` and flags ``(3,)`` or ``(4,)``: one compiled call
+        where it applies (:meth:`step_compiled`), else :meth:`step` and ``pack``."""
         io = self.transport
         if self._one_step is None:
             with torch.inference_mode():
                 state, res = self.step(state, io.check_action(action, 1))
                 floats, flags = (part.numpy(force=True)[:, 0] for part in io.pack(state, res))
             return state, floats, flags
+        state, floats, flags = self.step_compiled(state, io.check_action_one(action).reshape(-1, 1))
+        return state, floats[:, 0], flags[:, 0]
+
+    def step_compiled(self, state: ReachState, action: np.ndarray) -> tuple[ReachState, np.ndarray, np.ndarray]:
+        """:meth:`step` and ``transport.pack`` of ``n`` CPU environments in one compiled pass
+        (:func:`envs.compiled_step.reach_step`, split over torch's threads from
+        :data:`~iiwa_torch.collision.cpu_paths.CLEARANCE_THREADS_BATCH` environments), for tasks of position
+        goals without obstacles or observed clearances, float32, with numba (``None`` constants otherwise):
+        finite actions ``(nj, n)`` float32 -> the new state, floats ``(D + k, n)`` float32 and flags
+        ``(3 or 4, n)`` as numpy. The new state's rows are views of the floats; its results are
+        :meth:`step`'s, but for the last bit of the cosines and sines of q and of the end point (tested)."""
         kernel, arm, clearance, settings = self._one_step
-        a, nj = io.check_action_one(action), self.arm.n_joints
-        new_q, out, flags = np.empty((nj, 1), dtype=np.float32), np.empty((3 * nj + 8, 1), dtype=np.float32), \
-            np.empty(4, dtype=np.bool_)
+        nj, n = action.shape
+        new_q, out, flags = np.empty((nj, n), dtype=np.float32), np.empty((3 * nj + 8, n), dtype=np.float32), \
+            np.empty((4, n), dtype=np.bool_)
         t = state.t.numpy() + 1
-        kernel(state.q.numpy(), a, arm, *self.robot.geometry(self.dtype).float_arrays, *clearance, settings,
-               state.goal.numpy(), t[0], new_q, out, flags)
+        args = (state.q.numpy(), action, arm, *self.robot.geometry(self.dtype).float_arrays, *clearance, settings,
+                state.goal.numpy(), t)
+        if n == 1:  # one env: no thread pool's call
+            kernel(*args, 0, 1, new_q, out, flags)
+        else:
+            in_parts(n, lambda start, stop: kernel(*args, start, stop, new_q, out, flags), CLEARANCE_THREADS_BATCH)
         rows = (torch.from_numpy(out[i * nj : (i + 1) * nj]) for i in range(3))  # cos q, sin q, velocity
         state = ReachState(torch.from_numpy(new_q), *rows, state.goal, torch.from_numpy(out[3 * nj : 3 * nj + 3]),
                            torch.from_numpy(t), *state[7:])
-        return state, out[:, 0], flags if self.world is not None else flags[:3]
+        return state, out, flags if self.world is not None else flags[:3]
 
     def penalised(self, reward, collision, xp: ArrayOps = TORCH):
         """``reward - collision_penalty`` where ``collision`` (``None``: no collision checked)."""
@@ -491,9 +516,13 @@ class ReachTask:
         its last observation is in ``final_obs`` (environments ``final_index``).
         """
         io = self.transport
-        state, res = self.step(state, action)
-        out, flags = io.pack(state, res)  # new tensors of our own, updated in place below
-        idx = (res.terminated | res.truncated).nonzero().squeeze(-1)  # which environments restart: one sync
+        if self._one_step is None or action.device.type != "cpu":
+            state, res = self.step(state, action)
+            out, flags = io.pack(state, res)  # new tensors of our own, updated in place below
+        else:
+            state, out, flags = self.step_compiled(state, action.numpy())
+            out, flags = torch.from_numpy(out), torch.from_numpy(flags)
+        idx = (flags[0] | flags[1]).nonzero().squeeze(-1)  # which environments restart: one sync
         d = io.packed_size
         # (D, m) copy: the finished episodes' last observations (index_select: 2x faster than out[:d, idx])
         final = out[:d].index_select(1, idx)

@@ -1,14 +1,17 @@
-"""Facts about the machine a run happens on, recorded next to every wall time."""
+"""The machine a run happens on: its facts, recorded next to every wall time, and its threads for
+compiled work that releases the GIL (:func:`in_parts`)."""
 
 from __future__ import annotations
 
+import concurrent.futures
+import functools
 import os
 import platform
 import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["cpu_model", "machine_info"]
+__all__ = ["cpu_model", "in_parts", "machine_info", "thread_pool"]
 
 
 def cpu_model() -> str:
@@ -36,3 +39,26 @@ def machine_info() -> dict[str, Any]:
         "python": platform.python_version(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
     }
+
+
+def in_parts(n: int, work, threshold: int) -> None:
+    """``work(start, stop)`` over ``range(n)``: in one call below ``threshold`` items or with one torch
+    thread, else one part per torch thread, the parts run at once on :func:`thread_pool`'s threads
+    (``work`` must release the GIL, as the compiled kernels marked ``jit_nogil`` do, and each part
+    must write only its own items)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    if n < threshold or threads == 1:
+        work(0, n)
+        return
+    size = -(-n // threads)
+    starts = range(0, n, size)
+    list(thread_pool(len(starts), os.getpid()).map(lambda start: work(start, min(start + size, n)), starts))
+
+
+@functools.cache
+def thread_pool(threads: int, pid: int) -> concurrent.futures.ThreadPoolExecutor:
+    """A pool of ``threads`` threads for :func:`in_parts`, kept for the process ``pid``: a process forked
+    from this one has none of its threads, so it builds its own."""
+    return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="iiwa_torch-parts")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import collision, compiled, robots
+from iiwa_torch import collision, compiled, robots, runtime
 from iiwa_torch.collision import CLEARANCE_NUMPY_BATCH, World, clearance, robot_capsules
 from iiwa_torch.dh import DHChain
 
@@ -324,13 +324,13 @@ def test_threads_split_a_large_batch_without_changing_it(monkeypatch, size):
         one = clearance(chain, q, world, caps)
         monkeypatch.setattr(collision.cpu_paths, "CLEARANCE_THREADS_BATCH", 1)
         pool_sizes = []
-        real = collision.cpu_paths._pool
+        real = runtime.thread_pool
 
         def spy(n, pid):
             pool_sizes.append(n)
             return real(n, pid)
 
-        monkeypatch.setattr(collision.cpu_paths, "_pool", spy)
+        monkeypatch.setattr(runtime, "thread_pool", spy)
         torch.set_num_threads(3)
         split = clearance(chain, q, world, caps)
     finally:

@@ -165,24 +165,33 @@ def test_single_env_tasks_the_kernel_does_not_cover_take_the_numpy_step(options)
     {"env_id": "FrankaReach-v0", "floor": 0.1},
     {"env_id": "FrankaReachPandaGym-v0"},
 ])
-def test_compiled_single_env_reset_equals_reset_all(options):
-    """envs.compiled_step's one-call reset against reset_all and the reset's packed rows (torch), over
-    400 episodes of 20 keys: goals, state and rows bit for bit (cos and sin of home within one unit in
-    the last place)."""
+def test_compiled_resets_equal_the_torch_reset(options):
+    """envs.compiled_step's resets against the torch formulas' (a task whose compiled paths are off), over
+    20 keys of 20 episodes: one env's (reset_one; state and packed rows bit for bit, cos and sin of home
+    within one unit in the last place), and a batch's goals (reset_all of 400 envs, draw_goals): each
+    env's as one env's, bit for bit, and the torch batch's to its float32 FK's rounding."""
     options = dict(options)
-    task = envs.make_task(options.pop("env_id"), **options)
+    env_id = options.pop("env_id")
+    task, reference = envs.make_task(env_id, **options), envs.make_task(env_id, **options)
     assert task._one_reset is not None
-    nj, rng = task.arm.n_joints, np.random.default_rng(0)
+    reference._one_step = reference._one_reset = None  # the torch formulas
+    nj, rng, first_goals = task.arm.n_joints, np.random.default_rng(0), []
     for seed in range(20):
         state = None
         for episode in range(20):
             got_state, got_floats, got_flags = task.reset_one(state, seed if episode == 0 else None, rng)
-            with torch.inference_mode():
-                want_state = task.reset_all(state, [seed if episode == 0 else None], rng)
-                want_floats, want_flags = (p.numpy()[:, 0] for p in task._reset_rows(want_state))
+            if episode == 0:
+                first_goals.append(got_state.goal[:, 0])
+            want_state, want_floats, want_flags = reference.reset_one(state, seed if episode == 0 else None, rng)
             np.testing.assert_array_max_ulp(got_floats[: 2 * nj], want_floats[: 2 * nj], maxulp=1)
             np.testing.assert_array_equal(got_floats[2 * nj :], want_floats[2 * nj :])
             np.testing.assert_array_equal(got_flags, want_flags)
             for name in ("q", "velocity", "goal", "achieved", "t", "key", "episode", "obstacles", "clearance"):
                 assert torch.equal(getattr(got_state, name), getattr(want_state, name)), name
             state = got_state
+    with torch.inference_mode():  # a batch draws each env's goal as one env does; torch's batch FK rounds in float32
+        batch = task.reset_all(None, list(range(400)), rng)
+        assert torch.equal(batch.goal[:, :20], torch.stack(first_goals, 1))
+        torch.testing.assert_close(batch.goal, reference.reset_all(None, list(range(400)), rng).goal, rtol=0, atol=2e-6)
+        later = task.reset_all(batch, [None] * 400, rng)  # the next episodes
+        torch.testing.assert_close(later.goal, reference.reset_all(batch, [None] * 400, rng).goal, rtol=0, atol=2e-6)

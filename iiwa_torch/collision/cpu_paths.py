@@ -7,10 +7,7 @@ env are here too."""
 
 from __future__ import annotations
 
-import concurrent.futures
-import functools
 import math
-import os
 
 import numpy as np
 import torch
@@ -19,6 +16,7 @@ from torch import Tensor
 from .. import compiled
 from .. import kinematics as kin
 from ..chain import Chain
+from ..runtime import in_parts
 from .capsules import Capsules
 from .distances import own_distances
 from .primitives import norm_numpy, point_gap_numpy, unchecked_segment_box_distance
@@ -105,21 +103,8 @@ def _own_clearance(chain: Chain, x: np.ndarray, floor: float | None, capsules: C
     floors = tables["floor"] if floor is not None else tables["floor"][:0]
     args = (transforms, params, base, tables["frames"], tables["local"], tables["first"], tables["second"],
             tables["pair_radius"], floors, tables["floor_radius"], 0.0 if floor is None else float(floor))
-    threads = torch.get_num_threads()
-    if x.shape[0] < CLEARANCE_THREADS_BATCH or threads == 1:
-        kernel(x, *args, out)
-        return out
-    size = -(-x.shape[0] // threads)  # the kernel releases the GIL: one part per thread, each its rows of out
-    parts = [slice(start, start + size) for start in range(0, x.shape[0], size)]
-    list(_pool(len(parts), os.getpid()).map(lambda part: kernel(x[part], *args, out[part]), parts))
+    in_parts(x.shape[0], lambda start, stop: kernel(x[start:stop], *args, out[start:stop]), CLEARANCE_THREADS_BATCH)
     return out
-
-
-@functools.cache
-def _pool(threads: int, pid: int) -> concurrent.futures.ThreadPoolExecutor:
-    """A pool of ``threads`` threads for :func:`_own_clearance`'s parts, kept for the process
-    ``pid``: a process forked from this one has none of its threads, so it builds its own."""
-    return concurrent.futures.ThreadPoolExecutor(threads, thread_name_prefix="iiwa_torch-clearance")
 
 
 def _least(values: list):

@@ -11,7 +11,8 @@ from .. import segments
 from .decorators import inline, jit, jit_nogil
 from .kinematics_kernels import apply_transform, frames_of, turn
 
-__all__ = ["SIN_COS_RANGE", "capsule_clearance", "own_clearance", "sin_cos"]
+__all__ = ["LANES", "SIN_COS_RANGE", "block_minimum", "capsule_clearance", "capsule_ends", "half_lengths",
+           "next_frame", "own_clearance", "sin_cos"]
 
 # numba calls libm's sin and cos one element at a time (no SVML here), which stops LLVM from
 # vectorising a loop and costs more than the rest of the clearance kernel: sin_cos is a
@@ -48,7 +49,7 @@ def sin_cos(x):
 # the one closest-point formula of the torch, numpy and float paths, with the float path's helpers
 _closest = inline(segments.closest_parameters)
 _choose, _unit, _quotient = inline(segments.choose), inline(segments.unit_float), inline(segments.quotient)
-_LANES = 256  # configurations per block: the block's frames and capsules stay in the L1 cache
+LANES = 256  # configurations per block: the block's frames and capsules stay in the L1 cache
 _DENSE = 2  # a pair needed in more than 1 / _DENSE of a block's lanes is computed in all of them
 _SLACK = 1e-9  # m: a pair is skipped if its lower bound beats the best by more (rounding of the bounds)
 
@@ -86,7 +87,7 @@ def _transform_lanes(T, m, state):
 
 
 @inline
-def _next_frame(transforms, params, i, m, angle, cs, state):
+def next_frame(transforms, params, i, m, angle, cs, state):
     """The moving frames ``state (12, LANES)`` of link ``i`` -> link ``i + 1``, through joint i: the
     recursion of :func:`~.kinematics_kernels.frames_of`. Each branch is taken once for the block,
     outside the loops over it (a branch inside would keep LLVM from vectorising them)."""
@@ -115,19 +116,37 @@ def _block_capsules(transforms, params, base, frames, local, m, angle, cs, state
             state[r, j] = base[r % 3, r // 3]
     for f in range(angle.shape[0] + 1):
         if f > 0:
-            _next_frame(transforms, params, f - 1, m, angle, cs, state)
-        for k in range(frames.shape[0]):
-            if frames[k] != f:
-                continue
-            u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
-            u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
-            for r in range(3):  # each end point: p + u x + v y + w z
-                for j in range(m):
-                    x, y, z, p = state[r, j], state[3 + r, j], state[6 + r, j], state[9 + r, j]
-                    start = p + u0 * x + v0 * y + w0 * z
-                    ends[k, r, j] = start
-                    ends[k, 3 + r, j] = p + u1 * x + v1 * y + w1 * z - start
-                    ends[k, 6 + r, j] = start + 0.5 * ends[k, 3 + r, j]
+            next_frame(transforms, params, f - 1, m, angle, cs, state)
+        capsule_ends(frames, local, f, m, state, ends)
+
+
+@inline
+def capsule_ends(frames, local, f, m, state, ends):
+    """The capsules of frame ``f`` (0 the base, i link i) into ``ends (K, 9, LANES)`` (start point,
+    start-to-end vector, mid-point) from the block's frames ``state (12, LANES)`` (x, y, z axes and
+    origin, 3 rows each)."""
+    for k in range(frames.shape[0]):
+        if frames[k] != f:
+            continue
+        u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
+        u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
+        for r in range(3):  # each end point: p + u x + v y + w z
+            for j in range(m):
+                x, y, z, p = state[r, j], state[3 + r, j], state[6 + r, j], state[9 + r, j]
+                start = p + u0 * x + v0 * y + w0 * z
+                ends[k, r, j] = start
+                ends[k, 3 + r, j] = p + u1 * x + v1 * y + w1 * z - start
+                ends[k, 6 + r, j] = start + 0.5 * ends[k, 3 + r, j]
+
+
+@inline
+def half_lengths(local):
+    """Half the length of each capsule ``local (K, 4, 2)`` (its two end points as columns), ``(K,)`` m."""
+    half = np.empty(local.shape[0])
+    for k in range(local.shape[0]):
+        d0, d1, d2 = local[k, 0, 1] - local[k, 0, 0], local[k, 1, 1] - local[k, 1, 0], local[k, 2, 1] - local[k, 2, 0]
+        half[k] = 0.5 * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    return half
 
 
 @inline
@@ -143,7 +162,7 @@ def _pair_clearance(e1, e2, j, radius):
 
 
 @inline
-def _block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best):
+def block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best):
     """The block's clearance into ``best (LANES,)``: the floor's exact values and, per self pair, the
     mid-points' distance ``gap (P, LANES)``, an upper bound of the pair's distance (``- radius``,
     into ``best``), then each pair's exact distance only in the lanes ``lanes`` where its lower
@@ -198,12 +217,10 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
     mid-point, so a pair is at least ``|c1 - c2| - h1 - h2`` apart and at most ``|c1 - c2|``
     (its mid-points' distance); the result is the exact minimum all the same."""
     count, k_all, last = q.shape[0], frames.shape[0], 0
-    half = np.empty(k_all)  # m: half of each capsule's length (its frame is rigid)
+    half = half_lengths(local)  # each segment lies within half its length of its mid-point
     for k in range(k_all):
         last = max(last, frames[k])
-        d0, d1, d2 = local[k, 0, 1] - local[k, 0, 0], local[k, 1, 1] - local[k, 1, 0], local[k, 2, 1] - local[k, 2, 0]
-        half[k] = 0.5 * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    w = max(1, min(_LANES, count))  # lanes: one configuration (the single env) allocates one, none still one
+    w = max(1, min(LANES, count))  # lanes: one configuration (the single env) allocates one, none still one
     angle, cs, state = np.empty((last, w)), np.empty((2, last, w)), np.empty((12, w))
     ends = np.empty((k_all, 9, w))  # per capsule: start point, start-to-end vector, mid-point
     gap, lanes, best = np.empty((first.shape[0], w)), np.empty(w, dtype=np.int64), np.empty(w)
@@ -211,7 +228,7 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
         m = min(w, count - row)
         _block_angles(q, params, row, m, angle, cs)
         _block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends)
-        _block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best)
+        block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best)
         for j in range(m):
             out[row + j] = best[j]
 
