@@ -46,10 +46,13 @@ def in_parts(n: int, work, threshold: int) -> None:
     thread, else one part per torch thread, the parts run at once on :func:`thread_pool`'s threads
     (``work`` must release the GIL, as the compiled kernels marked ``jit_nogil`` do, and each part
     must write only its own items)."""
+    if n < threshold:
+        work(0, n)
+        return
     import torch
 
     threads = torch.get_num_threads()
-    if n < threshold or threads == 1:
+    if threads == 1:
         work(0, n)
         return
     size = -(-n // threads)
