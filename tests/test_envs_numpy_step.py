@@ -195,3 +195,23 @@ def test_compiled_resets_equal_the_torch_reset(options):
         torch.testing.assert_close(batch.goal, reference.reset_all(None, list(range(400)), rng).goal, rtol=0, atol=2e-6)
         later = task.reset_all(batch, [None] * 400, rng)  # the next episodes
         torch.testing.assert_close(later.goal, reference.reset_all(batch, [None] * 400, rng).goal, rtol=0, atol=2e-6)
+
+
+def test_compiled_goal_draws_split_over_threads_without_changing_them(monkeypatch):
+    """From GOAL_THREADS_BATCH envs a reset's compiled goal draws run one part per torch thread (the
+    kernel releases the GIL): the same goals as one call, with parts of unequal size."""
+    import envs.core
+
+    task = envs.make_task("FrankaReach-v0", floor=0.1)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        with torch.inference_mode():
+            one = task.reset_all(None, list(range(301)), np.random.default_rng(0)).goal
+        monkeypatch.setattr(envs.core, "GOAL_THREADS_BATCH", 1)
+        torch.set_num_threads(3)
+        with torch.inference_mode():
+            split = task.reset_all(None, list(range(301)), np.random.default_rng(0)).goal
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(split, one)
