@@ -90,6 +90,7 @@ def reach_step(q, action, arm, transforms, params, base, tool, frames, local, fi
     :func:`~iiwa_torch.compiled.clearance_kernels.own_clearance` does (whose frames, capsules and
     minimum it shares), so LLVM vectorises them; the frames carry on to the end effector."""
     nj, k_all, one = q.shape[0], frames.shape[0], np.float32(1.0)
+    checked, on_success, on_collision, sparse = settings[3] != 0, settings[5] != 0, settings[6] != 0, settings[7] != 0
     half = half_lengths(local)
     w = max(1, min(LANES, stop - start))
     angle, cs = np.empty((nj, w)), np.empty((2, nj, w))
@@ -106,18 +107,18 @@ def reach_step(q, action, arm, transforms, params, base, tool, frames, local, fi
                 next_frame(transforms, params, f - 1, m, angle, cs, state)
             capsule_ends(frames, local, f, m, state, ends)
         _errors(tool, state, goal, row, m, 3 * nj, out, distance)
-        if settings[3]:
+        if checked:
             block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, settings[4], gap, lanes,
                           best)  # fmt: skip
         for j in range(m):
             c = row + j
-            collision = settings[3] and best[j] < 0
+            collision = checked and best[j] < 0
             success = distance[j] < np.float32(settings[0])
-            reward = success - one if settings[7] else -distance[j]
+            reward = success - one if sparse else -distance[j]
             if collision:
                 reward -= np.float32(settings[1])
             out[3 * nj + 6, c] = reward
-            flags[0, c] = (settings[5] and success) or (settings[6] and collision)
+            flags[0, c] = (on_success and success) or (on_collision and collision)
             flags[1, c] = 0 <= settings[2] <= t[c]
             flags[2, c], flags[3, c] = success, collision
 

@@ -13,8 +13,11 @@ The task itself is immutable configuration with pure batched methods over a
 :class:`ReachState` (a tuple of tensors with one column per environment):
 ``initial_state(keys)``, ``reset_all(state, seeds, rng)``, ``step(state, action)`` (the one
 step) and ``step_autoreset(state, action)`` (the step, same-step auto-reset of the finished
-environments and one transfer to numpy, for the vector envs). The envs (``envs.reach``,
-``envs.sb3``) only keep the current state. Randomness is counter-based (``envs.seeding``).
+environments and one transfer to numpy, for the vector envs); ``step_one`` and ``reset_one`` for
+the single env. Where the task allows (position goals without obstacles, float32, CPU, numba) the
+step and the resets' goal draws run compiled (``step_compiled``, :mod:`envs.compiled_step`), the
+same results but for last bits (docs/envs.md). The envs (``envs.reach``, ``envs.sb3``) only keep
+the current state. Randomness is counter-based (``envs.seeding``).
 """
 
 from __future__ import annotations
