@@ -215,3 +215,36 @@ def test_compiled_goal_draws_split_over_threads_without_changing_them(monkeypatc
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(split, one)
+
+
+@pytest.mark.parametrize("robot", ["lrmate200ic", "odd"])
+def test_compiled_step_takes_offsets_prismatic_and_far_turned_continuous_joints(robot):
+    """The compiled step's other branches against the numpy step: a joint offset (the LR Mate's
+    joint 2: the observation's angles are not the frames'), a prismatic joint and a continuous one
+    turned beyond sin_cos's range (libm's instead; the hand-written URDF of tests/urdf_samples.py)."""
+    from urdf_samples import ODD_URDF
+
+    from iiwa_torch import robots
+    from iiwa_torch.compiled.clearance_kernels import SIN_COS_RANGE
+
+    chain = robots.lrmate200ic() if robot == "lrmate200ic" else robots.from_urdf(ODD_URDF, end_link="tip")
+    chain.velocity_limits = torch.full((chain.n_joints,), 1.5, dtype=torch.float64)
+    task, reference = (envs.core.ReachTask(chain, collision="off", start="random") for _ in range(2))
+    reference._one_step = None  # the numpy formulas
+    assert task._one_step is not None
+    nj, rng = chain.n_joints, np.random.default_rng(7)
+    with torch.inference_mode():
+        states = task.reset_all(None, list(range(20)), rng)
+    for i in range(20):
+        state = _column(states, i)
+        if robot == "odd" and i % 2:  # the continuous joint turned so far (1e15 rad) that sin_cos would be wrong
+            state = state._replace(q=state.q + torch.tensor([[0.0], [0.0], [1e10 * SIN_COS_RANGE], [0.0]]))
+        for _ in range(5):
+            action = rng.uniform(-1.2, 1.2, size=nj).astype(np.float32)
+            got_state, got, got_flags = task.step_one(state, action)
+            _, want, want_flags = reference.step_one(state, action)
+            np.testing.assert_array_max_ulp(got[: 2 * nj], want[: 2 * nj], maxulp=1)  # cos q, sin q
+            np.testing.assert_array_equal(got[2 * nj : 3 * nj], want[2 * nj : 3 * nj])  # the motion
+            np.testing.assert_allclose(got[3 * nj :], want[3 * nj :], rtol=0, atol=1e-6)  # goals, reward, distance
+            np.testing.assert_array_equal(got_flags, want_flags)
+            state = got_state
