@@ -219,3 +219,26 @@ def test_missing_optuna_is_a_one_line_error(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "optuna", None)  # import optuna now raises ImportError
     assert "pip install 'iiwa-torch[rl]'" in error_of(capsys, tune_args(tmp_path, 1))
 
+
+
+def test_opening_a_storage_waits_out_another_worker_creating_its_tables(monkeypatch, tmp_path):
+    """Two workers starting at once on a fresh database both create Optuna's tables; the one that loses
+    gets an IntegrityError, and may again at an immediate retry (seen on PostgreSQL): it tries again
+    after short waits, and gives a clear error only when the failures go on."""
+    from sqlalchemy.exc import IntegrityError
+
+    real, failures = optuna.storages.RDBStorage, []
+
+    def racing(*args, **kwargs):
+        if len(failures) < 3:
+            failures.append(1)
+            raise IntegrityError("CREATE TABLE studies", {}, Exception("duplicate key value"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(optuna.storages, "RDBStorage", racing)
+    monkeypatch.setattr(tune.time, "sleep", lambda s: None)
+    assert tune.open_storage(f"sqlite:///{tmp_path / 'study.db'}") is not None and len(failures) == 3
+    failures.clear()
+    monkeypatch.setattr(tune, "_CONNECT_ATTEMPTS", 3)
+    with pytest.raises(ValueError, match="cannot be opened .*IntegrityError"):
+        tune.open_storage(f"sqlite:///{tmp_path / 'other.db'}")

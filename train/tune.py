@@ -24,6 +24,7 @@ import os
 import re
 import shlex
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,7 @@ METRICS = {"success": "maximize", "median_distance": "minimize", "p95_distance":
 HEARTBEAT = 60  # s between a running trial's heartbeats in the storage (default of --heartbeat)
 GRACE = 180  # s without a heartbeat after which another worker fails a killed process's trial (--grace)
 RETRIES = 2  # times a trial failed that way is run again with its parameters
+_CONNECT_ATTEMPTS = 5  # tries to open a storage whose tables another worker is creating at the same moment
 _PPO_NETS = {"small": [64, 64], "medium": [128, 128], "large": [256, 256]}
 _SAC_NETS = {"small": [64, 64], "medium": [256, 256]}
 
@@ -198,10 +200,13 @@ def open_storage(url: str, heartbeat: int = HEARTBEAT, grace: int = GRACE):
 
     shown = hide_password(url)
     try:
-        try:
-            return connect()
-        except (IntegrityError, ProgrammingError):  # another worker created Optuna's tables at the same time:
-            return connect()  # they exist now
+        for attempt in range(1, _CONNECT_ATTEMPTS + 1):
+            try:
+                return connect()
+            except (IntegrityError, ProgrammingError):  # another worker is creating Optuna's tables right now
+                if attempt == _CONNECT_ATTEMPTS:
+                    raise
+                time.sleep(0.25 * attempt)  # then they exist (seen: a second attempt at once can race again)
     except ImportError as err:
         cause = err.__cause__ or err
         raise ValueError(f"storage {shown}: its database driver is not installed ({cause}): pip install it") from None
