@@ -174,8 +174,8 @@ class ReachTask:
         #: ``(nj,)`` rad per step at ``|a| = 1``
         self.max_step = self.arm.max_step
         self._home_goal = self.goal_of(self.arm.home[:, None])  # (g, 1): every episode from home starts there
-        self._one_step = self._compiled_step_constants()
-        self._one_reset = self._compiled_reset_constants()
+        self._step_constants = self._compiled_step_constants()
+        self._reset_constants = self._compiled_reset_constants()
 
     def _compiled_step_constants(self) -> tuple | None:
         """The constant arguments of :func:`envs.compiled_step.reach_step` for this task, or ``None`` where
@@ -208,11 +208,11 @@ class ReachTask:
         """The constant arguments of :func:`envs.compiled_step.reach_reset_one` (after the key and the
         episode), or ``None`` where one env's reset is :meth:`reset_all`'s: where the step is not
         compiled, for random starts or a minimum goal distance."""
-        if self._one_step is None or self.start_kind is not StartKind.HOME or self.goal_min_distance > 0:
+        if self._step_constants is None or self.start_kind is not StartKind.HOME or self.goal_min_distance > 0:
             return None
         from .compiled_step import draw_goals, reach_reset_one
 
-        _, _, clearance, settings = self._one_step
+        _, _, clearance, settings = self._step_constants
         arm = self.arm
         box = np.array(PANDA_GYM_BOX if self.goal_region is GoalRegion.PANDA_GYM else np.zeros((0, 3)), np.float32)
         constants = (torch.stack([arm.draw_lower, arm.draw_upper]).numpy(), arm.home[:, None].numpy(),
@@ -292,13 +292,13 @@ class ReachTask:
         state and the rows of ``transport.pack`` as numpy, as :meth:`step_one`. From home (position goals, no
         obstacles, float32, numba installed, no minimum goal distance) one compiled call
         (:func:`envs.compiled_step.reach_reset_one`: :meth:`reset_all`'s goal bit for bit, tested)."""
-        if self._one_reset is None:
+        if self._reset_constants is None:
             with torch.inference_mode():
                 state = self.reset_all(state, [seed], rng)
                 floats, flags = (part.numpy(force=True)[:, 0] for part in self._reset_rows(state))
             return state, floats, flags
         key, episode = self._episodes(state, [seed], rng)
-        (kernel, _), (draw, home, home_goal), clearance, settings, box = self._one_reset
+        (kernel, _), (draw, home, home_goal), clearance, settings, box = self._reset_constants
         nj = self.arm.n_joints
         out, flags = np.empty((3 * nj + 8, 1), dtype=np.float32), np.empty(4, dtype=np.bool_)
         kernel(key.numpy(), episode.numpy(), draw, home, home_goal, *self.robot.geometry(self.dtype).float_arrays,
@@ -341,7 +341,7 @@ class ReachTask:
         blank = start.new_zeros(0, n)
         obstacles = blank if world is None or not world.slots else world.draw(key, episode, start, _OBSTACLE_DRAWS,
                                                                               _DRAW_ROUNDS)
-        goal = self._goals(key, episode, start, start_goal, obstacles) if self._one_reset is None else \
+        goal = self._goals(key, episode, start, start_goal, obstacles) if self._reset_constants is None else \
             self._goals_compiled(key, episode)
         q = start.T.clone(memory_format=torch.contiguous_format)  # never a view of home
         clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
@@ -362,9 +362,10 @@ class ReachTask:
     def _goals_compiled(self, key: Tensor, episode: Tensor) -> Tensor:
         """:meth:`_goals` of episodes from home, position goals without obstacles, in one compiled call
         (:func:`envs.compiled_step.draw_goals`, split over torch's threads from :data:`GOAL_THREADS_BATCH`
-        environments): the same goals,
-        bit for bit (tested), ``(3, n)``."""
-        (_, kernel), (draw, _, home_goal), clearance, settings, box = self._one_reset
+        environments) -> ``(3, n)``: the same candidates and choices; each goal is the end point in float64
+        rounded once, as one env's (tested), where :meth:`_goals` rounds a batch's above ``SMALL_BATCH``
+        through its float32 FK."""
+        (_, kernel), (draw, _, home_goal), clearance, settings, box = self._reset_constants
         keys, episodes, goal = key.numpy(), episode.numpy(), np.empty((3, key.shape[0]), dtype=np.float32)
         args = (keys, episodes, draw, home_goal, *self.robot.geometry(self.dtype).float_arrays, *clearance, settings,
                 box, _DRAW_ROUNDS, _GOAL_REDRAWS)
@@ -454,7 +455,7 @@ class ReachTask:
         ``transport.pack`` as numpy, floats ``(D + k,)`` and flags ``(3,)`` or ``(4,)``: one compiled call
         where it applies (:meth:`step_compiled`), else :meth:`step` and ``pack``."""
         io = self.transport
-        if self._one_step is None:
+        if self._step_constants is None:
             with torch.inference_mode():
                 state, res = self.step(state, io.check_action(action, 1))
                 floats, flags = (part.numpy(force=True)[:, 0] for part in io.pack(state, res))
@@ -470,7 +471,7 @@ class ReachTask:
         finite actions ``(nj, n)`` float32 -> the new state, floats ``(D + k, n)`` float32 and flags
         ``(3 or 4, n)`` as numpy. The new state's rows are views of the floats; its results are
         :meth:`step`'s, but for the last bit of the cosines and sines of q and of the end point (tested)."""
-        kernel, arm, clearance, settings = self._one_step
+        kernel, arm, clearance, settings = self._step_constants
         nj, n = action.shape
         new_q, out, flags = np.empty((nj, n), dtype=np.float32), np.empty((3 * nj + 8, n), dtype=np.float32), \
             np.empty((4, n), dtype=np.bool_)
@@ -522,7 +523,7 @@ class ReachTask:
         its last observation is in ``final_obs`` (environments ``final_index``).
         """
         io = self.transport
-        if self._one_step is None or action.device.type != "cpu":
+        if self._step_constants is None or action.device.type != "cpu":
             state, res = self.step(state, action)
             out, flags = io.pack(state, res)  # new tensors of our own, updated in place below
         else:

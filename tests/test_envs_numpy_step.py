@@ -118,7 +118,7 @@ def test_compiled_single_env_step_equals_the_numpy_step(options):
     # a wide success radius: successes among random actions
     options.setdefault("max_episode_steps", 10)
     task = envs.make_task(options.pop("env_id"), start="random", distance_threshold=0.3, **options)
-    assert task._one_step is not None  # the compiled path applies to these tasks
+    assert task._step_constants is not None  # the compiled path applies to these tasks
     rng = np.random.default_rng(5)
     nj, seen = task.arm.n_joints, np.zeros(4, dtype=np.int64)
     with torch.inference_mode():
@@ -151,7 +151,7 @@ def test_compiled_single_env_step_equals_the_numpy_step(options):
 def test_single_env_tasks_the_kernel_does_not_cover_take_the_numpy_step(options):
     options = dict(options)
     task = envs.make_task(options.pop("env_id"), **options)
-    assert task._one_step is None
+    assert task._step_constants is None
     with torch.inference_mode():
         state = task.reset_all(None, [0], np.random.default_rng(0))
     _, floats, flags = task.step_one(state, np.zeros(7, dtype=np.float32))
@@ -173,8 +173,8 @@ def test_compiled_resets_equal_the_torch_reset(options):
     options = dict(options)
     env_id = options.pop("env_id")
     task, reference = envs.make_task(env_id, **options), envs.make_task(env_id, **options)
-    assert task._one_reset is not None
-    reference._one_step = reference._one_reset = None  # the torch formulas
+    assert task._reset_constants is not None
+    reference._step_constants = reference._reset_constants = None  # the torch formulas
     nj, rng, first_goals = task.arm.n_joints, np.random.default_rng(0), []
     for seed in range(20):
         state = None
@@ -230,8 +230,8 @@ def test_compiled_step_takes_offsets_prismatic_and_far_turned_continuous_joints(
     chain = robots.lrmate200ic() if robot == "lrmate200ic" else robots.from_urdf(ODD_URDF, end_link="tip")
     chain.velocity_limits = torch.full((chain.n_joints,), 1.5, dtype=torch.float64)
     task, reference = (envs.core.ReachTask(chain, collision="off", start="random") for _ in range(2))
-    reference._one_step = None  # the numpy formulas
-    assert task._one_step is not None
+    reference._step_constants = None  # the numpy formulas
+    assert task._step_constants is not None
     nj, rng = chain.n_joints, np.random.default_rng(7)
     with torch.inference_mode():
         states = task.reset_all(None, list(range(20)), rng)
