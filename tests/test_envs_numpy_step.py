@@ -11,9 +11,11 @@ import torch
 import envs
 from envs import arrays
 from envs.core import ReachState
+from iiwa_torch import compiled
 
 N = 140  # > SMALL_BATCH (128) and > CLEARANCE_NUMPY_BATCH (32): the batch takes torch's kernels
 STEPS = 20
+needs_numba = pytest.mark.skipif(not compiled.ENABLED, reason="numba not installed or IIWA_TORCH_NUMBA=0")
 
 
 def _column(state: ReachState, i: int) -> ReachState:
@@ -102,6 +104,7 @@ def test_single_env_reward_is_compute_reward_bit_for_bit():
         assert collided > 10
 
 
+@needs_numba
 @pytest.mark.parametrize("options", [
     {"env_id": "IiwaReach-v0", "floor": 0.2},
     {"env_id": "IiwaReachSparse-v0", "collision": "penalize", "terminate_on_success": False, "floor": 0.2},
@@ -158,6 +161,7 @@ def test_single_env_tasks_the_kernel_does_not_cover_take_the_numpy_step(options)
     assert floats.shape == (task.transport.packed_size + 2 + (task.goal_kind.value == "pose"),)
 
 
+@needs_numba
 @pytest.mark.parametrize("options", [
     {"env_id": "IiwaReach-v0", "floor": 0.2},  # a raised floor: both candidates collide at times, later rounds draw
     {"env_id": "IiwaReachSparse-v0", "floor": None},
@@ -197,6 +201,7 @@ def test_compiled_resets_equal_the_torch_reset(options):
         torch.testing.assert_close(later.goal, reference.reset_all(batch, [None] * 400, rng).goal, rtol=0, atol=2e-6)
 
 
+@needs_numba
 def test_compiled_goal_draws_split_over_threads_without_changing_them(monkeypatch):
     """From GOAL_THREADS_BATCH envs a reset's compiled goal draws run one part per torch thread (the
     kernel releases the GIL): the same goals as one call, with parts of unequal size."""
@@ -217,6 +222,7 @@ def test_compiled_goal_draws_split_over_threads_without_changing_them(monkeypatc
     assert torch.equal(split, one)
 
 
+@needs_numba
 @pytest.mark.parametrize("robot", ["lrmate200ic", "odd"])
 def test_compiled_step_takes_offsets_prismatic_and_far_turned_continuous_joints(robot):
     """The compiled step's other branches against the numpy step: a joint offset (the LR Mate's
