@@ -12,7 +12,7 @@ sine of q), run on views of the arrays: torch's float32 results differ from nump
 bit for 1 in 5 inputs or more (measured), and one env's observations must equal a batch's, and
 its rewards ``compute_reward``'s (torch), bit for bit. The square root is correctly rounded on
 both (torch's own float32 one is not, for 1 in 5 inputs: :data:`TORCH` takes it in float64), as
-the compiled single-env step (:mod:`envs.compiled_step`) computes it.
+the compiled step (:mod:`envs.compiled_step`) computes it.
 """
 
 from __future__ import annotations

@@ -303,11 +303,9 @@ class ReachTask:
         out, flags = np.empty((3 * nj + 8, 1), dtype=np.float32), np.empty(4, dtype=np.bool_)
         kernel(key.numpy(), episode.numpy(), draw, home, home_goal, *self.robot.geometry(self.dtype).float_arrays,
                *clearance, settings, box, _DRAW_ROUNDS, _GOAL_REDRAWS, out, flags)
-        rows = (torch.from_numpy(out[i * nj : (i + 1) * nj]) for i in range(3))  # cos q, sin q, velocity
         blank = torch.zeros(0, 1)
         goal = torch.from_numpy(out[3 * nj + 3 : 3 * nj + 6].copy())  # the episode's own: not the observation's
-        state = ReachState(torch.from_numpy(home.copy()), *rows, goal, torch.from_numpy(out[3 * nj : 3 * nj + 3]),
-                           torch.zeros(1, dtype=torch.int64), key, episode, blank, blank)
+        state = _state_of_rows(home.copy(), out, goal, np.zeros(1, dtype=np.int64), key, episode, blank, blank)
         return state, out[:, 0], flags if self.world is not None else flags[:3]
 
     def _random_starts(self, key: Tensor, episode: Tensor) -> Tensor:
@@ -478,14 +476,9 @@ class ReachTask:
         t = state.t.numpy() + 1
         args = (state.q.numpy(), action, arm, *self.robot.geometry(self.dtype).float_arrays, *clearance, settings,
                 state.goal.numpy(), t)
-        if n == 1:  # one env: no thread pool's call
-            kernel(*args, 0, 1, new_q, out, flags)
-        else:
-            in_parts(n, lambda start, stop: kernel(*args, start, stop, new_q, out, flags), CLEARANCE_THREADS_BATCH)
-        rows = (torch.from_numpy(out[i * nj : (i + 1) * nj]) for i in range(3))  # cos q, sin q, velocity
-        state = ReachState(torch.from_numpy(new_q), *rows, state.goal, torch.from_numpy(out[3 * nj : 3 * nj + 3]),
-                           torch.from_numpy(t), *state[7:])
-        return state, out, flags if self.world is not None else flags[:3]
+        in_parts(n, lambda start, stop: kernel(*args, start, stop, new_q, out, flags), CLEARANCE_THREADS_BATCH)
+        flags = flags if self.world is not None else flags[:3]
+        return _state_of_rows(new_q, out, state.goal, t, *state[7:]), out, flags
 
     def penalised(self, reward, collision, xp: ArrayOps = TORCH):
         """``reward - collision_penalty`` where ``collision`` (``None``: no collision checked)."""
@@ -547,6 +540,16 @@ class ReachTask:
             out[:d].index_copy_(1, idx, io.observe(fresh))
         tr = io.unpack(out.numpy(force=True), flags.numpy(force=True))
         return state, tr._replace(final_index=idx.numpy(force=True), final_obs=io.split(final.numpy(force=True).T))
+
+
+def _state_of_rows(q: np.ndarray, rows: np.ndarray, goal: Tensor, t: np.ndarray, *rest: Tensor) -> ReachState:
+    """The state whose angles are ``q (nj, n)`` and steps ``t (n,)``, its cos q, sin q, motion and achieved
+    goal the views of the packed rows ``rows`` (``transport.pack``'s layout) -> no copy; ``rest``: key,
+    episode, obstacles and clearance."""
+    nj = q.shape[0]
+    views = (torch.from_numpy(rows[i * nj : (i + 1) * nj]) for i in range(3))  # cos q, sin q, velocity
+    return ReachState(torch.from_numpy(q), *views, goal, torch.from_numpy(rows[3 * nj : 3 * nj + 3]),
+                      torch.from_numpy(t), *rest)
 
 
 def _first_found(n: int, draw, fallback, device: torch.device) -> Tensor:
