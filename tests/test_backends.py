@@ -311,21 +311,35 @@ def test_own_clearance_of_one_configuration(monkeypatch, name, kernels):
 
 
 @needs_numba
-def test_pose_errors_and_into_limits():
+def test_answer_errors_and_into_limits():
     rng = np.random.default_rng(1)
     chain = robots.iiwa14()
-    pose = chain.fk(chain.random_q(50, generator=torch.Generator().manual_seed(2))).numpy()
+    q = chain.random_q(50, generator=torch.Generator().manual_seed(2))
+    pose = chain.fk(q).numpy()
     target = chain.fk(chain.random_q(50, generator=torch.Generator().manual_seed(3))).numpy()
     target[:3] = pose[:3]  # zero error
     target[3, :3, :3] = pose[3, :3, :3] @ np.diag([-1.0, -1.0, 1.0])  # a half turn
+    target[5] = pose[5]
+    target[5, 0, 3] += 5e-5  # within 1e-4 m and 1e-3 rad: a success
     pos, rot = np.ascontiguousarray(target[:, :3, 3]), np.ascontiguousarray(target[:, :3, :3])
     pos_ref, rot_ref = (v.norm(dim=-1).numpy() for v in so3.pose_error(torch.from_numpy(pose),
                                                                          torch.from_numpy(target)))
-    pos_err, rot_err = kernels.pose_errors(pose, pos, rot, 1e-7)
+    arrays = chain.geometry(torch.float64).float_arrays
+    pos_err, rot_err, success = kernels.answer_errors(*arrays, q.numpy(), pos, rot, 1e-7, False, 1e-4, 1e-3)
     assert np.allclose(pos_err, pos_ref, atol=1e-15) and np.allclose(rot_err, rot_ref, atol=1e-7)
     assert abs(rot_err[3] - math.pi) < 1e-7 and np.allclose(rot_err[4:], rot_ref[4:], atol=1e-13)
-    pos_err, rot_err = kernels.pose_errors(pose, pos, np.empty((0, 3, 3)), 1e-7)
+    assert success.tolist() == [True] * 3 + [False, False, True] + [False] * 44
+    pos_err, rot_err, success = kernels.answer_errors(*arrays, q.numpy(), pos, np.empty((0, 3, 3)), 1e-7, False, 1e-4,
+                                                      1e-3)  # fmt: skip
     assert np.allclose(pos_err, pos_ref, atol=1e-15) and not rot_err.any()
+    assert success.tolist() == [True] * 3 + [False, False, True] + [False] * 44
+    # float32: the pose rounded as chain.fk rounds it, before the errors
+    q32 = q.float()
+    pose32 = chain.float().fk(q32).double()
+    pos32 = so3.pose_error(pose32, torch.from_numpy(target))[0].norm(dim=-1).numpy()
+    arrays32 = chain.float().geometry(torch.float32).float_arrays
+    pos_err, _, _ = kernels.answer_errors(*arrays32, q32.double().numpy(), pos, rot, 1e-7, True, 1e-4, 1e-3)
+    assert np.allclose(pos_err, pos32, atol=1e-15) and not np.allclose(pos_err[:3], 0.0, atol=1e-12)
     lo, hi = chain.limits.numpy()
     q = rng.uniform(-12.0, 12.0, (400, 7))  # mostly outside the limits, by up to two turns
     expected = lm_setup.into_limits(q, lo, hi)  # numpy in: numpy's remainder, as the kernel's

@@ -9,8 +9,8 @@ import numpy as np
 
 from .decorators import inline, jit
 
-__all__ = ["apply_transform", "end_poses", "frames_axes", "frames_of", "jacobian_columns", "jacobians", "pose_error",
-           "pose_errors", "turn"]
+__all__ = ["answer_errors", "apply_transform", "end_poses", "frames_axes", "frames_of", "jacobian_columns",
+           "jacobians", "pose_error", "turn"]
 
 @inline
 def turn(u0, u1, u2, v0, v1, v2, c, s):
@@ -160,13 +160,21 @@ def pose_error(pose, pos, rot, has_rot, eps, e):
 
 
 @jit
-def pose_errors(pose, pos, rot, eps):
-    """:func:`pose_error` of each ``pose (b, 4, 4)`` against ``pos (b, 3)``, ``rot (b, 3, 3)``
-    (0 rows: position only) -> position and rotation errors ``(b,)`` each (m, rad)."""
-    b, has_rot = pose.shape[0], rot.shape[0] > 0
-    pos_err, rot_err, e = np.empty(b), np.empty(b), np.empty(6)
+def answer_errors(transforms, params, base, tool, q, pos, rot, eps, single, pos_tol, rot_tol):
+    """Answers ``q (b, n)`` scored against targets ``pos (b, 3)``, ``rot (b, 3, 3)`` (0 rows: position
+    only) as :func:`iiwa_torch.ik.result.ik_result` scores them: the end pose (rounded to float32
+    if ``single``, as ``chain.fk`` returns it), then :func:`pose_error` -> position and rotation
+    errors ``(b,)`` each (m, rad) and success (both within ``pos_tol``, ``rot_tol``)."""
+    b, has_rot = q.shape[0], rot.shape[0] > 0
+    pos_err, rot_err, success = np.empty(b), np.empty(b), np.empty(b, dtype=np.bool_)
+    pose, e, none = np.empty((4, 4)), np.empty(6), np.empty((0, 3))
     for k in range(b):
-        target_rot = rot[k] if has_rot else pose[k, :3, :3]  # a placeholder without rotations
-        pos_err[k], rot_err[k] = pose_error(pose[k], pos[k], target_rot, has_rot, eps, e)
-    return pos_err, rot_err
-
+        frames_of(transforms, params, base, tool, q[k], pose, none, none, np.empty((0, 4, 3)))
+        if single:
+            for r in range(3):
+                for c in range(4):
+                    pose[r, c] = np.float32(pose[r, c])
+        target_rot = rot[k] if has_rot else pose[:3, :3]  # a placeholder without rotations
+        pos_err[k], rot_err[k] = pose_error(pose, pos[k], target_rot, has_rot, eps, e)
+        success[k] = pos_err[k] <= pos_tol and rot_err[k] <= rot_tol
+    return pos_err, rot_err, success

@@ -1,6 +1,6 @@
 """The numba kernels of :mod:`iiwa_torch.compiled`, gathered from their modules (importing this
 module imports numba): :mod:`~iiwa_torch.compiled.kinematics_kernels` (end poses, frames,
-Jacobians, pose errors), :mod:`~iiwa_torch.compiled.lm_kernels` (the LM rounds of ``ik.solve``),
+Jacobians, answers' errors), :mod:`~iiwa_torch.compiled.lm_kernels` (the LM rounds of ``ik.solve``),
 :mod:`~iiwa_torch.compiled.analytic_kernels` (``iiwa_solve``'s sweep, ``pieper``) and
 :mod:`~iiwa_torch.compiled.clearance_kernels` (self and floor clearance).
 
@@ -14,8 +14,8 @@ from __future__ import annotations
 
 from .analytic_kernels import iiwa_sweep, pieper_branches
 from .clearance_kernels import capsule_clearance, own_clearance, sin_cos
-from .kinematics_kernels import end_poses, frames_axes, jacobians, pose_errors
+from .kinematics_kernels import answer_errors, end_poses, frames_axes, jacobians
 from .lm_kernels import cholesky_solve, into_limits, lm_round, lm_rounds
 
-__all__ = ["capsule_clearance", "cholesky_solve", "end_poses", "frames_axes", "iiwa_sweep", "into_limits", "jacobians",
-           "lm_round", "lm_rounds", "own_clearance", "pieper_branches", "pose_errors", "sin_cos"]
+__all__ = ["answer_errors", "capsule_clearance", "cholesky_solve", "end_poses", "frames_axes", "iiwa_sweep",
+           "into_limits", "jacobians", "lm_round", "lm_rounds", "own_clearance", "pieper_branches", "sin_cos"]

@@ -24,7 +24,7 @@ from ..chain import Chain
 from ..kinematics import Geometry, untracked_cpu
 from .lm_setup import POOL, broadcast_q, inner_limits, into_limits, pool_distance, pool_features, seed_ranks, work_dtype
 from .options import SolveOptions
-from .result import IKResult
+from .result import IKResult, ik_result_compiled
 
 __all__ = ["COMPILED_BATCH", "handles", "solve_compiled", "track_compiled"]
 
@@ -153,7 +153,8 @@ def solve_compiled(chain: Chain, target: torch.Tensor, q0, rest, options: SolveO
     rest = None if rest is None else rest.double().numpy()
     problems = _Problems(g, pos, rot, rest, lo, hi, options, work)
     problems.run(pool, order, first)
-    return _answer(chain.geometry(dtype) if dtype != torch.float64 else g, problems, batch, dtype, options)
+    return ik_result_compiled(chain.geometry(dtype) if dtype != torch.float64 else g, problems.q, pos, rot,
+                              problems.eps, options.pos_tol, options.rot_tol, batch, problems.used)
 
 
 def _seed_order(chain: Chain, g: Geometry, flat: np.ndarray, options: SolveOptions, work: torch.dtype, generator,
@@ -174,28 +175,6 @@ def _seed_order(chain: Chain, g: Geometry, flat: np.ndarray, options: SolveOptio
     xp = (lambda x: x) if flat.shape[0] <= 256 else torch.from_numpy
     distance = pool_distance(chain, pool, xp(flat.astype(_NUMPY[work])), mode, tuple(map(xp, features)))
     return pool, np.asarray(seed_ranks(distance, seeds - shift))  # (ranks, b)
-
-
-def _answer(g: Geometry, problems: _Problems, batch: torch.Size, dtype: torch.dtype, options: SolveOptions
-            ) -> IKResult:
-    """The kernel's answers as :class:`IKResult` in ``dtype``: errors and success from the end
-    pose of ``q`` in ``dtype`` by ``chain.fk``'s compiled kernel on the chain's geometry ``g`` in
-    ``dtype`` (float64 inside, the pose rounded to ``dtype`` as ``chain.fk`` returns it; its
-    input checks are moot on the kernel's own answers)."""
-    out_dtype = _NUMPY[dtype]
-    q = problems.q.astype(out_dtype, copy=False)
-    kernels = compiled.kernels()
-    pose = kernels.end_poses(*g.float_arrays, q if dtype == torch.float64 else q.astype(np.float64))
-    if dtype != torch.float64:
-        pose = pose.astype(out_dtype).astype(np.float64)
-    rot = _no_rows((0, 3, 3), np.float64) if problems.rot is None else problems.rot
-    pos_err, rot_err = kernels.pose_errors(pose, problems.pos, rot, problems.eps)
-    success = (pos_err <= options.pos_tol) & (rot_err <= options.rot_tol)
-    shape = (*batch, q.shape[1])
-    return IKResult(torch.from_numpy(q.reshape(shape)), torch.from_numpy(success.reshape(batch)),
-                    torch.from_numpy(pos_err.astype(out_dtype, copy=False).reshape(batch)),
-                    torch.from_numpy(rot_err.astype(out_dtype, copy=False).reshape(batch)),
-                    torch.from_numpy(problems.used.reshape(batch)))
 
 
 def track_compiled(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, options: SolveOptions) -> torch.Tensor:

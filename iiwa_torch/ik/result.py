@@ -5,11 +5,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
-from .. import so3
+from .. import compiled, so3
+from ..kinematics import Geometry
 
-__all__ = ["IKResult", "ik_result"]
+__all__ = ["IKResult", "ik_result", "ik_result_compiled"]
 
 
 @dataclass(frozen=True)
@@ -47,3 +49,22 @@ def ik_result(chain, q: torch.Tensor, target: torch.Tensor, mode: str, pos_tol: 
     pos_err = pos_vec.norm(dim=-1)
     success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
     return IKResult(q=q, success=success, pos_err=pos_err, rot_err=rot_err, iterations=iterations)
+
+
+def ik_result_compiled(g: Geometry, q: np.ndarray, pos: np.ndarray, rot: np.ndarray | None, eps: float, pos_tol: float,
+                       rot_tol: float, batch: torch.Size, iterations: np.ndarray) -> IKResult:
+    """:func:`ik_result` in one compiled call, for answers ``q (b, n)`` float64 on the CPU: ``g`` the
+    chain's geometry in the targets' dtype (float32: ``q`` and the errors rounded to it, the pose
+    as ``chain.fk`` returns it), targets ``pos (b, 3)``, ``rot (b, 3, 3)`` (None: positions) float64,
+    ``eps`` the rotation log's floor, ``iterations (b,)`` int64; the fields shaped ``batch``."""
+    single = g.base.dtype == torch.float32
+    if single:
+        q = q.astype(np.float32).astype(np.float64)  # the float32 answer, scored as chain.fk scores it
+    no_rot = np.empty((0, 3, 3))
+    pos_err, rot_err, success = compiled.kernels().answer_errors(*g.float_arrays, q, pos, no_rot if rot is None
+                                                                  else rot, eps, single, pos_tol, rot_tol)  # fmt: skip
+    out = np.float32 if single else np.float64
+    fields = (q.astype(out, copy=False).reshape(*batch, q.shape[1]), success.reshape(batch),
+              pos_err.astype(out, copy=False).reshape(batch), rot_err.astype(out, copy=False).reshape(batch),
+              iterations.reshape(batch))  # fmt: skip
+    return IKResult(*map(torch.from_numpy, fields))

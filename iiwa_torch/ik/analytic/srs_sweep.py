@@ -30,7 +30,7 @@ from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
 from ...kinematics import all_poses, end_pose
 from ...so3 import pose_error
-from ..result import IKResult
+from ..result import IKResult, ik_result_compiled
 from ._common import (
     NUMPY,
     TORCH,
@@ -246,26 +246,16 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
         psi0 = arm_angle_of_points(*((frames[[1, 3, 5], :, :3, 3] - base[:3, 3]) @ base[:3, :3]), ops=NUMPY)
     if compiled.ENABLED:
         q = _solve_compiled(setup, rot, sw, q0, psi0, num_psi, dtype)
-    else:
-        q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
-    out_dtype = np.float32 if dtype == torch.float32 else np.float64
-    q = q.astype(out_dtype, copy=False)
-    if compiled.ENABLED and dtype == torch.float64:  # chain.fk's kernel for these, called directly
-        pose = compiled.kernels().end_poses(*chain.geometry(dtype).float_arrays, q)
-    else:
-        pose = end_pose(chain.geometry(dtype), torch.from_numpy(q)).double().numpy()
-    pos, eps = target[:, :3, 3], torch.finfo(dtype).eps
-    if compiled.ENABLED:
-        pos_err, rot_err = compiled.kernels().pose_errors(pose, np.ascontiguousarray(pos), np.ascontiguousarray(
-            target[:, :3, :3]), eps)  # fmt: skip
-    else:
-        errors = pose_error(*(torch.from_numpy(x).to(dtype) for x in (pose, target)))  # as ik_result's
-        pos_err, rot_err = (v.norm(dim=-1).double().numpy() for v in errors)
+        goal_pos, goal_rot = (np.ascontiguousarray(target[:, :3, c]) for c in (3, slice(3)))
+        return ik_result_compiled(chain.geometry(dtype), q, goal_pos, goal_rot, torch.finfo(dtype).eps, pos_tol,
+                                  rot_tol, batch, np.zeros(q.shape[0], dtype=np.int64))  # fmt: skip
+    q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
+    q = torch.from_numpy(q).to(dtype)
+    pos_vec, rot_vec = pose_error(end_pose(chain.geometry(dtype), q), torch.from_numpy(target).to(dtype))
+    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)  # as ik_result's
     success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
-    # reshaped in numpy, then wrapped: a torch reshape costs a few numpy ones
-    fields = (q.reshape(*batch, 7), success.reshape(batch), pos_err.astype(out_dtype, copy=False).reshape(batch),
-              rot_err.astype(out_dtype, copy=False).reshape(batch), np.zeros(batch, dtype=np.int64))  # fmt: skip
-    return IKResult(*(torch.from_numpy(x) for x in fields))
+    return IKResult(q.reshape(*batch, 7), success.reshape(batch), pos_err.reshape(batch), rot_err.reshape(batch),
+                    torch.zeros(batch, dtype=torch.int64))
 
 
 def _solve_compiled(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtype) -> np.ndarray:
