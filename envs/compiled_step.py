@@ -13,8 +13,9 @@ exact in float64), the square root in float64 rounded to float32 (correctly roun
 The cosines and sines, of the observation and of the frames, are those of
 :func:`~iiwa_torch.compiled.clearance_kernels.sin_cos` (within an ulp or two of libm's in float64),
 so the observation's are the correctly rounded float32 values but for rare ties, where torch's
-vectorised float32 ones miss the last bit for about 1 angle in 20 (measured), and the end point can
-differ from the torch step's in its last bit.
+vectorised float32 ones miss the last bit for about 1 angle in 20 (measured). The frames are
+:func:`~iiwa_torch.compiled.clearance_kernels.block_capsules`' (float64, products fused into FMAs),
+so the end point can differ from the torch step's in its last bit.
 
 :func:`reach_reset_one` starts one environment's episode from home the same way, and
 :func:`draw_goals` draws the goals of many: each goal drawn as
@@ -32,10 +33,9 @@ import numpy as np
 from iiwa_torch.compiled.clearance_kernels import (
     LANES,
     SIN_COS_RANGE,
+    block_capsules,
     block_minimum,
-    capsule_ends,
     half_lengths,
-    next_frame,
     own_clearance,
     sin_cos,
 )
@@ -99,13 +99,7 @@ def reach_step(q, action, arm, transforms, params, base, tool, frames, local, fi
     for row in range(start, stop, w):
         m = min(w, stop - row)
         _integrate(q, action, arm, params, row, m, new_q, out, angle, cs)
-        for r in range(12):
-            for j in range(m):
-                state[r, j] = base[r % 3, r // 3]
-        for f in range(nj + 1):
-            if f > 0:
-                next_frame(transforms, params, f - 1, m, angle, cs, state)
-            capsule_ends(frames, local, f, m, state, ends)
+        block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends)
         _errors(tool, state, goal, row, m, 3 * nj, out, distance)
         if checked:
             block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, settings[4], gap, lanes,
