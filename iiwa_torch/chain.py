@@ -25,7 +25,6 @@ from .kinematics import Frame, Geometry
 __all__ = ["Chain", "JointKind"]
 
 Tensor = torch.Tensor
-_FLOAT64 = torch.float64
 _FLOAT_DTYPES = (torch.float64, torch.float32)  # the dtypes of Chain._one_by_kernel
 _version = attrgetter("_version")
 
@@ -290,8 +289,7 @@ class Chain(nn.Module):
         if not math.isfinite(sum(values)) or self._buffer_stamp() != self._stamp:
             return None
         out = getattr(compiled.kernels(), kernel)(*arrays, np.array(values)[None])
-        out = out if row else out[0]
-        return torch.from_numpy(out if q.dtype is _FLOAT64 else out.astype(np.float32))
+        return kin.like(out if row else out[0], q)
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""

@@ -34,8 +34,10 @@ __all__ = [
     "end_pose",
     "end_pose_matmul",
     "frame_lists",
+    "float64_rows",
     "frames_batch_last",
     "jacobian",
+    "like",
     "pose_vjp",
     "position_batch_last",
     "position_horner",
@@ -407,35 +409,35 @@ def compilable(q: Tensor) -> bool:
     return compiled.ENABLED and untracked_cpu(q)
 
 
-def _compiled_arrays(g: Geometry, q: Tensor) -> np.ndarray:
-    """``q (..., n)`` -> its ``(b, n)`` float64 C-ordered rows, as the compiled kernels take them."""
-    x = (q.detach() if q.requires_grad else q).numpy().reshape(-1, g.n_joints)
+def float64_rows(q: Tensor, n: int) -> np.ndarray:
+    """CPU ``q (..., n)`` -> its ``(b, n)`` float64 C-ordered rows, as the compiled kernels take them."""
+    x = (q.detach() if q.requires_grad else q).numpy().reshape(-1, n)
     if x.dtype != np.float64 or not x.flags.c_contiguous:
         x = np.ascontiguousarray(x, dtype=np.float64)
     return x
 
 
-def _like(out: np.ndarray, q: Tensor) -> Tensor:
-    """A compiled kernel's float64 ``out`` as a tensor in ``q``'s dtype (a new tensor outside autograd)."""
-    return torch.from_numpy(out if q.dtype == torch.float64 else out.astype(np.float32))
+def like(out, q: Tensor) -> Tensor:
+    """A float64 array (or scalar) as a tensor in ``q``'s dtype, outside autograd."""
+    return torch.from_numpy(np.asarray(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
 
 
 def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
     """A compiled ``kernel(*g.float_arrays, q (b, n))`` on ``q (..., n)`` -> ``(..., *shape)`` in ``q``'s dtype."""
-    out = _like(kernel(*g.float_arrays, _compiled_arrays(g, q)), q)
+    out = like(kernel(*g.float_arrays, float64_rows(q, g.n_joints)), q)
     return out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape)
 
 
 def _frames_batch_last_compiled(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
     """:func:`frames_batch_last` of ``q (n, b)`` (:func:`compilable`) by the compiled recursion."""
-    frames, z, p, _ = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q.T))
+    frames, z, p, _ = compiled.kernels().frames_axes(*g.float_arrays, float64_rows(q.T, g.n_joints))
     if not keep:
         frames = frames[:, -1:]
-    columns = _like(np.ascontiguousarray(frames.transpose(1, 2, 3, 0)), q)  # (F, 4, 3, b)
+    columns = like(np.ascontiguousarray(frames.transpose(1, 2, 3, 0)), q)  # (F, 4, 3, b)
     out = [tuple(f.unbind(0)) for f in columns.unbind(0)]
     if not keep:
         return out, []
-    axes = _like(np.ascontiguousarray(np.stack([z, p], 2).transpose(1, 2, 3, 0)), q)  # (n, 2, 3, b)
+    axes = like(np.ascontiguousarray(np.stack([z, p], 2).transpose(1, 2, 3, 0)), q)  # (n, 2, 3, b)
     return out, [tuple(a.unbind(0)) for a in axes.unbind(0)]
 
 
@@ -444,7 +446,7 @@ def frame_lists(g: Geometry, q: Tensor) -> tuple[list, list]:
     lists ``[x, y, z, p]`` of three floats (axis columns and origin), and the end-effector frame
     in the same form; float64."""
     if compiled.ENABLED:
-        frames, _, _, pose = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q))
+        frames, _, _, pose = compiled.kernels().frames_axes(*g.float_arrays, float64_rows(q, g.n_joints))
         return frames[0].tolist(), pose[0, :3].T.tolist()
     one = q.reshape(1, -1)
     return ([f[:3].T.tolist() for f in all_poses(g, one)[0].double()],
@@ -534,10 +536,10 @@ def end_pose(g: Geometry, q: Tensor) -> Tensor:
 def all_poses(g: Geometry, q: Tensor) -> Tensor:
     """``q (b, n) -> (b, n + 1, 4, 4)``: the base and every link frame (no tool)."""
     if q.shape[0] <= SMALL_BATCH and compilable(q):
-        frames = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q))[0]  # (b, n + 1, 4, 3)
+        frames = compiled.kernels().frames_axes(*g.float_arrays, float64_rows(q, g.n_joints))[0]  # (b, n + 1, 4, 3)
         out = np.zeros((*frames.shape[:2], 4, 4))
         out[..., :3, :], out[..., 3, 3] = frames.transpose(0, 1, 3, 2), 1.0
-        return _like(out, q)
+        return like(out, q)
     if q.shape[0] <= SMALL_BATCH:
         return _frames_matmul(g, q).transpose(0, 1)
     frames, _ = frames_batch_last(g, q.T)

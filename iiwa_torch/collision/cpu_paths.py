@@ -60,26 +60,18 @@ def plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
     return _clearance_small if capsules.pairs or floor or solids else None
 
 
-def _as_float64(q: Tensor, n: int) -> np.ndarray:
-    """``q (..., n)`` (CPU, nothing to differentiate) -> ``(b, n)`` contiguous float64 array."""
-    return np.ascontiguousarray(q.detach().reshape(-1, n).numpy(), dtype=np.float64)
-
-
-def _like(out: np.ndarray, q: Tensor) -> Tensor:
-    return torch.from_numpy(np.asarray(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
-
-
 def _clearance_compiled(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """Clearance of a CPU batch against itself and the floor, compiled."""
-    return _like(_own_clearance(chain, _as_float64(q, chain.n_joints), world.floor, capsules).reshape(q.shape[:-1]), q)
+    own = _own_clearance(chain, kin.float64_rows(q, chain.n_joints), world.floor, capsules)
+    return kin.like(own.reshape(q.shape[:-1]), q)
 
 
 def _clearance_small(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
     """Clearance of a small CPU batch: :func:`_own_clearance` and :func:`_solid_clearance`."""
-    x = _as_float64(q, chain.n_joints).reshape(*q.shape[:-1], chain.n_joints)
+    x = kin.float64_rows(q, chain.n_joints).reshape(*q.shape[:-1], chain.n_joints)
     own = _own_clearance(chain, x.reshape(-1, chain.n_joints), world.floor, capsules).reshape(q.shape[:-1])
     solid = _solid_clearance(chain, x, capsules, *solids_numpy(world), own)
-    return _like(own if solid is None else np.minimum(own, solid), q)
+    return kin.like(own if solid is None else np.minimum(own, solid), q)
 
 
 def _own_clearance(chain: Chain, x: np.ndarray, floor: float | None, capsules: Capsules) -> np.ndarray:
@@ -166,7 +158,7 @@ def _solid_clearance(chain: Chain, x: np.ndarray, capsules: Capsules, spheres: N
 def own_clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules) -> float:
     """Clearance (m, ``inf`` if nothing is checked) of one CPU configuration against itself and the floor
     at ``floor`` (m or None), unchecked."""
-    return float(_own_clearance(chain, _as_float64(q, chain.n_joints), floor, capsules)[0])
+    return float(_own_clearance(chain, kin.float64_rows(q, chain.n_joints), floor, capsules)[0])
 
 
 def clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules,
@@ -175,7 +167,7 @@ def clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Cap
     """:func:`own_clearance_of_one` and the spheres and boxes (:func:`solids_numpy`, batch dims 1), unchecked.
     A clearance at or above ``exact_below`` may come back as any value at or above it (with 0, the
     sign stays exact)."""
-    x = _as_float64(q, chain.n_joints)
+    x = kin.float64_rows(q, chain.n_joints)
     own = float(_own_clearance(chain, x, floor, capsules)[0])
     solid = _solid_clearance(chain, x[0], capsules, spheres, boxes, min(own, exact_below))
     return own if solid is None else min(own, float(np.min(solid)))
@@ -184,7 +176,7 @@ def clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Cap
 def obstacle_clearance_of_one(chain: Chain, q: Tensor, capsules: Capsules, spheres: NumpyPair | None = None,
                               boxes: NumpyPair | None = None, exact_below: float = math.inf) -> np.ndarray:
     """:func:`clearance_of_one` against the obstacles alone, per world of their batch: ``(...)`` (m)."""
-    solid = _solid_clearance(chain, _as_float64(q, chain.n_joints)[0], capsules, spheres, boxes, exact_below)
+    solid = _solid_clearance(chain, kin.float64_rows(q, chain.n_joints)[0], capsules, spheres, boxes, exact_below)
     if solid is None:
         raise ValueError("nothing to check: no obstacle, or no capsule checked against obstacles")
     return solid
@@ -200,7 +192,7 @@ def capsule_clearance_compiled(
     k = len(capsules.names)
     distance, gradient = np.empty(k), np.empty((k, n))
     floors = tables["floor"] if floor is not None else tables["floor"][:0]
-    compiled.kernels().capsule_clearance(*chain.geometry().float_arrays, _as_float64(q, n)[0], tables["frames"],
+    compiled.kernels().capsule_clearance(*chain.geometry().float_arrays, kin.float64_rows(q, n)[0], tables["frames"],
                                          tables["local"], tables["first"], tables["second"], tables["pair_radius"],
                                          floors, tables["floor_radius"], 0.0 if floor is None else float(floor),
                                          distance, gradient)
