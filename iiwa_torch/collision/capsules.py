@@ -63,11 +63,9 @@ class Capsules:
                 raise ValueError(f"pairs must be (i, j) with 0 <= i < j < {k}, got {pair}")
         if len(set(self.pairs)) != len(self.pairs):
             raise ValueError(f"pairs contains duplicates: {self.pairs}")
-        if self.floor_height is not None and not (
-            is_number(self.floor_height) and math.isfinite(self.floor_height)
-        ):
-            raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
         if self.floor_height is not None:
+            if not (is_number(self.floor_height) and math.isfinite(self.floor_height)):
+                raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
             object.__setattr__(self, "floor_height", float(self.floor_height))
         object.__setattr__(self, "_cache", {})
 

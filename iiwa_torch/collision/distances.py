@@ -59,11 +59,9 @@ def own_distances(
     with _one_thread(flat.shape[0] > _BLOCK and flat.device.type == "cpu"):
         for block in flat.split(_BLOCK):  # blocks small enough for the kernels' arrays to stay in the CPU cache
             start, direction = capsule_segments(chain, capsules, block)
-            parts = (
-                [pair_gaps(start, direction, tables["pair_radius"], tables["first"], tables["second"])]
-                if capsules.pairs
-                else []
-            )
+            parts = []
+            if capsules.pairs:
+                parts.append(pair_gaps(start, direction, tables["pair_radius"], tables["first"], tables["second"]))
             if floor is not None and floor_idx.numel():
                 low = torch.minimum(start[2], start[2] + direction[2])[floor_idx]
                 parts.append(low - (tables["floor_radius"] + floor))

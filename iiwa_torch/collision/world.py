@@ -44,15 +44,13 @@ class World:
     capsules: tuple[Tensor, Tensor] | None = None
 
     def __post_init__(self) -> None:
-        if self.floor is not None and not (is_number(self.floor) and abs(self.floor) <= MAX_EXTENT):
-            raise ValueError(f"floor must be a height in metres within {MAX_EXTENT:g} or None, got {self.floor!r}")
         if self.floor is not None:
+            if not (is_number(self.floor) and abs(self.floor) <= MAX_EXTENT):
+                raise ValueError(f"floor must be a height in metres within {MAX_EXTENT:g} or None, got {self.floor!r}")
             object.__setattr__(self, "floor", float(self.floor))  # a numpy scalar, in Python's float
         first = None
-        for kind, (shape_a, shape_b) in _OBSTACLE_DIMS.items():
-            pair = getattr(self, kind)
-            if pair is None:
-                continue
+        for kind, pair in self._kinds():
+            shape_a, shape_b = _OBSTACLE_DIMS[kind]
             if not isinstance(pair, tuple) or len(pair) != 2:
                 raise TypeError(f"{kind} must be a tuple of two tensors, got {type(pair).__name__}")
             a, b = pair
@@ -94,9 +92,7 @@ class World:
 
     def tensors(self) -> list[Tensor]:
         """Every obstacle tensor (for dtype/device checks and moving)."""
-        return [
-            t for kind in ("walls", "spheres", "boxes", "capsules") if getattr(self, kind) for t in getattr(self, kind)
-        ]
+        return [t for _, pair in self._kinds() for t in pair]
 
     @property
     def batch_shape(self) -> torch.Size:
