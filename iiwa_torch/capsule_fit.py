@@ -1,13 +1,8 @@
-"""Capsules for any URDF arm, fitted to its ``<collision>`` geometry.
+"""Capsules for any URDF arm, fitted to its ``<collision>`` geometry (:func:`urdf_capsules`).
 
-:func:`urdf_capsules` gives each link with collision geometry one capsule in the chain frame it
-moves with (:func:`iiwa_torch.urdf.read_collisions`), enclosing every element of that link: a
-sphere is its centre and radius, a cylinder the two balls of its radius at the ends of its
-axis (so the capsule of a lone cylinder is its axis with its radius), a box its corners and a
-mesh its vertices (meshes are read with trimesh, the ``urdf`` extra). The capsule of a set of
-balls is searched for the smallest volume (``_enclosing_capsule``), then its radius is made
-to reach the farthest ball, so containment holds by construction. Pair selection and the
-numbers for pybullet's Panda: docs/collision.md.
+Each element becomes balls whose hull holds it (a sphere; a cylinder's two end balls; box
+corners; mesh hull vertices); each link's capsule is a small-volume one around its balls, its
+radius then grown to the farthest ball, so containment holds by construction. docs/collision.md.
 """
 
 from __future__ import annotations
@@ -29,18 +24,12 @@ __all__ = ["urdf_capsules"]
 _GRID = 24  # radii tried per axis, twice (coarse, then around the best)
 
 
-def _mesh_vertices(element: UrdfCollision) -> np.ndarray:
-    """The vertices ``(N, 3)`` of a mesh element's convex hull, unscaled (enough to enclose the mesh)."""
-    mesh = element.load_mesh()
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    return np.asarray(mesh.convex_hull.vertices, dtype=np.float64) if len(vertices) >= 4 else vertices
-
-
 def _element_balls(element: UrdfCollision) -> tuple[np.ndarray, np.ndarray]:
-    """Balls ``(N, 3)`` centres, ``(N,)`` radii in the element's origin frame whose convex hull
-    holds the element."""
+    """Balls, centres ``(N, 3)`` and radii ``(N,)`` in the element's frame, whose convex hull holds it."""
     if element.shape == "mesh":
-        points = _mesh_vertices(element) * np.asarray(element.size)
+        mesh = element.load_mesh()
+        hull = mesh.convex_hull if len(mesh.vertices) >= 4 else mesh
+        points = np.asarray(hull.vertices, dtype=np.float64) * np.asarray(element.size)
     elif element.shape == "box":
         points = np.array(list(itertools.product((-0.5, 0.5), repeat=3))) * np.asarray(element.size)
     elif element.shape == "sphere":
@@ -52,9 +41,8 @@ def _element_balls(element: UrdfCollision) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _link_points(elements) -> tuple[np.ndarray, np.ndarray]:
-    """Balls enclosing ``elements`` (:class:`~iiwa_torch.urdf.UrdfCollision` of one link) in their
-    chain frame, at every pose they take: centres ``(N, 3)`` and radii ``(N,)``, metres (mesh
-    vertices and box corners are balls of radius 0)."""
+    """Balls (centres ``(N, 3)``, radii ``(N,)``, m) enclosing one link's ``elements`` at every pose, in
+    their chain frame."""
     centres, radii = [], []
     for element in elements:
         points, radius = _element_balls(element)
@@ -70,8 +58,8 @@ def _volume(radius, length):
 
 
 def _fit_along(origin: np.ndarray, axis: np.ndarray, centres: np.ndarray, radii: np.ndarray):
-    """The smallest-volume capsule whose segment lies on the line ``origin + t axis`` (unit)
-    and holds the balls: ``(volume, t0, t1, radius)``, the radius from two grids."""
+    """The smallest capsule on the line ``origin + t axis`` (unit) holding the balls, the radius from two
+    grids: ``(volume, t0, t1, radius)``."""
     rel = centres - origin
     t = rel @ axis  # (N,)
     d = np.linalg.norm(rel - t[:, None] * axis, axis=1)
@@ -97,13 +85,11 @@ def _fit_along(origin: np.ndarray, axis: np.ndarray, centres: np.ndarray, radii:
 
 
 def _enclosing_capsule(centres, radii=None, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
-    """A small capsule holding every ball (``centres (N, 3)``, ``radii (N,)`` >= 0, default 0):
-    its segment ends ``a, b`` ``(3,)`` and radius, metres.
+    """A small capsule holding every ball (``centres (N, 3)``, ``radii (N,)``, default 0) -> ends ``a, b (3,)``
+    and radius (m).
 
-    Axes tried: the principal directions of the centres, the coordinate axes and 64 directions
-    spread over the sphere; from the three smallest-volume capsules, random turns of the axis
-    and shifts of its line, shrinking, keep what lowers the volume (``seed``). The radius is
-    then the farthest ball's reach from the segment, so every ball is inside."""
+    Axes tried: the centres' principal directions, the coordinate axes and 64 spread directions;
+    the three best are refined by random turns and shifts (``seed``) while the volume drops."""
     centres = np.asarray(centres, dtype=np.float64)
     radii = np.zeros(len(centres)) if radii is None else np.asarray(radii, dtype=np.float64)
     mean = centres.mean(0)
@@ -165,17 +151,14 @@ def urdf_capsules(
     margin: float = 0.05,
     seed: int = 0,
 ) -> Capsules:
-    """A capsule per link of ``chain`` with ``<collision>`` geometry in the URDF ``source`` (the
-    file ``robots.from_urdf`` read ``chain`` from, with the same ``base_link``), named by its link
-    and fixed in the chain frame the link moves with (several capsules may share a frame).
+    """A capsule, named by its link, for each link of ``chain`` with ``<collision>`` geometry in the URDF
+    ``source`` that ``chain`` was read from (same ``base_link``).
 
-    Self pairs (``pairs=None``), as MoveIt's SRDF ``disable_collisions``: every pair of capsules
-    except those in one frame (rigid together), the links on either side of a movable joint of
-    the chain (adjacent), and, over ``samples`` uniform in-limit configurations drawn with
-    ``seed``, pairs that overlap in all of them (always touching) or never come within
-    ``margin`` metres (never). ``pairs``: your own, as link-name pairs. The floor: every capsule
-    but those of the base frame (it stands on it). Raises ``ValueError`` if ``chain`` is not
-    ``source``'s path or a link name in ``pairs`` has no capsule."""
+    Self pairs (``pairs=None``), as MoveIt's ``disable_collisions``: all but those in one frame,
+    adjacent links, and pairs that overlap in all of ``samples`` random configurations (``seed``)
+    or never come within ``margin`` (m). ``pairs``: your own, as link-name pairs. Every capsule
+    but the base frame's faces the floor. Raises ``ValueError`` if ``chain`` is not ``source``'s
+    path or a link in ``pairs`` has no capsule."""
     check_instance(chain, Chain, "chain")
     check_positive(samples, "samples", integer=True)
     check_nonnegative(margin, "margin")
@@ -214,8 +197,7 @@ def urdf_capsules(
 
 
 def _sampled_pairs(chain: Chain, model: Capsules, candidates, samples: int, margin: float, seed: int):
-    """The ``candidates`` that overlap in some but not all of ``samples`` configurations and come
-    within ``margin`` in at least one."""
+    """The ``candidates`` apart in some of ``samples`` configurations and within ``margin`` in some."""
     if not candidates:
         return ()
     trial = Capsules.build(chain, model.names, model.frames, model.points, model.radii, pairs=candidates,

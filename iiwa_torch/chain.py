@@ -1,18 +1,9 @@
 """Serial chains: one kinematic model for any arm, batched and differentiable.
 
-A chain of ``n`` joints is ``base . prod_i [origin_i . M_i(q_i)] . tool``: joint i sits at the
-constant transform ``origin_i`` from the previous link's frame and moves about (revolute,
-continuous) or along (prismatic) its unit ``axis_i``, given in its own frame, as a URDF file
-says it. The link frame i is the product up to ``M_i``. :class:`Chain` holds these as buffers;
-:class:`~iiwa_torch.dh.DHChain` is the same model read from a Denavit-Hartenberg table, and
-:func:`iiwa_torch.robots.from_urdf` reads one from a URDF file.
-
-The kernels are pure functions in :mod:`iiwa_torch.kinematics` over a frozen
-:class:`~iiwa_torch.kinematics.Geometry` derived from the buffers: each joint's motion is put
-about z (``origin_i R_i . Rz(q_i) . R_i^T``, ``R_i`` turning z onto the axis), so one recursion
-serves every chain. :meth:`Chain.geometry` rebuilds it whenever a buffer changed (``.to()``
-and friends, ``load_state_dict``, an in-place edit), so cached constants never disagree with
-the buffers.
+A chain of ``n`` joints is ``base . prod_i [origin_i . M_i(q_i)] . tool``, joint i moving about
+(revolute, continuous) or along (prismatic) its unit ``axis_i`` in its own frame, as in URDF.
+:class:`Chain` holds these as buffers and derives the kernels' :class:`~iiwa_torch.kinematics.Geometry`
+from them, rebuilt whenever a buffer changes (``.to()``, ``load_state_dict``, an in-place edit).
 """
 
 from __future__ import annotations
@@ -34,7 +25,6 @@ from .kinematics import Frame, Geometry
 __all__ = ["Chain", "JointKind"]
 
 Tensor = torch.Tensor
-_FLOAT64 = torch.float64
 _FLOAT_DTYPES = (torch.float64, torch.float32)  # the dtypes of Chain._one_by_kernel
 _version = attrgetter("_version")
 
@@ -62,8 +52,7 @@ def check_transform(matrix: Tensor, name: str) -> None:
 
 
 def check_limits(lim: Tensor, kinds: Sequence[JointKind]) -> None:
-    """Raise ``ValueError`` unless ``lim (2, n)`` holds lower <= upper per joint, finite except
-    for continuous joints, whose limits are ``(-inf, inf)``."""
+    """Raise ``ValueError`` unless ``lim (2, n)`` holds finite lower <= upper, ``(-inf, inf)`` for continuous joints."""
     n = len(kinds)
     if lim.shape != (2, n):
         raise ValueError(f"limits must have shape (2, {n}) with lower <= upper, got {tuple(lim.shape)}")
@@ -83,8 +72,7 @@ def check_limits(lim: Tensor, kinds: Sequence[JointKind]) -> None:
 
 
 def z_onto(axis: Tensor) -> Tensor:
-    """A ``(3, 3)`` float64 rotation taking z onto the unit vector ``axis (3,)`` (Rodrigues' formula
-    about ``z x axis``; exact for the coordinate axes)."""
+    """A ``(3, 3)`` float64 rotation taking z onto the unit ``axis (3,)`` (Rodrigues; exact for coordinate axes)."""
     c = float(axis[2])
     if c < -1.0 + 1e-12:  # -z: a half turn about x
         return torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
@@ -98,22 +86,17 @@ class Chain(nn.Module):
     """A serial chain of revolute, continuous and prismatic joints, as a URDF file describes it.
 
     Args:
-        origins: ``(n, 4, 4)`` each joint's transform from the previous link frame (the base
-            frame for joint 1) at ``q = 0``.
+        origins: ``(n, 4, 4)`` each joint's transform from the previous link frame at ``q = 0``.
         axes: ``(n, 3)`` each joint's axis in its own frame (normalised here).
-        kinds: n :class:`JointKind` values or their names (default: all revolute).
-        limits: ``(2, n)`` lower and upper limits, radians or metres (default: +-pi for revolute
-            joints, ``(-inf, inf)`` for continuous ones; prismatic joints need them).
+        kinds: n :class:`JointKind` values or names (default: all revolute).
+        limits: ``(2, n)`` lower and upper limits, rad or m (default +-pi; continuous ``(-inf, inf)``;
+            prismatic joints need them).
         joint_names, link_names: n names each (link i is joint i's child).
-        base: ``(4, 4)`` transform from the world to the chain's first frame.
-        tool: ``(4, 4)`` transform from the last link frame to the end effector.
-        velocity_limits: ``(n,)`` maximum joint speeds (rad/s or m/s), if known.
+        base, tool: ``(4, 4)`` world to first frame, last link frame to end effector.
+        velocity_limits: ``(n,)`` joint speeds (rad/s or m/s), if known.
         name: the robot's name.
 
-    The geometry lives in buffers, so ``.to(device)`` moves it and ``state_dict`` /
-    ``load_state_dict`` carry it; results follow the dtype and device of ``q``. After any change
-    to the buffers (loaded, moved, edited in place) the next call uses the new values, checked
-    again. ``random_q`` and the IK seeds draw a continuous joint within one turn, ``[-pi, pi]``.
+    Results follow the dtype and device of ``q``; buffer changes are seen (and checked) by the next call.
     """
 
     def __init__(
@@ -139,7 +122,7 @@ class Chain(nn.Module):
         if axes.shape != (n, 3):
             raise ValueError(f"axes must have shape ({n}, 3), got {tuple(axes.shape)}")
         self._setup(n, kinds, limits, joint_names, base, tool, velocity_limits, name)
-        self.link_names = self._names(link_names, "link_names", "link")
+        self.link_names = _names(link_names, "link_names", "link", n)
         self.register_buffer("origins", origins)
         self.register_buffer("axes", axes)
         self._check_buffers()
@@ -156,7 +139,7 @@ class Chain(nn.Module):
         if not isinstance(name, str):
             raise TypeError(f"name must be a string, got {name!r}")
         self.name = name
-        self.joint_names = self._names(joint_names, "joint_names", "joint", n)
+        self.joint_names = _names(joint_names, "joint_names", "joint", n)
         if limits is None:
             if JointKind.PRISMATIC in self.kinds:
                 raise ValueError("limits are needed for prismatic joints (metres)")
@@ -176,13 +159,6 @@ class Chain(nn.Module):
         self._forget_geometry()
         self.register_load_state_dict_post_hook(_after_load)
 
-    def _names(self, names, what: str, stem: str, n: int | None = None) -> tuple[str, ...]:
-        n = self.n_joints if n is None else n
-        out = [f"{stem}{i + 1}" for i in range(n)] if names is None else list(names)
-        if len(out) != n or not all(isinstance(v, str) for v in out):
-            raise ValueError(f"{what} must be {n} strings, got {out!r}")
-        return tuple(out)
-
     # ------------------------------------------------------------------ geometry
     def _geometry_buffers(self) -> tuple[Tensor, ...]:
         """The buffers the geometry is derived from (their changes rebuild it)."""
@@ -190,9 +166,7 @@ class Chain(nn.Module):
         return b["origins"], b["axes"], b["base"], b["tool"], b["limits"]
 
     def _joint_transforms(self) -> tuple[Tensor, Tensor, Tensor]:
-        """``before, after (n, 4, 4)`` and ``offsets (n,)``, float64: joint i is
-        ``before_i M(q_i + offset_i) after_i`` with ``M`` about or along z
-        (:class:`~iiwa_torch.kinematics.Geometry`)."""
+        """Float64 ``before, after (n, 4, 4)`` and ``offsets (n,)`` of :class:`~iiwa_torch.kinematics.Geometry`."""
         origins, axes = (t.detach().cpu().to(torch.float64) for t in (self.origins, self.axes))
         n = origins.shape[0]
         turn = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
@@ -200,10 +174,8 @@ class Chain(nn.Module):
         return origins @ turn, turn.transpose(1, 2), torch.zeros(n, dtype=torch.float64)
 
     def _buffer_stamp(self) -> tuple:
-        """What identifies the geometry buffers' current contents: each one's version counter
-        (bumped by every in-place write, ``load_state_dict``'s copies too) and storage address
-        (``.data =`` changes it). The buffers are looked up once per geometry: assigning or
-        registering a buffer anew forgets them (:meth:`register_buffer`)."""
+        """The geometry buffers' version counters (bumped by in-place writes) and storage addresses
+        (changed by ``.data =``); assigning a buffer anew forgets them (:meth:`register_buffer`)."""
         watched = self._watched
         if watched is None:
             watched = self._watched = self._geometry_buffers()
@@ -217,9 +189,8 @@ class Chain(nn.Module):
         self._one_arrays: tuple | None = None  # the float64 geometry's float_arrays, on a CPU chain
 
     def geometry(self, dtype: torch.dtype = torch.float64) -> Geometry:
-        """The chain's :class:`~iiwa_torch.kinematics.Geometry` in ``dtype`` (float32 or float64), on
-        the chain's device: what the kernels of :mod:`iiwa_torch.kinematics` take. Cached, and
-        rebuilt (and the buffers checked again) whenever a geometry buffer changed since."""
+        """The cached :class:`~iiwa_torch.kinematics.Geometry` in ``dtype`` (float32 or float64), rebuilt
+        and checked again whenever a geometry buffer changed."""
         stamp = self._buffer_stamp()
         if stamp != self._stamp:
             self._check_buffers()
@@ -261,8 +232,7 @@ class Chain(nn.Module):
         return super()._apply(fn, recurse)
 
     def register_buffer(self, name: str, tensor: Tensor | None, persistent: bool = True) -> None:
-        """``nn.Module``'s, which assigning a buffer (``chain.tool = t``) calls too; then the geometry
-        buffers are looked up again."""
+        """``nn.Module``'s (assigning ``chain.tool = t`` calls it too), then the geometry is forgotten."""
         super().register_buffer(name, tensor, persistent)
         self._forget_geometry()
 
@@ -282,9 +252,8 @@ class Chain(nn.Module):
 
     # ------------------------------------------------------------------ input checks
     def check_q(self, q: Tensor, name: str = "q") -> None:
-        """Raise a clear ``TypeError``/``ValueError`` unless ``q`` is a finite ``(..., n)`` float32 or
-        float64 tensor on this chain's device, with data (not ``meta``), outside ``torch.func.vmap``
-        (batch with leading dimensions instead: every method takes ``(..., n)``)."""
+        """Raise ``TypeError``/``ValueError`` unless ``q`` is a finite float ``(..., n)`` tensor on the
+        chain's device (not ``meta``, not under ``torch.func.vmap``)."""
         n = self.n_joints
         check_float_tensor(q, name, self._q_shape)
         if q.ndim == 0 or q.shape[-1] != n:
@@ -299,18 +268,13 @@ class Chain(nn.Module):
         check_finite(q, name)
 
     def _one_by_kernel(self, q, kernel: str) -> Tensor | None:
-        """The common case of ``fk``/``jacobian``, checked at a fraction of :meth:`check_q`'s cost:
-        the compiled ``kernel`` (a name in :mod:`iiwa_torch.compiled.numba_kernels`) of ``q``, a new
-        tensor in ``q``'s dtype (computed in float64, as the kernels always are), if the kernels are
-        on and ``q`` is one finite configuration, ``(n,)`` or ``(1, n)``, a plain float64 or float32
-        CPU tensor without ``requires_grad``, and the chain's geometry is built, current and on the
-        CPU; else ``None``, and the caller runs
-        :meth:`check_q`, :meth:`geometry` and its ordinary path, which raises for every bad input
-        and rebuilds a stale geometry. Finite: the Python sum of the n values is (a NaN or inf
-        makes it NaN or inf; an overflow of huge finite values only sends ``q`` to the ordinary
-        path). One configuration's call is mostly overhead, so each check here is one attribute
-        read, and ``q`` is read by ``tolist`` (a third of ``numpy()``'s cost), which the sum needs
-        anyway (benchmarks/results/small.md, fk at batch 1)."""
+        """The compiled ``kernel`` (of :mod:`iiwa_torch.compiled.numba_kernels`) of one plain finite CPU
+        configuration ``(n,)`` or ``(1, n)`` without ``requires_grad``, with a current CPU geometry;
+        else ``None``, and the caller takes the checked path.
+
+        One configuration's call is mostly overhead, so each check is one attribute read, and the
+        finiteness check is the Python sum of ``q.tolist()`` (a third of ``numpy()``'s cost; an
+        overflow only sends ``q`` to the checked path): benchmarks/results/small.md, fk at batch 1."""
         arrays = self._one_arrays
         if (arrays is None or type(q) is not Tensor or q.dtype not in _FLOAT_DTYPES or not q.is_cpu or q.requires_grad
                 or q.shape not in self._one_shapes or not compiled.ENABLED):  # fmt: skip
@@ -325,8 +289,7 @@ class Chain(nn.Module):
         if not math.isfinite(sum(values)) or self._buffer_stamp() != self._stamp:
             return None
         out = getattr(compiled.kernels(), kernel)(*arrays, np.array(values)[None])
-        out = out if row else out[0]
-        return torch.from_numpy(out if q.dtype is _FLOAT64 else out.astype(np.float32))
+        return kin.like(out if row else out[0], q)
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
@@ -342,11 +305,9 @@ class Chain(nn.Module):
         return torch.maximum(torch.minimum(q, lim[1]), lim[0])
 
     def reach_bound(self, point=None) -> float:
-        """An upper bound (m) on the distance from the world origin to ``point``, a ``(3,)`` point
-        fixed in the end-effector frame (default: the end effector's origin): the base offset,
-        plus the configuration-independent distances between consecutive frame origins, plus
-        the point's distance from the last link frame's origin; a prismatic joint adds its
-        largest travel."""
+        """An upper bound (m) on the distance from the world origin to ``point (3,)``, fixed in the
+        end-effector frame (default its origin): the sum of the fixed distances between frame
+        origins, plus each prismatic joint's largest travel."""
         device = self.limits.device
         zero = torch.zeros(self.n_joints, dtype=torch.float64, device=device)
         frames = self.fk_all(zero)  # (n + 1, 4, 4)
@@ -361,8 +322,7 @@ class Chain(nn.Module):
     def random_q(
         self, *shape: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
     ) -> Tensor:
-        """``(*shape, n)`` joint values drawn uniformly within the limits (a continuous joint within
-        ``[-pi, pi]``); ``shape``: non-negative ints, ``dtype``: float32 or float64."""
+        """``(*shape, n)`` joint values uniform within the limits (a continuous joint within ``[-pi, pi]``)."""
         for size in shape:
             if isinstance(size, bool) or not isinstance(size, int) or size < 0:
                 raise ValueError(f"random_q's shape must be non-negative integers, got {shape}")
@@ -375,30 +335,24 @@ class Chain(nn.Module):
 
     # ------------------------------------------------------------------ batch-last API (unchecked)
     def frames_batch_last(self, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
-        """For hot loops that keep a batch-last layout (IK): ``q (n, b)``, not checked ->
-        ``(frames, axes)``, the base and link frames as ``(x, y, z, p)`` columns ``(3, b)`` and
-        the joint axes ``(z_i, p_i)``; see :func:`iiwa_torch.kinematics.frames_batch_last`."""
+        """:func:`iiwa_torch.kinematics.frames_batch_last`: ``q (n, b)``, not checked -> base and link
+        frames ``(x, y, z, p)``, each ``(3, b)``, and joint axes ``(z_i, p_i)``."""
         return kin.frames_batch_last(self.geometry(q.dtype), q, keep)
 
     def tool_frame_batch_last(self, frame: Frame) -> Frame:
-        """The last link frame ``(x, y, z, p)`` of :meth:`frames_batch_last`, each ``(3, b)``, ->
-        the end-effector frame (the tool applied), in the same layout."""
+        """The last link frame of :meth:`frames_batch_last` -> the end-effector frame, same layout."""
         return kin.tool_frame_batch_last(self.geometry(frame[0].dtype), frame)
 
     def position_batch_last(self, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
-        """The end-effector position alone, for hot loops that keep a batch-last layout (envs):
-        ``q (n, b)``, not checked -> ``(3, b)``. ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if
-        the caller has them; see :func:`iiwa_torch.kinematics.position_batch_last`."""
+        """End-effector positions: ``q (n, b)``, not checked -> ``(3, b)``; ``trig``: ``(cos q, sin q)`` if known."""
         return kin.position_batch_last(self.geometry(q.dtype), q, trig)
 
     # ------------------------------------------------------------------ kinematics (checked, batch first)
     def fk(self, q: Tensor) -> Tensor:
-        """End-effector pose: ``q (..., n)`` (radians, metres for prismatic joints) -> ``(..., 4, 4)``,
-        metres, in the world frame.
+        """End-effector pose: ``q (..., n)`` (rad, m for prismatic) -> ``(..., 4, 4)`` (m), world frame.
 
-        Differentiable. Above 128 configurations the backward pass is ``J(q)^T`` times the
-        pose gradient's twist, not a replay of the forward kernel; up to 128, autograd
-        through the few ops of the small-batch kernel costs less.
+        Differentiable; above ``SMALL_BATCH`` configurations the backward is ``J^T`` times the pose
+        gradient's twist (:class:`~iiwa_torch.kinematics.EndPoseFunction`).
         """
         out = self._one_by_kernel(q, "end_poses")
         if out is not None:
@@ -410,34 +364,21 @@ class Chain(nn.Module):
         return kin.blockwise(q, self.n_joints, (4, 4), lambda qb: kin.end_pose(g, qb))
 
     def fk_all(self, q: Tensor) -> Tensor:
-        """Every frame: ``q (..., n) -> (..., n + 1, 4, 4)``: the base, then link frames 1..n (for a
-        DH chain its DH frames, for a URDF chain the child links of its joints, in path order).
-
-        The tool transform is not applied: ``fk(q) == fk_all(q)[..., -1, :, :] @ chain.tool``.
-        """
+        """``q (..., n) -> (..., n + 1, 4, 4)``: the base, then link frames 1..n (DH frames, or a URDF's
+        child links); no tool: ``fk(q) == fk_all(q)[..., -1, :, :] @ chain.tool``."""
         self.check_q(q)
         g = self.geometry(q.dtype)
         return kin.blockwise(q, self.n_joints, (self.n_joints + 1, 4, 4), lambda qb: kin.all_poses(g, qb))
 
     def position(self, q: Tensor) -> Tensor:
-        """End-effector position: ``q (..., n)`` -> ``(..., 3)`` metres, in the world frame.
-
-        Equal to ``fk(q)[..., :3, 3]``; for large batches it computes no rotation matrices
-        (:meth:`position_batch_last`), which makes it faster (the ``position`` rows of
-        benchmarks/results/fk.md). Differentiable (autograd).
-        """
+        """``fk(q)[..., :3, 3]``: ``q (..., n)`` -> ``(..., 3)`` (m), without rotations; differentiable."""
         self.check_q(q)
         g = self.geometry(q.dtype)
         return kin.position_batch_last(g, q.reshape(-1, self.n_joints).T).T.reshape(*q.shape[:-1], 3)
 
     def jacobian(self, q: Tensor) -> Tensor:
-        """Geometric Jacobian in the world frame: ``q (..., n) -> (..., 6, n)``.
-
-        Rows 0-2 map joint rates to the end-effector's linear velocity (m/s), rows 3-5 to its
-        angular velocity (rad/s). Column i is ``[z_i x (p_e - p_i); z_i]`` for a revolute joint
-        about the axis ``z_i`` through the point ``p_i``, ``[z_i; 0]`` for a prismatic one,
-        computed from the frames, not by autograd.
-        """
+        """Geometric Jacobian in the world frame: ``q (..., n) -> (..., 6, n)``: linear (m/s) then angular
+        (rad/s) rows; column i is ``[z_i x (p_e - p_i); z_i]``, or ``[z_i; 0]`` for a prismatic joint."""
         out = self._one_by_kernel(q, "jacobians")
         if out is not None:
             return out
@@ -451,7 +392,14 @@ class Chain(nn.Module):
 
 
 def _after_load(chain: Chain, incompatible_keys) -> None:
-    """``load_state_dict`` post-hook: the loaded buffers are checked now and the geometry rebuilt
-    on next use (their version counters would show the change too; this also fails early)."""
+    """``load_state_dict`` post-hook: check the loaded buffers now (fail early)."""
     chain._forget_geometry()
     chain._check_buffers()
+
+
+def _names(names, what: str, stem: str, n: int) -> tuple[str, ...]:
+    """``n`` names (default ``stem1 ... stemn``), checked."""
+    out = [f"{stem}{i + 1}" for i in range(n)] if names is None else list(names)
+    if len(out) != n or not all(isinstance(v, str) for v in out):
+        raise ValueError(f"{what} must be {n} strings, got {out!r}")
+    return tuple(out)

@@ -15,10 +15,8 @@ import torch
 
 
 def all_finite(x: torch.Tensor | np.ndarray) -> bool:
-    """True if no element of a tensor or numpy array is NaN or inf. A few numbers are read in
-    Python (no torch op: one call's latency); more take one reduction, and for a tensor the
-    elementwise test runs only when the sum is not finite (a NaN/inf, or an overflow of huge
-    finite values)."""
+    """True if no element of a tensor or numpy array is NaN or inf. Up to 64 numbers are read in Python
+    (a torch op costs more); a tensor's elementwise test runs only when its sum is not finite."""
     if (x.size if isinstance(x, np.ndarray) else x.numel()) <= 64:
         values = x.tolist()
         if not x.ndim:
@@ -51,8 +49,8 @@ def check_tensor(x, name: str, shape: tuple[int, ...]) -> None:
 
 
 def check_finite(x: torch.Tensor, name: str) -> None:
-    """Raise ``ValueError`` naming the first NaN/inf element of ``x``, if any, or if ``x`` is a
-    ``meta`` tensor (no values); ``TypeError`` inside ``torch.func.vmap`` (values cannot be read)."""
+    """Raise ``ValueError`` naming the first NaN/inf of ``x`` or for a ``meta`` tensor; ``TypeError`` under
+    ``torch.func.vmap`` (values cannot be read)."""
     if isinstance(x, torch.Tensor) and x.is_meta:
         raise ValueError(f"{name} is a meta tensor, without values; the kinematics needs real ones (cpu)")
     try:
@@ -76,8 +74,7 @@ def check_instance(value, kind: type, name: str) -> None:
 
 
 def check_bool(value, name: str) -> None:
-    """Raise ``TypeError`` unless ``value`` is a ``bool`` or a numpy ``bool_`` (never a string, a number
-    or None, whose truthiness would stand in for the answer)."""
+    """Raise ``TypeError`` unless ``value`` is a ``bool`` or numpy ``bool_`` (not merely truthy)."""
     if not isinstance(value, (bool, np.bool_)):
         raise TypeError(f"{name} must be True or False, got {value!r} ({type(value).__name__})")
 
@@ -99,16 +96,14 @@ def is_number(value) -> bool:
 
 
 def check_positive(value, name: str, integer: bool = False) -> None:
-    """Raise ``ValueError`` unless ``value`` is a finite number ``> 0`` (an integer if ``integer``; never a
-    bool), of any numeric type."""
+    """Raise ``ValueError`` unless ``value`` is a finite number ``> 0`` (an integer if ``integer``; not a bool)."""
     kind = is_integer if integer else is_number
     if not kind(value) or not value > 0 or not math.isfinite(value):
         raise ValueError(f"{name} must be a positive {'integer' if integer else 'number'}, got {value!r}")
 
 
 def check_nonnegative(value, name: str, integer: bool = False) -> None:
-    """Raise ``ValueError`` unless ``value`` is a finite number ``>= 0`` (an integer if ``integer``; never a
-    bool), of any numeric type."""
+    """Raise ``ValueError`` unless ``value`` is a finite number ``>= 0`` (an integer if ``integer``; not a bool)."""
     kind = is_integer if integer else is_number
     if not kind(value) or not value >= 0 or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite {'integer' if integer else 'number'} >= 0, got {value!r}")
@@ -122,9 +117,8 @@ def check_generator(generator, name: str = "generator") -> None:
 
 
 def as_device(device, name: str = "device") -> torch.device:
-    """``device`` (a ``torch.device``, a string such as ``"cpu"``, or ``None`` for the CPU) as a
-    ``torch.device`` that holds values in this torch build; ``ValueError`` otherwise (``"meta"``, or
-    ``"cuda"`` on a CPU-only build)."""
+    """``device`` (``torch.device``, a string, or ``None`` for the CPU) as a ``torch.device`` usable in this
+    torch build; ``ValueError`` otherwise (``"meta"``, ``"cuda"`` on a CPU-only build)."""
     try:
         found = torch.device("cpu" if device is None else device)
     except (RuntimeError, TypeError):
@@ -142,8 +136,7 @@ MEMORY_SHARE = 0.8  # of the available memory a single call may plan to allocate
 
 
 def available_memory() -> int:
-    """Bytes of memory available to a new allocation: ``MemAvailable`` of /proc/meminfo (Linux), else the
-    free physical pages."""
+    """Bytes available to a new allocation: /proc/meminfo's ``MemAvailable``, else the free physical pages."""
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -155,8 +148,7 @@ def available_memory() -> int:
 
 
 def check_memory(nbytes: int, what: str) -> None:
-    """Raise ``ValueError`` if ``what`` would allocate ``nbytes`` (estimated from its sizes), more than
-    ``MEMORY_SHARE`` of the available memory, with both figures in GB."""
+    """Raise ``ValueError`` if ``what`` would allocate ``nbytes``, more than ``MEMORY_SHARE`` of what is available."""
     free = available_memory()
     if nbytes > MEMORY_SHARE * free:
         raise ValueError(f"{what} needs about {nbytes / 1e9:.3g} GB of memory, more than the "
@@ -179,9 +171,8 @@ class MissingExtra(ModuleNotFoundError):
 
 
 def require(module: str, extra: str) -> ModuleType:
-    """``module`` (e.g. ``"viser"``, ``"matplotlib.figure"``) imported, or :class:`MissingExtra`
-    naming the extra that installs it (``pip install 'iiwa-torch[viewer]'``) if its top-level
-    package is not installed. Every optional import of iiwa_torch, envs and train goes through here."""
+    """``module`` imported, or :class:`MissingExtra` naming the ``extra`` that installs it if its top-level
+    package is missing. Every optional import goes through here."""
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as err:

@@ -1,16 +1,11 @@
-"""Denavit-Hartenberg chains: the serial-chain model (:class:`~iiwa_torch.chain.Chain`) read
-from a table.
+"""Denavit-Hartenberg chains: :class:`~iiwa_torch.chain.Chain` read from a table of rows
+``(a, alpha, d, theta_offset)`` (m, rad), one per revolute joint:
 
-A table holds rows ``(a, alpha, d, theta_offset)`` (metres, radians), one per revolute joint,
-in one of two conventions:
+- ``standard``: ``A_i = Rz(q_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``;
+- ``modified`` (Craig): ``A_i = Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(q_i + offset_i) Tz(d_i)``.
 
-- ``standard`` (classical DH): ``A_i = Rz(q_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)``;
-- ``modified`` (Craig): ``A_i = Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(q_i + offset_i) Tz(d_i)``,
-  the row holding ``a_{i-1}, alpha_{i-1}, d_i, offset_i``.
-
-The end-effector pose is ``base @ A_1 @ ... @ A_n @ tool``, and ``fk_all`` gives the DH frames.
-The table is the buffer ``dh`` (the truth: ``state_dict``, ``.to()``); the kernels'
-geometry is derived from it (:meth:`DHChain._joint_transforms`).
+The end pose is ``base @ A_1 @ ... @ A_n @ tool``; ``fk_all`` gives the DH frames. The table is
+the buffer ``dh``.
 """
 
 from __future__ import annotations
@@ -45,22 +40,8 @@ def _check_table(dh: Tensor) -> None:
 
 
 class DHChain(Chain):
-    """A serial chain of revolute joints described by a Denavit-Hartenberg table.
-
-    Args:
-        table: ``(n, 4)`` rows ``(a, alpha, d, theta_offset)``, metres and radians.
-        convention: ``"standard"`` (classical) or ``"modified"`` (Craig); see the module doc.
-        limits: ``(2, n)`` lower and upper joint limits in radians (default: +-pi).
-        joint_names: n names (default ``joint1 ... jointn``).
-        base: ``(4, 4)`` transform from the world to the chain's first frame.
-        tool: ``(4, 4)`` transform from the last link frame to the end effector.
-        velocity_limits: ``(n,)`` maximum joint speeds in rad/s, if known.
-        name: the robot's name (used in ``repr`` and URDF export).
-
-    Everything else is :class:`~iiwa_torch.chain.Chain`'s: the table, limits and transforms
-    are buffers, results follow the dtype and device of ``q``, and any change to the buffers
-    is seen (and checked) by the next call.
-    """
+    """A serial chain of revolute joints from a DH ``table (n, 4)`` in ``convention`` (module doc);
+    the other arguments are :class:`~iiwa_torch.chain.Chain`'s (limits default to +-pi)."""
 
     def __init__(
         self,
@@ -90,7 +71,6 @@ class DHChain(Chain):
         return b["dh"], b["base"], b["tool"], b["limits"]
 
     def _joint_transforms(self) -> tuple[Tensor, Tensor, Tensor]:
-        """The DH links as :class:`~iiwa_torch.chain.Chain` joints (:func:`~iiwa_torch.kinematics.dh_transforms`)."""
         dh = self.dh.detach().cpu()
         before, after = kin.dh_transforms(dh, self.convention is Convention.MODIFIED)
         return before, after, dh[:, 3].to(torch.float64)

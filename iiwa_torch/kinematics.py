@@ -1,34 +1,10 @@
-"""Forward-kinematics kernels of any serial chain: pure functions over a :class:`Geometry`.
+"""Forward-kinematics kernels of any serial chain: pure functions over a frozen :class:`Geometry`,
+which :class:`~iiwa_torch.chain.Chain` derives from its buffers.
 
-A :class:`Geometry` is one frozen snapshot of a chain's joint transforms, base, tool and limits
-in one dtype and device: Python-float constants for the kernels' code paths and the derived
-tensors they multiply by. :class:`~iiwa_torch.chain.Chain` derives it from its buffers and rebuilds it
-whenever they change, so a kernel never sees stale geometry; every function here takes it as
-its first argument and has no other state.
-
-Which kernel runs (``b`` configurations):
-
-- up to ``SMALL_BATCH`` (128) CPU configurations with nothing to differentiate
-  (:func:`untracked_cpu`) and the compiled kernels enabled (:mod:`iiwa_torch.compiled`): the
-  frame recursion compiled (:func:`by_kernel`), in float64, for :func:`end_pose`,
-  :func:`all_poses`, :func:`jacobian`, :func:`frames_batch_last`, :func:`position_batch_last`
-  and :func:`frame_lists`. A torch op costs microseconds however small its tensors; the
-  compiled recursion costs a fraction of one per configuration.
-- otherwise up to ``SMALL_BATCH``: a chain of ``4x4`` link products (:func:`end_pose_matmul`,
-  :func:`_frames_matmul`); above, the elementwise batch-last kernel :func:`frames_batch_last`,
-  in blocks of ``BLOCK`` (8192) configurations (:func:`blockwise`), and for the position alone
-  Horner's scheme (:func:`position_horner`) in blocks of ``POSITION_BLOCK``.
-- :class:`EndPoseFunction`: ``fk`` above 128 configurations under autograd, whose backward is
-  ``J^T`` times the pose gradient's twist (:func:`pose_vjp`) instead of a replay of the ops.
-
-Which kernels exist, and why each, is in ``docs/kinematics.md`` ("Backends").
-
-:func:`reference_fk` is the plain definition for DH tables, a product of ``4x4`` DH link
-matrices, that every fast path is tested against (URDF chains are held to pinocchio).
-
-The batch-last API (for hot loops that keep configurations in the last dimension: IK, envs):
-:func:`frames_batch_last`, :func:`tool_frame_batch_last`, :func:`position_batch_last`, each
-``q (n, b)`` in, unchecked.
+Up to ``SMALL_BATCH`` configurations: the compiled recursion (CPU, no autograd, numba) or 4x4
+link products; above, the elementwise batch-last kernel :func:`frames_batch_last` in blocks of
+``BLOCK``. Which kernel runs, and why: docs/kinematics.md. :func:`reference_fk` is the plain DH
+definition the fast paths are tested against.
 """
 
 from __future__ import annotations
@@ -58,8 +34,10 @@ __all__ = [
     "end_pose",
     "end_pose_matmul",
     "frame_lists",
+    "float64_rows",
     "frames_batch_last",
     "jacobian",
+    "like",
     "pose_vjp",
     "position_batch_last",
     "position_horner",
@@ -106,11 +84,9 @@ def elementary_transform(rot_axis: str, angle: float = 0.0, shift: tuple[float, 
 
 
 def dh_transforms(dh: Tensor, modified: bool) -> tuple[Tensor, Tensor]:
-    """A DH table ``(n, 4)`` of rows ``(a, alpha, d, offset)`` -> each joint's constant transforms
-    ``before, after (n, 4, 4)`` (see :class:`Geometry`): ``I`` and ``Tz(d) Tx(a) Rx(alpha)``
-    (standard), or ``Rx(alpha) Tx(a)`` and ``Tz(d)`` (modified); the offsets stay apart. Twists
-    within a few ulps (of the table's dtype) of a multiple of pi/2 are taken as that multiple: a
-    float32 table's pi/2 is pi/2, as in the float64 table it came from."""
+    """DH rows ``(a, alpha, d, offset)`` ``(n, 4)`` -> ``before, after (n, 4, 4)`` (:class:`Geometry`):
+    ``I, Tz(d) Tx(a) Rx(alpha)`` (standard) or ``Rx(alpha) Tx(a), Tz(d)`` (modified). Twists within a
+    few ulps of a multiple of pi/2 are snapped to it (a float32 table's pi/2 is pi/2)."""
     snap = 32 * torch.finfo(dh.dtype).eps
     before, after = [], []
     for a, alpha, d, _ in dh.tolist():
@@ -122,9 +98,8 @@ def dh_transforms(dh: Tensor, modified: bool) -> tuple[Tensor, Tensor]:
 
 
 def _link_coefficients(before: Tensor, after: Tensor, prismatic: Sequence[bool]) -> Tensor:
-    """``(n, 3, 16)``: each link ``before_i M(theta_i) after_i`` as ``f0 C0 + f1 C1 + C2`` with
-    constant ``C_k``: ``(f0, f1) = (cos theta, sin theta)`` for a revolute joint (``M = Rz``), and
-    ``(theta, anything)`` for a prismatic one (``M = Tz``, ``C1 = 0``)."""
+    """``(n, 3, 16)``: each link ``before_i M(theta_i) after_i`` as ``f0 C0 + f1 C1 + C2``, with
+    ``(f0, f1) = (cos theta, sin theta)`` (revolute) or ``(theta, anything)`` (prismatic, ``C1 = 0``)."""
     rz_cos = torch.diag(torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64))
     rz_sin = torch.zeros(4, 4, dtype=torch.float64)
     rz_sin[0, 1], rz_sin[1, 0] = -1.0, 1.0
@@ -146,25 +121,16 @@ def _columns(m: Tensor) -> tuple[tuple[float, float, float], ...]:
 
 @dataclass(frozen=True, eq=False)
 class Geometry:
-    """A chain's geometry in one dtype and device, as the kernels use it (build with :meth:`build`).
+    """A chain's geometry in one dtype and device (build with :meth:`build`).
 
-    Any serial chain is ``base . prod_i [before_i M_i(q_i + offset_i) after_i] . tool``, with
-    ``M_i`` a rotation about z (revolute joint) or a translation along z (prismatic), and the
-    link frame ``i`` the product up to ``after_i``. Joint i moves about the z axis of the frame
-    ``link_{i-1} before_i``, through its origin.
-
-    Floats: ``joints`` holds per joint ``(prismatic, before, after)``, the transforms as
-    :func:`_columns` or ``None`` where they are the identity; ``tool_columns`` the tool's columns.
-    Tensors (``dtype``, the buffers' device):
-    ``base (4, 4)``, ``before (n, 4, 4)``, ``limits (2, n)`` (may be infinite), ``draw_limits (2, n)`` (finite: an
-    infinite side becomes one turn, -pi or pi), the small-batch kernel's link coefficients
-    ``link_trig (n, 2, 16)``, ``link_const (n, 1, 16)`` (``end_*``: the base folded into the first
-    link, the tool into the last), ``trig_phase (n, 1, 2)`` = ``(offset + pi/2, offset)``,
-    ``offsets (n, 1)``, ``offset_trig (2, n, 1)`` their cos and sin, ``prismatic (n, 1)`` bool;
-    ``float_arrays`` the float64 numpy arrays
-    ``transforms (n, 2, 4, 4)`` (before, after), ``params (n, 4)`` (offset, prismatic, before is
-    not the identity, after is not), base and tool ``(4, 4)``: the arguments of
-    :mod:`iiwa_torch.compiled.numba_kernels`.
+    The chain is ``base . prod_i [before_i M_i(q_i + offset_i) after_i] . tool``, ``M_i`` a rotation
+    about z (revolute) or a translation along z (prismatic); link frame i is the product up to
+    ``after_i``. ``joints``: per joint ``(prismatic, before, after)`` as :func:`_columns` (None for
+    the identity). Tensors: ``limits (2, n)``; ``draw_limits`` the same with infinite sides at +-pi;
+    ``link_*``/``end_*`` the small-batch kernel's coefficients (``end_*`` with base and tool folded
+    in); ``trig_phase (n, 1, 2) = (offset + pi/2, offset)``. ``float_arrays``: float64 arrays
+    ``transforms (n, 2, 4, 4)``, ``params (n, 4)`` (offset, prismatic, before and after not the
+    identity), base and tool, as :mod:`iiwa_torch.compiled.numba_kernels` takes them.
     """
 
     joints: tuple[tuple[bool, tuple | None, tuple | None], ...]
@@ -196,11 +162,9 @@ class Geometry:
         cls, before: Tensor, after: Tensor, prismatic: Sequence[bool], offsets: Tensor, base: Tensor, tool: Tensor,
         limits: Tensor, dtype: torch.dtype,
     ) -> Geometry:
-        """From a chain's joint transforms ``before, after (n, 4, 4)``, joint kinds, ``offsets (n,)``,
-        ``base``, ``tool (4, 4)`` and ``limits (2, n)``, in any float dtype, on one device; the
-        tensors of the result are in ``dtype`` there. Entries and offsets within a few ulps (of
-        the inputs' dtype) of 0, +-1 or a multiple of pi/2 are snapped to it, so a float32 copy of
-        a DH table's pi/2 twists gives the exact zeros the kernels skip."""
+        """From ``before, after (n, 4, 4)``, joint kinds, ``offsets (n,)``, ``base, tool (4, 4)`` and
+        ``limits (2, n)`` on one device; tensors in ``dtype``. Entries within a few ulps of 0, +-1 or a
+        multiple of pi/2 are snapped to it, so a float32 table's pi/2 twists give exact zeros."""
         device = limits.device
         snap = 32 * torch.finfo(before.dtype).eps
         before, after, base, tool = (_snap_matrix(t.detach().cpu().to(torch.float64), snap)
@@ -237,10 +201,10 @@ class Geometry:
             "prismatic": torch.tensor(prismatic, device=device)[:, None],
         }
         offset_list = tuple(offsets.tolist())
-        plain = [(not torch.equal(b, eye), not torch.equal(a, eye)) for b, a in zip(before, after)]
+        kept = [(not torch.equal(b, eye), not torch.equal(a, eye)) for b, a in zip(before, after)]  # not the identity
         joints = tuple((p, _columns(b) if keep_b else None, _columns(a) if keep_a else None)
-                       for p, b, a, (keep_b, keep_a) in zip(prismatic, before, after, plain))
-        params = np.array([(o, p, kb, ka) for o, p, (kb, ka) in zip(offset_list, prismatic, plain)], dtype=np.float64)
+                       for p, b, a, (keep_b, keep_a) in zip(prismatic, before, after, kept))
+        params = np.array([(o, p, kb, ka) for o, p, (kb, ka) in zip(offset_list, prismatic, kept)], dtype=np.float64)
         return cls(
             joints=joints,
             has_base=not torch.equal(base, eye),
@@ -258,11 +222,9 @@ class Geometry:
 def reference_fk(
     dh: Tensor, q: Tensor, modified: bool = False, base: Tensor | None = None, tool: Tensor | None = None
 ) -> Tensor:
-    """The definition, for tests: ``q (..., n)`` -> ``(..., n + 2, 4, 4)``: the base, link frames
-    ``base A_1 ... A_i`` for i = 1..n, then the end pose (the last frame times the tool), each
-    ``A_i`` a ``4x4`` matrix from the DH row ``(a, alpha, d, offset)``:
-    ``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` (standard) or ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` (modified).
-    Computed in ``q``'s dtype, one plain matrix product per joint."""
+    """The DH definition, for tests: ``q (..., n)`` -> ``(..., n + 2, 4, 4)``: the base, the link frames
+    ``base A_1 ... A_i``, then the end pose (tool applied), ``A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)``
+    (standard) or ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` (modified), in ``q``'s dtype."""
     dh = dh.to(q)
     eye = torch.eye(4, dtype=q.dtype, device=q.device)
     frame = (eye if base is None else base.to(q)).expand(*q.shape[:-1], 4, 4)
@@ -289,9 +251,7 @@ def _rotate_z(x: Tensor, y: Tensor, c: Tensor, s: Tensor) -> tuple[Tensor, Tenso
 
 
 def _rotate_point_z(x, y, c, s) -> tuple:
-    """The x, y coordinates of points rotated about z by the angle with cosine c and sine s:
-    ``(c x - s y, s x + c y)``. ``x`` and ``y`` are tensors or floats (a point on the z axis
-    stays there); ``c`` and ``s`` are tensors, or floats when everything is."""
+    """``(c x - s y, s x + c y)``: x, y rotated about z; tensors or Python floats (kept floats while they can)."""
     if not isinstance(x, Tensor) and not isinstance(y, Tensor) and x == y == 0.0:
         return x, y
     if not isinstance(c, Tensor):  # one configuration, in Python floats
@@ -305,8 +265,7 @@ def _multiply_add(u: Tensor, v: Tensor, w, sign: float) -> Tensor:
 
 
 def _combine(vectors: Sequence[Tensor], coefficients: Sequence[float], start: Tensor | None = None) -> Tensor:
-    """``start + sum_k c_k v_k`` for ``(3, b)`` vectors and Python-float coefficients, with no op
-    for a zero coefficient (nor for a lone unit one): a flange offset along z is one multiply-add."""
+    """``start + sum_k c_k v_k`` for ``(3, b)`` vectors and float coefficients, skipping zero terms."""
     out = start
     for v, c in zip(vectors, coefficients):
         if c != 0.0:
@@ -318,16 +277,13 @@ def _combine(vectors: Sequence[Tensor], coefficients: Sequence[float], start: Te
 
 
 def _transform(frame: Frame, columns) -> Frame:
-    """A frame ``(x, y, z, p)``, each ``(3, b)``, times a constant transform given by its
-    :func:`_columns`: each new axis a combination of the old ones, zero terms skipped (a twist of
-    pi/2 is a swap and a sign flip)."""
+    """A frame ``(x, y, z, p)``, each ``(3, b)``, times a constant transform given by its :func:`_columns`."""
     axes = frame[:3]
     return (*(_combine(axes, column) for column in columns[:3]), _combine(axes, columns[3], start=frame[3]))
 
 
 def _map_point(columns, v) -> tuple:
-    """The point ``v`` (3 coordinates, tensors or Python floats) mapped by a constant transform
-    given by its :func:`_columns`; coordinates stay floats while they can, zero terms cost nothing."""
+    """The point ``v`` (3 tensors or floats) mapped by a transform given by its :func:`_columns`."""
     out = []
     for j in range(3):
         acc = columns[3][j]
@@ -346,9 +302,8 @@ def _map_point(columns, v) -> tuple:
 
 
 def _cross(u, v) -> tuple[Tensor, Tensor, Tensor]:
-    """Cross product of vectors given by their components ``u[0..2]``, ``v[0..2]`` (tensors that
-    broadcast): six elementwise ops on contiguous rows, several times faster here than
-    ``torch.linalg.cross`` along a middle dimension."""
+    """Cross product of vectors given by components ``u[0..2]``, ``v[0..2]``: several times faster
+    than ``torch.linalg.cross`` along a middle dimension."""
     return (
         torch.addcmul(u[1] * v[2], u[2], v[1], value=-1),
         torch.addcmul(u[2] * v[0], u[0], v[2], value=-1),
@@ -356,18 +311,12 @@ def _cross(u, v) -> tuple[Tensor, Tensor, Tensor]:
     )
 
 
-# ---------------------------------------------------------------------- batch last
-# Frames are "batch last": a (F, 3, 4, b) tensor of frame, row, column (x, y, z axes, origin)
-# and configuration, with F = n + 1 (base and links) if ``keep``, else 1 (the last link).
-# Batch last keeps every elementwise op contiguous.
+# ---------------------------------------------------------------------- batch last (every elementwise op contiguous)
 
 
 def _joint_trig(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """``q (n, b)`` -> the joint variables ``theta = q + offset`` and their cosine and sine, each
-    ``(n, b)`` contiguous (a prismatic joint's rows of cosine and sine go unused).
-
-    ``trig``: the caller's cosine and sine of ``q`` itself, reused (rotated by the offsets
-    if the chain has any) instead of computed again."""
+    """``q (n, b)`` -> ``theta = q + offset``, its cosine and sine, each ``(n, b)``; ``trig``: the
+    caller's ``(cos q, sin q)``, reused."""
     theta = (q + g.offsets if g.has_offsets else q).contiguous()  # rows of a batch-last view of q are strided
     if trig is None:
         return theta, torch.cos(theta), torch.sin(theta)
@@ -379,14 +328,9 @@ def _joint_trig(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = Non
 
 
 def frames_batch_last(g: Geometry, q: Tensor, keep: bool = True) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
-    """The elementwise kernel, batch last: ``q (n, b)`` joint variables (not checked) ->
-    ``(frames, axes)``. ``frames`` holds ``(x, y, z, p)``, the axis columns and the origin of a
-    frame, each ``(3, b)``, for the base and every link if ``keep`` (else only the last link);
-    ``axes`` holds ``(z_i, p_i)``, joint i's axis and a point on it (if ``keep``). The tool is
-    not applied (:func:`tool_frame_batch_last`). The moving frame's axes are rotated with
-    elementwise multiply-adds over the whole batch; the constant transforms skip their zero
-    terms; no 4x4 products. Up to ``SMALL_BATCH`` :func:`compilable` configurations, the same
-    frames come from the compiled recursion."""
+    """The elementwise kernel: ``q (n, b)`` (not checked) -> ``(frames, axes)``: ``(x, y, z, p)``
+    axis columns and origin, each ``(3, b)``, of the base and every link (``keep``) or the last
+    link alone; ``axes``: ``(z_i, p_i)``, joint i's axis and a point on it (``keep``). No tool."""
     if q.shape[1] <= SMALL_BATCH and compilable(q):
         return _frames_batch_last_compiled(g, q, keep)
     theta, c, s = _joint_trig(g, q)
@@ -416,12 +360,8 @@ def tool_frame_batch_last(g: Geometry, frame: Frame) -> Frame:
 
 
 def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
-    """The end-effector position alone: ``q (n, b)`` -> ``(3, b)``, batch last, not checked.
-    Up to ``SMALL_BATCH`` configurations take the compiled recursion (:func:`compilable`) or the
-    4x4 product kernel, more :func:`position_horner`.
-
-    ``trig``: ``(cos q, sin q)``, each ``(n, b)``, if the caller has them (the envs'
-    observations do): large batches then skip their own trigonometry."""
+    """End-effector positions: ``q (n, b)`` (not checked) -> ``(3, b)``; ``trig``: ``(cos q, sin q)``
+    if the caller has them."""
     b = q.shape[1]
     if b <= SMALL_BATCH:
         return end_pose(g, q.T)[:, :3, 3].T
@@ -429,15 +369,8 @@ def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | No
 
 
 def _carry_tool_point(g: Geometry, theta, c, s) -> tuple:
-    """Horner's scheme: the tool point carried through the links ``n, ..., 1`` from the end of the
-    chain. ``theta``, ``c``, ``s``: per joint, its variable and their cosine and sine (rows of
-    ``b``, or Python floats for one configuration) -> the point's three coordinates before the
-    base transform.
-
-    Per joint, a rotation of the point's coordinates instead of a rotation of three frame
-    axes: about a third of the elementwise work of :func:`frames_batch_last`. Coordinates
-    stay Python floats while they are constant (the tool point on the last axes), so those
-    joints cost nothing."""
+    """Horner's scheme: the tool point carried back through links ``n, ..., 1`` -> its three coordinates
+    before the base transform (a third of :func:`frames_batch_last`'s work)."""
     v = g.tool_columns[3]
     for i, (prismatic, before, after) in reversed(list(enumerate(g.joints))):
         if after is not None:
@@ -452,9 +385,7 @@ def _carry_tool_point(g: Geometry, theta, c, s) -> tuple:
 
 
 def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
-    """``q (n, b)`` -> ``(3, b)`` end-effector positions, elementwise (Horner's scheme from the
-    tool point back), in blocks of ``POSITION_BLOCK`` configurations that keep the working set
-    in cache. Any batch size; :func:`position_batch_last` uses it above ``SMALL_BATCH``."""
+    """``q (n, b)`` -> ``(3, b)`` end-effector positions by Horner's scheme, in blocks of ``POSITION_BLOCK``."""
     theta, c, s = _joint_trig(g, q, trig)
     blocks = []
     for i in range(0, q.shape[1], POSITION_BLOCK):
@@ -469,8 +400,7 @@ def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None =
 
 
 def untracked_cpu(q: Tensor) -> bool:
-    """Whether ``q`` is on the CPU with nothing to differentiate (no ``requires_grad`` under grad
-    mode): what a compiled kernel or any numpy code may take."""
+    """Whether ``q`` is on the CPU with nothing to differentiate: what compiled or numpy code may take."""
     return q.is_cpu and not (q.requires_grad and torch.is_grad_enabled())
 
 
@@ -479,48 +409,44 @@ def compilable(q: Tensor) -> bool:
     return compiled.ENABLED and untracked_cpu(q)
 
 
-def _compiled_arrays(g: Geometry, q: Tensor) -> np.ndarray:
-    """``q (..., n)`` -> its ``(b, n)`` float64 C-ordered rows, as the compiled kernels take them."""
-    x = (q.detach() if q.requires_grad else q).numpy().reshape(-1, g.n_joints)
+def float64_rows(q: Tensor, n: int) -> np.ndarray:
+    """CPU ``q (..., n)`` -> its ``(b, n)`` float64 C-ordered rows, as the compiled kernels take them."""
+    x = (q.detach() if q.requires_grad else q).numpy().reshape(-1, n)
     if x.dtype != np.float64 or not x.flags.c_contiguous:
         x = np.ascontiguousarray(x, dtype=np.float64)
     return x
 
 
-def _like(out: np.ndarray, q: Tensor) -> Tensor:
-    """A compiled kernel's float64 ``out`` as a tensor in ``q``'s dtype (a new tensor outside autograd)."""
-    return torch.from_numpy(out if q.dtype == torch.float64 else out.astype(np.float32))
+def like(out, q: Tensor) -> Tensor:
+    """A float64 array (or scalar) as a tensor in ``q``'s dtype, outside autograd."""
+    return torch.from_numpy(np.asarray(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
 
 
 def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """``kernel(*g.float_arrays, q (b, n))``, a compiled kernel of :mod:`iiwa_torch.compiled.numba_kernels`
-    (float64 inside), on ``q (..., n)`` (:func:`compilable`, not checked) -> ``(..., *shape)``
-    in ``q``'s dtype, a new tensor outside autograd."""
-    out = _like(kernel(*g.float_arrays, _compiled_arrays(g, q)), q)
+    """A compiled ``kernel(*g.float_arrays, q (b, n))`` on ``q (..., n)`` -> ``(..., *shape)`` in ``q``'s dtype."""
+    out = like(kernel(*g.float_arrays, float64_rows(q, g.n_joints)), q)
     return out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape)
 
 
 def _frames_batch_last_compiled(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:
     """:func:`frames_batch_last` of ``q (n, b)`` (:func:`compilable`) by the compiled recursion."""
-    frames, z, p, _ = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q.T))
+    frames, z, p, _ = compiled.kernels().frames_axes(*g.float_arrays, float64_rows(q.T, g.n_joints))
     if not keep:
         frames = frames[:, -1:]
-    columns = _like(np.ascontiguousarray(frames.transpose(1, 2, 3, 0)), q)  # (F, 4, 3, b)
+    columns = like(np.ascontiguousarray(frames.transpose(1, 2, 3, 0)), q)  # (F, 4, 3, b)
     out = [tuple(f.unbind(0)) for f in columns.unbind(0)]
     if not keep:
         return out, []
-    axes = _like(np.ascontiguousarray(np.stack([z, p], 2).transpose(1, 2, 3, 0)), q)  # (n, 2, 3, b)
+    axes = like(np.ascontiguousarray(np.stack([z, p], 2).transpose(1, 2, 3, 0)), q)  # (n, 2, 3, b)
     return out, [tuple(a.unbind(0)) for a in axes.unbind(0)]
 
 
 def frame_lists(g: Geometry, q: Tensor) -> tuple[list, list]:
-    """One configuration ``q`` (``n`` elements, :func:`untracked_cpu`, not checked) -> its frames as
-    Python floats, for code that works on one configuration without array ops (the envs' single
-    env, one configuration's clearance): the base and every link frame (no tool), ``n + 1``
-    lists ``[x, y, z, p]`` of three floats each (axis columns and origin), and the end-effector
-    frame (tool applied) in the same form. Computed in float64."""
+    """One configuration ``q`` (:func:`untracked_cpu`, not checked) -> its base and link frames, ``n + 1``
+    lists ``[x, y, z, p]`` of three floats (axis columns and origin), and the end-effector frame
+    in the same form; float64."""
     if compiled.ENABLED:
-        frames, _, _, pose = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q))
+        frames, _, _, pose = compiled.kernels().frames_axes(*g.float_arrays, float64_rows(q, g.n_joints))
         return frames[0].tolist(), pose[0, :3].T.tolist()
     one = q.reshape(1, -1)
     return ([f[:3].T.tolist() for f in all_poses(g, one)[0].double()],
@@ -529,19 +455,14 @@ def frame_lists(g: Geometry, q: Tensor) -> tuple[list, list]:
 
 # ---------------------------------------------------------------------- batch first, small batches
 def _link_features(g: Geometry, q: Tensor) -> Tensor:
-    """``q (b, n)`` -> ``(n, b, 2)``: the coefficients ``(f0, f1)`` of each link in
-    :func:`_link_coefficients`: ``(cos, sin)`` of ``q + offset``, or for a prismatic joint
-    ``q + offset`` itself."""
+    """``q (b, n)`` -> ``(n, b, 2)``: each link's ``(f0, f1)`` of :func:`_link_coefficients`."""
     trig = torch.sin(q.T.unsqueeze(-1) + g.trig_phase)  # (n, b, 2): cos, sin
     return torch.where(g.prismatic[..., None], (q.T + g.offsets).unsqueeze(-1), trig) if g.has_prismatic else trig
 
 
 def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
-    """``(b, n)`` -> the n link transforms ``A_i``, each ``(b, 4, 4)``, or ``(4, 4)`` if b is 1
-    (``mm`` on matrices costs less than ``bmm`` on a batch of one). With ``end``, the base is
-    folded into the first and the tool into the last. Each ``A_i`` is linear in the cosine
-    and sine of its angle (or in a prismatic joint's travel), so one batched product with
-    constant coefficients builds them all."""
+    """``(b, n)`` -> the n link transforms, each ``(b, 4, 4)``, or ``(4, 4)`` if b is 1 (``mm`` costs less
+    than ``bmm`` of one); with ``end``, base and tool folded in. One batched product builds them all."""
     n, b = g.n_joints, q.shape[0]
     coeffs, const = (g.end_trig, g.end_const) if end else (g.link_trig, g.link_const)
     links = torch.baddbmm(const, _link_features(g, q), coeffs)  # (n, b, 16)
@@ -549,8 +470,7 @@ def _link_matrices(g: Geometry, q: Tensor, end: bool) -> tuple[Tensor, ...]:
 
 
 def end_pose_matmul(g: Geometry, q: Tensor) -> Tensor:
-    """The small-batch torch kernel: ``q (b, n) -> (b, 4, 4)`` end poses (tool included), a chain
-    of 4x4 products (any batch size)."""
+    """``q (b, n) -> (b, 4, 4)`` end poses as a chain of 4x4 products."""
     product = torch.mm if q.shape[0] == 1 else torch.bmm
     return reduce(product, _link_matrices(g, q, end=True)).view(q.shape[0], 4, 4)
 
@@ -569,8 +489,7 @@ def _frames_matmul(g: Geometry, q: Tensor) -> Tensor:
 
 # ---------------------------------------------------------------------- batch first, any size
 def _axes(g: Geometry, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``(b, n)`` -> joint axes ``z (n, 3, b)``, a point on each ``(n, 3, b)`` and the end
-    position ``(3, b)``: what the Jacobian needs, without stacking whole frames."""
+    """``(b, n)`` -> joint axes ``z (n, 3, b)``, a point on each ``(n, 3, b)`` and the end position ``(3, b)``."""
     if q.shape[0] <= SMALL_BATCH:
         frames = _frames_matmul(g, q)
         axes = frames[:-1]
@@ -592,9 +511,8 @@ def _poses(frames: Tensor) -> Tensor:
 
 
 def blockwise(q: Tensor, n: int, shape: tuple[int, ...], fn, *others: Tensor) -> Tensor:
-    """Apply ``fn: (b, n), *others' blocks -> (b, *shape)`` to blocks of at most ``BLOCK``
-    configurations of ``q (..., n)`` (so each block's intermediates stay in the CPU cache)
-    and return ``(..., *shape)``. ``others`` share ``q``'s leading batch shape."""
+    """``fn: (b, n), *others -> (b, *shape)`` over blocks of ``BLOCK`` rows of ``q (..., n)`` (and of
+    ``others``, sharing its batch shape) -> ``(..., *shape)``; blocks keep the work in the CPU cache."""
     flat = q.reshape(-1, n)
     rest = [o.reshape(flat.shape[0], *o.shape[q.ndim - 1 :]) for o in others]
     if flat.shape[0] <= BLOCK:
@@ -608,9 +526,7 @@ def blockwise(q: Tensor, n: int, shape: tuple[int, ...], fn, *others: Tensor) ->
 
 
 def end_pose(g: Geometry, q: Tensor) -> Tensor:
-    """``q (b, n) -> (b, 4, 4)`` end poses: up to ``SMALL_BATCH`` configurations compiled
-    (:func:`compilable`) or :func:`end_pose_matmul`, else the elementwise kernel (one block: see
-    :func:`blockwise`)."""
+    """``q (b, n) -> (b, 4, 4)`` end poses."""
     if q.shape[0] <= SMALL_BATCH:
         return by_kernel(compiled.kernels().end_poses, g, q, (4, 4)) if compilable(q) else end_pose_matmul(g, q)
     frames, _ = frames_batch_last(g, q.T, keep=False)
@@ -620,10 +536,10 @@ def end_pose(g: Geometry, q: Tensor) -> Tensor:
 def all_poses(g: Geometry, q: Tensor) -> Tensor:
     """``q (b, n) -> (b, n + 1, 4, 4)``: the base and every link frame (no tool)."""
     if q.shape[0] <= SMALL_BATCH and compilable(q):
-        frames = compiled.kernels().frames_axes(*g.float_arrays, _compiled_arrays(g, q))[0]  # (b, n + 1, 4, 3)
+        frames = compiled.kernels().frames_axes(*g.float_arrays, float64_rows(q, g.n_joints))[0]  # (b, n + 1, 4, 3)
         out = np.zeros((*frames.shape[:2], 4, 4))
         out[..., :3, :], out[..., 3, 3] = frames.transpose(0, 1, 3, 2), 1.0
-        return _like(out, q)
+        return like(out, q)
     if q.shape[0] <= SMALL_BATCH:
         return _frames_matmul(g, q).transpose(0, 1)
     frames, _ = frames_batch_last(g, q.T)
@@ -638,11 +554,9 @@ def _prismatic_rows(g: Geometry, revolute: Tensor, sliding: Tensor) -> Tensor:
 
 
 def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
-    """The backward pass of :func:`end_pose`: angles ``(b, n)``, their end poses ``(b, 4, 4)`` and
-    the gradient of a loss with respect to those poses -> its gradient ``(b, n)`` with
-    respect to the angles, computed batch last:
-    ``dL/dq_i = z_i . ((p_e - p_i) x g + w)``, with ``g = dL/dp`` and ``w = sum_k R[:, k] x G[:, k]``
-    (``G = dL/dR``) the axial vector of ``R G^T``; ``z_i . g`` for a prismatic joint."""
+    """Backward of :func:`end_pose`: ``q (b, n)``, poses ``(b, 4, 4)``, ``dL/dpose`` -> ``dL/dq (b, n)``:
+    ``z_i . ((p_e - p_i) x g + w)``, ``g = dL/dp``, ``w = sum_k R[:, k] x G[:, k]`` (``G = dL/dR``);
+    ``z_i . g`` for a prismatic joint."""
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
     gt = grad[:, :3].permute(1, 2, 0).contiguous()  # (3, 4, b): rows of dL/dT, batch last
     w = [c.sum(0) for c in _cross(pose[:, :3, :3].permute(1, 2, 0), gt[:, :3])]  # sum over columns k
@@ -653,8 +567,7 @@ def pose_vjp(g: Geometry, q: Tensor, pose: Tensor, grad: Tensor) -> Tensor:
 
 
 def jacobian(g: Geometry, q: Tensor) -> Tensor:
-    """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first);
-    up to ``SMALL_BATCH`` :func:`compilable` configurations compiled."""
+    """``q (b, n) -> (b, 6, n)``: the geometric Jacobian in the world frame (linear rows first)."""
     if q.shape[0] <= SMALL_BATCH and compilable(q):
         return by_kernel(compiled.kernels().jacobians, g, q, (6, g.n_joints))
     z, origin, end = _axes(g, q)  # (n, 3, b), (n, 3, b), (3, b)
@@ -667,10 +580,8 @@ def jacobian(g: Geometry, q: Tensor) -> Tensor:
 
 
 class EndPoseFunction(torch.autograd.Function):
-    """``EndPoseFunction.apply(q, g)``: ``q (..., n) -> (..., 4, 4)`` end poses with a closed-form
-    backward: the pose moves as ``dT/dq_i = [z_i]x T`` about joint i's axis, so
-    ``dL/dq = J^T [g_p; w]``, with ``g_p = dL/dp`` and ``w`` the axial vector of ``R (dL/dR)^T``
-    (:func:`pose_vjp`): the joint axes instead of a replay of every op of the forward."""
+    """``EndPoseFunction.apply(q, g)``: ``q (..., n) -> (..., 4, 4)`` end poses whose backward is
+    ``J^T`` times the pose gradient's twist (:func:`pose_vjp`), not a replay of the forward."""
 
     @staticmethod
     def forward(q: Tensor, g: Geometry) -> Tensor:

@@ -1,7 +1,5 @@
-"""Robots: the presets, DH chains with their joint limits and speeds (data: docs/robots.md's
-sources), and :func:`from_urdf` for any serial arm described by a URDF file.
-
-Each function returns a fresh chain in float64.
+"""Robots: the presets (DH chains with limits and speeds, sources in docs/robots.md) and
+:func:`from_urdf` for any serial arm in a URDF file. Each returns a fresh float64 chain.
 """
 
 from __future__ import annotations
@@ -109,17 +107,10 @@ PRESETS = {"iiwa14": iiwa14, "iiwa7": iiwa7, "puma560": puma560, "lrmate200ic": 
 
 
 def from_urdf(source: str | os.PathLike, end_link: str | None = None, base_link: str | None = None) -> Chain:
-    """The serial chain from ``base_link`` (default: the tree's root) to ``end_link`` (default: the
-    only leaf) of a URDF file, given as a path or as the XML text (needs the ``urdf`` extra:
-    ``pip install 'iiwa-torch[urdf]'``, whose pytorch-kinematics parses the file).
-
-    Fixed joints are folded into the constant transforms, those past the last movable joint
-    into ``tool``; joints off the path are ignored. The numbers are kept as the file writes them,
-    in float64. Limits and speeds come from the ``<limit>`` elements (a continuous joint has
-    none). ``fk_all`` gives the base link, then the child link of each movable joint. Raises
-    ``ValueError`` naming the problem for a malformed file, an unknown link, a branching tree
-    without ``end_link``, or a floating, planar or mimic joint on the path
-    (:func:`iiwa_torch.urdf.read_urdf`).
+    """The chain of a URDF (a path or the XML text; the ``urdf`` extra) from ``base_link`` (default the
+    root) to ``end_link`` (default the only leaf), as :func:`iiwa_torch.urdf.read_urdf` reads it:
+    fixed joints folded in, limits and speeds from ``<limit>``. ``fk_all`` gives the base link, then
+    each movable joint's child link.
     """
     from .urdf import read_urdf
 

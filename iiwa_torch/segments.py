@@ -1,9 +1,6 @@
-"""The closest points of two segments: one formula for every backend.
-
-:func:`closest_parameters` takes the dot products of two segments and the ``where``, clamp and
-division of a library (torch, numpy, Python floats, or numba compiling the float helpers
-below), so the collision kernels of :mod:`iiwa_torch.collision` and the compiled ones of
-:mod:`iiwa_torch.compiled.numba_kernels` run the same operations in the same order.
+"""The closest points of two segments, one formula for every backend: :func:`closest_parameters` takes
+a library's ``where``, clamp and division (torch, numpy, Python floats, numba), so the torch and
+compiled collision kernels run the same operations in the same order.
 """
 
 from __future__ import annotations
@@ -18,10 +15,9 @@ EPS = float(np.finfo(np.float64).eps)  # a Python float: a numpy scalar would ma
 
 
 def closest_parameters(a, e, b, c, f, where, unit, div=operator.truediv):
-    """The closest-point parameters ``s, t`` of two segments ``p1 + s d1``, ``p2 + t d2`` from the
-    dot products ``a = d1.d1``, ``e = d2.d2``, ``b = d1.d2``, ``c = d1.r``, ``f = d2.r``
-    (``r = p1 - p2``), float64 arrays of torch or numpy, or Python floats: ``where``, ``unit``
-    (clamp into [0, 1]) and ``div`` (a quotient ``where`` may discard) are that library's."""
+    """Closest-point parameters ``s, t`` of segments ``p1 + s d1``, ``p2 + t d2`` from ``a = d1.d1``,
+    ``e = d2.d2``, ``b = d1.d2``, ``c = d1.r``, ``f = d2.r`` (``r = p1 - p2``); ``where``, ``unit``
+    (clamp into [0, 1]) and ``div`` are the library's."""
     eps = EPS
     ae = a * e
     denom = ae - b * b

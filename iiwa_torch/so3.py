@@ -1,9 +1,7 @@
-"""Batched rotation maths: quaternions, the SO(3) log/exp maps, roll-pitch-yaw, pose error.
+"""Batched, differentiable rotation maths: quaternions, SO(3) log/exp, roll-pitch-yaw, pose error.
 
-Conventions: rotations are ``(..., 3, 3)`` matrices, quaternions are ``(..., 4)`` in
-``(w, x, y, z)`` order with ``w >= 0``, rotation vectors are ``(..., 3)`` (axis times angle,
-radians), poses are ``(..., 4, 4)`` homogeneous transforms. Every function is batched over
-any leading shape and differentiable; none edits its input.
+Rotations ``(..., 3, 3)``, quaternions ``(..., 4)`` as ``(w, x, y, z)`` with ``w >= 0``, rotation
+vectors ``(..., 3)`` (axis times angle, rad), poses ``(..., 4, 4)``.
 """
 
 from __future__ import annotations
@@ -40,11 +38,8 @@ def skew(v: torch.Tensor) -> torch.Tensor:
 
 
 def exp(rotvec: torch.Tensor) -> torch.Tensor:
-    """Rotation vector ``(..., 3)`` (radians) -> rotation matrix ``(..., 3, 3)`` (Rodrigues).
-
-    Uses Taylor series for small angles so values and gradients stay finite at zero. A vector
-    whose squared norm overflows (beyond ~1e154 rad in float64, 1e19 in float32) is a ValueError.
-    """
+    """Rotation vector ``(..., 3)`` (rad) -> rotation ``(..., 3, 3)`` (Rodrigues; Taylor series near zero
+    keep values and gradients finite). ValueError if the squared norm overflows."""
     check_tensor(rotvec, "rotvec", (3,))
     theta2 = (rotvec * rotvec).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
     if not all_finite(theta2):
@@ -61,11 +56,8 @@ def exp(rotvec: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_quaternion(rot: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix ``(..., 3, 3)`` -> unit quaternion ``(..., 4)``, ``(w, x, y, z)``, ``w >= 0``.
-
-    Each of the four components can be the one recovered from the diagonal; the largest
-    is taken (Shepperd's method), so the result is accurate near a half turn too.
-    """
+    """Rotation ``(..., 3, 3)`` -> unit quaternion ``(..., 4)``, ``w >= 0``; Shepperd's method (the
+    largest component from the diagonal), accurate near a half turn too."""
     check_tensor(rot, "rot", (3, 3))
     return _quaternion_of(rot)
 
@@ -120,12 +112,8 @@ def quaternion_to_matrix(quat: torch.Tensor) -> torch.Tensor:
 
 
 def log(rot: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix ``(..., 3, 3)`` -> rotation vector ``(..., 3)``, angle in ``[0, pi]``.
-
-    Goes through the quaternion, so it is stable near the identity (series) and near a
-    half turn (no division by ``sin(angle)``). At exactly a half turn the sign of the axis
-    is arbitrary, as it must be. ``rot`` must be a rotation (:func:`check_rotation`).
-    """
+    """Rotation ``(..., 3, 3)`` (:func:`check_rotation`) -> rotation vector ``(..., 3)``, angle in ``[0, pi]``;
+    through the quaternion, so stable near the identity and near a half turn."""
     check_rotation(rot, "rot")
     return _log(rot)
 
@@ -142,10 +130,8 @@ def _log(rot: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_rpy(rot: torch.Tensor) -> torch.Tensor:
-    """Rotation ``(..., 3, 3)`` -> roll, pitch, yaw ``(..., 3)`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
-
-    This is URDF's ``rpy``. At pitch = +-pi/2 (gimbal lock) roll is set to 0.
-    """
+    """Rotation ``(..., 3, 3)`` -> URDF's roll, pitch, yaw ``(..., 3)``, ``R = Rz(yaw) Ry(pitch) Rx(roll)``;
+    roll 0 at gimbal lock."""
     check_tensor(rot, "rot", (3, 3))
     r20 = rot[..., 2, 0].clamp(-1, 1)
     pitch = torch.asin(-r20)
@@ -181,7 +167,7 @@ def check_pose(pose: torch.Tensor, name: str = "pose") -> None:
 
 def check_rotation(rot: torch.Tensor, name: str = "rot") -> None:
     """Raise ``TypeError``/``ValueError`` unless ``rot`` is a finite float ``(..., 3, 3)`` batch of
-    rotations, within :func:`check_rigid`'s tolerance (checked as poses without translation)."""
+    rotations, within :func:`check_rigid`'s tolerance."""
     check_tensor(rot, name, (3, 3))
     pose = torch.nn.functional.pad(rot.detach(), (0, 1, 0, 1))  # (..., 4, 4), bottom row 0 0 0 0
     pose[..., 3, 3] = 1.0
@@ -196,8 +182,8 @@ _RIGID_NUMPY_BATCH = 64  # up to this many CPU poses check_rigid computes in num
 
 
 def _rigid_deviation_numpy(pose: np.ndarray) -> float:
-    """:func:`check_rigid`'s measure over ``pose (b, 4, 4)`` in numpy (one pose in Python floats):
-    the largest ``|R^T R - I|`` or bottom-row deviation, inf if some ``det R <= 0``."""
+    """:func:`check_rigid`'s largest deviation over ``pose (b, 4, 4)`` in numpy (one pose in Python
+    floats), inf if some ``det R <= 0``."""
     if pose.shape[0] == 1:
         a, b, c, _, d, e, f, _, g, h, k, _, w0, w1, w2, w3 = pose.reshape(16).tolist()
         gram = (a * a + d * d + g * g - 1, b * b + e * e + h * h - 1, c * c + f * f + k * k - 1,
@@ -212,11 +198,9 @@ def _rigid_deviation_numpy(pose: np.ndarray) -> float:
 
 
 def check_rigid(pose: torch.Tensor, name: str = "pose", exact_bottom_row: bool = False) -> None:
-    """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` batch of
-    rigid transforms: rotation ``R`` with ``|R^T R - I| <= tol`` entrywise and ``det R > 0``, and
-    bottom row ``[0, 0, 0, 1]`` within ``tol`` (exactly if ``exact_bottom_row``); ``tol =
-    RIGID_TOL[dtype]`` (1e-6 in float64, 1e-5 in float32: FK rounding stays far below). One fused
-    check over the batch (a single sync)."""
+    """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` batch of rigid
+    transforms: ``|R^T R - I| <= tol`` entrywise, ``det R > 0``, bottom row ``[0, 0, 0, 1]`` within
+    ``tol`` (exactly if ``exact_bottom_row``), ``tol = RIGID_TOL[dtype]``."""
     check_pose(pose, name)
     if pose.numel() == 0:
         return
@@ -247,13 +231,8 @@ def check_rigid(pose: torch.Tensor, name: str = "pose", exact_bottom_row: bool =
 
 
 def pose_error(pose: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Error that takes ``pose`` to ``target``, both ``(..., 4, 4)``, expressed in the base frame.
-
-    Returns ``(pos_err, rot_err)``, each ``(..., 3)``: ``target_p - pose_p`` (metres) and
-    ``log(target_R pose_R^T)`` (radians), the rotation vector that turns ``pose`` into
-    ``target``. Both pair with the geometric Jacobian's rows: ``J dq ~ (pos_err, rot_err)``.
-    Both must be rigid (:func:`check_rigid`).
-    """
+    """The error taking rigid ``pose`` to ``target`` ``(..., 4, 4)``, in the base frame: ``target_p - pose_p``
+    (m) and ``log(target_R pose_R^T)`` (rad), each ``(..., 3)``, so that ``J dq ~ (pos_err, rot_err)``."""
     check_rigid(pose, "pose")
     check_rigid(target, "target")
     if pose.dtype != target.dtype or pose.device != target.device:

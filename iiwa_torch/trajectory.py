@@ -1,18 +1,8 @@
-"""Trajectories: quintic joint-space moves, straight Cartesian lines, IK tracking, time scaling.
+"""Trajectories: quintic joint moves (:func:`jtraj`), straight Cartesian lines (:func:`ctraj`),
+IK along a path (:func:`track`) and time scaling (:func:`shortest_duration`, :func:`sampled_duration`).
 
-- :func:`jtraj`: quintic polynomial from ``q0`` to ``q1`` (zero or given boundary
-  velocities, zero boundary accelerations), batched over start/goal pairs, differentiable;
-- :func:`ctraj`: straight line in position, slerp in orientation, ``(..., T, 4, 4)``;
-- :func:`track`: IK at every pose of a Cartesian path, each step started from the previous
-  solution, so the joint path has no jumps (gradient IK, or the closed forms);
-- :func:`shortest_duration`: the shortest rest-to-rest :func:`jtraj` duration that keeps
-  every joint within the chain's speed limits; :func:`sampled_duration` the same for any
-  path sampled at even times (e.g. a tracked one).
-
-Time arguments ``t`` are either a number of steps ``T`` (an int >= 2: samples evenly over a
-move of unit duration, so velocities are per unit of that normalised time) or a time vector
-in seconds, shape ``(T,)`` or ``(..., T)`` (increasing; the move runs from ``t[..., 0]`` to
-``t[..., -1]`` and velocities are in rad/s).
+A time argument ``t`` is a step count ``T >= 2`` (a move of unit duration: velocities per unit
+time) or an increasing time vector ``(T,)`` / ``(..., T)`` in seconds (velocities in rad/s).
 """
 
 from __future__ import annotations
@@ -66,15 +56,8 @@ _BRANCH_FIELDS = ("q", "valid", "reachable", "within_limits", "clearance", "coll
 
 @dataclass(frozen=True)
 class JointTrajectory:
-    """Samples of a joint-space trajectory, each ``(..., T, n)``.
-
-    Attributes:
-        q: positions (rad).
-        qd: velocities (rad/s, or rad per unit duration when ``t`` was a step count).
-        qdd: accelerations (rad/s^2, or per unit duration squared).
-        min_clearance: ``(...)`` smallest clearance over the ``T`` samples (m) when a world was
-            given, else None.
-    """
+    """Samples ``(..., T, n)`` of a joint path: ``q`` (rad), ``qd`` (rad/s), ``qdd`` (rad/s^2), per unit
+    time when ``t`` was a step count; ``min_clearance (...)`` (m) over the samples when a world was given."""
 
     q: Tensor
     qd: Tensor
@@ -84,19 +67,10 @@ class JointTrajectory:
 
 @dataclass(frozen=True)
 class TrackResult:
-    """IK along a Cartesian path of ``T`` poses, for a batch of paths with leading shape ``(...)``.
-
-    Attributes:
-        q: ``(..., T, n)`` joint angles (rad) solving each pose.
-        success: ``(..., T)`` bool, the IK met its tolerances at that pose.
-        pos_err: ``(..., T)`` position error norm of ``fk(q)`` against the pose (m).
-        rot_err: ``(..., T)`` rotation error angle (rad).
-        max_step: ``(...)`` largest change of any joint between consecutive steps (rad).
-        clearance: ``(..., T)`` clearance of each step (m) when a world was given, else None.
-        collision_free: ``(..., T)`` bool, ``clearance >= margin``, when a world was given, else
-            None; ``success`` requires it.
-        min_clearance: ``(...)`` smallest clearance along the path (m) when a world was given, else None.
-    """
+    """IK along paths of ``T`` poses: ``q (..., T, n)`` (rad); per pose ``success`` (tolerances met,
+    and ``collision_free`` with a world), ``pos_err`` (m), ``rot_err`` (rad); ``max_step (...)``, the
+    largest joint change between steps (rad). With a world: ``clearance (..., T)`` (m),
+    ``collision_free`` (``clearance >= margin``) and ``min_clearance (...)``; else None."""
 
     q: Tensor
     success: Tensor
@@ -109,8 +83,7 @@ class TrackResult:
 
 
 def _times(t, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    """``t`` (step count or time vector) -> normalised times ``s (..., T)`` in [0, 1] and the
-    duration ``(..., 1)``."""
+    """``t`` -> normalised times ``s (..., T)`` in [0, 1] and the duration ``(..., 1)``."""
     if is_integer(t):
         if t < 2:
             raise ValueError(f"t as a number of steps must be at least 2, got {t}")
@@ -138,21 +111,12 @@ def jtraj(
     world: World | None = None,
     capsules: Capsules | None = None,
 ) -> JointTrajectory:
-    """Quintic joint-space trajectory from ``q0`` to ``q1``.
+    """Quintic from ``q0`` to ``q1`` ``(..., n)`` (rad, broadcast), zero boundary accelerations.
 
-    Args:
-        q0, q1: ``(..., n)`` start and goal joint angles (rad), broadcast together.
-        t: number of steps ``T`` or a time vector ``(T,)`` / ``(..., T)`` in seconds (module doc).
-        qd0, qd1: optional ``(..., n)`` boundary velocities (default 0), in the units of ``t``.
-        chain, world, capsules: with a world (and the chain it is checked for), the result's
-            ``min_clearance`` is the smallest :func:`iiwa_torch.collision.clearance` over the
-            samples (the world's batch shape broadcasting with ``(...)``).
-
-    Returns:
-        :class:`JointTrajectory` with ``q, qd, qdd`` each ``(..., T, n)``; boundary
-        accelerations are zero. Differentiable in every input. NaN or inf in an input is a
-        ``ValueError`` (as in :func:`ctraj` and :func:`track`), and so is a duration so short
-        that the velocities or accelerations overflow.
+    ``t``: step count or time vector (module doc); ``qd0, qd1``: boundary velocities (default 0).
+    With ``chain`` and ``world``, ``min_clearance`` is the smallest clearance over the samples.
+    Differentiable. Raises ``ValueError`` for NaN/inf inputs or a duration too short for finite
+    velocities.
     """
     _check_jtraj_inputs(q0, q1, qd0, qd1, t, chain, world, capsules)
     s, duration = _times(t, q0.dtype, q0.device)  # (..., T), (..., 1)
@@ -165,8 +129,7 @@ def jtraj(
 
 
 def _check_jtraj_inputs(q0, q1, qd0, qd1, t, chain, world, capsules) -> None:
-    """:func:`jtraj`'s input checks: finite float ``(..., n)`` tensors of one dtype and device that
-    broadcast together, a world only with its chain, and outputs that fit in memory."""
+
     check_world(world, 0.0, capsules)
     if (world is None) != (chain is None):
         raise ValueError("jtraj needs both chain= and world= to report the clearance (World() is the floor at z = 0)")
@@ -188,9 +151,8 @@ def _check_jtraj_inputs(q0, q1, qd0, qd1, t, chain, world, capsules) -> None:
 
 
 def _quintic(q0: Tensor, q1: Tensor, qd0, qd1, s: Tensor, duration: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The quintic from ``q0`` to ``q1`` (boundary velocities ``qd0, qd1`` or zero, accelerations
-    zero) at normalised times ``s (..., T)`` of a move lasting ``duration (..., 1)`` -> ``q, qd,
-    qdd``, each ``(..., T, n)``."""
+    """The quintic at normalised times ``s (..., T)`` of a move lasting ``duration (..., 1)`` ->
+    ``q, qd, qdd``, each ``(..., T, n)``."""
     shape = torch.broadcast_shapes(*(x.shape for x in (q0, q1, qd0, qd1) if x is not None), duration.shape)
     delta = (q1 - q0).expand(shape)
     v0 = torch.zeros_like(delta) if qd0 is None else (qd0 * duration).expand(shape)  # d q / d s at the ends
@@ -227,25 +189,18 @@ def _check_same_kind(names: tuple[str, ...], values: tuple) -> None:
 
 
 def path_clearance(chain: Chain, q: Tensor, world: World, capsules: Capsules | None = None) -> Tensor:
-    """Clearance (m) of every sample of joint paths ``q (..., T, n) -> (..., T)``, against a
-    world whose batch shape broadcasts with the paths' ``(...)``. Only the samples are
-    checked, not the motion between them."""
+    """Clearance (m) of each sample of paths ``q (..., T, n) -> (..., T)`` (not between samples);
+    the world's batch shape broadcasts with ``(...)``."""
     check_instance(world, World, "world")
     step = world.map_batch(lambda t, k: t.unsqueeze(t.ndim - k))  # a dim for T before the obstacle dims
     return clearance(chain, q, step, capsules)
 
 
 def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
-    """Cartesian straight line from pose ``T0`` to pose ``T1``: ``(..., T, 4, 4)``.
+    """Straight line from pose ``T0`` to ``T1`` ``(..., 4, 4)`` -> ``(..., T, 4, 4)``, differentiable.
 
-    Args:
-        T0, T1: ``(..., 4, 4)`` poses (m), broadcast together.
-        t: number of steps or a time vector (module doc).
-        profile: ``"linear"`` (constant speed along the line and constant angular rate) or
-            ``"quintic"`` (starts and stops at rest: the path parameter follows :func:`jtraj`).
-
-    The position moves on the segment ``p0 -> p1``; the rotation is ``R0 exp(s log(R0^T R1))``
-    (slerp: the shortest rotation, at a constant rate about a fixed axis). Differentiable.
+    Position on the segment, rotation ``R0 exp(s log(R0^T R1))`` (slerp). ``profile``: ``"linear"``
+    (constant rates) or ``"quintic"`` (``s`` follows :func:`jtraj`: starts and stops at rest).
     """
     check_choice(profile, get_args(Profile), "profile")
     so3.check_rigid(T0, "T0")
@@ -267,12 +222,8 @@ def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
 
 
 def shortest_duration(chain: Chain, q0: Tensor, q1: Tensor, *, speed_scale: float = 1.0) -> Tensor:
-    """Shortest duration (s) of a rest-to-rest :func:`jtraj` from ``q0`` to ``q1`` ``(..., n)``
-    that keeps every joint within ``speed_scale * chain.velocity_limits``: ``(...)``.
-
-    A quintic with zero boundary velocities peaks at ``15/8 |q1 - q0| / duration`` half way,
-    so the answer is ``max_j 15/8 |q1_j - q0_j| / (speed_scale * vmax_j)`` (0 for no motion).
-    """
+    """Shortest duration (s) ``(...)`` of a rest-to-rest :func:`jtraj` from ``q0`` to ``q1`` ``(..., n)``
+    within ``speed_scale * chain.velocity_limits``: ``max_j 15/8 |q1_j - q0_j| / vmax_j``."""
     vmax = _speed_limits(chain, speed_scale, q0.dtype)
     chain.check_q(q0, "q0")
     chain.check_q(q1, "q1")
@@ -280,12 +231,8 @@ def shortest_duration(chain: Chain, q0: Tensor, q1: Tensor, *, speed_scale: floa
 
 
 def sampled_duration(chain: Chain, q: Tensor, *, speed_scale: float = 1.0) -> Tensor:
-    """Shortest duration (s) for a path sampled at evenly spaced times, ``q (..., T, n)``, such
-    that no joint's finite-difference speed ``|q[t + 1] - q[t]| / dt`` exceeds
-    ``speed_scale * chain.velocity_limits``: ``(...)``, equal to ``(T - 1) dt``.
-
-    Use it for paths without a closed form, e.g. the joint path of :func:`track`.
-    """
+    """Shortest duration (s) ``(...)`` of a path sampled at even times, ``q (..., T, n)`` (e.g. from
+    :func:`track`), whose finite-difference speeds stay within ``speed_scale * chain.velocity_limits``."""
     vmax = _speed_limits(chain, speed_scale, q.dtype)
     chain.check_q(q)
     if q.ndim < 2 or q.shape[-2] < 2:
@@ -316,47 +263,27 @@ def track(
     margin: float = 0.0,
     capsules: Capsules | None = None,
 ) -> TrackResult:
-    """Inverse kinematics along Cartesian paths, each step started from the previous solution.
+    """IK at each pose of paths ``poses (..., T, 4, 4)`` (m), each step started from the last answer.
 
-    Args:
-        chain: the robot.
-        poses: ``(..., T, 4, 4)`` end-effector poses (m), e.g. from :func:`ctraj`.
-        q0: ``(..., n)`` configuration to start from (rad), normally one that reaches ``poses[..., 0]``.
-        method: ``"gradient"``: :func:`iiwa_torch.ik.solve` from the previous solution only (one
-            seed, no random restart elsewhere; ``rest_gain`` pulls the redundant iiwa toward
-            ``q0`` in the null space). ``"analytic"``: the closed forms, taking the solution nearest to
-            the previous one: among Pieper's 8 branches for 6R arms; for the iiwa, among the 8
-            branches at arm angles near the previous one's (a log-spaced search, then zooms; about
-            600 candidates per pose and step, exact to rounding), or, where none of those is within
-            the limits, :func:`~iiwa_torch.ik.analytic.iiwa_solve` over the whole arm-angle circle.
-            Both methods thus take (close to) the smallest joint step at each pose.
-        pos_tol, rot_tol: success tolerances at each pose (m, rad).
-        rest_gain: null-space gain of the gradient method (0 to 1).
-        world, margin, capsules: optional obstacles (batch shape broadcasting with the paths'
-            ``(...)``), the clearance required (m, >= 0) and the capsule model. The analytic
-            method then takes, at each step, the nearest solution whose clearance is at least
-            ``margin`` (for the iiwa: any arm angle, searching the whole circle when none near
-            the last one clears); where none exists it keeps the nearest in-limit solution,
-            colliding, and says so in ``collision_free``. The gradient method passes ``world``,
-            ``margin`` and ``capsules`` to :func:`iiwa_torch.ik.solve` at each step.
-
-    Returns:
-        :class:`TrackResult`: joint path, per-step errors and success, and the largest joint step;
-        with a world, also each step's clearance, whether it clears ``margin`` (``success``
-        requires it) and the path's smallest clearance. Check ``max_step``: a large value means
-        a branch switch, a swing around an obstacle or a failure along the way.
+    ``q0 (..., n)``: the start, normally reaching ``poses[..., 0]``. ``method="gradient"``:
+    :func:`iiwa_torch.ik.solve` with one seed, the previous answer (``rest_gain`` pulls the iiwa
+    toward ``q0`` in the null space). ``"analytic"``: the closed-form branch nearest the previous
+    answer (Pieper for 6R arms; for the iiwa a log-spaced, then zoomed, search of arm angles near
+    the last one, else :func:`~iiwa_torch.ik.analytic.iiwa_solve` over the whole circle).
+    ``pos_tol, rot_tol``: success tolerances (m, rad). With ``world``, a step must clear
+    ``margin`` (m); the analytic method keeps the nearest in-limit solution where none does.
+    A large ``max_step`` in the result means a branch switch or a failure along the way.
     """
     batch, options = _check_track(chain, poses, q0, method, pos_tol, rot_tol, rest_gain, world, margin, capsules)
     if method == "gradient":
-        q = _track_gradient(chain, poses, q0, batch, options, (world, margin, capsules))
+        q = _track_gradient(chain, poses, q0, batch, options, world, margin, capsules)
     else:
         q = _track_loop(poses, q0, _analytic_stepper(chain, pos_tol, rot_tol, batch, world, margin, capsules))
     return _track_result(chain, q, poses, pos_tol, rot_tol, world, margin, capsules)
 
 
 def _check_track(chain, poses, q0, method, pos_tol, rot_tol, rest_gain, world, margin, capsules):
-    """:func:`track`'s input checks -> the paths' batch shape and, for the gradient method, the
-    :class:`~iiwa_torch.ik.SolveOptions` of each pose's solve (else None)."""
+    """-> the paths' batch shape, and the gradient method's :class:`~iiwa_torch.ik.SolveOptions` (else None)."""
     from .ik import SolveOptions
 
     check_instance(chain, Chain, "chain")
@@ -384,12 +311,10 @@ def _check_track(chain, poses, q0, method, pos_tol, rot_tol, rest_gain, world, m
     return batch, options
 
 
-def _track_gradient(chain: Chain, poses: Tensor, q0: Tensor, batch: torch.Size, options, obstacle_args) -> Tensor:
-    """The gradient method's joint path ``(..., T, n)``: :func:`iiwa_torch.ik.solve` at each pose
-    with ``options``, from the previous answer, ``rest=q0``."""
+def _track_gradient(chain: Chain, poses: Tensor, q0: Tensor, batch: torch.Size, options, world, margin, capsules):
+    """The gradient method's joint path ``(..., T, n)``."""
     from .ik import lm_compiled, solve
 
-    world, margin, capsules = obstacle_args
     if batch == poses.shape[:-3] and lm_compiled.handles(poses, q0, q0, world, batch.numel()):
         # a few CPU paths: every step of the loop below in one call, the same answers
         return lm_compiled.track_compiled(chain, poses, q0, options)
@@ -414,8 +339,7 @@ def _track_loop(poses: Tensor, q0: Tensor, step) -> Tensor:
 
 def _track_result(chain: Chain, q: Tensor, poses: Tensor, pos_tol: float, rot_tol: float, world, margin: float,
                   capsules) -> TrackResult:
-    """Score a joint path ``q (..., T, n)`` against ``poses``: errors, success, largest joint
-    step and, with a world, each step's clearance."""
+    """Score a joint path ``q (..., T, n)`` against ``poses``."""
     pos_vec, rot_vec = so3.pose_error(chain.fk(q), poses)
     pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
     steps = q.diff(dim=-2).abs().amax(-1)  # (..., T - 1)
@@ -431,11 +355,8 @@ def _track_result(chain: Chain, q: Tensor, poses: Tensor, pos_tol: float, rot_to
 
 
 def _nearest(chain: Chain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Of the candidates ``sol.q (..., B, n)`` (closed-form branches), the one nearest to
-    ``q_prev (..., n)``: valid ones first, then reachable ones within the limits (colliding, when
-    ``sol`` was checked against a world), then the other reachable ones (clamped). Returns
-    ``q (..., n)``, its index ``(...)``, whether it is valid and whether it is reachable and
-    within the limits ``(...)``."""
+    """The branch of ``sol.q (..., B, n)`` nearest ``q_prev (..., n)``: valid ones first, then reachable
+    in-limit ones, then other reachable ones (clamped) -> ``q``, its index, valid, reachable and in limits."""
     dist = (sol.q - q_prev[..., None, :]).square().sum(-1)  # (..., B)
     penalty = 1e6 * (~sol.valid).to(dist.dtype) + 2e6 * (~sol.within_limits).to(dist.dtype)
     key = torch.where(sol.reachable, dist + penalty, torch.full_like(dist, math.inf))
@@ -449,13 +370,10 @@ def _nearest(chain: Chain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor,
 
 
 def _near_arm_angle(chain: Chain, pose: Tensor, q_prev: Tensor, world: World | None, margin: float, capsules):
-    """iiwa: the closed-form solution of ``pose (B, 4, 4)`` nearest to ``q_prev (B, 7)`` over
-    arm angles near the previous one's: offsets from 1e-6 to pi either side on a log scale,
-    then ``_ZOOMS`` finer rounds around the best (0 is in every round, so the pick never gets
-    farther). Near a shoulder or wrist alignment the nearest solution sits in an arm-angle
-    window of about a milliradian, which an even grid misses. ``world`` (one row per pose, or
-    shared) makes colliding branches invalid. Returns ``q``, ``found`` (valid) and whether it
-    is reachable and within the limits."""
+    """iiwa: the solution of ``pose (B, 4, 4)`` nearest ``q_prev (B, 7)`` over arm-angle offsets from 1e-6
+    to pi on a log scale, then ``_ZOOMS`` finer rounds (0 in each, so the pick never gets farther).
+    Near a shoulder or wrist alignment the nearest solution sits in an arm-angle window of about a
+    milliradian, which an even grid misses. -> ``q``, ``found`` (valid), reachable and in limits."""
     from .ik import analytic
 
     steps = torch.logspace(-6, math.log10(math.pi), _LOG_STEPS, dtype=pose.dtype, device=pose.device)

@@ -1,19 +1,10 @@
-"""URDF both ways: :func:`to_urdf` writes any :class:`~iiwa_torch.chain.Chain` so other tools
-load the same robot; :func:`read_urdf` reads the serial path between two links of any URDF as
-plain float64 data (:class:`UrdfPath`), which :func:`iiwa_torch.robots.from_urdf` makes a chain.
+"""URDF both ways: :func:`to_urdf` writes any :class:`~iiwa_torch.chain.Chain`; :func:`read_urdf` reads
+the serial path between two links of a URDF as float64 data (:class:`UrdfPath`), and
+:func:`read_collisions`/:func:`read_visuals` the geometry moving with its frames.
 
-Export: links are ``base_link``, the chain's ``link_names`` (``link1`` ... ``linkN`` for a DH
-chain) and ``tool0`` (the end effector); a chain read from a URDF keeps its origins and axes
-(the base folded into the first origin), so its link frames survive the round trip. A DH
-chain's revolute joint i sits where DH rotates about z, so its link i is the frame just after
-that rotation (not DH frame i, which is a constant transform further):
-
-- standard DH: its origin is the previous link's constant part ``Tz(d) Tx(a) Rx(alpha)``
-  (the base transform for joint 1) times ``Rz(offset)``;
-- modified DH: its origin is ``Tz(d_prev) Rx(alpha) Tx(a) Rz(offset)``.
-
-A fixed joint ``tool_joint`` carries the last constant part and the tool transform. Links
-have no visuals and a token inertia (kinematics only).
+Export: links ``base_link``, the chain's ``link_names``, ``tool0``, with a token inertia. A DH
+chain's link i is the frame just after joint i's rotation (not DH frame i); a fixed
+``tool_joint`` carries the last constant part and the tool.
 """
 
 from __future__ import annotations
@@ -50,7 +41,9 @@ def _link(name: str) -> str:
 
 
 def _dh_joints(chain: DHChain) -> tuple[list[torch.Tensor], list[tuple[float, float, float]], torch.Tensor]:
-    """A DH chain's joint origins (z axes), and the transform left after the last joint."""
+    """A DH chain's joint origins and axes (z), and the transform left after the last joint: standard DH's
+    origin i is the previous row's ``Tz(d) Tx(a) Rx(alpha)`` (the base for joint 1) times ``Rz(offset)``,
+    modified DH's ``Tz(d_prev) Rx(alpha) Tx(a) Rz(offset)``."""
     carry = chain.base.detach().cpu().to(torch.float64)  # constant transform waiting to be placed
     origins = []
     for a, alpha, d, offset in chain.dh.detach().cpu().to(torch.float64).tolist():
@@ -64,8 +57,7 @@ def _dh_joints(chain: DHChain) -> tuple[list[torch.Tensor], list[tuple[float, fl
 
 
 def to_urdf(chain: Chain, name: str | None = None) -> str:
-    """The chain as a URDF document (a string), joint kinds, limits and speeds included, numbers
-    written to round-trip in float64 (``from_urdf(to_urdf(c))`` has ``c``'s frames)."""
+    """The chain as a URDF string, with kinds, limits and speeds; ``from_urdf(to_urdf(c))`` has ``c``'s frames."""
     robot = name or chain.name
     if isinstance(chain, DHChain):
         origins, axes, carry = _dh_joints(chain)
@@ -100,13 +92,9 @@ Matrix = tuple[tuple[float, float, float, float], ...]  # 4x4, row-major
 
 @dataclass(frozen=True)
 class UrdfJoint:
-    """One movable joint of a :class:`UrdfPath`.
-
-    ``origin``: 4x4 from the previous movable joint's child link (``base_link`` for the first) to
-    this joint's frame at q = 0, fixed joints in between folded in. ``axis``: unit vector in this
-    joint's frame. ``lower``/``upper`` in rad (m for prismatic), infinite for continuous;
-    ``velocity`` in rad/s (m/s), None if not given or 0. ``parent``, ``child``: its links.
-    """
+    """One movable joint of a :class:`UrdfPath`: ``origin`` the 4x4 from the previous movable joint's child
+    link at q = 0 (fixed joints folded in), unit ``axis``, limits in rad or m (infinite for continuous),
+    ``velocity`` (rad/s or m/s; None if absent or 0)."""
 
     name: str
     kind: str  # "revolute", "continuous" or "prismatic"
@@ -121,9 +109,8 @@ class UrdfJoint:
 
 @dataclass(frozen=True)
 class UrdfPath:
-    """The serial path of a URDF from ``base_link`` to ``end_link``: its movable ``joints`` in
-    order, ``tool`` the 4x4 from the last one's child link to ``end_link`` (fixed joints), and
-    ``links`` the joints' child links."""
+    """A URDF's path from ``base_link`` to ``end_link``: movable ``joints``, ``tool`` (4x4 from the last
+    joint's child link to ``end_link``) and ``links`` (the joints' child links)."""
 
     robot: str
     base_link: str
@@ -146,8 +133,8 @@ def _document(source: str | os.PathLike) -> str | bytes:
 
 
 def _kinematic_xml(document: str | bytes) -> str:
-    """The robot's links (names only) and joints (their kinematic elements only): transmissions,
-    gazebo blocks, visuals and the like go, so a parser strict about them cannot fail on them."""
+    """The robot's links (names only) and joints (kinematic elements only), so a parser strict about
+    transmissions, gazebo blocks and the like cannot fail on them."""
     try:
         robot = ElementTree.fromstring(document)
     except ElementTree.ParseError as err:
@@ -169,6 +156,11 @@ def _transform(origin, joint: str) -> torch.Tensor:
     xyz, rpy = (origin.xyz, origin.rpy) if origin is not None else ((0.0,) * 3, (0.0,) * 3)
     if not all(map(math.isfinite, (*xyz, *rpy))):
         raise ValueError(f"joint {joint!r}: origin must be finite, got xyz={xyz}, rpy={rpy}")
+    return _pose(xyz, rpy)
+
+
+def _pose(xyz, rpy) -> torch.Tensor:
+    """``(4, 4)`` float64 of a translation and roll-pitch-yaw."""
     matrix = torch.eye(4, dtype=torch.float64)
     matrix[:3, :3] = rpy_to_matrix(torch.tensor(rpy, dtype=torch.float64))
     matrix[:3, 3] = torch.tensor(xyz, dtype=torch.float64)
@@ -229,8 +221,7 @@ def _below(top: str, children: dict[str, list[str]]) -> list[str]:
 
 
 def _tree(links: list[str], joints: list) -> tuple[str, dict, dict[str, list[str]]]:
-    """The root link, each link's parent joint and each link's child links of a parsed URDF,
-    checked to be one tree of uniquely named links and joints."""
+    """The root link, each link's parent joint and child links, checked to be one tree of unique names."""
     for kind, names in (("link", links), ("joint", [joint.name for joint in joints])):
         twice = sorted({name for name in names if names.count(name) > 1})
         if twice:
@@ -257,8 +248,7 @@ def _tree(links: list[str], joints: list) -> tuple[str, dict, dict[str, list[str
 
 
 def _parse(document: str | bytes) -> tuple:
-    """The parsed robot (pytorch_kinematics' URDF parser, kinematic elements only), its link names,
-    root link, each link's parent joint and each link's child links (:func:`_tree`)."""
+    """The robot parsed by pytorch_kinematics (kinematic elements only), its link names and :func:`_tree`."""
     kinematic = _kinematic_xml(document)
     try:
         from pytorch_kinematics.urdf_parser_py.urdf import URDF
@@ -275,16 +265,12 @@ def _parse(document: str | bytes) -> tuple:
 
 
 def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link: str | None = None) -> UrdfPath:
-    """The serial path of a URDF from ``base_link`` to ``end_link``, in float64 Python floats.
+    """The serial path of a URDF from ``base_link`` (default the root) to ``end_link`` (default the only
+    leaf below it), in float64; fixed joints folded into the next origin or the tool.
 
-    ``source``: a ``.urdf`` file path, or the XML text (a str starting with ``<``). The tree is
-    parsed by pytorch_kinematics' URDF parser (the ``urdf`` extra), after dropping the elements
-    that do not describe kinematics; the numbers are read exactly (no float32 chain).
-    ``base_link`` defaults to the root link, ``end_link`` to the only leaf below ``base_link``.
-    Fixed joints on the path are folded into the next joint's origin (or the tool); joints off
-    the path are ignored. Raises ``ValueError`` for a malformed file, unknown links, an
-    ``end_link`` not below ``base_link``, a floating, planar or mimic joint on the path, a zero
-    axis, or a path without movable joints.
+    ``source``: a ``.urdf`` path or the XML text (parsed by pytorch_kinematics, the ``urdf`` extra).
+    Raises ``ValueError`` for a malformed file, unknown links, an ``end_link`` not below
+    ``base_link``, a floating, planar or mimic joint on the path, a zero axis, or no movable joint.
     """
     robot, links, root, parent_joint, children = _parse(_document(source))
     base = root if base_link is None else _known_link(base_link, "base_link", links)
@@ -332,18 +318,13 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
 
 @dataclass(frozen=True)
 class UrdfCollision:
-    """One ``<collision>`` (or, from :func:`read_visuals`, ``<visual>``) element of a link that
-    moves with a frame of the chain.
+    """A ``<collision>`` (or ``<visual>``) element of a link moving with chain frame ``frame`` (0 the
+    base, i the child link of joint i), through fixed joints or off-path prismatic ones.
 
-    ``frame``: the chain frame (0 the base link, i the child link of movable joint i) that ``link``
-    is attached to by fixed joints, and by prismatic joints off the path (a gripper's fingers).
-    ``poses``: 4x4 transforms from that frame to the element's origin: one, or one per corner of
-    the off-path prismatic joints' limits (2**k, the first with each at its lower limit); the
-    element stays inside the convex hull of its copies at these poses. ``shape``: ``box``
-    (``size`` its x, y, z edge lengths), ``cylinder`` (radius, length along its z), ``sphere``
-    (radius,) or ``mesh`` (``size`` its x, y, z scale, ``filename`` the file found on disk).
-    Metres. ``rgba``: a ``<visual>``'s ``<material>`` colour (its own ``<color>`` or the robot's
-    material of that name), 0..1; None if it names none.
+    ``poses``: 4x4s from that frame to the element: one, or one per corner of the off-path
+    prismatic joints' limits (2**k, the first at the lower limits). ``shape`` and ``size`` (m):
+    ``box`` (x, y, z edges), ``cylinder`` (radius, length along z), ``sphere`` (radius,), ``mesh``
+    (x, y, z scale of ``filename``). ``rgba``: a visual's material colour (0..1) or None.
     """
 
     link: str
@@ -355,8 +336,7 @@ class UrdfCollision:
     rgba: tuple[float, float, float, float] | None = None
 
     def load_mesh(self):
-        """The ``trimesh.Trimesh`` of a mesh element's file, unscaled (trimesh: the ``urdf`` extra).
-        ValueError if the file cannot be read as a mesh or has no vertices."""
+        """The unscaled ``trimesh.Trimesh`` of a mesh element; ValueError if unreadable or empty."""
         if self.shape != "mesh":
             raise ValueError(f"link {self.link!r}: a {self.shape} element has no mesh file")
         trimesh = require("trimesh", "urdf")
@@ -389,9 +369,8 @@ def _numbers(element, attribute: str, count: int, default: str, where: str) -> t
 
 
 def _mesh_file(name: str, directory: str | None, where: str) -> str:
-    """The file a mesh's ``filename`` names: absolute, ``file://``, relative to the URDF's
-    directory, or ``package://pkg/rest`` looked up as ``rest`` or ``pkg/rest`` under the URDF's
-    directory and its parents."""
+    """The file of a mesh ``filename``: absolute, ``file://``, relative to the URDF's directory, or
+    ``package://pkg/rest`` found as ``rest`` or ``pkg/rest`` under that directory or a parent."""
     name = name.removeprefix("file://")
     tried = [name] if os.path.isabs(name) else []
     if directory is not None and not tried:
@@ -426,16 +405,12 @@ def _colour(material, named: dict, where: str) -> tuple[float, float, float, flo
 
 def _element(element, link: str, frame: int, poses: list[torch.Tensor], directory: str | None,
              named: dict | None) -> UrdfCollision:
-    """A parsed ``<collision>`` or ``<visual>`` element of ``link``, its link frame at ``poses`` in the
-    chain frame; ``named``: the robot's material colours (visuals), None for collisions."""
+    """A ``<collision>`` or ``<visual>`` element of ``link`` at ``poses`` in the chain frame; ``named``:
+    the robot's material colours (visuals), None for collisions."""
     where = f"link {link!r}: <{element.tag}>"
     origin = element.find("origin")
     if origin is not None:
-        xyz = _numbers(origin, "xyz", 3, "0 0 0", where)
-        rpy = _numbers(origin, "rpy", 3, "0 0 0", where)
-        local = torch.eye(4, dtype=torch.float64)
-        local[:3, :3] = rpy_to_matrix(torch.tensor(rpy, dtype=torch.float64))
-        local[:3, 3] = torch.tensor(xyz, dtype=torch.float64)
+        local = _pose(_numbers(origin, "xyz", 3, "0 0 0", where), _numbers(origin, "rpy", 3, "0 0 0", where))
         poses = [pose @ local for pose in poses]
     geometry = element.find("geometry")
     shapes = [] if geometry is None else [g for g in geometry if g.tag in _SIZES]
@@ -452,23 +427,19 @@ def _element(element, link: str, frame: int, poses: list[torch.Tensor], director
 
 def read_collisions(source: str | os.PathLike, end_link: str | None = None,
                     base_link: str | None = None) -> tuple[UrdfCollision, ...]:
-    """The ``<collision>`` elements of the links that move with the frames of :func:`read_urdf`'s
-    path (same arguments): each frame's link, the links attached to it by fixed joints, and those
-    hanging off it by prismatic joints that are not on the path (swept over their limits). Links
-    behind other joints off the path (revolute, continuous) are left out. Mesh files are looked up
-    from the URDF's directory (``package://`` too), so a mesh needs ``source`` as a file path."""
+    """The ``<collision>`` elements of the links moving with :func:`read_urdf`'s frames (same arguments):
+    through fixed joints, or off-path prismatic ones (swept over their limits). Meshes are found
+    from the URDF's directory, so they need ``source`` as a file path."""
     return _elements(source, end_link, base_link, "collision")
 
 
 def read_visuals(source: str | os.PathLike, end_link: str | None = None,
                  base_link: str | None = None) -> tuple[UrdfCollision, ...]:
-    """The ``<visual>`` elements of the same links, frames and poses as :func:`read_collisions`,
-    each with its material colour (``rgba``, None if it names none)."""
+    """The ``<visual>`` elements of :func:`read_collisions`' links, with their colours (``rgba``)."""
     return _elements(source, end_link, base_link, "visual")
 
 
 def _elements(source, end_link, base_link, tag: str) -> tuple[UrdfCollision, ...]:
-    """The ``<tag>`` elements (``collision`` or ``visual``) of the links moving with the path's frames."""
     document = _document(source)
     path = read_urdf(source, end_link=end_link, base_link=base_link)
     _, _, _, parent_joint, children = _parse(document)

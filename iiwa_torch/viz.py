@@ -1,18 +1,8 @@
-"""Matplotlib drawings of a chain: 3-D stick figures, off-screen RGB frames, animations.
+"""Matplotlib drawings of a chain: stick figures, off-screen RGB images, GIF/MP4 animations, capsules
+and obstacles.
 
-matplotlib (and Pillow, for GIFs) is imported inside the functions, never when
-``iiwa_torch`` is imported; without them, the error names the ``viz`` extra. Nothing here
-touches pyplot's global state: pictures are drawn on a ``matplotlib.figure.Figure`` with its
-own Agg canvas, so rendering is safe inside gymnasium environments, worker processes and tests.
-
-- :func:`draw_chain` draws one configuration ``(n,)`` or several ``(k, n)`` on a 3-D axes;
-- :func:`render_rgb` returns an ``(H, W, 3)`` uint8 image (for ``render_mode="rgb_array"``);
-- :func:`save_png` writes that image to a file;
-- :func:`animate` writes a trajectory ``(T, n)`` as a GIF (Pillow) or an MP4 (ffmpeg), seen
-  from the side of the motion (:func:`side_view`);
-- :func:`draw_capsules` and :func:`draw_obstacles` draw a capsule model and a
-  :class:`~iiwa_torch.collision.World` on a 3-D axes; :func:`plot_world` draws both with the
-  arm, capsules in collision in red and the minimum clearance in the title.
+matplotlib and Pillow (the ``viz`` extra) are imported when drawing. Pyplot is never used: each
+picture has its own Agg canvas, so rendering is safe in environments, workers and tests.
 """
 
 from __future__ import annotations
@@ -42,14 +32,17 @@ __all__ = [
 _FRAME_COLOURS = ("tab:red", "tab:green", "tab:blue")  # x, y, z axes of a frame
 
 
-def _as_q(chain: Chain, q) -> torch.Tensor:
-    """Joint angles (tensor, array or list), ``(n,)`` or ``(k, n)`` -> ``(k, n)`` float64 tensor."""
+def _as_q(chain: Chain, q, one: str | None = None) -> torch.Tensor:
+    """Joint angles (tensor, array or list), ``(n,)`` or ``(k, n)`` -> ``(k, n)`` float64 tensor;
+    ``one``: the caller's name, which draws one configuration only (``k = 1``)."""
     q = torch.as_tensor(q, dtype=torch.float64, device=chain.limits.device)
     if q.ndim == 1:
         q = q[None]
     if q.ndim != 2:
         raise ValueError(f"q must have shape ({chain.n_joints},) or (k, {chain.n_joints}), got {tuple(q.shape)}")
     chain.check_q(q)
+    if one and q.shape[0] != 1:
+        raise ValueError(f"{one} draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
     return q
 
 
@@ -64,20 +57,11 @@ def _points(chain: Chain, q: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
 
 
 def draw_chain(ax, chain: Chain, q, *, frames: bool = False, color=None, alpha: float = 1.0, label=None) -> list:
-    """Draw the chain at ``q`` on a 3-D matplotlib axes; return the artists created.
+    """Draw the chain at ``q (n,)`` or ``(k, n)`` rad (overlaid) on a 3-D axes; return the artists.
 
-    Args:
-        ax: a ``projection="3d"`` axes.
-        chain: the robot.
-        q: ``(n,)`` or ``(k, n)`` joint angles in radians (tensor, array or list); ``k``
-            configurations are drawn overlaid, all with the same ``color`` and ``alpha``.
-        frames: also draw every link frame's x, y, z axes (red, green, blue).
-        color: links' colour (default: matplotlib's next colour in the cycle).
-        alpha: opacity of everything drawn.
-        label: legend label, attached to the first configuration's links only.
-
-    Links are lines between consecutive frame origins (``fk_all``), then on to the end
-    effector (``fk``, tool included); joints are dots; the end effector is a square.
+    Links are lines between the frame origins and on to the end effector (a square), joints dots;
+    ``frames`` adds each frame's x, y, z axes. ``color`` defaults to the axes' next cycle colour;
+    ``label`` goes on the first configuration's links.
     """
     q = _as_q(chain, q)
     origins, rotations = _points(chain, q)
@@ -109,41 +93,39 @@ def _scene(chain: Chain, size: tuple[int, int], dpi: int, elev: float, azim: flo
     ax = fig.add_subplot(projection="3d")
     fig.subplots_adjust(left=0, right=1, bottom=0, top=1)
     r = chain.reach_bound()
-    centre = chain.base[:3, 3].cpu().numpy()
-    ax.set_xlim(centre[0] - 0.6 * r, centre[0] + 0.6 * r)
-    ax.set_ylim(centre[1] - 0.6 * r, centre[1] + 0.6 * r)
-    ax.set_zlim(centre[2] - 0.1 * r, centre[2] + 1.1 * r)
+    base = chain.base[:3, 3].cpu().numpy()
+    ax.set_xlim(base[0] - 0.6 * r, base[0] + 0.6 * r)
+    ax.set_ylim(base[1] - 0.6 * r, base[1] + 0.6 * r)
+    ax.set_zlim(base[2] - 0.1 * r, base[2] + 1.1 * r)
     ax.set_box_aspect((1, 1, 1), zoom=0.85)
     ax.view_init(elev=elev, azim=azim)
     small = max(5, round(7 * min(size) / 400))
     for name, axis in (("x", ax.xaxis), ("y", ax.yaxis), ("z", ax.zaxis)):
         axis.set_label_text(f"{name} (m)", fontsize=small)
         axis.set_tick_params(labelsize=small - 1, pad=0)
-        axis.set_major_locator(_locator())
-    base = chain.base[:3, 3].cpu().numpy()
+        axis.set_major_locator(require("matplotlib.ticker", "viz").MaxNLocator(5))
     ax.scatter(*base[:, None], color="0.2", marker="s", s=60, depthshade=False)  # the base
     return fig, canvas, ax
 
 
-def _locator():
-    return require("matplotlib.ticker", "viz").MaxNLocator(5)
+def _positions(x) -> np.ndarray:
+    """Positions ``(..., 3)`` or poses ``(..., 4, 4)`` -> positions ``(..., 3)`` (numpy, m)."""
+    x = torch.as_tensor(x, dtype=torch.float64).cpu()
+    return (x[..., :3, 3] if x.shape[-2:] == (4, 4) else x).numpy()
 
 
 def _goal_xyz(goal) -> np.ndarray:
     """Goal as ``(3,)``, ``(4, 4)``, ``(k, 3)`` or ``(k, 4, 4)`` -> ``(k, 3)`` positions."""
-    g = torch.as_tensor(goal, dtype=torch.float64).cpu()
-    if g.shape[-2:] == (4, 4):
-        g = g[..., :3, 3]
+    g = _positions(goal)
     if g.shape[-1] != 3 or g.ndim > 2:
-        raise ValueError(f"goal must be a position (3,) / (k, 3) or a pose (4, 4) / (k, 4, 4), got {tuple(g.shape)}")
-    return g.reshape(-1, 3).numpy()
+        raise ValueError(f"goal must be a position (3,) / (k, 3) or a pose (4, 4) / (k, 4, 4), got {g.shape}")
+    return g.reshape(-1, 3)
 
 
 def _draw_extras(ax, goal, path, title):
     artists = []
     if path is not None:
-        p = np.asarray(torch.as_tensor(path, dtype=torch.float64).cpu())
-        p = p[..., :3, 3] if p.shape[-2:] == (4, 4) else p
+        p = _positions(path)
         artists += ax.plot(p[:, 0], p[:, 1], p[:, 2], "--", color="tab:purple", lw=2)
     if goal is not None:
         g = _goal_xyz(goal)
@@ -171,16 +153,10 @@ def render_rgb(
     azim: float = -60.0,
     dpi: int = 100,
 ) -> np.ndarray:
-    """Render the chain off screen: returns an ``(H, W, 3)`` uint8 RGB image, ``size = (W, H)`` pixels.
+    """The chain at ``q (n,)`` or ``(k, n)`` rad as an ``(H, W, 3)`` uint8 image, ``size = (W, H)`` pixels.
 
-    Args:
-        q: ``(n,)`` or ``(k, n)`` joint angles in radians (``k`` arms overlaid).
-        goal: optional target, a position ``(3,)`` / ``(k, 3)`` or a pose ``(4, 4)`` /
-            ``(k, 4, 4)``, drawn as a red star.
-        path: optional ``(T, 3)`` positions or ``(T, 4, 4)`` poses, drawn as a dashed line.
-        frames: draw every link frame's axes.
-        title: text in the top-left corner.
-        elev, azim: camera angles in degrees.
+    ``goal``: positions ``(3,)``/``(k, 3)`` or poses ``(4, 4)``/``(k, 4, 4)``, red stars; ``path``:
+    ``(T, 3)`` or ``(T, 4, 4)``, dashed; ``title`` top left; ``elev``, ``azim``: camera, degrees.
     """
     fig, canvas, ax = _scene(chain, size, dpi, elev, azim)
     draw_chain(ax, chain, q, frames=frames, color="tab:orange")
@@ -210,14 +186,11 @@ def animate(
     azim: float | None = None,
     dpi: int = 100,
 ) -> Path:
-    """Write the trajectory ``qs`` ``(T, n)`` (radians) as an animation with exactly ``T`` frames.
+    """Write ``qs (T, n)`` rad as a ``T``-frame ``.gif`` (Pillow) or ``.mp4`` (ffmpeg, else RuntimeError);
+    returns the file.
 
-    The format follows the file's suffix: ``.gif`` (Pillow, looping) or ``.mp4`` (needs the
-    ``ffmpeg`` executable on the PATH; a clear ``RuntimeError`` otherwise). ``path`` (``(T, 3)``
-    positions or ``(T, 4, 4)`` poses, e.g. the Cartesian path being tracked) is drawn dashed,
-    and the end effector's trace so far as a solid line. ``azim=None``: the camera azimuth of
-    :func:`side_view` of that trace, so the motion is not seen end-on; the axes fit the arm over
-    the whole trajectory. Returns the path written.
+    ``path`` ``(T, 3)`` or ``(T, 4, 4)`` is drawn dashed, the end effector's trace so far solid;
+    ``azim=None`` looks from :func:`side_view` of the trace. The axes fit the whole trajectory.
     """
     file = Path(file)
     suffix = file.suffix.lower()
@@ -234,8 +207,7 @@ def animate(
     fig, canvas, ax = _scene(chain, size, dpi, elev, side_view(trace, base) if azim is None else azim)
     drawn = [joints.reshape(-1, 3), base[None]] + ([] if goal is None else [_goal_xyz(goal)])
     if path is not None:
-        p = torch.as_tensor(path, dtype=torch.float64).cpu()
-        drawn.append((p[..., :3, 3] if p.shape[-2:] == (4, 4) else p).reshape(-1, 3).numpy())
+        drawn.append(_positions(path).reshape(-1, 3))
     everything = np.concatenate(drawn)
     _fit_cube(ax, np.stack([everything.min(0), everything.max(0)]), margin=0.15)
     _draw_extras(ax, goal, path, None)
@@ -255,11 +227,9 @@ def animate(
 
 
 def side_view(points, centre=(0.0, 0.0, 0.0), offset: float = 25.0) -> float:
-    """Camera azimuth (degrees, matplotlib's ``view_init``) that sees the motion through ``points``
-    ``(T, 3)`` (m) from its side: perpendicular to their main horizontal direction, on the side away
-    from ``centre`` (e.g. the robot's base, so the motion is in front of the arm), turned ``offset``
-    degrees towards matplotlib's default -60 so the arm itself is not seen edge-on. Points that do not
-    move horizontally (by less than 1 mm) get the default, -60."""
+    """Camera azimuth (degrees) seeing the motion through ``points (T, 3)`` m from the side away from
+    ``centre``, turned ``offset`` degrees towards matplotlib's default -60 (also the answer for points
+    that move less than 1 mm horizontally)."""
     xy = np.asarray(points, dtype=float)[:, :2]
     spread = xy - xy.mean(0)
     if np.abs(spread).max() < 1e-3:
@@ -300,9 +270,8 @@ _BOX_FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 
 
 
 def _capsule_mesh(a: np.ndarray, b: np.ndarray, radius: float, n: int = 20) -> np.ndarray:
-    """Surface grid ``(2m, n, 3)`` of the capsule with axis ``a -> b`` (metres): the lower
-    hemisphere, then the upper one; the band between their equators is the cylinder.
-    ``a == b`` gives a sphere."""
+    """Surface grid ``(2m, n, 3)`` of the capsule ``a -> b`` (m): two hemispheres joined at their
+    equators (``a == b``: a sphere)."""
     axis = b - a
     length = float(np.linalg.norm(axis))
     u = axis / length if length > 0 else np.array([0.0, 0.0, 1.0])
@@ -319,9 +288,7 @@ def _capsule_mesh(a: np.ndarray, b: np.ndarray, radius: float, n: int = 20) -> n
 
 
 def _surface(ax, mesh: np.ndarray, colour, alpha: float, gid: str):
-    surface = ax.plot_surface(*mesh.transpose(2, 0, 1), color=colour, alpha=alpha, shade=True, linewidth=0)
-    surface.set_gid(gid)
-    return surface
+    return ax.plot_surface(*mesh.transpose(2, 0, 1), color=colour, alpha=alpha, shade=True, linewidth=0, gid=gid)
 
 
 def _segments(chain: Chain, capsules: Capsules, q: torch.Tensor) -> np.ndarray:
@@ -332,18 +299,10 @@ def _segments(chain: Chain, capsules: Capsules, q: torch.Tensor) -> np.ndarray:
     return pts.cpu().numpy()
 
 
-def draw_capsules(
-    ax, chain: Chain, q, capsules: Capsules | None = None, *, colliding=(), alpha: float = 0.35
-) -> list:
-    """Draw the capsules at one configuration ``q (n,)`` (radians) as shaded surfaces; return them
-    (one per capsule, ``gid = "capsule:<name>"``, in the model's order).
-
-    ``capsules=None`` is :func:`~iiwa_torch.collision.robot_capsules` of the chain; capsules
-    whose names are in ``colliding`` are red, the others blue.
-    """
-    q = _as_q(chain, q)
-    if q.shape[0] != 1:
-        raise ValueError(f"draw_capsules draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
+def draw_capsules(ax, chain: Chain, q, capsules: Capsules | None = None, *, colliding=(), alpha: float = 0.35) -> list:
+    """Draw the capsules (default ``robot_capsules(chain)``) at ``q (n,)`` rad; return one surface per
+    capsule, ``gid = "capsule:<name>"``, red if its name is in ``colliding``."""
+    q = _as_q(chain, q, one="draw_capsules")
     capsules = robot_capsules(chain) if capsules is None else capsules
     ends = _segments(chain, capsules, q)
     colliding = set(colliding)
@@ -360,11 +319,10 @@ def draw_capsules(
 
 
 def draw_obstacles(ax, world: World, *, colliding=(), alpha: float = 0.6) -> list:
-    """Draw an unbatched :class:`~iiwa_torch.collision.World` on a 3-D axes; return the artists.
+    """Draw an unbatched :class:`~iiwa_torch.collision.World` (no walls) on a 3-D axes; return the artists.
 
-    The floor is a translucent square over the axes' current x/y limits; spheres, boxes and
-    capsules are grey surfaces (``gid`` ``sphere<i>``, ``box<i>``, ``capsule<i>``, ``floor``),
-    red when their label is in ``colliding``. Walls are not drawn.
+    The floor spans the axes' x/y limits; the shapes' ``gid`` are ``floor``, ``sphere<i>``, ``box<i>``,
+    ``capsule<i>``, red when in ``colliding``.
     """
     Poly3DCollection = require("mpl_toolkits.mplot3d.art3d", "viz").Poly3DCollection
 
@@ -381,14 +339,11 @@ def draw_obstacles(ax, world: World, *, colliding=(), alpha: float = 0.6) -> lis
         floor = Poly3DCollection(square, facecolor="tab:olive", edgecolor="0.4", alpha=0.15, gid="floor")
         ax.add_collection3d(floor)
         artists.append(floor)
-    if world.spheres is not None:
-        for i, (c, r) in enumerate(zip(*(t.detach().cpu().double().numpy() for t in world.spheres))):
-            artists.append(_surface(ax, _capsule_mesh(c, c, float(r)), colour(f"sphere{i}"), alpha, f"sphere{i}"))
-    if world.capsules is not None:
-        for i, (p, r) in enumerate(zip(*(t.detach().cpu().double().numpy() for t in world.capsules))):
-            artists.append(
-                _surface(ax, _capsule_mesh(p[0], p[1], float(r)), colour(f"capsule{i}"), alpha, f"capsule{i}")
-            )
+    for kind in ("sphere", "capsule"):  # a sphere is a capsule with both ends at its centre
+        if getattr(world, kind + "s") is not None:
+            for i, (p, r) in enumerate(zip(*_numpy(getattr(world, kind + "s")))):
+                a, b = (p, p) if kind == "sphere" else p
+                artists.append(_surface(ax, _capsule_mesh(a, b, float(r)), colour(f"{kind}{i}"), alpha, f"{kind}{i}"))
     if world.boxes is not None:
         for i, corners in enumerate(_box_corners(world)):
             faces = [corners[list(f)] for f in _BOX_FACES]
@@ -407,9 +362,14 @@ def _check_one_world(world: World) -> None:
             raise ValueError(f"only one world can be drawn, got {kind} with batch shape {batch}")
 
 
+def _numpy(pair) -> list[np.ndarray]:
+    """One of a world's tensor pairs as float64 numpy arrays."""
+    return [t.detach().cpu().double().numpy() for t in pair]
+
+
 def _box_corners(world: World) -> np.ndarray:
     """Corners ``(B, 8, 3)`` of an unbatched world's boxes, metres (bit 2, 1, 0 of the index: x, y, z side)."""
-    pose, half = (t.detach().cpu().double().numpy() for t in world.boxes)
+    pose, half = _numpy(world.boxes)
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
     return (signs * half[:, None]) @ pose[:, :3, :3].transpose(0, 2, 1) + pose[:, None, :3, 3]
 
@@ -422,7 +382,7 @@ def _bounds(chain: Chain, q: torch.Tensor, world: World, capsules: Capsules) -> 
     points = [ends - r, ends + r, chain.base[None, :3, 3].cpu().numpy()]
     for kind in ("spheres", "capsules"):  # centres (S, 3) or end points (C, 2, 3), radii (S,) or (C,)
         if getattr(world, kind) is not None:
-            centres, radii = (t.detach().cpu().double().numpy() for t in getattr(world, kind))
+            centres, radii = _numpy(getattr(world, kind))
             pad = radii.reshape(radii.shape + (1,) * (centres.ndim - 1))
             points += [centres - pad, centres + pad]
     if world.boxes is not None:
@@ -470,18 +430,13 @@ def plot_world(
     azim: float = -60.0,
     dpi: int = 100,
 ):
-    """Draw the arm at ``q (n,)`` (radians) with its capsules and the obstacles; return the figure.
+    """Draw the arm at ``q (n,)`` rad with its capsules and the obstacles, shapes in collision red and
+    the minimum clearance (mm) in the title; return the figure.
 
-    ``world=None`` is the capsule model's default floor (a float32 world is queried in float32),
-    ``capsules=None``
-    :func:`~iiwa_torch.collision.robot_capsules`. Every shape with a negative distance in
-    :func:`~iiwa_torch.collision.pairwise_clearance` is red; the title gives the minimum
-    clearance in mm and its pair. ``ax``: a 3-D axes to draw on (default: a new off-screen
-    figure of ``size`` pixels, axes in metres). ``path``: also write the figure as a PNG there.
+    ``world=None``: the capsule model's floor; ``capsules=None``: ``robot_capsules(chain)``; ``ax``: a
+    3-D axes (default a new figure of ``size`` pixels); ``path``: also write a PNG there.
     """
-    q = _as_q(chain, q)
-    if q.shape[0] != 1:
-        raise ValueError(f"plot_world draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
+    q = _as_q(chain, q, one="plot_world")
     capsules = robot_capsules(chain) if capsules is None else capsules
     world = World(floor=capsules.floor_height) if world is None else world
     _check_one_world(world)

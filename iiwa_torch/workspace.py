@@ -1,20 +1,8 @@
-"""Reachable workspace and dexterity of a DH chain, by batched sampling of in-limit configurations.
+"""Reachable workspace and dexterity of a chain, by sampling in-limit configurations in blocks.
 
-The reachable set of a point fixed in the end-effector frame (the flange, or e.g. the
-iiwa's wrist centre) is sampled with ``chain.fk`` on blocks of uniform random joint angles
-and accumulated on a grid of cells of side ``h`` (metres):
-
-- ``Section.XYZ``: cubic voxels, the 3-D volume (m^3);
-- ``Section.XY``: squares in the world x-y plane, the area of the set's projection on it
-  (m^2): a planar chain's workspace;
-- ``Section.RZ``: the side view, radial distance ``r = sqrt(x^2 + y^2)`` vs height ``z``,
-  each cell a ring of volume ``2 pi r_c h^2`` (m^3); exact for a solid of revolution about
-  the world z axis (joint 1's axis for the iiwa presets), and a finer grid for the same memory.
-
-The estimate counts an occupied cell fully if all its face neighbours are occupied and half
-if it is on the boundary; the bracket [interior, all occupied] bounds the discretisation
-error once every reachable cell has been hit (docs/workspace.md). Distances, heights and
-volumes are in metres; the points are in the chain's world frame.
+Points are binned on a grid of side ``h`` (m): ``Section.XYZ`` voxels (m^3), ``Section.XY`` the
+projection on the x-y plane (m^2), ``Section.RZ`` the side view ``(r, z)``, each cell a ring about
+the world z axis (m^3). Boundary cells count half; see docs/workspace.md.
 """
 
 from __future__ import annotations
@@ -58,6 +46,8 @@ DATASHEET = {
 
 
 class Section(str, Enum):
+    """The grid: 3-D voxels, the x-y plane, or the side view (r, z)."""
+
     XYZ = "xyz"
     XY = "xy"
     RZ = "rz"
@@ -65,11 +55,8 @@ class Section(str, Enum):
 
 @dataclass(frozen=True)
 class Occupancy:
-    """Hit counts of the sampled points on a grid of side ``h`` (m).
-
-    ``counts`` is ``(nx, ny, nz)`` (XYZ), ``(nx, ny)`` (XY) or ``(nr, nz)`` (RZ) int64;
-    cell ``i`` along an axis spans ``[lower[k] + i h, lower[k] + (i + 1) h]``.
-    """
+    """Hit counts ``(nx, ny, nz)`` (XYZ), ``(nx, ny)`` (XY) or ``(nr, nz)`` (RZ) int64 on a grid of
+    side ``h`` (m); cell ``i`` along axis ``k`` starts at ``lower[k] + i h``."""
 
     section: Section
     h: float
@@ -92,8 +79,8 @@ class Occupancy:
         return (2 * math.pi * r_mid * h**2)[:, None]
 
     def boundary(self) -> np.ndarray:
-        """Occupied cells with at least one unoccupied face neighbour (outside the grid counts
-        as unoccupied, except across the axis r = 0 of the RZ section, which mirrors onto itself)."""
+        """Occupied cells with an unoccupied face neighbour (outside the grid is unoccupied, except
+        across the RZ section's axis r = 0, which mirrors onto itself)."""
         occ = self.occupied
         inner = occ.copy()
         for axis in range(occ.ndim):
@@ -109,13 +96,9 @@ class Occupancy:
 
 @dataclass(frozen=True)
 class Volume:
-    """Workspace volume (m^3; m^2 for ``Section.XY``) with its bracket.
-
-    ``estimate`` counts boundary cells half; ``low`` and ``high`` count them not at all and
-    fully. ``missing_mass`` is the Good-Turing estimate (cells hit once / samples) of the
-    probability that a new sample lands in a cell not yet hit; ``converged`` says whether the
-    estimate changed by less than ``tol`` between the last two doublings of the sample count.
-    """
+    """Workspace volume (m^3; m^2 for ``Section.XY``): ``estimate`` counts boundary cells half,
+    ``low``/``high`` not at all/fully. ``missing_mass``: Good-Turing estimate (cells hit once /
+    samples) of the chance of a new cell; ``converged``: the last doubling moved it less than ``tol``."""
 
     estimate: float
     low: float
@@ -128,8 +111,7 @@ class Volume:
 
 @dataclass(frozen=True)
 class Extent:
-    """Extremes of the sampled points (m): the highest and lowest ``z`` and the largest
-    distance ``r_max`` from the base z axis. Sample extremes lie inside the true ones."""
+    """Highest and lowest sampled ``z`` and largest distance ``r_max`` from the z axis (m)."""
 
     z_max: float
     z_min: float
@@ -139,10 +121,8 @@ class Extent:
 
 @dataclass(frozen=True)
 class Dexterity:
-    """Per configuration, shapes ``(...)``: Yoshikawa's manipulability ``sqrt(det(J J^T))`` (with
-    fewer joints than rows, ``sqrt(det(J^T J))``: the product of the singular values),
-    the condition number ``sigma_max / sigma_min`` (``inf`` at a singularity) and the smallest
-    singular value ``sigma_min`` (the distance to singularity), of the rows of J chosen."""
+    """Per configuration ``(...)``: manipulability (the product of J's singular values),
+    condition number ``sigma_max / sigma_min`` (inf at a singularity) and ``sigma_min``."""
 
     manipulability: Tensor
     condition: Tensor
@@ -151,8 +131,8 @@ class Dexterity:
 
 @dataclass(frozen=True)
 class DexterityMap:
-    """Manipulability binned over the side view: ``mean`` and ``max`` are ``(nr, nz)``
-    (0 where ``count`` is 0), cells of side ``h`` (m) from ``r = 0``, ``z = z_lower``."""
+    """Manipulability ``mean`` and ``max`` ``(nr, nz)`` over the side view (0 where ``count`` is 0),
+    cells of side ``h`` (m) from ``r = 0``, ``z = z_lower``."""
 
     h: float
     z_lower: float
@@ -161,17 +141,10 @@ class DexterityMap:
     max: np.ndarray
 
 
-def _section(section) -> Section:
-    try:
-        return Section(section)
-    except ValueError:
-        raise ValueError(f"section must be one of {[s.value for s in Section]}, got {section!r}") from None
-
-
 def frame_point(chain: Chain, frame: int, *, trials: int = 64, tol: float = 1e-9) -> Tensor:
-    """Origin of frame ``frame`` (0 = base, n = last link, as in ``fk_all``) in end-effector
-    coordinates, ``(3,)`` metres, float64; raises ``ValueError`` unless that origin is fixed in
-    the end-effector frame (true for the centre of a spherical wrist: frames 5 and 6 of the iiwa).
+    """Origin of frame ``frame`` (index of ``fk_all``) in end-effector coordinates, ``(3,)`` m float64.
+
+    Raises ValueError unless it is fixed in the end-effector frame (e.g. the iiwa's wrist centre, frame 5).
     """
     check_instance(chain, Chain, "chain")
     n = chain.n_joints
@@ -199,8 +172,8 @@ def sample_points(
     generator: torch.Generator | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> Tensor:
-    """``(n, 3)`` world positions (m) of ``point`` (``(3,)`` m in the end-effector frame, default
-    its origin) at ``n`` configurations drawn uniformly within the joint limits."""
+    """``(n, 3)`` world positions (m) of ``point`` (``(3,)`` m in the end-effector frame, default its
+    origin) at ``n`` uniform in-limit configurations."""
     check_instance(chain, Chain, "chain")
     check_positive(n, "n", integer=True)
     check_generator(generator)
@@ -218,15 +191,25 @@ def _cell_index(xyz: Tensor, section: Section, lower: tuple[float, ...], shape: 
     else:
         coords = xyz[:, : len(shape)]
     idx = ((coords - torch.tensor(lower, dtype=coords.dtype)) / h).floor().long()
-    for k, size in enumerate(shape):
-        idx[:, k].clamp_(0, size - 1)
-    flat = idx[:, 0]
-    for k in range(1, len(shape)):
-        flat = flat * shape[k] + idx[:, k]
-    return flat
+    idx = idx.clamp(min=torch.zeros(len(shape), dtype=torch.long), max=torch.tensor(shape) - 1)
+    strides = torch.tensor([math.prod(shape[k + 1 :]) for k in range(len(shape))])
+    return (idx * strides).sum(1)
 
 
-def _grid(chain: Chain, section: Section, h: float, p: Tensor) -> tuple[tuple[float, ...], tuple[int, ...]]:
+def _blocks(n: int, block: int):
+    """Sizes of the blocks of at most ``block`` that make up ``n``."""
+    for start in range(0, n, block):
+        yield min(block, n - start)
+
+
+def _grid(chain: Chain, section: Section, h, point, n_samples, block, generator):
+    """The sampling arguments checked: ``(point (3,) m, the grid's lower corner, its shape)``."""
+    check_instance(chain, Chain, "chain")
+    check_positive(h, "h")
+    check_positive(n_samples, "n_samples", integer=True)
+    check_positive(block, "block", integer=True)
+    check_generator(generator)
+    p = as_point(point)
     reach = chain.reach_bound(p) + h
     if 2 * reach / h > 2**25:  # first as a float: a tiny h makes it inf
         raise ValueError(f"h = {h} m makes a grid of more than 2**25 cells (reach {reach:.3f} m); use a larger h")
@@ -238,7 +221,7 @@ def _grid(chain: Chain, section: Section, h: float, p: Tensor) -> tuple[tuple[fl
         lower, shape = (-reach,) * dims, (cells,) * dims
     if math.prod(shape) > 2**25:  # int64 counts: 256 MB
         raise ValueError(f"h = {h} m makes a grid of {math.prod(shape)} cells (reach {reach:.3f} m); use a larger h")
-    return lower, shape
+    return p, lower, shape
 
 
 def occupancy(
@@ -252,17 +235,13 @@ def occupancy(
     generator: torch.Generator | None = None,
     counts: Occupancy | None = None,
 ) -> Occupancy:
-    """Hit counts of ``n_samples`` sampled points (see :func:`sample_points`) on a grid of side
-    ``h`` (m), processed in blocks of ``block`` configurations; ``counts`` continues an earlier
-    result of the same grid (a new object is returned)."""
-    section = _section(section)
-    check_instance(chain, Chain, "chain")
-    check_positive(h, "h")
-    check_positive(n_samples, "n_samples", integer=True)
-    check_positive(block, "block", integer=True)
-    check_generator(generator)
-    p = as_point(point)
-    lower, shape = _grid(chain, section, h, p)
+    """Hit counts of ``n_samples`` points (:func:`sample_points`) on a grid of side ``h`` (m), in
+    blocks of ``block`` configurations; ``counts`` continues an earlier result on the same grid."""
+    try:
+        section = Section(section)
+    except ValueError:
+        raise ValueError(f"section must be one of {[s.value for s in Section]}, got {section!r}") from None
+    p, lower, shape = _grid(chain, section, h, point, n_samples, block, generator)
     total = torch.zeros(math.prod(shape), dtype=torch.int64)
     done = 0
     if counts is not None:
@@ -271,12 +250,9 @@ def occupancy(
             raise ValueError("counts is from a different grid (section, h or chain)")
         total += torch.from_numpy(counts.counts.reshape(-1))
         done = counts.n_samples
-    left = n_samples
-    while left:
-        b = min(block, left)
+    for b in _blocks(n_samples, block):
         xyz = sample_points(chain, b, point=p, generator=generator)
         total += torch.bincount(_cell_index(xyz, section, lower, shape, h), minlength=total.numel())
-        left -= b
     return Occupancy(section, float(h), lower, total.numpy().reshape(shape), done + n_samples)
 
 
@@ -300,11 +276,8 @@ def volume(
     tol: float = 2e-3,
     generator: torch.Generator | None = None,
 ) -> Volume:
-    """Workspace volume (m^3, or area m^2 for ``Section.XY``) on a grid of side ``h`` (m).
-
-    Samples ``n_start`` configurations, then doubles the total until the estimate changes by
-    less than ``tol`` (relative) in one doubling or ``max_samples`` is reached.
-    """
+    """Workspace volume (m^3; area m^2 for ``Section.XY``) on a grid of side ``h`` (m): ``n_start``
+    samples, doubled until the estimate moves less than ``tol`` (relative) or ``max_samples``."""
     check_positive(tol, "tol")
     check_positive(n_start, "n_start", integer=True)
     check_positive(max_samples, "max_samples", integer=True)
@@ -322,13 +295,9 @@ def volume(
 
 
 def envelopes(occ: Occupancy, *, axis_gap: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Side-view envelopes of an RZ occupancy: ``z`` (m,) cell centres of the occupied rows and,
-    per row, the outer radius ``r_outer`` (outer edge of the last occupied cell) and the inner
-    radius ``r_inner`` (inner edge of the first occupied cell), in metres.
-
-    A ring cell next to the axis holds little volume (``2 pi r h^2``), so few samples land
-    there: an inner radius of fewer than ``axis_gap`` cells is reported as 0 (the axis).
-    """
+    """``(z, r_outer, r_inner)`` of an RZ occupancy, each ``(rows,)`` m: the occupied rows' centres and
+    the outer and inner edges of their occupied cells. Few samples land in the small ring cells next
+    to the axis, so an inner radius under ``axis_gap`` cells is reported as 0."""
     check_instance(occ, Occupancy, "occ")
     if occ.section is not Section.RZ:
         raise ValueError(f"envelopes need an RZ occupancy, got section {occ.section.value!r}")
@@ -351,21 +320,16 @@ def extent(
     check_positive(n_samples, "n_samples", integer=True)
     check_positive(block, "block", integer=True)
     z_max, z_min, r_max = -math.inf, math.inf, 0.0
-    left = n_samples
-    while left:
-        b = min(block, left)
+    for b in _blocks(n_samples, block):
         xyz = sample_points(chain, b, point=point, generator=generator, dtype=torch.float64)
         z_max = max(z_max, xyz[:, 2].max().item())
         z_min = min(z_min, xyz[:, 2].min().item())
         r_max = max(r_max, torch.hypot(xyz[:, 0], xyz[:, 1]).max().item())
-        left -= b
     return Extent(z_max, z_min, r_max, n_samples)
 
 
 def dexterity(chain: Chain, q: Tensor, *, position_only: bool = False) -> Dexterity:
-    """Manipulability, condition number and smallest singular value of the Jacobian at
-    ``q (..., n)`` radians; each ``(...)``. The full 6 x n Jacobian mixes m/rad (linear rows)
-    and 1 (angular rows); ``position_only`` uses the 3 linear rows (units m/rad)."""
+    """:class:`Dexterity` of the Jacobian at ``q (..., n)`` rad; ``position_only``: its 3 linear rows (m/rad)."""
     check_instance(chain, Chain, "chain")
     jac = chain.jacobian(q)
     if position_only:
@@ -387,22 +351,14 @@ def dexterity_map(
     block: int = 1 << 16,
     generator: torch.Generator | None = None,
 ) -> DexterityMap:
-    """Mean and max manipulability of ``n_samples`` random configurations, binned by where
-    ``point`` lands in the side view (``r``, ``z``) on cells of side ``h`` (m)."""
-    check_instance(chain, Chain, "chain")
-    check_positive(h, "h")
-    check_positive(n_samples, "n_samples", integer=True)
-    check_positive(block, "block", integer=True)
-    check_generator(generator)
-    p = as_point(point)
-    lower, shape = _grid(chain, Section.RZ, h, p)
+    """Manipulability of ``n_samples`` random configurations, binned by where ``point`` lands in the
+    side view on cells of side ``h`` (m)."""
+    p, lower, shape = _grid(chain, Section.RZ, h, point, n_samples, block, generator)
     size = math.prod(shape)
     count = torch.zeros(size, dtype=torch.float64)
     total = torch.zeros(size, dtype=torch.float64)
     peak = torch.zeros(size, dtype=torch.float64)
-    left = n_samples
-    while left:
-        b = min(block, left)
+    for b in _blocks(n_samples, block):
         q = chain.random_q(int(b), generator=generator)
         pose = chain.fk(q)
         xyz = pose[:, :3, 3] + pose[:, :3, :3] @ p
@@ -411,7 +367,6 @@ def dexterity_map(
         count += torch.bincount(idx, minlength=size).double()
         total += torch.bincount(idx, weights=m, minlength=size)
         peak.scatter_reduce_(0, idx, m, reduce="amax")
-        left -= b
     mean = torch.where(count > 0, total / count.clamp(min=1), 0.0)
     return DexterityMap(float(h), lower[1], *(t.numpy().reshape(shape) for t in (count, mean, peak)))
 
@@ -428,11 +383,9 @@ def plot_workspace(
     datasheet: dict | None = None,
     seed: int = 0,
 ) -> None:
-    """Write the side view (r-z plane, mirrored to both sides as in KUKA's drawing) of the
-    reachable set of ``point`` to the PNG ``path``: occupied cells, outer and inner envelopes
-    and, if given, the datasheet's dimensions (a :data:`DATASHEET` entry, mm) marked. With
-    ``manipulability_path``, also a map of the mean and max manipulability over the r-z plane.
-    """
+    """Write the side view of ``point``'s reachable set (mirrored, as in KUKA's drawing) with its
+    envelopes and ``datasheet``'s marks (a :data:`DATASHEET` entry) to the PNG ``path``; with
+    ``manipulability_path``, also the mean and max manipulability over it."""
     gen = torch.Generator().manual_seed(seed)
     occ = occupancy(chain, n_samples, h, section=Section.RZ, point=point, generator=gen)
     fig = _figure((10, 6.5), layout="constrained")
@@ -442,14 +395,14 @@ def plot_workspace(
         return
     dm = dexterity_map(chain, min(n_samples, 1 << 21), 4 * h, point=point, generator=gen)
     fig = _figure((11, 5.5))
-    for k, (name, data) in enumerate((("mean", dm.mean), ("max", dm.max))):
-        _manipulability_view(fig, fig.add_subplot(1, 2, k + 1), chain, dm, name, data, point_label)
+    for k, name in enumerate(("mean", "max")):
+        _manipulability_view(fig.add_subplot(1, 2, k + 1), chain, dm, name, point_label)
     fig.tight_layout()
     fig.savefig(manipulability_path)
 
 
 def _figure(size: tuple[float, float], **kwargs):
-    """A matplotlib ``Figure`` of ``size`` inches at 120 dpi on the Agg canvas (no display needed)."""
+    """A ``Figure`` of ``size`` inches at 120 dpi on its own Agg canvas."""
     FigureCanvasAgg = require("matplotlib.backends.backend_agg", "viz").FigureCanvasAgg
     fig = require("matplotlib.figure", "viz").Figure(figsize=size, dpi=120, **kwargs)
     FigureCanvasAgg(fig)
@@ -457,8 +410,6 @@ def _figure(size: tuple[float, float], **kwargs):
 
 
 def _side_view(ax, chain: Chain, occ: Occupancy, h: float, point_label: str, datasheet: dict | None) -> None:
-    """:func:`plot_workspace`'s side view on ``ax``: the occupied r-z cells mirrored to both sides,
-    the outer and inner envelopes, the datasheet's marks if given, labels and title."""
     est, low, high = _measure(occ)
     z, r_out, r_in = envelopes(occ)
     occ_rz = occ.occupied.T.astype(float)
@@ -466,10 +417,10 @@ def _side_view(ax, chain: Chain, occ: Occupancy, h: float, point_label: str, dat
     nr, nz = occ.counts.shape
     box = (-nr * h, nr * h, occ.lower[1], occ.lower[1] + nz * h)
     ax.imshow(np.ma.masked_equal(image, 0), origin="lower", extent=box, cmap="Blues", vmin=0, vmax=2, alpha=0.8)
-    for sign in (1, -1):
-        ax.plot(sign * r_out, z, color="tab:blue", lw=1.5, label="outer envelope" if sign > 0 else None)
-        ax.plot(sign * np.where(r_in > 0, r_in, np.nan), z, color="tab:orange", lw=1.5,
-                label="inner envelope" if sign > 0 else None)
+    r_in = np.where(r_in > 0, r_in, np.nan)
+    for r, colour, label in ((r_out, "tab:blue", "outer envelope"), (r_in, "tab:orange", "inner envelope")):
+        ax.plot(r, z, color=colour, lw=1.5, label=label)
+        ax.plot(-r, z, color=colour, lw=1.5)
     if datasheet is not None:
         _datasheet_marks(ax, datasheet)
     ax.axhline(0, color="0.4", lw=0.8)
@@ -488,7 +439,6 @@ def _side_view(ax, chain: Chain, occ: Occupancy, h: float, point_label: str, dat
 
 
 def _datasheet_marks(ax, datasheet: dict) -> None:
-    """The datasheet's side-view dimensions (a :data:`DATASHEET` entry, mm) marked on ``ax`` (m)."""
     ds = {k: v / 1000 for k, v in datasheet.items() if k != "volume"}
     marks = {
         "A (height at home)": (0, ds["A"]),
@@ -502,14 +452,13 @@ def _datasheet_marks(ax, datasheet: dict) -> None:
     ax.axhline(-ds["F"], color="tab:brown", ls="--", lw=1, label="datasheet -F (depth below the base)")
 
 
-def _manipulability_view(fig, ax, chain: Chain, dm: DexterityMap, name: str, data: np.ndarray,
-                         point_label: str) -> None:
-    """One panel of :func:`plot_workspace`'s manipulability map on ``ax``: ``data`` (the ``name``
-    statistic of ``dm``, ``(nr, nz)``) over the r-z plane, with its colour bar."""
+def _manipulability_view(ax, chain: Chain, dm: DexterityMap, name: str, point_label: str) -> None:
+    """``dm``'s ``name`` statistic (``"mean"`` or ``"max"``) over the r-z plane on ``ax``."""
     nr, nz = dm.count.shape
     box = (0, nr * dm.h, dm.z_lower, dm.z_lower + nz * dm.h)
+    data = getattr(dm, name)
     shown = ax.imshow(np.ma.masked_where(dm.count.T == 0, data.T), origin="lower", extent=box, cmap="viridis")
-    fig.colorbar(shown, ax=ax, label=f"{name} sqrt(det(J J$^T$)), 6 x n J (linear rows in m)")
+    ax.figure.colorbar(shown, ax=ax, label=f"{name} sqrt(det(J J$^T$)), 6 x n J (linear rows in m)")
     ax.set_xlabel("r: distance from the joint-1 axis (m)")
     ax.set_ylabel("z: height above the base (m)")
     ax.set_title(

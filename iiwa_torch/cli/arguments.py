@@ -1,6 +1,5 @@
-"""The commands' options turned into what the library takes: the robot (``--robot``, ``--urdf``),
-joint angles and poses (degrees unless ``--rad``), output files; a bad combination is a
-:class:`UsageError`, which the parser reports with exit status 2."""
+"""The options turned into what the library takes: the robot, angles and poses (degrees unless
+``--rad``), output files; a bad combination raises :class:`UsageError` (exit status 2)."""
 
 from __future__ import annotations
 
@@ -18,7 +17,7 @@ F64 = torch.float64
 
 
 class UsageError(Exception):
-    """A bad combination of arguments: reported through argparse (exit status 2)."""
+    """A bad combination of arguments (exit status 2)."""
 
 
 def chain_of(args: argparse.Namespace) -> Chain:
@@ -51,8 +50,7 @@ def writable(path: str, option: str) -> Path:
 
 
 def drawing():
-    """The drawing module :mod:`iiwa_torch.viz`, after checking (before any work) that matplotlib and
-    Pillow are installed."""
+    """:mod:`iiwa_torch.viz`, once matplotlib and Pillow are known to be installed (checked before any work)."""
     require("matplotlib", "viz")
     require("PIL", "viz")
     from .. import viz
@@ -61,7 +59,7 @@ def drawing():
 
 
 def radians(values: list[float], rad: bool) -> list[float]:
-    """Angles given on the command line, in radians (they are degrees unless ``rad``)."""
+    """Command-line angles in radians (they are degrees unless ``rad``)."""
     return list(values) if rad else [math.radians(v) for v in values]
 
 

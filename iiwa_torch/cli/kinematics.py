@@ -92,7 +92,7 @@ def run_ik(args: argparse.Namespace) -> int:
 
 
 def _print_solutions(chain: Chain, args, label, q, why, pos_err, rot_err) -> None:
-    """The table of ``ik``'s solutions ``q (m, n)`` (rad), then why each invalid one is."""
+    """``ik``'s solutions ``q (m, n)`` rad as a table, then why each invalid one is."""
     unit = "rad" if args.rad else "deg"
     rows = []
     for b, qi, w, pe, re in zip(label, q.tolist(), why, pos_err.tolist(), rot_err.tolist()):
@@ -106,8 +106,8 @@ def _print_solutions(chain: Chain, args, label, q, why, pos_err, rot_err) -> Non
 
 
 def _why_invalid(chain: Chain, q: list[float], pos_err: float, rot_err: float, rad: bool) -> str:
-    """Why the solution ``q`` (rad) is invalid: it misses the target (errors in m, rad; NaN: position
-    only) beyond the solver tolerances, or joints lie outside their limits (e.g. ``A3 = -180 deg outside +-170``)."""
+    """Why ``q`` (rad) is invalid: it misses the target (m, rad; NaN: position only) beyond the
+    tolerances, or e.g. ``A3 = -180 deg outside +-170``."""
     if not pos_err <= POS_TOL or rot_err > ROT_TOL:
         missed = f"{pos_err:.1e} m" + ("" if math.isnan(rot_err) else f", {rot_err:.1e} rad")
         return f"misses the target by {missed}"
@@ -121,7 +121,7 @@ def _why_invalid(chain: Chain, q: list[float], pos_err: float, rot_err: float, r
 
 
 def _has_closed_form(chain: Chain) -> bool:
-    """Whether ``ik`` can solve ``chain`` in closed form: a preset, or an arm whose joint axes admit one."""
+    """Whether ``chain`` is a preset or has joint axes that admit a closed form."""
     if isinstance(chain, DHChain):
         return True
     from ..ik import analytic
@@ -136,18 +136,16 @@ def _has_closed_form(chain: Chain) -> bool:
 def _ik_analytic(chain: Chain, target: torch.Tensor, args) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
     from ..ik import analytic
 
+    psi = 0.0 if args.psi is None else args.psi if args.rad else math.radians(args.psi)
     if not isinstance(chain, DHChain):  # another arm: the closed form its joint axes admit, if any
         try:
             form = analytic.structure(chain).form.value
         except ValueError as err:
             raise UsageError(f"--method analytic: {err}") from None
-        psi = (0.0 if args.psi is None else args.psi if args.rad else math.radians(args.psi)) if chain.n_joints == 7 \
-            else None
-        sol = analytic.solve(chain, target, psi)
+        sol = analytic.solve(chain, target, psi if chain.n_joints == 7 else None)
         labels = [f"{form} {k}" for k in range(sol.q.shape[-2])]
         return sol.q.contiguous(), sol.valid, labels
     if chain.n_joints == 7:
-        psi = 0.0 if args.psi is None else args.psi if args.rad else math.radians(args.psi)
         sol = analytic.iiwa(chain, target, psi)
     elif chain.n_joints == 6:
         sol = analytic.pieper(chain, target)

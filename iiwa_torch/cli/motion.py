@@ -1,5 +1,5 @@
-"""The commands ``traj`` (a joint-space quintic, or a Cartesian line tracked by IK, to CSV and an
-animation) and ``demo`` (the validation pose, batched FK/IK timing, a tracked line)."""
+"""The commands ``traj`` (a joint-space quintic or a Cartesian line tracked by IK -> CSV, animation)
+and ``demo``."""
 
 from __future__ import annotations
 
@@ -55,8 +55,8 @@ def run_traj(args: argparse.Namespace) -> int:
 
 
 def _check_traj_options(args: argparse.Namespace, chain: Chain):
-    """Check ``traj``'s options before any work (``--method`` defaults by the chain); the drawing
-    module if ``--gif`` asks for an animation, else None."""
+    """Check ``traj``'s options before any work and default ``--method``; :mod:`~iiwa_torch.viz` if
+    ``--gif`` is given, else None."""
     if args.method is None:  # track's closed forms are the presets' (a URDF arm's would need their mapping)
         args.method = "analytic" if isinstance(chain, DHChain) else "gradient"
     elif args.method == "analytic" and not isinstance(chain, DHChain):
@@ -80,8 +80,8 @@ def _check_traj_options(args: argparse.Namespace, chain: Chain):
 
 
 def _write_traj(args, chain: Chain, viz, qs, times, ee, drawn_path, duration: float) -> list[str]:
-    """Write ``--csv`` (t, ``qs (T, n)`` rad, end-effector ``ee (T, 3)`` m) and ``--gif`` (the arm
-    along ``drawn_path``: ``(T, 3)`` points or ``(T, 4, 4)`` poses); the files written."""
+    """Write ``--csv`` (t, ``qs (T, n)`` rad, ``ee (T, 3)`` m) and ``--gif`` (with ``drawn_path``
+    ``(T, 3)`` or ``(T, 4, 4)``); the files written."""
     written = []
     if args.csv:
         with open(args.csv, "w", newline="") as f:
@@ -98,7 +98,7 @@ def _write_traj(args, chain: Chain, viz, qs, times, ee, drawn_path, duration: fl
 
 
 def _report_traj(args, chain: Chain, kind: str, qs, times, duration: float, tracked, written: list[str]) -> None:
-    """``traj``'s summary (with the tracking errors of a Cartesian line), as JSON or a table."""
+    """``traj``'s summary (with a Cartesian line's tracking errors), as JSON or a table."""
     summary = {
         "robot": chain.name,
         "kind": kind,
@@ -168,7 +168,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
 
 def _demo_validation_pose(quiet: bool) -> dict:
-    """1. The validation pose of Pereira et al. (flange 0.090 m): position (0.490, 0, 0.780); its JSON."""
+    """1. The validation pose of Pereira et al. (flange 0.090 m); its JSON."""
     if not quiet:
         say("1. iiwa14 with the flange of Pereira et al. (0.090 m) at q4 = -90 deg, q5 = 60 deg")
         say("   Pereira et al. (and RoboDK): xyz = (0.490, 0, 0.780), "
@@ -181,8 +181,7 @@ def _demo_validation_pose(quiet: bool) -> dict:
 
 
 def _demo_timing(n: int, quiet: bool) -> dict:
-    """2. Batched FK and IK of ``n`` random iiwa 14 configurations (each call warmed up on 8 problems
-    first); the JSON of the times (ms) and the solved fractions."""
+    """2. Batched FK and IK of ``n`` random iiwa14 configurations; the times (ms) and solved fractions."""
     from ..ik import analytic, solve
 
     chain = robots.iiwa14()
@@ -204,7 +203,7 @@ def _demo_timing(n: int, quiet: bool) -> dict:
 
 
 def _demo_line(quiet: bool) -> tuple[dict, torch.Tensor, torch.Tensor]:
-    """3. A straight line tracked by the closed form: its JSON, joint path ``(30, 7)`` and poses ``(30, 4, 4)``."""
+    """3. A line tracked by the closed form: its JSON, joint path ``(30, 7)`` and poses ``(30, 4, 4)``."""
     from .. import trajectory
 
     chain = robots.iiwa14()
@@ -239,4 +238,3 @@ def _timed(fn, *args):
     start = time.perf_counter()
     out = fn(*args)
     return 1e3 * (time.perf_counter() - start), out
-

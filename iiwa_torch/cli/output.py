@@ -1,5 +1,5 @@
-"""What the commands print: tables (rich if installed, else aligned text), plain lines, JSON,
-poses; and :class:`Elapsed`, a long command's running time on stderr."""
+"""What the commands print: tables (rich if installed, else plain text), lines, JSON, poses; and
+:class:`Elapsed`, a long command's running time on stderr."""
 
 from __future__ import annotations
 
@@ -76,8 +76,8 @@ def print_pose(pose: torch.Tensor, rad: bool, title: str) -> None:
 
 
 class Elapsed:
-    """While a command runs, after ``delay`` s, its elapsed time on stderr: rewritten in place every
-    second on a terminal, a line every 30 s otherwise; stdout (tables, ``--json``) is untouched."""
+    """A running command's elapsed time on stderr after ``delay`` s: rewritten every second on a
+    terminal, else a line every 30 s."""
 
     def __init__(self, name: str, delay: float = 2.0):
         self.name, self.delay = name, delay

@@ -1,5 +1,4 @@
-"""The ``iiwa-torch`` command's options (one function per command) and :func:`run`, which parses
-them and runs the command, reporting bad input as argparse does (exit status 2)."""
+"""The ``iiwa-torch`` command's options and :func:`run`, which parses and runs a command (bad input: exit 2)."""
 
 from __future__ import annotations
 
@@ -32,12 +31,12 @@ examples:
 
 
 def _common_options() -> argparse.ArgumentParser:
-    """The options most commands share (the robot, units, output format)."""
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--robot", choices=list(robots.PRESETS), help="robot preset (default iiwa14)")
     common.add_argument("--urdf", metavar="FILE", help="any serial arm from its URDF file instead of a preset")
-    common.add_argument("--end-link", metavar="LINK",
-                        help="with --urdf: the end effector's link (default: the only leaf)")
+    common.add_argument(
+        "--end-link", metavar="LINK", help="with --urdf: the end effector's link (default: the only leaf)"
+    )
     common.add_argument(
         "--flange",
         type=float,
@@ -49,7 +48,6 @@ def _common_options() -> argparse.ArgumentParser:
 
 
 def _add_fk(sub, common: argparse.ArgumentParser) -> None:
-    """The ``fk`` command's options."""
     p = sub.add_parser("fk", parents=[common], help="joint angles -> end-effector pose")
     p.add_argument("q", nargs="+", type=float, help="joint angles (deg unless --rad)")
     p.add_argument("--plot", metavar="PNG", help="also draw the arm to this PNG file")
@@ -57,7 +55,6 @@ def _add_fk(sub, common: argparse.ArgumentParser) -> None:
 
 
 def _add_ik(sub, common: argparse.ArgumentParser) -> None:
-    """The ``ik`` command's options."""
     p = sub.add_parser("ik", parents=[common], help="pose -> joint angles (all analytic branches, or gradient)")
     p.add_argument(
         "--pose",
@@ -78,7 +75,6 @@ def _add_ik(sub, common: argparse.ArgumentParser) -> None:
 
 
 def _add_traj(sub, common: argparse.ArgumentParser) -> None:
-    """The ``traj`` command's options."""
     p = sub.add_parser("traj", parents=[common], help="trajectory between configurations or poses -> CSV, animation")
     p.add_argument("--from-q", nargs="+", type=float, metavar="Q", help="start joint angles")
     p.add_argument("--from-pose", nargs="+", type=float, metavar="V", help="start pose: x y z roll pitch yaw, or a 4x4")
@@ -86,8 +82,11 @@ def _add_traj(sub, common: argparse.ArgumentParser) -> None:
     p.add_argument("--to-pose", nargs="+", type=float, metavar="V", help="goal pose (a straight line tracked by IK)")
     p.add_argument("--steps", type=int, default=50, help="samples along the trajectory (default 50)")
     p.add_argument("--duration", type=float, help="seconds (default: the shortest within the speed limits)")
-    p.add_argument("--method", choices=["analytic", "gradient"],
-                   help="IK for Cartesian lines (default: analytic for the presets, gradient for a --urdf arm)")
+    p.add_argument(
+        "--method",
+        choices=["analytic", "gradient"],
+        help="IK for Cartesian lines (default: analytic for the presets, gradient for a --urdf arm)",
+    )
     p.add_argument("--csv", metavar="FILE", help="write t, joint angles (rad) and end-effector xyz")
     p.add_argument("--gif", metavar="FILE", help="write an animation (.gif, or .mp4 with ffmpeg)")
     p.add_argument("--fps", type=int, help="animation frame rate (default: real time)")
@@ -96,7 +95,6 @@ def _add_traj(sub, common: argparse.ArgumentParser) -> None:
 
 
 def _add_robots(sub, common: argparse.ArgumentParser) -> None:
-    """The ``robots`` command's options."""
     p = sub.add_parser("robots", help="list presets, or print one's DH table")
     p.add_argument("name", nargs="?", help="a preset name")
     p.add_argument("--json", action="store_true", help="print JSON (metres, radians) instead of tables")
@@ -104,7 +102,6 @@ def _add_robots(sub, common: argparse.ArgumentParser) -> None:
 
 
 def _add_demo(sub, common: argparse.ArgumentParser) -> None:
-    """The ``demo`` command's options."""
     p = sub.add_parser("demo", help="FK at the validation pose, batched FK/IK timing, a tracked line")
     p.add_argument("--out", default="reports/demo", help="directory for the animation (default reports/demo)")
     p.add_argument("--batch", type=int, default=10_000, help="configurations in the timing (default 10000)")
@@ -114,7 +111,6 @@ def _add_demo(sub, common: argparse.ArgumentParser) -> None:
 
 
 def _add_view(sub, common: argparse.ArgumentParser) -> None:
-    """The ``view`` command's options."""
     p = sub.add_parser("view", parents=[common], help="browser viewer: joint sliders, pose read-out, IK target")
     p.add_argument("--q", nargs="+", type=float, metavar="Q", help="first configuration (deg unless --rad)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
@@ -133,14 +129,14 @@ def _add_view(sub, common: argparse.ArgumentParser) -> None:
 
 
 def _add_workspace(sub, common: argparse.ArgumentParser) -> None:
-    """The ``workspace`` command's options."""
     p = sub.add_parser("workspace", parents=[common], help="reachable set: side-view envelope, manipulability map")
     p.add_argument("--plot", metavar="PNG", help="write the side view (r-z plane) to this PNG")
     p.add_argument("--manipulability", metavar="PNG", help="also write a manipulability map to this PNG")
     p.add_argument(
-        "--point", choices=["wrist", "flange"],
+        "--point",
+        choices=["wrist", "flange"],
         help="the point whose reach is drawn (default: the wrist centre KUKA's datasheet draws, for the presets; "
-             "the flange for a --urdf arm)",
+        "the flange for a --urdf arm)",
     )
     p.add_argument("--h", type=float, default=0.005, help="grid cell size in m (default 0.005)")
     p.add_argument("--samples", type=int, default=1 << 23, help="sampled configurations (default 8388608)")
@@ -161,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(argv: list[str] | None = None) -> int:
-    """Parse ``argv`` (default ``sys.argv[1:]``) and run its command; its exit status (see ``cli.main``)."""
+    """Parse ``argv`` (default ``sys.argv[1:]``) and run its command; its exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
     # `view` serves until stopped: no running time over its own messages

@@ -1,5 +1,4 @@
-"""The command ``view``: the browser viewer of a robot, optionally playing back a path written by
-``traj --csv`` or a trained policy's rollouts."""
+"""The command ``view``: the browser viewer, optionally playing a ``traj --csv`` path or a policy's rollouts."""
 
 from __future__ import annotations
 
@@ -58,9 +57,8 @@ def _csv_path(chain: Chain, file: str) -> tuple[torch.Tensor, float]:
 
 
 def _policy_rollouts(chain: Chain, policy: str, n_goals: int, seed: int):
-    """``(q (n_goals, T + 1, n), dt s, goal positions (n_goals, 3))`` of a trained policy's rollouts
-    on held-out goals, by the training code's playback (the ``iiwa_torch.playback`` entry point:
-    ``train.playback.policy_rollouts``)."""
+    """``(q (n_goals, T + 1, n), dt s, goals (n_goals, 3) m)``: a policy's rollouts on held-out goals,
+    by the ``iiwa_torch.playback`` entry point (``train.playback.policy_rollouts``)."""
     if n_goals < 1:
         raise UsageError(f"--goals must be a positive integer, got {n_goals}")
     found = entry_points(group="iiwa_torch.playback", name="policy")

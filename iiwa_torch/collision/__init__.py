@@ -1,21 +1,12 @@
-"""Capsule models of the presets, obstacle worlds and differentiable clearance (signed distance).
+"""Capsule models, obstacle worlds and differentiable clearance (signed distance, m, negative on overlap).
 
-A robot is a set of K capsules (a segment and a radius), each fixed in one of the frames
-``Chain.fk_all`` returns. :func:`clearance` is the smallest signed distance in metres
-(negative when two shapes overlap) over the self-collision pairs and the capsule-obstacle
-pairs; :func:`pairwise_clearance` returns every distance with the names of its pair.
-Sizes and sources of the capsules, the formulas and the references they are tested
-against: docs/collision.md.
+A robot is K capsules, each fixed in a frame of ``Chain.fk_all``. :func:`clearance` is the smallest
+distance over the self pairs and capsule-obstacle pairs; :func:`pairwise_clearance` gives each with
+its pair's names. Formulas, sizes and references: docs/collision.md.
 
-Every distance is written as ``|x - y| - radii`` (or ``n . x - offset - r`` for a half-space)
-at closest points ``x, y`` found without autograd; by the envelope theorem the gradient of a
-minimum is the gradient at its minimiser, so gradients need no derivative of the search
-and stay finite when segments are parallel, of zero length or touching.
-
-Modules: :mod:`.capsules` (the capsule model, presets), :mod:`.world` (obstacles),
-:mod:`.primitives` (segment-segment, -point, -box distances), :mod:`.distances` (every pair's
-distance in torch), :mod:`.cpu_paths` (CPU calls without autograd: compiled, numpy obstacles),
-:mod:`.queries` (the public queries). Every public name is here.
+Modules: :mod:`.capsules` (model, presets), :mod:`.world` (obstacles), :mod:`.primitives`
+(segment distances), :mod:`.distances` (every pair in torch), :mod:`.cpu_paths` (CPU calls
+without autograd), :mod:`.queries` (the public queries).
 """
 
 from __future__ import annotations

@@ -1,6 +1,5 @@
-"""Capsule models: K capsules (a segment and a radius) fixed in a chain's frames, the self pairs
-worth checking, the presets' models (sizes and sources: docs/collision.md), and every capsule
-placed in the world for a batch of configurations."""
+"""Capsule models: K capsules fixed in a chain's frames, the self pairs worth checking, the presets'
+models (docs/collision.md), and the capsules placed in the world for a batch of configurations."""
 
 from __future__ import annotations
 
@@ -23,19 +22,16 @@ __all__ = ["Capsules", "capsule_segments", "pair_gaps", "robot_capsules", "self_
 
 @dataclass(frozen=True)
 class Capsules:
-    """K capsules fixed in a chain's frames, and which pairs are checked.
+    """K capsules fixed in a chain's frames, and which pairs are checked (make one with :meth:`build`).
 
     Attributes:
         names: K names.
-        frames: K indices into ``chain.fk_all(q)``'s frames (0 = base, i = link frame i).
-        points: ``(K, 2, 3)`` float64 end points of each segment in its frame, metres.
-        radii: ``(K,)`` float64 radii, metres, > 0.
-        pairs: self-collision pairs ``(i, j)``, ``i < j``, that are checked.
-        world: ``(K,)`` bool, capsules checked against walls, spheres, boxes and capsules.
-        floor: ``(K,)`` bool, capsules checked against the floor.
-        floor_height: the floor a query with ``world=None`` uses (``None``: no floor).
-
-    Use :meth:`build` to make one; it validates everything.
+        frames: K indices into ``chain.fk_all(q)``'s frames (0 = base).
+        points: ``(K, 2, 3)`` float64 segment ends in their frames (m).
+        radii: ``(K,)`` float64 radii (m), > 0.
+        pairs: checked self pairs ``(i, j)``, ``i < j``.
+        world, floor: ``(K,)`` bool, capsules checked against obstacles, against the floor.
+        floor_height: the floor of a query with ``world=None`` (m; ``None``: no floor).
     """
 
     names: tuple[str, ...]
@@ -67,19 +63,16 @@ class Capsules:
                 raise ValueError(f"pairs must be (i, j) with 0 <= i < j < {k}, got {pair}")
         if len(set(self.pairs)) != len(self.pairs):
             raise ValueError(f"pairs contains duplicates: {self.pairs}")
-        if self.floor_height is not None and not (
-            is_number(self.floor_height) and math.isfinite(self.floor_height)
-        ):
-            raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
         if self.floor_height is not None:
+            if not (is_number(self.floor_height) and math.isfinite(self.floor_height)):
+                raise ValueError(f"floor_height must be a finite height in metres or None, got {self.floor_height!r}")
             object.__setattr__(self, "floor_height", float(self.floor_height))
         object.__setattr__(self, "_cache", {})
 
     def tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
-        """Index and geometry tensors of the queries in ``dtype`` on ``device``, built once
-        (the model is frozen): ``frames (K,)``, ``local (K, 4, 2)`` homogeneous end points,
-        ``first``/``second (P,)`` and ``pair_radius (P, 1)`` of the self pairs,
-        ``floor (F,)`` and ``floor_radius (F, 1)``, ``world (W,)`` and ``world_radius (W, 1)``."""
+        """The queries' tensors in ``dtype`` on ``device``, built once: ``frames (K,)``, ``local (K, 4, 2)``
+        homogeneous ends, self pairs ``first, second (P,)``, ``pair_radius (P, 1)``, and the indices
+        and radii of the capsules facing the floor (``floor``, ``floor_radius``) and obstacles (``world``)."""
         key = (dtype, device)
         if key not in self._cache:
             with torch.inference_mode(False):  # the model is shared (robot_capsules): no inference tensors in it
@@ -87,7 +80,6 @@ class Capsules:
         return self._cache[key]
 
     def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
-        """:meth:`tables`, built."""
         options = {"device": device}
         index = {"dtype": torch.long, **options}
         radii = self.radii.to(dtype=dtype, **options)
@@ -129,12 +121,8 @@ class Capsules:
         floor=None,
         floor_height: float | None = 0.0,
     ) -> Capsules:
-        """Capsules for ``chain``, validated against it.
-
-        ``points (K, 2, 3)`` and ``radii (K,)`` in metres; ``frames`` index ``chain.fk_all``'s
-        ``n + 1`` frames. ``pairs=None`` takes :func:`self_collision_pairs`; ``world``/``floor``
-        default to every capsule.
-        """
+        """Capsules for ``chain``, validated: ``points (K, 2, 3)``, ``radii (K,)`` (m), ``frames`` into
+        ``fk_all``; ``pairs=None`` takes :func:`self_collision_pairs`, ``world``/``floor`` default to all."""
         names = tuple(str(n) for n in names)
         k = len(names)
         frames = tuple(int(f) for f in frames)
@@ -163,9 +151,8 @@ def _describe(x) -> str:
 def self_collision_pairs(
     chain: Chain, capsules: Capsules, samples: int = 4096, seed: int = 0
 ) -> tuple[tuple[int, int], ...]:
-    """Pairs worth checking: every ``(i, j)`` except neighbours in the list (``j = i + 1``, the
-    links on either side of a joint) and pairs that overlap in every one of ``samples``
-    uniform in-limit configurations (drawn with ``seed``): those touch by construction."""
+    """Every pair ``(i, j)`` but neighbours (``j = i + 1``) and pairs overlapping in all of ``samples``
+    random in-limit configurations (``seed``)."""
     check_instance(chain, Chain, "chain")
     check_instance(capsules, Capsules, "capsules")
     check_positive(samples, "samples", integer=True)
@@ -184,13 +171,9 @@ def self_collision_pairs(
 
 
 def capsule_segments(chain: Chain, capsules: Capsules, q: Tensor) -> tuple[Tensor, Tensor]:
-    """``q (..., n)`` -> each capsule's start point and start-to-end vector in the world frame,
-    component first, ``(3, K, B)`` each over the ``B`` flattened configurations (this layout
-    keeps every elementwise op of the distance kernels contiguous). A fixed number of tensor
-    ops: the capsule frames are gathered and one batched product places both end points. Up
-    to ``SMALL_BATCH`` configurations the frames come from ``fk_all``'s 4x4 kernel, above from
-    the batch-last elementwise kernel, which computes only what the capsules use and is far faster
-    than ``fk_all`` at large batches (benchmarks/results/fk.md)."""
+    """``q (..., n)`` -> each capsule's start point and start-to-end vector in the world, ``(3, K, B)``
+    each over the flattened batch (component first: the distance kernels' ops stay contiguous).
+    Above ``SMALL_BATCH`` the batch-last kernel, far faster there (benchmarks/results/fk.md)."""
     tables = capsules.tables(q.dtype, q.device)
     flat = q.reshape(-1, chain.n_joints)
     geometry = chain.geometry(q.dtype)
@@ -215,8 +198,7 @@ def capsule_segments(chain: Chain, capsules: Capsules, q: Tensor) -> tuple[Tenso
 
 
 def pair_gaps(start: Tensor, direction: Tensor, radii: Tensor, first: Tensor, second: Tensor) -> Tensor:
-    """Signed distances ``(P, B)`` of the capsule pairs ``(first, second)`` (indices ``(P,)``,
-    radius sums ``radii (P, 1)``) from :func:`capsule_segments`'s output."""
+    """Signed distances ``(P, B)`` of pairs ``first, second (P,)`` with radius sums ``radii (P, 1)``."""
     return segment_gap(start[:, first], direction[:, first], start[:, second], direction[:, second]) - radii
 
 
@@ -225,14 +207,9 @@ def _z_capsule(frame: int, z0: float, z1: float):
 
 
 def robot_capsules(chain: DHChain) -> Capsules:
-    """The conservative capsule model of a preset (``chain.name`` in iiwa14, iiwa7, puma560,
-    lrmate200ic, planar3r), sized from the chain's own DH lengths; radii and their sources
-    are in docs/collision.md. The base capsule is not checked against the floor it stands on;
-    the planar arm lies in the z = 0 plane, so its default world has no floor. Self pairs:
-    every pair but neighbours in the list (no other pair overlaps in every posture). Built
-    once per chain name and DH table, then shared (the model is frozen). Another arm (a URDF
-    chain) has no preset model: fit one to its URDF (:func:`iiwa_torch.capsule_fit.urdf_capsules`)
-    and pass it as ``capsules=`` to the functions that take one."""
+    """The conservative capsule model of a preset (sized from its DH lengths; radii: docs/collision.md),
+    built once per name and table and shared. The base does not face the floor; the planar arm has
+    no floor. For a URDF chain fit one with :func:`iiwa_torch.capsule_fit.urdf_capsules`."""
     check_instance(chain, Chain, "chain")
     if not isinstance(chain, DHChain):
         raise ValueError(f"chain {chain.name!r} is not a DH preset, so it has no preset capsule model; fit one to its "
@@ -249,7 +226,6 @@ _MODELS: dict[tuple, Capsules] = {}  # robot_capsules' models, by chain name and
 
 
 def _preset_capsules(chain: DHChain, dh: list[list[float]]) -> Capsules:
-    """:func:`robot_capsules`, built (validated by :meth:`Capsules.build`)."""
     floor_height: float | None = 0.0
     if chain.name in ("iiwa14", "iiwa7"):
         l_bs, l_se, l_ew, l_wf = dh[0][2], dh[2][2], dh[4][2], dh[6][2]

@@ -1,9 +1,6 @@
-"""Clearance on the CPU with nothing to differentiate: the robot's own distances (self pairs, floor)
-by the compiled kernel (:mod:`iiwa_torch.compiled.numba_kernels`, the `fast` extra; without it
-torch's), and for up to ``CLEARANCE_NUMPY_BATCH`` configurations the spheres and boxes in numpy
-float64, where torch's per-op cost would be most of the call (the measurement:
-benchmarks/results/collision_twins.md). The unchecked one-configuration calls of the envs' single
-env are here too."""
+"""Clearance on the CPU without autograd: the robot's own distances compiled (numba; else torch), and
+up to ``CLEARANCE_NUMPY_BATCH`` configurations the spheres and boxes in numpy float64, where torch's
+per-op cost would dominate (benchmarks/results/collision_twins.md); and the envs' unchecked calls."""
 
 from __future__ import annotations
 
@@ -47,10 +44,9 @@ def _present(kind: tuple[Tensor, Tensor] | None, axis: int) -> bool:
 
 
 def plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
-    """The function :func:`~iiwa_torch.collision.clearance` hands checked arguments with nothing to
-    differentiate on the CPU to, or ``None`` for its torch path: :func:`_clearance_small` up to
-    ``CLEARANCE_NUMPY_BATCH`` configurations (no walls or obstacle capsules), :func:`_clearance_compiled`
-    above (numba enabled, no obstacle but the floor)."""
+    """The CPU function :func:`~iiwa_torch.collision.clearance` hands its checked arguments to, or ``None``:
+    :func:`_clearance_small` up to ``CLEARANCE_NUMPY_BATCH`` configurations (no walls or obstacle
+    capsules), :func:`_clearance_compiled` above (numba, no obstacle but the floor)."""
     if world.walls or world.capsules:
         return None
     if not all(kin.untracked_cpu(t) for t in (q, *world.tensors(), chain.limits)):
@@ -64,35 +60,23 @@ def plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
     return _clearance_small if capsules.pairs or floor or solids else None
 
 
-def _as_float64(q: Tensor, n: int) -> np.ndarray:
-    """``q (..., n)`` (CPU, nothing to differentiate) -> ``(b, n)`` contiguous float64 array."""
-    return np.ascontiguousarray(q.detach().reshape(-1, n).numpy(), dtype=np.float64)
-
-
-def _like(out: np.ndarray, q: Tensor) -> Tensor:
-    return torch.from_numpy(np.asarray(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
-
-
 def _clearance_compiled(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
-    """:func:`~iiwa_torch.collision.clearance` of a CPU batch against itself and the floor by the
-    compiled kernel (float64 inside); not differentiable."""
-    return _like(_own_clearance(chain, _as_float64(q, chain.n_joints), world.floor, capsules).reshape(q.shape[:-1]), q)
+    """Clearance of a CPU batch against itself and the floor, compiled."""
+    own = _own_clearance(chain, kin.float64_rows(q, chain.n_joints), world.floor, capsules)
+    return kin.like(own.reshape(q.shape[:-1]), q)
 
 
 def _clearance_small(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> Tensor:
-    """:func:`~iiwa_torch.collision.clearance` of a small CPU batch: its own distances by
-    :func:`_own_clearance`, the spheres and boxes in numpy float64 (:func:`_solid_clearance`); not
-    differentiable."""
-    x = _as_float64(q, chain.n_joints).reshape(*q.shape[:-1], chain.n_joints)
+    """Clearance of a small CPU batch: :func:`_own_clearance` and :func:`_solid_clearance`."""
+    x = kin.float64_rows(q, chain.n_joints).reshape(*q.shape[:-1], chain.n_joints)
     own = _own_clearance(chain, x.reshape(-1, chain.n_joints), world.floor, capsules).reshape(q.shape[:-1])
     solid = _solid_clearance(chain, x, capsules, *solids_numpy(world), own)
-    return _like(own if solid is None else np.minimum(own, solid), q)
+    return kin.like(own if solid is None else np.minimum(own, solid), q)
 
 
 def _own_clearance(chain: Chain, x: np.ndarray, floor: float | None, capsules: Capsules) -> np.ndarray:
-    """Self and floor clearance of ``x (b, n)`` float64 against the floor at ``floor`` (m; ``None``:
-    none) -> ``(b,)`` float64 metres (``inf`` where nothing is checked): the compiled kernel
-    (:func:`iiwa_torch.compiled.numba_kernels.own_clearance`) when enabled, else torch's."""
+    """Self and floor clearance of ``x (b, n)`` float64 -> ``(b,)`` (m, ``inf`` if nothing is checked),
+    compiled when enabled."""
     if not compiled.ENABLED:
         own, _ = own_distances(chain, torch.from_numpy(x), floor, capsules)
         return np.full(x.shape[0], math.inf) if own is None else own.amin(0).numpy()
@@ -116,10 +100,8 @@ def _least(values: list):
 
 
 def solids_numpy(world: World) -> tuple[NumpyPair | None, NumpyPair | None]:
-    """A CPU world's spheres and boxes as float64 numpy arrays, as :func:`clearance_of_one` takes
-    them: ``(centres (..., S, 3), radii (..., S))`` and ``(poses (..., B, 4, 4), half extents
-    (..., B, 3))``, ``None`` for a kind that is absent or holds no obstacle (walls and obstacle
-    capsules are left out: no numpy path has them)."""
+    """A CPU world's spheres and boxes as float64 arrays for :func:`clearance_of_one` (``None`` where
+    absent or empty); walls and obstacle capsules are left out."""
 
     def arrays(pair, axis):
         return tuple(t.detach().numpy().astype(np.float64) for t in pair) if _present(pair, axis) else None
@@ -129,13 +111,9 @@ def solids_numpy(world: World) -> tuple[NumpyPair | None, NumpyPair | None]:
 
 def _solid_gaps(a: np.ndarray, b: np.ndarray, radius: np.ndarray, spheres: NumpyPair | None,
                 boxes: NumpyPair | None, found) -> list[np.ndarray]:
-    """The smallest signed distances ``(...)`` of capsule segments ``a b`` (``(..., W, 1, 3)``, radii
-    ``radius (W, 1)``) to the spheres and to the boxes (:func:`solids_numpy`'s arrays, their batch
-    broadcasting with ``...``), one array per kind given. ``found``: the batch's smallest distance
-    so far (an array or a float). As in :func:`~iiwa_torch.collision.primitives.culled_box_distance`,
-    the exact capsule-box closed form runs only on pairs whose lower bound ``|s - c| - |h| - r``
-    (``s`` the segment's point nearest the box centre ``c``) is at most the smallest upper bound
-    ``|s - c| - r`` and ``found``: the others cannot be the minimum, and keep the lower bound."""
+    """The smallest distances ``(...)`` of segments ``a b (..., W, 1, 3)``, radii ``(W, 1)``, to the spheres
+    and to the boxes, one per kind given. Boxes are exact only where the lower bound can be below
+    ``found`` and the upper bounds, as in :func:`~iiwa_torch.collision.primitives.culled_box_distance`."""
     mins, d = [], b - a
     if spheres is not None:
         centre, rad = spheres
@@ -157,8 +135,7 @@ def _solid_gaps(a: np.ndarray, b: np.ndarray, radius: np.ndarray, spheres: Numpy
 
 
 def _frames(chain: Chain, x: np.ndarray) -> np.ndarray:
-    """The base and link frames of ``x (b, n)`` float64 as rows ``x, y, z`` axes and origin,
-    ``(b, n + 1, 4, 3)`` float64: the compiled recursion when enabled, else torch's."""
+    """The base and link frames of ``x (b, n)`` as rows (axes, origin): ``(b, n + 1, 4, 3)`` float64."""
     if compiled.ENABLED:
         return compiled.kernels().frames_axes(*chain.geometry().float_arrays, x)[0]
     return kin.all_poses(chain.geometry(torch.float64), torch.from_numpy(x)).numpy()[..., :3, :].swapaxes(-1, -2)
@@ -166,10 +143,8 @@ def _frames(chain: Chain, x: np.ndarray) -> np.ndarray:
 
 def _solid_clearance(chain: Chain, x: np.ndarray, capsules: Capsules, spheres: NumpyPair | None,
                      boxes: NumpyPair | None, found) -> np.ndarray | None:
-    """The capsules of configurations ``x (..., n)`` float64 against the spheres and boxes
-    (:func:`solids_numpy`, their batch broadcasting with ``...``): the smallest distance ``(...)``
-    (boxes exact where it can be below ``found``, see :func:`_solid_gaps`), ``None`` if nothing
-    faces them."""
+    """The smallest distance ``(...)`` of configurations ``x (..., n)`` to the spheres and boxes, ``None``
+    if nothing faces them (boxes exact below ``found``: :func:`_solid_gaps`)."""
     tables = capsules.numpy_tables()
     idx = tables["world"]
     if (spheres is None and boxes is None) or not idx.size:
@@ -181,22 +156,18 @@ def _solid_clearance(chain: Chain, x: np.ndarray, capsules: Capsules, spheres: N
 
 
 def own_clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules) -> float:
-    """:func:`~iiwa_torch.collision.clearance` of one CPU configuration ``q`` (n numbers, nothing to
-    differentiate) against itself and the floor at ``floor`` (m; ``None``: none), unchecked, for
-    callers that built every argument themselves (the envs' single env) -> metres (``inf`` if
-    nothing is checked). Compiled when enabled, else torch's."""
-    return float(_own_clearance(chain, _as_float64(q, chain.n_joints), floor, capsules)[0])
+    """Clearance (m, ``inf`` if nothing is checked) of one CPU configuration against itself and the floor
+    at ``floor`` (m or None), unchecked."""
+    return float(_own_clearance(chain, kin.float64_rows(q, chain.n_joints), floor, capsules)[0])
 
 
 def clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules,
                      spheres: NumpyPair | None = None, boxes: NumpyPair | None = None,
                      exact_below: float = math.inf) -> float:
-    """:func:`own_clearance_of_one` and the spheres and boxes (:func:`solids_numpy`, every batch dim
-    of size 1), unchecked -> metres (``inf`` if nothing is checked). ``exact_below``: a clearance
-    at or above it may come back as any value at or above it (boxes farther than it are not
-    searched): with ``exact_below=0`` the sign is still exact, and 0 comes back only for a
-    clearance of 0."""
-    x = _as_float64(q, chain.n_joints)
+    """:func:`own_clearance_of_one` and the spheres and boxes (:func:`solids_numpy`, batch dims 1), unchecked.
+    A clearance at or above ``exact_below`` may come back as any value at or above it (with 0, the
+    sign stays exact)."""
+    x = kin.float64_rows(q, chain.n_joints)
     own = float(_own_clearance(chain, x, floor, capsules)[0])
     solid = _solid_clearance(chain, x[0], capsules, spheres, boxes, min(own, exact_below))
     return own if solid is None else min(own, float(np.min(solid)))
@@ -204,10 +175,8 @@ def clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Cap
 
 def obstacle_clearance_of_one(chain: Chain, q: Tensor, capsules: Capsules, spheres: NumpyPair | None = None,
                               boxes: NumpyPair | None = None, exact_below: float = math.inf) -> np.ndarray:
-    """:func:`clearance_of_one` against the obstacles alone (no self pairs, no floor), for each
-    world of the obstacles' batch: ``(...)`` float64 metres (e.g. one candidate obstacle per
-    world, each against the same configuration). Unchecked, as :func:`clearance_of_one`."""
-    solid = _solid_clearance(chain, _as_float64(q, chain.n_joints)[0], capsules, spheres, boxes, exact_below)
+    """:func:`clearance_of_one` against the obstacles alone, per world of their batch: ``(...)`` (m)."""
+    solid = _solid_clearance(chain, kin.float64_rows(q, chain.n_joints)[0], capsules, spheres, boxes, exact_below)
     if solid is None:
         raise ValueError("nothing to check: no obstacle, or no capsule checked against obstacles")
     return solid
@@ -216,17 +185,14 @@ def obstacle_clearance_of_one(chain: Chain, q: Tensor, capsules: Capsules, spher
 def capsule_clearance_compiled(
     chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`~iiwa_torch.collision.capsule_clearance` of one configuration against the floor and
-    itself by its compiled kernel: distances ``(K,)`` (m) and gradients ``(K, n)`` (m/rad), float64
-    arrays. A distance is ``|w| - r`` at the closest points ``x, y`` (``w = x - y``) or
-    ``x_z - floor - r`` at the lower end point; by the envelope theorem its gradient is
-    ``u . (dx/dq - dy/dq)`` (``u = w / |w|``, or ``e_z``), each point fixed in its capsule's frame:
-    the value autograd gives."""
+    """:func:`~iiwa_torch.collision.capsule_clearance` of one configuration against itself and the floor,
+    compiled: ``(K,)`` (m) and ``(K, n)`` (m/rad). By the envelope theorem each gradient is
+    ``u . (dx/dq - dy/dq)`` at the closest points (``u`` the unit gap, or ``e_z``), as autograd gives."""
     tables, n = capsules.numpy_tables(), chain.n_joints
     k = len(capsules.names)
     distance, gradient = np.empty(k), np.empty((k, n))
     floors = tables["floor"] if floor is not None else tables["floor"][:0]
-    compiled.kernels().capsule_clearance(*chain.geometry().float_arrays, _as_float64(q, n)[0], tables["frames"],
+    compiled.kernels().capsule_clearance(*chain.geometry().float_arrays, kin.float64_rows(q, n)[0], tables["frames"],
                                          tables["local"], tables["first"], tables["second"], tables["pair_radius"],
                                          floors, tables["floor_radius"], 0.0 if floor is None else float(floor),
                                          distance, gradient)

@@ -1,6 +1,5 @@
-"""Every checked distance of a query in torch (any batch, differentiable): the robot's own (self
-pairs, floor) in blocks of configurations, then each kind of obstacle, with the names of each
-pair; and the checks of a query's arguments."""
+"""Every checked distance of a query in torch (differentiable): the robot's own (self pairs, floor),
+then each kind of obstacle, with each pair's names; and the checks of a query's arguments."""
 
 from __future__ import annotations
 
@@ -38,8 +37,7 @@ def _check_query(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> N
 
 
 def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:
-    """A query's world and capsules (defaults filled in: the model's floor, :func:`robot_capsules`),
-    all arguments checked."""
+    """A query's world and capsules, defaults filled in, every argument checked."""
     check_instance(chain, Chain, "chain")
     capsules = robot_capsules(chain) if capsules is None else capsules
     world = World(floor=capsules.floor_height) if world is None else world
@@ -52,10 +50,8 @@ def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | N
 def own_distances(
     chain: Chain, q: Tensor, floor: float | None, capsules: Capsules, keep_segments: bool = False
 ) -> tuple[Tensor | None, tuple[Tensor, Tensor] | None]:
-    """The robot's own distances ``(P, B)`` over the flattened batch of ``q (..., n)``: the self
-    pairs, then the capsules checked against the floor at ``floor`` (m; ``None``: none), ``None``
-    if neither is checked; with ``keep_segments``, every capsule's start point and start-to-end
-    vector (:func:`capsule_segments`, ``(3, K, B)`` each), else ``None``."""
+    """The robot's own distances ``(P, B)`` over the flattened batch (self pairs, then the floor at
+    ``floor``; ``None`` if none), and with ``keep_segments`` :func:`capsule_segments`' output."""
     tables = capsules.tables(q.dtype, q.device)
     floor_idx = tables["floor"]
     flat = q.reshape(-1, chain.n_joints)
@@ -63,11 +59,9 @@ def own_distances(
     with _one_thread(flat.shape[0] > _BLOCK and flat.device.type == "cpu"):
         for block in flat.split(_BLOCK):  # blocks small enough for the kernels' arrays to stay in the CPU cache
             start, direction = capsule_segments(chain, capsules, block)
-            parts = (
-                [pair_gaps(start, direction, tables["pair_radius"], tables["first"], tables["second"])]
-                if capsules.pairs
-                else []
-            )
+            parts = []
+            if capsules.pairs:
+                parts.append(pair_gaps(start, direction, tables["pair_radius"], tables["first"], tables["second"]))
             if floor is not None and floor_idx.numel():
                 low = torch.minimum(start[2], start[2] + direction[2])[floor_idx]
                 parts.append(low - (tables["floor_radius"] + floor))
@@ -113,10 +107,8 @@ _KINDS = (("walls", "wall", _walls), ("spheres", "sphere", _spheres), ("boxes", 
 def _obstacle_distances(
     world: World, capsules: Capsules, ends: tuple[Tensor, Tensor], lead: torch.Size, own: Tensor | None, cull: bool
 ) -> tuple[list[Tensor], list[tuple[str, str]]]:
-    """The capsules' distances to each kind of obstacle, ``(..., K * M)`` blocks (batch ``lead`` of
-    the configurations broadcast with the world's), and their pairs' names; ``ends``: every capsule's
-    segment (:func:`own_distances`), ``own``: its distances. ``cull``: only the minimum matters, boxes
-    are searched where they can be it (:func:`~iiwa_torch.collision.primitives.culled_box_distance`)."""
+    """The capsules' distances to each kind of obstacle, ``(..., K * M)`` blocks, and their pairs' names.
+    ``cull``: only the minimum matters (:func:`~iiwa_torch.collision.primitives.culled_box_distance`)."""
     tables = capsules.tables(ends[0].dtype, ends[0].device)
     idx = tables["world"]
     names = [capsules.names[x] for x in idx.tolist()]
@@ -141,10 +133,8 @@ def _obstacle_distances(
 def distances(
     chain: Chain, q: Tensor, world: World, capsules: Capsules, cull: bool = False
 ) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
-    """The robot's own distances (self pairs, then floor) ``(P, B)`` over the flattened batch,
-    the other obstacles' ``(..., M)`` blocks, and every pair's names in that order, for
-    arguments :func:`resolve` returned. ``cull``: only the minimum matters (see
-    :func:`~iiwa_torch.collision.primitives.culled_box_distance`)."""
+    """The robot's own distances ``(P, B)``, the obstacles' ``(..., M)`` blocks and every pair's names,
+    for arguments :func:`resolve` returned; ``cull`` as :func:`_obstacle_distances`."""
     obstacles = bool(world.tensors()) and bool(capsules.world.any())
     own, ends = own_distances(chain, q, world.floor, capsules, keep_segments=obstacles)
     tables = capsules.tables(q.dtype, q.device)
@@ -163,11 +153,9 @@ def distances(
 
 @contextlib.contextmanager
 def _one_thread(when: bool):
-    """Run the block loop on one intra-op thread (``when``), then restore the count. Its ops are
-    a block's size, too small for a second thread to pay: with OpenMP spinning
-    (``OMP_WAIT_POLICY=ACTIVE``) a second thread gains nothing, and with ``PASSIVE`` every op's
-    parallel region wakes a sleeping thread, which costs more than the op (the vector env's rows
-    per wait policy: benchmarks/results/env.md; the measurement: benchmarks/results/log.md)."""
+    """Run the block loop on one intra-op thread (``when``). A block's ops are too small for a second
+    thread to pay: with ``OMP_WAIT_POLICY=PASSIVE`` waking it costs more than the op
+    (benchmarks/results/env.md, log.md)."""
     threads = torch.get_num_threads()
     if not when or threads == 1:
         yield

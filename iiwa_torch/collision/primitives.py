@@ -1,10 +1,8 @@
-"""Distance primitives: segment-segment, segment-point and segment-box, in torch (any batch,
-differentiable) and, for the obstacles of small CPU batches, in numpy float64 (``xp=np``).
+"""Segment-segment, segment-point and segment-box distances in torch (differentiable) and numpy.
 
-Every distance is written as ``|x - y|`` (or a box's signed distance) at closest points found
-without autograd; by the envelope theorem the gradient of a minimum is the gradient at its
-minimiser, so gradients need no derivative of the search and stay finite when segments are
-parallel, of zero length or touching.
+Each is ``|x - y|`` (or a box's signed distance) at closest points found without autograd: by the
+envelope theorem the gradient of a minimum is its gradient at the minimiser, so gradients stay
+finite for parallel, zero-length or touching segments.
 """
 
 from __future__ import annotations
@@ -42,14 +40,10 @@ def safe_norm(v: Tensor) -> Tensor:
 
 
 def segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
-    """Distance between segments ``p1 + s d1`` and ``p2 + t d2``, ``s, t`` in [0, 1]: vectors
-    component first, ``(3, ...)`` each (broadcast) -> ``(...)``. The closest-point parameters
-    are found without gradients; parallel segments take ``s0 = 0`` and a segment shorter than
-    ~``eps`` metres is a point. The last step (``s`` from the clamped ``t``) makes the result
-    exact in every case of the clamped quadratic (Ericson, Real-Time Collision Detection,
-    5.1.9). They are computed in float64 whatever the input: in float32 the cancellation in
-    ``b f - c e`` cost up to 1.5 mm on nearly parallel segments. A fixed number of tensor ops,
-    whatever the number of pairs."""
+    """Distance between segments ``p1 + s d1`` and ``p2 + t d2``, component first, ``(3, ...)`` each
+    (broadcast) -> ``(...)``. The parameters follow Ericson, Real-Time Collision Detection, 5.1.9,
+    in float64 whatever the input: in float32 the cancellation in ``b f - c e`` cost up to 1.5 mm
+    on nearly parallel segments."""
     with torch.no_grad():
         u1, u2, r = (x.double() for x in (d1, d2, p1 - p2))
         if not u1.shape == u2.shape == r.shape:
@@ -68,10 +62,8 @@ def _unit(x: np.ndarray) -> np.ndarray:
 
 
 def point_gap_numpy(p: np.ndarray, d: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Distance from segments ``p + s d`` to points ``c`` in numpy float64, ``(..., 3)`` each
-    (broadcast) -> ``(...)``: :func:`iiwa_torch.segments.closest_parameters` with a second segment
-    of zero length (``s = -(d . r) / (d . d)`` clamped, ``t = 0``) without the ops that come to
-    nothing, so :func:`segment_gap`'s distances to rounding."""
+    """Distance from segments ``p + s d`` to points ``c``, numpy float64 ``(..., 3)`` each -> ``(...)``:
+    :func:`~iiwa_torch.segments.closest_parameters` with a point for the second segment."""
     r = p - c
     a = (d * d).sum(-1)
     eps = EPS
@@ -82,8 +74,8 @@ def point_gap_numpy(p: np.ndarray, d: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 
 def segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
-    """Distance between segments ``p1 q1`` and ``p2 q2``: ``(..., 3)`` each (broadcast) -> ``(...)``
-    metres. A zero-length segment is a point. Differentiable in all four end points."""
+    """Distance (m) between segments ``p1 q1`` and ``p2 q2``, ``(..., 3)`` each (broadcast) -> ``(...)``;
+    differentiable."""
     _check_points(p1=p1, q1=q1, p2=p2, q2=q2)
     return unchecked_segment_distance(p1, q1, p2, q2)
 
@@ -119,14 +111,9 @@ def _box_sdf(local, half, xp=torch):
 
 
 def segment_box_distance(p: Tensor, q: Tensor, pose: Tensor, half: Tensor) -> Tensor:
-    """Signed distance from segment ``p q`` (``(..., 3)`` each) to the oriented box of pose
-    ``(..., 4, 4)`` and half extents ``(..., 3)`` (all broadcast): ``min_t sdf(p + t (q - p))``,
-    metres, negative inside.
-
-    Exact (closed form, see :func:`_box_parameters`): outside the box this is the segment-box
-    distance; when the segment enters the box it is minus the depth of the segment's deepest
-    point (a lower bound on the penetration depth).
-    """
+    """Signed distance (m) ``min_t sdf(p + t (q - p))`` from segment ``p q`` ``(..., 3)`` to the box of
+    ``pose (..., 4, 4)`` and ``half`` extents ``(..., 3)`` (broadcast); inside, minus the deepest
+    point's depth. Exact (:func:`_box_parameters`)."""
     _check_points(p=p, q=q, half=half)
     check_rigid(pose, "pose")
     return unchecked_segment_box_distance(p, q, pose, half)
@@ -190,16 +177,12 @@ def unchecked_segment_box_distance(p, q, pose, half, xp=torch):
 
 def culled_box_distance(a: Tensor, b: Tensor, pose: Tensor, half: Tensor, radius: Tensor,
                         found: list[Tensor]) -> Tensor:
-    """Capsule-box distances ``(..., K, M)`` (segments ``a b`` ``(..., K, 1, 3)``, boxes
-    ``(..., 1, M, ...)``, radii ``(K, 1)``) that are exact where they can be the minimum over
-    them and ``found`` (earlier distances, each broadcasting to the batch ``(...)``), and
-    lower bounds elsewhere: a query's minimum (value and gradient) is unchanged.
+    """Capsule-box distances ``(..., K, M)`` (segments ``a b (..., K, 1, 3)``, radii ``(K, 1)``), exact
+    where they can be the minimum over them and ``found`` (earlier distances), lower bounds elsewhere.
 
-    With ``m`` the segment's midpoint, ``l`` its half length and ``c`` the box centre, the
-    distance lies between ``|m - c| - l - |h| - r`` (every point of the box is within ``|h|``
-    of ``c``) and ``|m - c| - r`` (``c`` is inside the box); the exact closed form runs only on
-    pairs whose lower bound is below the smallest upper bound. Boxes far from the arm, such as
-    the parked stand-ins of an env's absent obstacles, cost a few ops instead of the search."""
+    The distance lies between ``|m - c| - l - |h| - r`` and ``|m - c| - r`` (``m`` the midpoint,
+    ``l`` the half length, ``c`` the box centre); the closed form runs only where the lower bound
+    is below the smallest upper one, so far boxes cost a few ops."""
     centre = pose[..., :3, 3]
     mid, span = (a + b) / 2, safe_norm(b - a) / 2  # (..., K, 1, 3), (..., K, 1)
     gap = safe_norm(mid - centre)  # (..., K, M)

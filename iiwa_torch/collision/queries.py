@@ -1,5 +1,5 @@
-"""The clearance queries: every checked distance with its pair's names, the smallest one, and each
-capsule's smallest with its gradient; checked, any batch, differentiable."""
+"""The clearance queries: every distance with its pair's names, the smallest, and each capsule's
+smallest with its gradient."""
 
 from __future__ import annotations
 
@@ -22,13 +22,8 @@ __all__ = ["Clearances", "capsule_clearance", "capsule_clearance_of_one", "clear
 
 @dataclass(frozen=True)
 class Clearances:
-    """Every distance of one query.
-
-    Attributes:
-        distance: ``(..., P)`` signed distances, metres (negative: overlap).
-        pairs: P ``(a, b)`` names: two capsule names for a self pair, else a capsule name
-            and ``floor``, ``wall<i>``, ``sphere<i>``, ``box<i>`` or ``capsule<i>``.
-    """
+    """Every distance of one query: ``distance (..., P)`` (m, negative on overlap) and P ``pairs`` of
+    names: two capsules, or a capsule and ``floor``, ``wall<i>``, ``sphere<i>``, ``box<i>`` or ``capsule<i>``."""
 
     distance: Tensor
     pairs: tuple[tuple[str, str], ...]
@@ -37,9 +32,8 @@ class Clearances:
 def pairwise_clearance(
     chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
 ) -> Clearances:
-    """Every checked distance for ``q (..., n)``: the self pairs, then capsule-floor,
-    -wall, -sphere, -box, -capsule (see :class:`Clearances`). ``world=None`` is the
-    model's default floor; ``capsules=None`` is :func:`robot_capsules` of the chain."""
+    """Every checked distance for ``q (..., n)``: self pairs, then floor, walls, spheres, boxes, capsules.
+    ``world=None``: the model's floor; ``capsules=None``: :func:`robot_capsules`."""
     own, others, labels = distances(chain, q, *resolve(chain, q, world, capsules))
     parts = ([] if own is None else [own.T.reshape(*q.shape[:-1], own.shape[0])]) + others
     shape = torch.broadcast_shapes(*(p.shape[:-1] for p in parts))
@@ -48,12 +42,9 @@ def pairwise_clearance(
 
 
 def clearance(chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None) -> Tensor:
-    """Smallest signed distance, metres: ``q (..., n) -> (...)``, over the checked self pairs and
-    capsule-obstacle pairs (arguments as :func:`pairwise_clearance`). Differentiable in ``q``
-    and the obstacles' tensors. On the CPU with nothing to differentiate, the robot's own
-    distances run compiled when numba is enabled, and up to ``CLEARANCE_NUMPY_BATCH``
-    configurations the spheres and boxes in numpy float64 (no walls or obstacle capsules; above
-    it, the floor must be the only obstacle) (:func:`iiwa_torch.collision.cpu_paths.plain_path`)."""
+    """Smallest signed distance (m) over the checked pairs: ``q (..., n) -> (...)`` (arguments as
+    :func:`pairwise_clearance`); differentiable in ``q`` and the obstacles. CPU calls without
+    autograd may take :func:`~iiwa_torch.collision.cpu_paths.plain_path`."""
     world, capsules = resolve(chain, q, world, capsules)
     plain = plain_path(chain, q, world, capsules)
     if plain is not None:
@@ -70,15 +61,9 @@ def clearance(chain: Chain, q: Tensor, world: World | None = None, capsules: Cap
 def capsule_clearance(
     chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Each capsule's smallest signed distance and its gradient: ``q (..., n)`` ->
-    ``distance (..., K)`` (m) and ``gradient (..., K, n)`` (m/rad), for the K capsules in
-    ``capsules.names`` order (arguments as :func:`pairwise_clearance`). A capsule's distance is
-    the minimum over every checked pair it is in (a self pair counts for both of its capsules);
-    one in no pair gets ``inf`` and a zero gradient. For controllers that keep each link clear
-    (e.g. a velocity damper: ``gradient[k] . dq >= -xi (distance[k] - d_safe)``). Neither output
-    is differentiable further. The gradient is autograd's, but for one CPU configuration with no
-    obstacle but the floor the compiled closed form
-    (:func:`iiwa_torch.compiled.numba_kernels.capsule_clearance`) when enabled."""
+    """Each capsule's smallest signed distance over the pairs it is in and its gradient: ``q (..., n)`` ->
+    ``distance (..., K)`` (m; ``inf`` in no pair) and ``gradient (..., K, n)`` (m/rad), not
+    differentiable further (arguments as :func:`pairwise_clearance`)."""
     world, capsules = resolve(chain, q, world, capsules)
     if compiled.ENABLED and q.numel() == chain.n_joints and q.is_cpu and not world.tensors():
         distance, gradient = capsule_clearance_compiled(chain, q, world.floor, capsules)
@@ -104,10 +89,8 @@ def capsule_clearance(
 def capsule_clearance_of_one(
     chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`capsule_clearance` of one CPU configuration ``q`` (n numbers, nothing to differentiate)
-    against itself and the floor at ``floor`` (m; ``None``: none), unchecked: for callers that built
-    every argument themselves (the envs' single env) -> distances ``(K,)`` (m) and gradients ``(K, n)``
-    (m/rad), float64 numpy arrays."""
+    """:func:`capsule_clearance` of one CPU configuration against itself and the floor at ``floor`` (m or
+    None), unchecked -> float64 arrays ``(K,)`` (m) and ``(K, n)`` (m/rad)."""
     if compiled.ENABLED:
         return capsule_clearance_compiled(chain, q, floor, capsules)
     with torch.inference_mode(False):  # a caller's inference tensors cannot be differentiated: a copy can

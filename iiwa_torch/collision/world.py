@@ -15,10 +15,10 @@ from .capsules import Capsules
 
 __all__ = ["MAX_EXTENT", "World", "check_world"]
 
-# each kind's per-obstacle dims after M: (first tensor, second tensor)
 #: Largest coordinate, size or offset (m) a World takes: far enough for any arm, near enough that
 #: squared distances stay finite in float32 (beyond ~1e19 m they overflow to inf).
 MAX_EXTENT = 1e6
+# each kind's per-obstacle dims after M: (first tensor, second tensor)
 _OBSTACLE_DIMS = {"walls": ((3,), ()), "spheres": ((3,), ()), "boxes": ((4, 4), (3,)), "capsules": ((2, 3), ())}
 
 
@@ -27,15 +27,14 @@ class World:
     """Obstacles, each kind with an optional leading batch shape (one set per environment).
 
     Args:
-        floor: height of the floor half-space ``z <= floor`` the robot must stay above
-            (metres), or ``None`` for no floor.
+        floor: height (m) of the floor half-space ``z <= floor``, or ``None``.
         walls: ``(normals (..., W, 3) unit, offsets (..., W))``: free space is ``n . x >= offset``.
         spheres: ``(centres (..., S, 3), radii (..., S))``.
         boxes: ``(poses (..., B, 4, 4) rigid, half_extents (..., B, 3))``.
         capsules: ``(points (..., C, 2, 3), radii (..., C))``.
 
-    All tensors share one float dtype and device; the batch shapes must broadcast with the
-    batch shape of the joint angles queried. Every value is within :data:`MAX_EXTENT` (1e6 m).
+    Tensors share one float dtype and device, their batch shapes broadcast with the queried
+    configurations', and every value is within :data:`MAX_EXTENT`.
     """
 
     floor: float | None = 0.0
@@ -45,15 +44,13 @@ class World:
     capsules: tuple[Tensor, Tensor] | None = None
 
     def __post_init__(self) -> None:
-        if self.floor is not None and not (is_number(self.floor) and abs(self.floor) <= MAX_EXTENT):
-            raise ValueError(f"floor must be a height in metres within {MAX_EXTENT:g} or None, got {self.floor!r}")
         if self.floor is not None:
+            if not (is_number(self.floor) and abs(self.floor) <= MAX_EXTENT):
+                raise ValueError(f"floor must be a height in metres within {MAX_EXTENT:g} or None, got {self.floor!r}")
             object.__setattr__(self, "floor", float(self.floor))  # a numpy scalar, in Python's float
         first = None
-        for kind, (shape_a, shape_b) in _OBSTACLE_DIMS.items():
-            pair = getattr(self, kind)
-            if pair is None:
-                continue
+        for kind, pair in self._kinds():
+            shape_a, shape_b = _OBSTACLE_DIMS[kind]
             if not isinstance(pair, tuple) or len(pair) != 2:
                 raise TypeError(f"{kind} must be a tuple of two tensors, got {type(pair).__name__}")
             a, b = pair
@@ -95,9 +92,7 @@ class World:
 
     def tensors(self) -> list[Tensor]:
         """Every obstacle tensor (for dtype/device checks and moving)."""
-        return [
-            t for kind in ("walls", "spheres", "boxes", "capsules") if getattr(self, kind) for t in getattr(self, kind)
-        ]
+        return [t for _, pair in self._kinds() for t in pair]
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -106,8 +101,7 @@ class World:
         return torch.broadcast_shapes(*shapes) if shapes else torch.Size()
 
     def check_batch(self, batch: torch.Size, what: str = "targets") -> None:
-        """Raise ``ValueError`` unless :attr:`batch_shape` broadcasts to ``batch`` (the batch
-        shape of the ``what`` it is used with) without enlarging it."""
+        """Raise ``ValueError`` unless :attr:`batch_shape` broadcasts to ``batch`` without enlarging it."""
         try:
             fits = torch.broadcast_shapes(self.batch_shape, batch) == batch
         except RuntimeError:
@@ -118,9 +112,8 @@ class World:
             )
 
     def map_batch(self, fn) -> World:
-        """A world with ``fn(t, k)`` applied to every obstacle tensor ``t`` whose last ``k``
-        dims are the obstacle dims (``M`` and each obstacle's own): the dims before them are
-        the batch, which ``fn`` may reshape, expand or index (e.g. to one world per pose)."""
+        """A world with ``fn(t, k)`` applied to every obstacle tensor ``t``, whose dims before the last
+        ``k`` (``M`` and each obstacle's own) are the batch ``fn`` may reshape, expand or index."""
         changed = {
             kind: tuple(fn(t, 1 + len(dims)) for t, dims in zip(pair, _OBSTACLE_DIMS[kind]))
             for kind, pair in self._kinds()
@@ -132,9 +125,8 @@ class World:
 
 
 def check_world(world: World | None, margin: float, capsules: Capsules | None = None) -> None:
-    """Check the ``world=``, ``margin=``, ``capsules=`` arguments of a solver: ``world`` a
-    :class:`World` or ``None``, ``margin`` a finite number >= 0 (metres), and neither
-    ``margin`` nor ``capsules`` given without a world."""
+    """Check a solver's ``world`` (a :class:`World` or None), ``margin`` (m, >= 0) and ``capsules``,
+    the last two only with a world."""
     if world is not None and not isinstance(world, World):
         raise TypeError(f"world must be an iiwa_torch.collision.World or None, got {type(world).__name__}")
     if capsules is not None and not isinstance(capsules, Capsules):
