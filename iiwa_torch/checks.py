@@ -38,14 +38,15 @@ def check_float_tensor(x, name: str, shape: str) -> None:
         raise TypeError(f"{name} must be a float32 or float64 tensor, got {x.dtype}")
 
 
-def check_tensor(x, name: str, shape: tuple[int, ...]) -> None:
-    """Raise ``TypeError``/``ValueError`` unless ``x`` is a finite float32/float64 tensor of shape
-    ``(..., *shape)``, e.g. ``shape=(3, 3)`` for rotations."""
+def check_tensor(x, name: str, shape: tuple[int, ...], finite: bool = True) -> None:
+    """Raise ``TypeError``/``ValueError`` unless ``x`` is a float32/float64 tensor of shape
+    ``(..., *shape)``, e.g. ``shape=(3, 3)`` for rotations, and finite (if ``finite``)."""
     text = "(..., " + ", ".join(map(str, shape)) + ")"
     check_float_tensor(x, name, text)
     if x.ndim < len(shape) or tuple(x.shape[x.ndim - len(shape) :]) != tuple(shape):
         raise ValueError(f"{name} must have shape {text}, got {tuple(x.shape)}")
-    check_finite(x, name)
+    if finite:
+        check_finite(x, name)
 
 
 def check_finite(x: torch.Tensor, name: str) -> None:

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import torch
 
-from .checks import all_finite, check_tensor
+from .checks import all_finite, check_finite, check_tensor
 
 __all__ = [
     "skew",
@@ -181,33 +181,38 @@ RIGID_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 _RIGID_NUMPY_BATCH = 64  # up to this many CPU poses check_rigid computes in numpy (a torch op's fixed cost dominates)
 
 
-def _rigid_deviation_numpy(pose: np.ndarray) -> float:
-    """:func:`check_rigid`'s largest deviation over ``pose (b, 4, 4)`` in numpy (one pose in Python
-    floats), inf if some ``det R <= 0``."""
+def _rigid_numpy(pose: np.ndarray, tol: float) -> bool:
+    """Whether ``pose (b, 4, 4)`` is finite and passes :func:`check_rigid`'s test within ``tol``, in numpy
+    (one pose in Python floats: a NaN or inf makes the sum of its entries NaN or inf)."""
     if pose.shape[0] == 1:
-        a, b, c, _, d, e, f, _, g, h, k, _, w0, w1, w2, w3 = pose.reshape(16).tolist()
+        values = pose.reshape(16).tolist()
+        a, b, c, _, d, e, f, _, g, h, k, _, w0, w1, w2, w3 = values
         gram = (a * a + d * d + g * g - 1, b * b + e * e + h * h - 1, c * c + f * f + k * k - 1,
                 a * b + d * e + g * h, a * c + d * f + g * k, b * c + e * f + h * k)  # fmt: skip
         det = a * (e * k - f * h) - b * (d * k - f * g) + c * (d * h - e * g)
         deviation = max(max(map(abs, gram)), abs(w0), abs(w1), abs(w2), abs(w3 - 1))
-        return deviation if det > 0 else math.inf
+        return math.isfinite(sum(values)) and det > 0 and deviation <= tol
     R = pose[:, :3, :3]
     gram = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max()
     bottom = np.abs(pose[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max()
-    return max(gram, bottom) if (np.linalg.det(R) > 0).all() else math.inf
+    return bool(np.isfinite(pose).all() and (np.linalg.det(R) > 0).all() and max(gram, bottom) <= tol)
 
 
 def check_rigid(pose: torch.Tensor, name: str = "pose", exact_bottom_row: bool = False) -> None:
     """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` batch of rigid
     transforms: ``|R^T R - I| <= tol`` entrywise, ``det R > 0``, bottom row ``[0, 0, 0, 1]`` within
     ``tol`` (exactly if ``exact_bottom_row``), ``tol = RIGID_TOL[dtype]``."""
-    check_pose(pose, name)
+    check_tensor(pose, name, (4, 4), finite=False)
     if pose.numel() == 0:
         return
     tol = RIGID_TOL.get(pose.dtype, RIGID_TOL[torch.float32])
     if pose.device.type == "cpu" and pose.numel() <= 16 * _RIGID_NUMPY_BATCH and not exact_bottom_row:
-        if _rigid_deviation_numpy(pose.detach().numpy().reshape(-1, 4, 4)) <= tol:
-            return  # else the torch code below finds the culprit for the message
+        try:
+            if _rigid_numpy(pose.detach().numpy().reshape(-1, 4, 4), tol):
+                return  # else the checks below find the culprit for the message
+        except RuntimeError:  # no storage to read (torch.func.vmap): check_finite says so
+            pass
+    check_finite(pose, name)
     last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=pose.dtype, device=pose.device)
     if exact_bottom_row and not bool((pose[..., 3, :] == last).all()):
         bad = (pose[..., 3, :] != last).any(-1).nonzero()[0].tolist()

@@ -91,3 +91,16 @@ def test_check_rigid_at_every_batch_size(kind, count):
     T[count // 2] = _bad(kind, T[count // 2])
     with pytest.raises(ValueError, match="NaN" if kind == "nan" else "rigid"):
         so3.check_rigid(T)
+
+
+@pytest.mark.parametrize("entry", [(0, 3), (2, 3), (3, 0), (3, 3)])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+@pytest.mark.parametrize("batch", [1, 5])
+def test_non_finite_translation_or_bottom_row_is_named(entry, value, batch):
+    """The fast check of small CPU batches reads every entry, not only the rotation's."""
+    pose = torch.eye(4, dtype=torch.float64).repeat(batch, 1, 1)
+    pose[-1][entry] = value
+    with pytest.raises(ValueError, match="NaN or inf"):
+        so3.check_rigid(pose, "target")
+    with pytest.raises(ValueError, match="NaN or inf"):
+        so3.check_rigid(pose[-1], "target")
