@@ -94,10 +94,9 @@ def _enclosing_capsule(centres, radii=None, *, seed: int = 0) -> tuple[np.ndarra
     radii = np.zeros(len(centres)) if radii is None else np.asarray(radii, dtype=np.float64)
     mean = centres.mean(0)
     _, _, principal = np.linalg.svd(centres - mean, full_matrices=False)
-    golden = np.pi * (3.0 - math.sqrt(5.0))
+    turns = np.pi * (3.0 - math.sqrt(5.0)) * np.arange(64)  # a Fibonacci sphere of 64 directions
     z = np.linspace(1 - 1 / 64, -1 + 1 / 64, 64)
-    spread = np.stack([np.sqrt(1 - z**2) * np.cos(golden * np.arange(64)), np.sqrt(1 - z**2) *
-                       np.sin(golden * np.arange(64)), z], 1)
+    spread = np.stack([np.sqrt(1 - z**2) * np.cos(turns), np.sqrt(1 - z**2) * np.sin(turns), z], 1)
     axes = np.concatenate([principal, np.eye(3), spread])
     scale = float(np.ptp(centres, 0).max() + radii.max()) or 1.0
 

@@ -1,5 +1,5 @@
-"""The viewer's side panel, apart from IK and playback: one slider per joint, the pose readout and
-clearance lines, the display checkboxes; and the :class:`Guard` every widget callback runs under."""
+"""The viewer's panel apart from IK and playback (joint sliders, readout, checkboxes), and the
+:class:`Guard` every widget callback runs under."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ _F64 = torch.float64
 
 
 class Guard:
-    """The lock over a viewer's state (GUI callbacks run on viser's thread pool, the player on its
-    own thread) and a flag set while the viewer writes its own widgets, whose callbacks then do nothing."""
+    """The lock over a viewer's state (callbacks run on viser's threads, the player on its own), and a
+    flag that silences callbacks while the viewer writes its own widgets."""
 
     def __init__(self):
         self.lock = threading.RLock()
@@ -26,7 +26,6 @@ class Guard:
 
     @contextlib.contextmanager
     def quiet(self):
-        """Context in which the viewer's own widget writes run no callback."""
         before, self._syncing = self._syncing, True
         try:
             yield
@@ -34,7 +33,7 @@ class Guard:
             self._syncing = before
 
     def callback(self, action: Callable[[], None]):
-        """A widget callback that runs ``action()`` under the lock, unless the viewer itself wrote the widget."""
+        """A callback running ``action()`` under the lock, unless the viewer itself wrote the widget."""
 
         def run(_event) -> None:
             with self.lock:
@@ -46,7 +45,7 @@ class Guard:
 
 @dataclass(frozen=True)
 class Readout:
-    """End-effector pose as shown in the panel: ``xyz`` metres, ``rpy_deg`` roll, pitch, yaw in degrees."""
+    """End-effector pose as the panel shows it: ``xyz`` m, ``rpy_deg`` roll, pitch, yaw in degrees."""
 
     xyz: tuple[float, float, float]
     rpy_deg: tuple[float, float, float]
@@ -58,10 +57,8 @@ class Readout:
 
 
 class Controls:
-    """The panel's title, ``sliders`` (one per joint of ``chain``: degrees, metres for a prismatic
-    joint, within ``limits (2, n)``; a continuous joint's spans a turn), then the ``readout`` and
-    ``clearance`` lines. ``on_move(i)`` is called when a user moves slider ``i``
-    (read it with :meth:`joint_value`). :meth:`add_toggles` adds the display checkboxes."""
+    """The panel's title, ``sliders`` (one per joint, degrees or metres, within ``limits (2, n)``; a
+    continuous joint's spans a turn), ``readout`` and ``clearance``. ``on_move(i)``: a user moved slider ``i``."""
 
     def __init__(self, gui, guard: Guard, chain: Chain, limits: torch.Tensor, on_move: Callable[[int], None]):
         self._gui, self._guard = gui, guard
@@ -96,8 +93,7 @@ class Controls:
         self.clearance.content = clearance
 
     def add_toggles(self, scene, show_capsules: bool, show_frames: bool) -> None:
-        """Checkboxes ``show_skeleton`` (offered with URDF visuals), ``show_frames`` and ``show_capsules``
-        (offered with a capsule model) over the nodes of the :class:`~iiwa_torch.viewer.scene.ArmScene`."""
+        """Checkboxes ``show_skeleton`` (with URDF visuals), ``show_frames``, ``show_capsules`` (with capsules)."""
         gui, has_visuals = self._gui, bool(scene.visual_nodes)
         self.show_skeleton = gui.add_checkbox("show skeleton", not has_visuals, visible=has_visuals)
         skeleton = scene.links + scene.joints

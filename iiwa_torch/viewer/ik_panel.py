@@ -1,11 +1,5 @@
-"""Drag-to-solve: the pose of the viewer's target gizmo solved by the gradient IK
-(:func:`iiwa_torch.ik.solve`) or, for an arm whose joint axes admit one (S-R-S arms like the iiwa,
-6R arms with a spherical wrist: :func:`iiwa_torch.ik.analytic.structure`), by the closed form (a
-chosen branch or the nearest one; for an S-R-S arm a held arm angle or the nearest one).
-
-:class:`TargetSolver` holds the choice and solves (no viser); :class:`IKPanel` is the panel's
-"IK target" folder that sets it.
-"""
+"""Drag-to-solve: the target gizmo's pose solved by the gradient IK or, where the joint axes admit one,
+the closed form. :class:`TargetSolver` holds the choice and solves; :class:`IKPanel` shows it."""
 
 from __future__ import annotations
 
@@ -28,14 +22,8 @@ _BRANCH_LABELS = tuple(f"{k} {'+-'[k >> 2 & 1]}{'+-'[k >> 1 & 1]}{'+-'[k & 1]}" 
 
 @dataclass(frozen=True)
 class TargetResult:
-    """What a target solve did.
-
-    Attributes:
-        outcome: one of :data:`OUTCOMES`; only ``"reached"`` moves the arm.
-        q: ``(n,)`` the configuration shown afterwards (radians; the previous one unless reached).
-        pos_err, rot_err: of the best candidate against the target (m, rad).
-        clearance: of the best candidate (m, negative in collision), None without a capsule model.
-    """
+    """A target solve: ``outcome`` (of :data:`OUTCOMES`; only ``"reached"`` moves the arm), ``q (n,)`` rad
+    shown afterwards, the best candidate's ``pos_err`` m, ``rot_err`` rad and ``clearance`` m (or None)."""
 
     outcome: str
     q: torch.Tensor
@@ -52,9 +40,8 @@ class TargetResult:
 
 
 def _closed_form(chain: Chain, q: torch.Tensor) -> tuple[str | None, DHChain | None, torch.Tensor | None]:
-    """``chain``'s closed form: ``"iiwa"`` (S-R-S) or ``"pieper"``, the DH chain it runs on and
-    ``(n,)`` signs (``q_dh = signs * q``); a DH preset's own table and branches (tried at ``q (n,)``),
-    else those of :func:`~iiwa_torch.ik.analytic.structure`. ``(None, None, None)`` if there is none."""
+    """``(kind, dh, signs (n,))``: ``"iiwa"`` (S-R-S) or ``"pieper"``, the DH chain it runs on and
+    ``q_dh = signs * q``; a DH preset's own table if it fits (tried at ``q``). All None if none."""
     n = chain.n_joints
     if n not in (6, 7):
         return None, None, None
@@ -77,12 +64,8 @@ def _closed_form(chain: Chain, q: torch.Tensor) -> tuple[str | None, DHChain | N
 
 
 class TargetSolver:
-    """How targets of ``chain`` are solved: ``method`` (``"gradient"`` or ``"analytic"``), ``branch``
-    (0..7 or None: the nearest) and ``arm_angle`` (rad, or None: the nearest), checked against
-    ``capsules`` in ``world`` (float64, one set) when a capsule model is given.
-
-    ``kind`` is the closed form (``"iiwa"``, ``"pieper"`` or None), found at ``q (n,)``.
-    """
+    """How targets are solved: ``method``, ``branch`` (0..7 or None: nearest), ``arm_angle`` (rad or None),
+    checked against ``capsules`` in ``world`` if given; ``kind``: the closed form or None."""
 
     def __init__(self, chain: Chain, q: torch.Tensor, capsules: collision.Capsules | None,
                  world: collision.World | None):  # fmt: skip
@@ -96,7 +79,7 @@ class TargetSolver:
         return ("gradient", "analytic") if self.kind else ("gradient",)
 
     def choose(self, method: str, branch: int | None = None, arm_angle: float | None = None) -> None:
-        """Check and take the method, branch and arm angle (as ``Viewer.set_ik``)."""
+        """Check and take the choice (as ``Viewer.set_ik``)."""
         if method not in self.methods:
             raise ValueError(f"method must be one of {list(self.methods)} for {self.chain.name}, got {method!r}")
         if branch is not None and (isinstance(branch, bool) or branch not in range(8)):
@@ -110,24 +93,22 @@ class TargetSolver:
         self.arm_angle = None if arm_angle is None else math.remainder(float(arm_angle), 2 * math.pi)
 
     def arm_angle_at(self, q: torch.Tensor) -> torch.Tensor:
-        """The S-R-S arm angle (rad, a 0-dim tensor) of ``q (n,)``, in the closed form's DH chain."""
+        """The S-R-S arm angle of ``q (n,)`` (rad, 0-dim tensor)."""
         return analytic.iiwa_arm_angle(self._dh, q * self._signs)
 
     def arm_text(self, q: torch.Tensor, psi: float) -> str:
-        """The readout's line of the S-R-S arm angle ``psi`` (degrees) and the branch signs at ``q (n,)``
-        (module doc of the closed form), in the closed form's DH chain."""
+        """The readout's line of the arm angle ``psi`` (degrees) and the branch signs at ``q (n,)``."""
         theta = (q * self._signs + self._dh.dh[:, 3].to(_F64))[[1, 3, 5]]
         signs = "".join("+" if math.sin(t) >= 0 else "-" for t in theta.tolist())
         return f"  \narm angle (deg): {psi:+.1f}, branch {signs}"
 
     def solve(self, pose: torch.Tensor, q: torch.Tensor) -> TargetResult:
-        """Solve ``pose (4, 4)`` (float64, metres) from ``q (n,)`` with the chosen method."""
+        """Solve ``pose (4, 4)`` (float64, m) from ``q (n,)``."""
         candidates, outcome = self._candidates(pose, q)
         return self._best(pose, q, candidates, outcome)
 
     def _candidates(self, pose: torch.Tensor, q_now: torch.Tensor) -> tuple[torch.Tensor, str | None]:
-        """``(m, n)`` candidate configurations within the limits that reproduce ``pose``, or the
-        best attempt ``(1, n)`` and the outcome that rules it out."""
+        """In-limit candidates ``(m, n)`` for ``pose`` and None, or the best attempt ``(1, n)`` and why it fails."""
         if self.method == "gradient":
             result = ik.solve(self.chain, pose, q_now)
             q = result.q.to(_F64)[None]
@@ -156,8 +137,7 @@ class TargetSolver:
         return self.chain.clamp(q[:1]), "unreachable"
 
     def _best(self, pose: torch.Tensor, q_now: torch.Tensor, q: torch.Tensor, outcome: str | None) -> TargetResult:
-        """The candidate of ``q (m, n)`` nearest ``q_now`` among the collision-free ones (all of them
-        without a capsule model) as a :class:`TargetResult`; the arm keeps ``q_now`` unless reached."""
+        """The collision-free candidate of ``q (m, n)`` nearest ``q_now``, as a :class:`TargetResult`."""
         cost = (q - q_now).square().sum(-1)
         gaps = None
         if self.capsules is not None:
@@ -177,14 +157,8 @@ class TargetSolver:
 
 
 class IKPanel:
-    """The panel's "IK target" folder: ``method`` and ``branch`` dropdowns, the ``hold_psi`` box and
-    ``psi_slider`` (degrees, S-R-S arms only) and the ``status`` line.
-
-    Args:
-        gui: viser's GUI API; guard: the viewer's :class:`~iiwa_torch.viewer.controls.Guard`.
-        solver: whose choice the widgets show (:meth:`sync`).
-        on_change: called when a user changes a widget (read the choice with :meth:`chosen`).
-    """
+    """The "IK target" folder: ``method``, ``branch``, ``hold_psi``, ``psi_slider`` (degrees, S-R-S arms)
+    and ``status``, showing ``solver``'s choice; ``on_change()``: a user changed a widget."""
 
     def __init__(self, gui, guard, solver: TargetSolver, on_change: Callable[[], None]):
         self._guard, self._solver = guard, solver
@@ -200,13 +174,13 @@ class IKPanel:
             widget.on_update(guard.callback(on_change))
 
     def chosen(self) -> tuple[str, int | None, float | None]:
-        """``(method, branch, arm angle in rad)`` as the widgets show them (None: nearest, or not held)."""
+        """``(method, branch, arm angle rad)`` as the widgets show them (None: nearest, or not held)."""
         branch = None if self.branch.value == "nearest" else _BRANCH_LABELS.index(self.branch.value)
         psi = math.radians(self.psi_slider.value) if self.hold_psi.value else None
         return self.method.value, branch, psi if self._solver.kind == "iiwa" else None
 
     def sync(self) -> None:
-        """Show the solver's choice; the branch and arm-angle widgets only apply to the closed form."""
+        """Show the solver's choice (branch and arm angle apply to the closed form only)."""
         solver = self._solver
         with self._guard.quiet():
             self.method.value = solver.method
@@ -219,8 +193,7 @@ class IKPanel:
             self.hold_psi.disabled = self.psi_slider.disabled = not analytic_on
 
     def follow(self, psi: float) -> None:
-        """Move the arm-angle slider to the arm's ``psi`` (degrees) unless one is held, so that holding
-        starts from where the arm is."""
+        """Move the arm-angle slider to ``psi`` (degrees) unless one is held, so holding starts there."""
         if self._solver.arm_angle is None:
             with self._guard.quiet():
                 self.psi_slider.value = psi

@@ -1,5 +1,4 @@
-"""Playback of joint paths in the viewer: the panel's "playback" folder (play/pause, loop, a time
-slider, a path slider for several paths) and a thread that steps through a path in real time."""
+"""Playback of joint paths: the panel's "playback" folder and a thread stepping through a path in real time."""
 
 from __future__ import annotations
 
@@ -16,8 +15,7 @@ _F64 = torch.float64
 
 
 def checked_paths(chain: Chain, q, dt, goals) -> tuple[torch.Tensor, np.ndarray | None, float]:
-    """``(paths (B, T, n) float64 within the limits, goals (B, 3) numpy or None, dt s)`` from the
-    arguments of ``Viewer.set_path``; ValueError/TypeError naming what is wrong."""
+    """``Viewer.set_path``'s arguments checked: ``(paths (B, T, n) float64, goals (B, 3) numpy or None, dt s)``."""
     check_float_tensor(q, "q", "(T, n) or (B, T, n)")
     n = chain.n_joints
     if q.ndim not in (2, 3) or q.shape[-1] != n or q.shape[-2] < 1:
@@ -36,12 +34,8 @@ def checked_paths(chain: Chain, q, dt, goals) -> tuple[torch.Tensor, np.ndarray 
 
 
 class Player:
-    """The loaded ``paths (B, T, n)``, their ``goals`` and ``dt``, the ``path`` and ``step`` shown, the
-    panel's playback widgets and the thread that plays.
-
-    ``seek(step, path=None)`` is the viewer's: it shows a step (and calls :meth:`moved_to`).
-    Every method runs under ``guard.lock``, as the viewer's state it changes.
-    """
+    """The loaded ``paths (B, T, n)``, ``goals``, ``dt``, the ``path`` and ``step`` shown, the widgets and the
+    playing thread; ``seek(step, path=None)`` is the viewer's. Methods run under ``guard.lock``."""
 
     def __init__(self, gui, guard, seek: Callable[..., None]):
         self._guard, self._seek = guard, seek
@@ -70,7 +64,7 @@ class Player:
         return min(max(round(self.time_slider.value / self.dt), 0), self.paths.shape[1] - 1)
 
     def load(self, paths: torch.Tensor, goals: np.ndarray | None, dt: float) -> None:
-        """Take checked paths (:func:`checked_paths`), paused; the caller then seeks step 0 of path 0."""
+        """Take :func:`checked_paths`' result, paused."""
         with self._guard.lock:
             self.pause()
             self.paths, self.goals, self.dt = paths, goals, dt
@@ -93,7 +87,7 @@ class Player:
         return step, path
 
     def moved_to(self, step: int, path: int) -> torch.Tensor:
-        """Record the step shown and move the sliders there; its ``(n,)`` configuration."""
+        """Record the step shown and move the sliders there; its configuration ``(n,)``."""
         self.step, self.path = step, path
         with self._guard.quiet():
             self.time_slider.value = step * self.dt
@@ -101,8 +95,7 @@ class Player:
         return self.paths[path, step].clone()
 
     def play(self) -> None:
-        """Step through the path in real time (from the start once the end is shown), looping if
-        the loop box is ticked."""
+        """Play in real time (from the start once at the end), looping if the box is ticked."""
         if self.paths is None:
             raise ValueError("no path loaded: call set_path first")
         with self._guard.lock:

@@ -1,10 +1,5 @@
-"""The viewer's 3-D scene of one chain: the skeleton (a cylinder between consecutive frame origins,
-one along each joint axis) or a URDF's ``<visual>`` meshes and shapes, the link frames, the IK
-target gizmo, the collision capsules, the obstacles and the playback trace.
-
-:class:`ArmScene` builds the nodes once and :meth:`ArmScene.place` moves them to the link frames of a
-configuration; it knows nothing of IK or of the panel.
-"""
+"""The viewer's 3-D scene: the skeleton (cylinders between frame origins and along the joint axes) or a
+URDF's visuals, the frames, the target gizmo, the capsules, the obstacles and the playback trace."""
 
 from __future__ import annotations
 
@@ -76,9 +71,8 @@ class _CapsuleNodes:
 
 
 def urdf_parts(chain: Chain, source, capsules: collision.Capsules | None):
-    """The ``<visual>`` elements of the URDF ``source`` that ``chain`` was read from (its root as
-    the base) with their meshes loaded, ``[(element, trimesh or None)]``, and ``capsules`` or, if
-    None, those fitted to its ``<collision>`` geometry (None if it has none)."""
+    """``([(URDF <visual> element, its trimesh or None)], capsules)`` of the file ``chain`` was read from;
+    ``capsules=None``: those fitted to its ``<collision>`` geometry, if any."""
     path = urdf_io.read_urdf(source, end_link=chain.link_names[-1])
     if [j.name for j in path.joints] != list(chain.joint_names):
         raise ValueError(f"chain {chain.name!r} is not the path of urdf {os.fspath(source)!r} from its root link "
@@ -90,8 +84,7 @@ def urdf_parts(chain: Chain, source, capsules: collision.Capsules | None):
 
 
 def _add_visual(scene, name: str, element: urdf_io.UrdfCollision, mesh):
-    """A scene node of a URDF ``<visual>`` element, in its own frame: its material colour if it
-    names one, else a mesh's own colours (or grey)."""
+    """A scene node of a URDF ``<visual>`` element: its material colour, else a mesh's own (or grey)."""
     colour = _LINK_COLOUR if element.rgba is None else tuple(round(255 * v) for v in element.rgba[:3])
     opts = dict(color=colour, opacity=None if element.rgba is None or element.rgba[3] >= 1 else element.rgba[3])
     size = element.size
@@ -109,21 +102,13 @@ def _add_visual(scene, name: str, element: urdf_io.UrdfCollision, mesh):
 
 
 class ArmScene:
-    """Every node of ``chain``'s scene in a viser ``server``, built at the link ``frames (n + 1, 4, 4)``
-    and end-effector pose ``end (4, 4)`` of a first configuration (whose segment lengths size it).
+    """Every node of ``chain``'s scene, sized by the link ``frames (n + 1, 4, 4)`` and ``end (4, 4)`` of a first
+    configuration. ``visuals`` as :func:`urdf_parts` gives (with some, the skeleton starts hidden);
+    ``on_drag(wxyz, position)``: the target gizmo was dragged.
 
-    Args:
-        visuals: ``[(URDF <visual> element, its trimesh or None)]`` (:func:`urdf_parts`); with some,
-            the skeleton starts hidden.
-        capsules, world: the robot's collision model and the obstacles (float64, one set), or None.
-        show_capsules, show_frames: whether the capsules and the link frames start visible.
-        on_drag: called with ``(wxyz, position)`` when the target gizmo is dragged.
-
-    Public node lists, for the panel's checkboxes and for tests: ``links``, ``joints`` (the
-    skeleton), ``visual_nodes`` ``[(element, node)]``, ``frame_nodes``, ``capsule_nodes``
-    ``{name: capsule}`` (its ``nodes``: a body, two ends), ``world_nodes`` ``{name: [nodes]}``;
-    ``target`` (the gizmo), ``target_marker``, ``goal_marker`` and ``trace`` (None until
-    :meth:`draw_trace`).
+    Nodes: ``links``, ``joints`` (the skeleton), ``visual_nodes`` ``[(element, node)]``, ``frame_nodes``,
+    ``capsule_nodes`` ``{name: capsule}``, ``world_nodes`` ``{name: [nodes]}``, ``target``,
+    ``target_marker``, ``goal_marker``, ``trace`` (None until :meth:`draw_trace`).
     """
 
     def __init__(self, server, chain: Chain, frames: torch.Tensor, end: torch.Tensor, *, visuals, capsules,
@@ -158,8 +143,9 @@ class ArmScene:
         """A grey cylinder per link segment, an orange one along each joint axis."""
         radius = 0.03 * self.reach
         self.links = [
-            scene.add_cylinder(f"/arm/link{i}", radius=radius, height=float(lengths[i]), color=_LINK_COLOUR,
-                               visible=visible)  # fmt: skip
+            scene.add_cylinder(
+                f"/arm/link{i}", radius=radius, height=float(lengths[i]), color=_LINK_COLOUR, visible=visible
+            )
             for i in self._segments
         ]
         # Joint i turns about the z axis of frame i - 1 (standard DH) or of frame i (modified DH);
@@ -172,8 +158,9 @@ class ArmScene:
             self._axis_frames, turns = list(range(1, n + 1)), torch.stack([z_onto(a) for a in chain.axes.to(_F64)])
         self._axis_turns = turns  # (n, 3, 3): the joint cylinder's z onto the axis, in its frame
         self.joints = [
-            scene.add_cylinder(f"/arm/joint{i + 1}", radius=1.5 * radius, height=5 * radius, color=_JOINT_COLOUR,
-                               visible=visible)  # fmt: skip
+            scene.add_cylinder(
+                f"/arm/joint{i + 1}", radius=1.5 * radius, height=5 * radius, color=_JOINT_COLOUR, visible=visible
+            )
             for i in range(n)
         ]
 
@@ -200,8 +187,7 @@ class ArmScene:
                                                visible=False)  # fmt: skip
 
     def _build_world(self, scene) -> dict[str, list]:
-        """Draw the obstacles; ``{name: [scene handles]}`` with the names of
-        :func:`~iiwa_torch.collision.pairwise_clearance` (``floor``, ``sphere0``, ...)."""
+        """Draw the obstacles; ``{name: [nodes]}`` by pairwise_clearance's names (``floor``, ``sphere0``, ...)."""
         world, nodes, reach = self.world, {}, self.reach
         if world is None:
             return nodes
@@ -235,8 +221,7 @@ class ArmScene:
         return nodes
 
     def place(self, frames: torch.Tensor, end: torch.Tensor, move_target: bool) -> None:
-        """Move the arm's nodes to the link ``frames (n + 1, 4, 4)`` and end-effector pose ``end (4, 4)``;
-        the target gizmo too if ``move_target``."""
+        """Move the arm's nodes to ``frames (n + 1, 4, 4)`` and ``end (4, 4)``, and the gizmo if ``move_target``."""
         points = _origins(frames, end)
         mids, quats, _ = _segment_placement(points[self._segments], points[self._segments + 1])
         frame_quats = _quaternions(torch.cat([frames[:, :3, :3], end[None, :3, :3]]))
@@ -256,8 +241,8 @@ class ArmScene:
             self.target.position, self.target.wxyz = points[-1], frame_quats[-1]
 
     def colour(self, frames: torch.Tensor, hits: set[str], outcome: str | None) -> None:
-        """Place the capsules at the link ``frames (n + 1, 4, 4)``; colour the capsules and obstacles
-        named in ``hits`` as colliding, and the target ball by the last solve's ``outcome``."""
+        """Place the capsules at ``frames (n + 1, 4, 4)``, colour those and the obstacles in ``hits`` red and
+        the target ball by ``outcome``."""
         if self.capsules is not None:
             world_frames = frames[list(self.capsules.frames)]
             rot, origin = world_frames[:, None, :3, :3], world_frames[:, None, :3, 3]
@@ -272,7 +257,7 @@ class ArmScene:
         self.target_marker.color = _IDLE_RGB if outcome is None else _TARGET_RGB.get(outcome, _HIT_RGB)
 
     def draw_trace(self, tip: np.ndarray, goal: np.ndarray | None) -> None:
-        """The end-effector path ``tip (T, 3)`` of a playback path (metres), and its ``goal (3,)`` if any."""
+        """A playback path's end-effector trace ``tip (T, 3)`` m, and its ``goal (3,)`` if any."""
         if self.trace is not None:
             self.trace.remove()
         segments = np.stack([tip[:-1], tip[1:]], 1) if len(tip) > 1 else np.stack([tip, tip], 1)

@@ -1,9 +1,7 @@
-"""The running viewer: :class:`Viewer` (one viser server, its scene, panel and state) and :func:`show`.
+"""The running viewer: :class:`Viewer` (a viser server, its scene, panel and state) and :func:`show`.
 
-:class:`Viewer` holds the state (the joint angles, the last target and its outcome) so it can be
-driven and checked without a browser; the scene (:mod:`.scene`), the panel (:mod:`.controls`,
-:mod:`.ik_panel`, :mod:`.playback`) only draw and report what the user does. viser is imported
-when a viewer starts, never when ``iiwa_torch`` is imported.
+The state lives in :class:`Viewer`, so it can be driven without a browser; the scene and the panel
+only draw and report what the user does.
 """
 
 from __future__ import annotations
@@ -37,14 +35,9 @@ _HOSTNAME = re.compile(rf"(?:{_LABEL}\.)*{_LABEL}\.?")  # RFC 1123 host name syn
 
 
 def _listen_address(host, port) -> tuple[str, bool]:
-    """``(host, loopback)``: where the server can listen, checked before viser starts (viser
-    moves on from any port it cannot bind, and waits forever when it binds none).
-
-    ``host`` '' or None means 127.0.0.1; otherwise an IP address or a host name of this machine.
-    ``port`` 0..65535, 0 for any free port; a busy port is left to viser, which takes the next
-    free one. ``loopback`` is False if the server would be reachable from other machines.
-    ValueError/TypeError for a malformed host or port, ValueError when it cannot be listened on.
-    """
+    """``(host, loopback)``: ``host`` ('' or None: 127.0.0.1) and ``port`` checked before viser starts
+    (viser moves on from a port it cannot bind, and waits forever when it binds none); a busy port is
+    left to viser. ``loopback`` is False if other machines could reach it. ValueError/TypeError."""
     host = "127.0.0.1" if host is None or host == "" else host
     if not isinstance(host, str):
         raise TypeError(f"host must be a str (an IP address or host name), got {type(host).__name__}")
@@ -71,7 +64,6 @@ def _listen_address(host, port) -> tuple[str, bool]:
 
 
 def _check_options(chain, world, capsules, show_capsules, show_frames) -> None:
-    """:class:`Viewer`'s argument types, checked before anything is built."""
     if not isinstance(chain, Chain):
         raise TypeError(f"chain must be an iiwa_torch Chain (a preset or robots.from_urdf), got {type(chain).__name__}")
     if world is not None and not isinstance(world, collision.World):
@@ -83,42 +75,31 @@ def _check_options(chain, world, capsules, show_capsules, show_frames) -> None:
 
 
 def _preset_capsules(chain: Chain, world: collision.World | None) -> collision.Capsules | None:
-    """The preset capsule model of ``chain``, or ``None`` for another arm (an error if a ``world``
-    needs one)."""
+    """``chain``'s preset capsule model; None for another arm (ValueError if ``world`` needs one)."""
     try:
         return collision.robot_capsules(chain)
     except ValueError:
         if world is not None:
-            raise ValueError(f"no capsule model for {chain.name!r}: pass capsules= to check it against the world") \
-                from None
+            raise ValueError(
+                f"no capsule model for {chain.name!r}: pass capsules= to check it against the world"
+            ) from None
         return None
 
 
 class Viewer:
-    """A running viser server showing ``chain`` at ``q`` (default: the middle of the limits).
+    """A running viser server showing ``chain`` at ``q (n,)`` rad (default: mid-limits; 0 if continuous).
 
     Args:
-        chain: the robot, any :class:`~iiwa_torch.chain.Chain` (its float64 buffers are used).
-        q: ``(n,)`` initial joint values in radians (metres for prismatic joints), within the
-            limits (default: their middle; 0 for a continuous joint).
-        host, port: where the server listens: ``127.0.0.1`` (also for '' or None) is this
-            machine only; any other address warns on stderr, as anyone who reaches the port
-            controls the viewer. Port 0 takes any free port, and a busy one the next free one.
-        world: obstacles to draw and to check the clearance against (one set, no batch
-            dimension; see :func:`~iiwa_torch.viewer.load_world`); None: the capsule model's own floor.
-        capsules: the robot's collision model (default: :func:`~iiwa_torch.collision.robot_capsules`
-            of a preset, :func:`~iiwa_torch.capsule_fit.urdf_capsules` of ``urdf``; no
-            clearance for other chains unless given).
-        urdf: the URDF file ``chain`` was read from (:func:`~iiwa_torch.robots.from_urdf`, from
-            its root link): its ``<visual>`` elements are drawn (links past off-path prismatic
-            joints, a gripper's fingers, at those joints' lower limits) and the skeleton hidden (a
-            panel checkbox shows it); a file without visuals shows its capsules.
-        show_capsules, show_frames: draw the collision capsules, every link frame (also
-            checkboxes in the panel).
+        host, port: ``127.0.0.1`` ('' or None too) serves this machine only; any other address warns,
+            as whoever reaches the port controls the viewer. Port 0: any free one; busy: the next free.
+        world: obstacles (one set; :func:`~iiwa_torch.viewer.load_world`); None: the capsules' floor.
+        capsules: default ``robot_capsules`` of a preset, or those fitted to ``urdf``; else no clearance.
+        urdf: the file ``chain`` was read from: its ``<visual>`` elements are drawn instead of the
+            skeleton (its capsules if it has none).
+        show_capsules, show_frames: draw the collision capsules, every link frame.
 
-    Attributes ``host`` and ``port`` say where it listens (the port actually bound); ``scene``
-    (:class:`~iiwa_torch.viewer.scene.ArmScene`), ``controls``, ``ik_panel`` and ``player`` are its
-    parts. The state is guarded by a lock: GUI callbacks run on viser's thread pool.
+    ``host`` and ``port`` say where it listens; ``scene``, ``controls``, ``ik_panel`` and ``player`` are
+    its parts. The state is under a lock: GUI callbacks run on viser's thread pool.
     """
 
     def __init__(
@@ -204,8 +185,7 @@ class Viewer:
         return self.chain.clamp(q)
 
     def set_q(self, q: torch.Tensor, move_target: bool = True) -> None:
-        """Show the arm at ``q (n,)`` radians (within the limits); the sliders and the readout follow,
-        and the target gizmo jumps to the new end-effector pose unless ``move_target`` is False."""
+        """Show the arm at ``q (n,)`` rad (within the limits); the target follows unless ``move_target`` is False."""
         q = self._checked(q)
         check_bool(move_target, "move_target")
         with self._guard.lock:
@@ -226,8 +206,7 @@ class Viewer:
         return Readout(tuple(pose[:3, 3].tolist()), tuple(rpy.tolist()))
 
     def clearance(self, q: torch.Tensor | None = None) -> tuple[float, tuple[str, str]] | None:
-        """Smallest signed distance (m, negative in collision) at ``q (n,)`` (default the current
-        angles) and the names of its pair (:func:`~iiwa_torch.collision.pairwise_clearance`);
+        """``(smallest signed distance m, its pair's names)`` at ``q (n,)`` (default the current angles);
         None without a capsule model."""
         result = self._pairwise(self._q if q is None else q)
         if result is None:
@@ -244,33 +223,23 @@ class Viewer:
     # ------------------------------------------------------------------ IK
     @property
     def ik_methods(self) -> tuple[str, ...]:
-        """The IK methods this chain offers: ``"gradient"``, and ``"analytic"`` where a closed form exists."""
+        """``"gradient"``, and ``"analytic"`` where a closed form exists."""
         return self._solver.methods
 
     def set_ik(self, method: str, branch: int | None = None, arm_angle: float | None = None) -> None:
-        """Choose how targets are solved (also the panel's IK controls).
-
-        Args:
-            method: ``"gradient"`` or ``"analytic"`` (see :attr:`ik_methods`).
-            branch: analytic only: 0..7 (``k = 4 shoulder + 2 elbow + wrist`` of
-                :func:`~iiwa_torch.ik.analytic.iiwa`/``pieper``), or None for the valid branch
-                nearest the current angles.
-            arm_angle: iiwa analytic only: the arm angle ``psi`` held (radians), or None to
-                take the nearest solution over the whole circle.
-        """
+        """Choose how targets are solved: ``method`` (:attr:`ik_methods`); for ``"analytic"``, ``branch``
+        0..7 (``4 shoulder + 2 elbow + wrist``) and, on S-R-S arms, ``arm_angle`` held (rad); None: nearest."""
         with self._guard.lock:
             self._solver.choose(method, branch, arm_angle)
             self.ik_panel.sync()
 
     def _ik_widgets_changed(self) -> None:
-        """The panel's IK controls changed: take them over and re-solve the last target."""
         self.set_ik(*self.ik_panel.chosen())
         self.solve_target(self._target_pose)
 
     def solve_target(self, pose: torch.Tensor) -> TargetResult:
-        """Solve the IK for ``pose (4, 4)`` (metres, world frame) with the chosen method, from the
-        current angles. Only a solution within the limits, within 0.1 mm / 1 mrad and free of
-        collision moves the arm; otherwise it keeps its angles and ``outcome`` says why."""
+        """Solve ``pose (4, 4)`` (m) from the current angles. Only a solution within the limits, 0.1 mm /
+        1 mrad and free of collision moves the arm; ``outcome`` says why not."""
         so3.check_pose(pose, "pose")
         if pose.shape != (4, 4):
             raise ValueError(f"pose must have shape (4, 4), got {tuple(pose.shape)}")
@@ -284,12 +253,8 @@ class Viewer:
         return result
 
     def drag_target(self, wxyz, position) -> None:
-        """What a drag of the target gizmo does: :meth:`solve_target` for the pose with quaternion
-        ``wxyz (4,)`` (w, x, y, z) and ``position (3,)`` metres, unless a newer drag came meanwhile.
-
-        Drag updates arrive faster than solves end: each call records its turn and only the
-        newest one still waiting when the lock frees is solved.
-        """
+        """:meth:`solve_target` of the gizmo's pose ``wxyz (4,)``, ``position (3,)`` m, unless a newer drag
+        came meanwhile (drags arrive faster than solves end: only the newest waiting one is solved)."""
         wxyz, position = np.asarray(wxyz, dtype=np.float64), np.asarray(position, dtype=np.float64)
         if wxyz.shape != (4,) or position.shape != (3,) or not np.isfinite(np.r_[wxyz, position]).all():
             raise ValueError(f"wxyz must be 4 and position 3 finite numbers, got {wxyz.tolist()}, {position.tolist()}")
@@ -307,14 +272,8 @@ class Viewer:
 
     # ------------------------------------------------------------------ playback
     def set_path(self, q: torch.Tensor, dt: float = 0.05, goals: torch.Tensor | None = None) -> None:
-        """Load joint paths for playback and show their first step.
-
-        Args:
-            q: ``(T, n)`` one path or ``(B, T, n)`` B of them (radians, within the limits),
-                e.g. ``jtraj(...).q``, ``track(...).q`` or a policy's rollouts.
-            dt: seconds between steps.
-            goals: optional ``(B, 3)`` positions (m) drawn as a marker with each path.
-        """
+        """Load paths ``q (T, n)`` or ``(B, T, n)`` rad, ``dt`` s apart, with optional ``goals (B, 3)`` m
+        drawn as markers; show their first step."""
         paths, goals, dt = checked_paths(self.chain, q, dt, goals)
         with self._guard.lock:
             self.player.load(paths, goals, dt)
@@ -342,8 +301,7 @@ class Viewer:
             self._draw(move_target=True)
 
     def play(self) -> None:
-        """Step through the path in real time (from the start once the end is shown), looping if
-        the panel's loop box is ticked."""
+        """Play the path in real time (from the start once at its end), looping if the box is ticked."""
         self.player.play()
 
     def pause(self) -> None:
@@ -356,7 +314,7 @@ class Viewer:
 
     # ------------------------------------------------------------------ drawing
     def _frames(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """``(n + 1, 4, 4)`` base and link frames and the ``(4, 4)`` end-effector pose at ``q``."""
+        """``(n + 1, 4, 4)`` frames and the ``(4, 4)`` end-effector pose at the current angles."""
         with torch.no_grad():
             return self.chain.fk_all(self._q), self.chain.fk(self._q)
 
@@ -393,32 +351,22 @@ def show(
     port: int = 8080,
     block: bool = True,
     *,
-    world: collision.World | None = None,
-    capsules: collision.Capsules | None = None,
-    urdf: str | os.PathLike | None = None,
-    show_capsules: bool = False,
-    show_frames: bool = False,
     path: torch.Tensor | None = None,
     dt: float = 0.05,
     goals: torch.Tensor | None = None,
+    **options,
 ):
     """Serve the viewer of ``chain`` at ``http://host:port``.
 
-    ``q`` is the first configuration (radians, default mid-limits). ``host="0.0.0.0"`` makes
-    it reachable from other machines (with a warning); ``host``, ``port`` as for :class:`Viewer`,
-    which says where the server listens (its ``host`` and ``port``). ``world``, ``capsules``, ``urdf``,
-    ``show_capsules``, ``show_frames`` as for :class:`Viewer`; ``path`` ``(T, n)`` or ``(B, T, n)``, ``dt`` (s)
-    and ``goals`` ``(B, 3)`` as for :meth:`Viewer.set_path`. With ``block=True`` it runs until
-    Ctrl-C, then stops the server and returns None; with ``block=False`` it returns the
-    running :class:`Viewer` (call its ``stop()``).
+    ``q``, ``host``, ``port`` and ``options`` (``world``, ``capsules``, ``urdf``, ``show_capsules``,
+    ``show_frames``) as for :class:`Viewer`; ``path``, ``dt``, ``goals`` as for :meth:`Viewer.set_path`.
+    ``block=True`` runs until Ctrl-C, then stops and returns None; ``block=False`` returns the running
+    :class:`Viewer` (call its ``stop()``).
     """
     check_bool(block, "block")
     viewer, handed_over = None, False
     try:  # Ctrl-C may come as soon as the page is served, while the scene is still being built
-        viewer = Viewer(
-            chain, q, host=host, port=port, world=world, capsules=capsules, urdf=urdf, show_capsules=show_capsules,
-            show_frames=show_frames,
-        )  # fmt: skip
+        viewer = Viewer(chain, q, host=host, port=port, **options)
         if path is not None:
             viewer.set_path(path, dt, goals)
         if not block:

@@ -1,5 +1,4 @@
-"""The viewer's obstacles: a :class:`~iiwa_torch.collision.World` read from JSON (:func:`load_world`,
-the ``--world`` format of docs/viewer.md) and one obstacle set in float64 (:func:`unbatched`)."""
+"""The viewer's obstacles: :func:`load_world` (the ``--world`` JSON of docs/viewer.md) and :func:`unbatched`."""
 
 from __future__ import annotations
 
@@ -18,11 +17,9 @@ _F64 = torch.float64
 def load_world(spec) -> collision.World:
     """An obstacle world from a dict, a JSON text (starting with ``{``) or a JSON file path.
 
-    Keys, all optional (metres; angles in degrees): ``floor`` (height, or null for none;
-    default 0), ``spheres`` ``[[x, y, z, r], ...]``, ``boxes`` ``[[x, y, z, hx, hy, hz], ...]``
-    (centre and half extents, optionally followed by roll, pitch, yaw), ``capsules``
-    ``[[x1, y1, z1, x2, y2, z2, r], ...]``, ``walls`` ``[[nx, ny, nz, offset], ...]`` (free
-    space ``n . x >= offset``; ``n`` is normalised).
+    Keys, all optional (m; degrees): ``floor`` (height or null; default 0), ``spheres`` ``[[x, y, z, r]]``,
+    ``boxes`` ``[[x, y, z, hx, hy, hz(, roll, pitch, yaw)]]`` (half extents), ``capsules``
+    ``[[x1, y1, z1, x2, y2, z2, r]]``, ``walls`` ``[[nx, ny, nz, offset]]`` (free where ``n . x >= offset``).
     """
     spec = _spec(spec)
     kwargs = {"floor": spec.get("floor", 0.0)}
