@@ -28,9 +28,9 @@ from ... import compiled
 from ...checks import check_positive
 from ...collision import Capsules, World, check_world, clearance
 from ...dh import DHChain
-from ...kinematics import all_poses, end_pose
-from ...so3 import pose_error
-from ..result import IKResult, ik_result_compiled
+from ...kinematics import all_poses
+from ..lm_setup import broadcast_q
+from ..result import IKResult, ik_result, ik_result_compiled
 from ._common import (
     NUMPY,
     TORCH,
@@ -110,19 +110,10 @@ def iiwa_solve(
     check_target(chain, target)
     batch = target.shape[:-2]
     flat = target.reshape(-1, 4, 4)
-    flat_q0 = None if q0 is None else _flat_q0(chain, q0, batch, target.dtype)
+    flat_q0 = None if q0 is None else broadcast_q(q0, chain, batch, "q0", target.dtype)
     if _numpy_applies(chain, flat, q0, world, num_psi):
         return _solve_numpy(chain, flat, flat_q0, num_psi, pos_tol, rot_tol, batch)
     return _solve_torch(chain, flat, flat_q0, num_psi, pos_tol, rot_tol, batch, world, margin, capsules)
-
-
-def _flat_q0(chain: DHChain, q0: Tensor, batch: torch.Size, dtype: torch.dtype) -> Tensor:
-    """:func:`iiwa_solve`'s ``q0``, checked, in ``dtype`` and broadcast to the poses' ``batch``, as ``(B, 7)``."""
-    chain.check_q(q0, "q0")
-    try:
-        return torch.broadcast_to(q0.to(dtype), (*batch, 7)).reshape(-1, 7)
-    except RuntimeError:
-        raise ValueError(f"q0 of shape {tuple(q0.shape)} does not broadcast to {(*batch, 7)}") from None
 
 
 def _solve_torch(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, pos_tol: float, rot_tol: float,
@@ -137,23 +128,12 @@ def _solve_torch(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
         rot, sw = wrist_frame(chain, flat)
         psi0 = None if q0 is None else iiwa_arm_angle(chain, q0)
         q_best, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, flat.dtype, obstacles)
-    pos_vec, rot_vec = pose_error(chain.fk(q_best), flat)
-    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)
-    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)  # q is within the limits: the FK error decides
-    clear = None
-    if obstacles is not None:
-        clear = obstacles.clearance(chain, q_best)
-        success = success & (clear >= margin)
-        clear = clear.reshape(batch)
-    iterations = torch.zeros(batch, dtype=torch.int64, device=flat.device)
-    return IKResult(
-        q=q_best.reshape(*batch, 7),
-        success=success.reshape(batch),
-        pos_err=pos_err.reshape(batch),
-        rot_err=rot_err.reshape(batch),
-        iterations=iterations,
-        clearance=clear,
-    )
+    result = ik_result(chain, q_best.reshape(*batch, 7), flat.reshape(*batch, 4, 4), "pose", pos_tol, rot_tol,
+                       torch.zeros(batch, dtype=torch.int64, device=flat.device))
+    if obstacles is None:
+        return result
+    clear = obstacles.clearance(chain, q_best).reshape(batch)
+    return dataclasses.replace(result, success=result.success & (clear >= margin), clearance=clear)
 
 
 def _numpy_applies(chain: DHChain, flat: Tensor, q0: Tensor | None, world: World | None, num_psi: int) -> bool:
@@ -250,12 +230,8 @@ def _solve_numpy(chain: DHChain, flat: Tensor, q0: Tensor | None, num_psi: int, 
         return ik_result_compiled(chain.geometry(dtype), q, goal_pos, goal_rot, torch.finfo(dtype).eps, pos_tol,
                                   rot_tol, batch, np.zeros(q.shape[0], dtype=np.int64))  # fmt: skip
     q, _ = _solve_all(setup, rot, sw, q0, psi0, num_psi, dtype, None)
-    q = torch.from_numpy(q).to(dtype)
-    pos_vec, rot_vec = pose_error(end_pose(chain.geometry(dtype), q), torch.from_numpy(target).to(dtype))
-    pos_err, rot_err = pos_vec.norm(dim=-1), rot_vec.norm(dim=-1)  # as ik_result's
-    success = (pos_err <= pos_tol) & (rot_err <= rot_tol)
-    return IKResult(q.reshape(*batch, 7), success.reshape(batch), pos_err.reshape(batch), rot_err.reshape(batch),
-                    torch.zeros(batch, dtype=torch.int64))
+    return ik_result(chain, torch.from_numpy(q).to(dtype).reshape(*batch, 7), flat.reshape(*batch, 4, 4), "pose",
+                     pos_tol, rot_tol, torch.zeros(batch, dtype=torch.int64))
 
 
 def _solve_compiled(setup: _Setup, rot, sw, q0, psi0, num_psi: int, dtype: torch.dtype) -> np.ndarray:
