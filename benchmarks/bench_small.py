@@ -1,6 +1,6 @@
 """Small batches (1, 10, 100, 1,000 per call): iiwa-torch against roboticstoolbox and pinocchio, one run.
 
-    python benchmarks/bench_small.py [--quick]
+    python benchmarks/bench_small.py [--quick] [--batches 1 10]
 
 Every call at each batch size, one thread, float64, warm (the median of several timed
 repeats after a warm-up call); the peers, which take one problem per call, are timed as a
@@ -30,7 +30,7 @@ which one call of ours takes less than the peer's loop. First-call costs (a fres
 imports done, the call timed once, cold) are measured separately, in child processes; with the
 compiled kernels (numba installed) also with an empty numba cache, where they compile.
 Writes results/small.json and results/small.md (``small_torch`` with ``IIWA_TORCH_NUMBA=0``,
-``_quick`` appended with ``--quick``).
+``_quick`` appended with ``--quick``, ``_batch1_10`` with ``--batches 1 10``).
 """
 
 from __future__ import annotations
@@ -336,9 +336,9 @@ def peers_of(row: dict) -> list[str]:
     return [k for k, v in row.items() if k != "ours" and isinstance(v, float) and "diff" not in k]
 
 
-def markdown(results: dict, quick: bool) -> str:
+def markdown(results: dict, command: str) -> str:
     m = results["machine"]
-    md = ["# Small batches\n\n", f"`python benchmarks/bench_small.py{' --quick' if quick else ''}`; ",
+    md = ["# Small batches\n\n", f"`{command}`; ",
           f"{m['cpu']}, torch {m['torch']}, 1 thread, float64, load {m['loadavg']} at the start and "
           f"{m['loadavg_at_end']} at the end. Milliseconds per call (the peers: a loop over the batch). "
           f"Compiled kernels (numba, `iiwa_torch.compiled`): {'on' if results['compiled'] else 'off'}.\n\n"]
@@ -373,7 +373,7 @@ def markdown(results: dict, quick: bool) -> str:
     md.append(markdown_table(["call", "first call ms", *(["first call, empty numba cache ms"] if cold else []),
                               "warm ms"],
                              [[k, fmt_ms(v), *([fmt_ms(cold[k])] if cold else []),
-                               fmt_ms(results["rows"][k][1]["ours"])]
+                               fmt_ms(results["rows"][k][1]["ours"]) if 1 in results["rows"][k] else "-"]
                               for k, v in results["first call"].items()]))
     return "".join(md)
 
@@ -384,13 +384,15 @@ TIMING: dict = {}
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer and shorter repeats, batches up to 100")
+    parser.add_argument("--batches", type=int, nargs="+", choices=BATCHES, help="only these batch sizes (the file "
+                        "name then says which)")
     parser.add_argument("--first-call", help=argparse.SUPPRESS)  # child mode: time one first call
     args = parser.parse_args()
     if args.first_call:
         print(first_call(args.first_call))
         return
     TIMING.update({"min_time": 0.02, "repeats": 3} if args.quick else {"min_time": 0.2, "repeats": 7})
-    batches = BATCHES[:3] if args.quick else BATCHES
+    batches = tuple(args.batches or (BATCHES[:3] if args.quick else BATCHES))
     results = {"machine": machine_info(), "batches": batches, "rows": {}, "compiled": compiled.ENABLED}
     if compiled.ENABLED:
         with tempfile.TemporaryDirectory() as empty:
@@ -404,9 +406,11 @@ def main() -> None:
             results["rows"][name][batch] = row = fn(batch, args.quick)
             print(name, batch, json.dumps(row), flush=True)
     results["machine"]["loadavg_at_end"] = list(os.getloadavg())
-    md = markdown(results, args.quick)
+    md = markdown(results, " ".join(["python benchmarks/bench_small.py", *sys.argv[1:]]))
     name = "small" if compiled.ENABLED else "small_torch"  # IIWA_TORCH_NUMBA=0: the torch paths alone
-    path = save(f"{name}_quick" if args.quick else name, results, md)
+    name += "_quick" if args.quick else ""
+    name += f"_batch{'_'.join(map(str, batches))}" if args.batches else ""
+    path = save(name, results, md)
     print(md)
     print(f"written: {path}")
 
