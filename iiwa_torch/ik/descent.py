@@ -58,9 +58,9 @@ def minimize(
         **settings: any of its fields by name (``optimizer="lbfgs"``, ``steps=50``), replacing
             the ones of ``options``.
 
-    Joint limits are kept by projection: the loss sees the parameters clamped into the limits,
-    and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
-    seen; ``iterations`` is ``steps`` for every problem.
+    Joint limits are kept by projection (the loss sees the parameters clamped, and they are
+    clamped after every step). Each problem returns the lowest-loss ``q`` seen; ``iterations``
+    is ``steps``.
     """
     opts = resolve(MinimizeOptions, options, settings, "minimize")
     check_instance(chain, Chain, "chain")
@@ -140,17 +140,9 @@ def _optimizer(u: Tensor, opts: MinimizeOptions):
         opt = torch.optim.Adam([u], lr=0.1 if opts.lr is None else opts.lr)
         return opt, torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.01 ** (1 / opts.steps))
     # One call runs every iteration: torch's L-BFGS keeps its history within a call.
-    opt = torch.optim.LBFGS(
-        [u],
-        lr=1.0 if opts.lr is None else opts.lr,
-        max_iter=opts.steps,
-        max_eval=2 * opts.steps,
-        line_search_fn="strong_wolfe",
-        tolerance_grad=0.0,
-        tolerance_change=0.0,
-        history_size=20,
-    )
-    return opt, None
+    lr = 1.0 if opts.lr is None else opts.lr
+    return torch.optim.LBFGS([u], lr=lr, max_iter=opts.steps, max_eval=2 * opts.steps, line_search_fn="strong_wolfe",
+                             tolerance_grad=0.0, tolerance_change=0.0, history_size=20), None
 
 
 def _minimize_result(chain, q, target, opts: MinimizeOptions, success_fn) -> IKResult:

@@ -1,15 +1,10 @@
-"""The damped-least-squares (DLS) joint step, written once for the whole library.
+"""The damped-least-squares (DLS) joint step, written once for the whole library:
+``dq = J^T (J J^T + damping I)^-1 e`` (rad) for ``J (m, n)`` (m = 6 pose, 3 position) and ``e (m,)``.
 
-For a Jacobian ``J (m, n)`` (m = 6 for a pose, 3 for a position; rows in m/rad, or the
-angular rows in rad/rad) and an error ``e (m,)`` (m, or rad for the rotation rows):
-
-    dq = J^T (J J^T + damping I)^-1 e        (rad)
-
-``damping`` (the squared damping factor, in the units of ``J J^T``: m^2 for an arm) keeps
-``dq`` finite where ``J`` loses rank (Nakamura and Hanafusa; Wampler). :func:`dls_step` takes
-any leading batch shape; :func:`dls_step_batch_last` is the same step in the batch-last layout
-the gradient solver iterates in, and :func:`cholesky_solve_batch_last` its linear solve;
-:func:`dls_step_numpy` the same step on numpy arrays, for a few problems at a time.
+``damping`` (the squared damping factor, units of ``J J^T``: m^2 for an arm) keeps ``dq`` finite
+where ``J`` loses rank (Nakamura and Hanafusa; Wampler). :func:`dls_step` takes any batch shape;
+:func:`dls_step_batch_last` is the gradient solver's batch-last layout (its solve
+:func:`cholesky_solve_batch_last`), :func:`dls_step_numpy` the step for a few numpy problems.
 """
 
 from __future__ import annotations
@@ -82,11 +77,9 @@ def dls_step_batch_last(J: Tensor, rhs: Tensor, damping: Tensor, floor: float, f
 
 def dls_step_numpy(jacobian: np.ndarray, error: np.ndarray, damping: np.ndarray, free: np.ndarray | None = None
                    ) -> np.ndarray:
-    """:func:`dls_step` on numpy arrays, unchecked, for a few problems with nothing to differentiate
-    (a numpy op costs a fraction of a torch op): ``jacobian (..., m, n)``, ``error (..., m)``,
-    ``damping`` broadcasting to the batch ``(...)``, ``free (..., n)`` (0 or 1) or None as in
-    :func:`dls_step_batch_last` -> ``(..., n)``. An LU solve rather than Cholesky: the same step
-    to rounding."""
+    """:func:`dls_step` on numpy arrays, unchecked (a numpy op costs a fraction of a torch op):
+    ``jacobian (..., m, n)``, ``error (..., m)``, ``damping`` broadcasting to ``(...)``, ``free``
+    as in :func:`dls_step_batch_last` -> ``(..., n)``. LU, not Cholesky: the same step to rounding."""
     held = jacobian if free is None else jacobian * free[..., None, :]
     A = (held[..., :, None, :] * jacobian[..., None, :, :]).sum(-1) + np.asarray(damping)[..., None, None] * np.eye(
         jacobian.shape[-2])
