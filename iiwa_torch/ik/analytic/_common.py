@@ -211,14 +211,11 @@ def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float, ops=TORCH) -> list[li
 
 def transpose_times(a: list[list], b: list[list]) -> list[list]:
     """Entries of ``A^T B`` for entries ``a`` (3 x 3) and ``b`` (3 x m), skipping zeros."""
-    out = []
-    for i in range(3):
-        row = []
-        for j in range(len(b[0])):
-            terms = [a[k][i] * b[k][j] for k in range(3) if not (isinstance(a[k][i], float) and a[k][i] == 0.0)]
-            row.append(functools.reduce(operator.add, terms))
-        out.append(row)
-    return out
+    def entry(i: int, j: int):
+        terms = [a[k][i] * b[k][j] for k in range(3) if not (isinstance(a[k][i], float) and a[k][i] == 0.0)]
+        return functools.reduce(operator.add, terms)
+
+    return [[entry(i, j) for j in range(len(b[0]))] for i in range(3)]
 
 
 def entries(m: Tensor, ops=TORCH) -> list[list]:
