@@ -61,12 +61,9 @@ class AnalyticSolutions:
 
 
 # ---------------------------------------------------------------- array libraries
-# The closed forms are written once over the few functions they take from their array library:
-# ``TORCH`` (batched, differentiable, any device) or ``NUMPY`` (arrays on the CPU: the
-# low-overhead path for a few poses, where a torch op's overhead dominates; float64 in
-# ``iiwa_solve``, the target's dtype in ``pieper``). Operators (+, *, /, abs, &, ~, comparisons,
-# indexing, reshape) are the arrays' own; ``tensor`` turns a result into a torch tensor, and
-# ``stack_full`` stacks arrays broadcast to a shape.
+# The closed forms are written once over the functions they take from ``TORCH`` (batched,
+# differentiable) or ``NUMPY`` (CPU arrays: for a few poses, where a torch op's overhead
+# dominates). Operators and indexing are the arrays' own; ``tensor`` turns a result into torch.
 TORCH = SimpleNamespace(
     atan2=torch.atan2,
     cos=torch.cos,
@@ -248,7 +245,6 @@ def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float, ops=TORCH) -> tup
 
 # ---------------------------------------------------------------- chain structure
 def _check_dh(chain, robot: str) -> None:
-    """Raise unless ``chain`` is a DH chain: a clear word for another arm, which has no closed form here."""
     check_instance(chain, Chain, "chain")
     if not isinstance(chain, DHChain):
         raise ValueError(f"the {robot} closed form solves the DH chains of its structure; {chain.name!r} is a "
@@ -413,12 +409,9 @@ def reduce_grouped(op, tensors: list[Tensor]) -> Tensor:
 
 
 def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int, ops=TORCH) -> AnalyticSolutions:
-    """DH angles -> :class:`AnalyticSolutions` (see :func:`joint_angles`; arrays of ``ops``, the
-    result in torch tensors).
-
-    The joints and ``reachable`` broadcast to a common shape ``(..., b_1, ..., b_m)`` whose
-    last ``m = branch_dims`` dims index the branch signs. Returns ``q (..., B, n)``.
-    """
+    """DH angles (arrays of ``ops``) -> :class:`AnalyticSolutions` (torch): the joints and
+    ``reachable`` broadcast to ``(..., b_1, ..., b_m)``, the last ``m = branch_dims`` dims the
+    branch signs, flattened into ``q (..., B, n)``."""
     qs, within = joint_angles(chain, thetas, ops)
     shape = ops.broadcast_shapes(*(q.shape for q in qs), reachable.shape)
     batch, branches = tuple(shape[:-branch_dims]), math.prod(shape[-branch_dims:])
@@ -430,18 +423,11 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
     return AnalyticSolutions(q=q, valid=valid, reachable=reachable, within_limits=within)
 
 
-def with_clearance(
-    chain: DHChain,
-    sol: AnalyticSolutions,
-    batch_ndim: int,
-    world: World | None,
-    margin: float,
-    capsules: Capsules | None,
-) -> AnalyticSolutions:
-    """``sol`` with every branch's clearance against ``world`` (``sol`` itself for ``None``).
-
-    The world's batch shape broadcasts with the targets' ``(...)``, the first ``batch_ndim``
-    dims of ``sol.valid``; the branch dims after them are inserted into it."""
+def with_clearance(chain: DHChain, sol: AnalyticSolutions, batch_ndim: int, world: World | None, margin: float,
+                   capsules: Capsules | None) -> AnalyticSolutions:
+    """``sol`` with every branch's clearance against ``world`` (``sol`` itself for ``None``). The
+    world's batch shape broadcasts with the targets' ``(...)``, the first ``batch_ndim`` dims of
+    ``sol.valid``; the branch dims after them are inserted into it."""
     check_world(world, margin, capsules)
     if world is None:
         return sol
