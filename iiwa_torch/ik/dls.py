@@ -37,28 +37,23 @@ def cholesky_solve_batch_last(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
     L = [[None] * m for _ in range(m)]  # L[i][j], (b,) each
     inv = [None] * m  # 1 / L[j][j]
     for j in range(m):
-        pivot = A[j, j]
-        for k in range(j):
-            pivot = torch.addcmul(pivot, L[j][k], L[j][k], value=-1)
-        inv[j] = pivot.clamp_min(floor).rsqrt()
+        inv[j] = _minus_products(A[j, j], [(L[j][k], L[j][k]) for k in range(j)]).clamp_min(floor).rsqrt()
         for i in range(j + 1, m):
-            entry = A[i, j]
-            for k in range(j):
-                entry = torch.addcmul(entry, L[i][k], L[j][k], value=-1)
-            L[i][j] = entry * inv[j]
+            L[i][j] = _minus_products(A[i, j], [(L[i][k], L[j][k]) for k in range(j)]) * inv[j]
     y = [None] * m  # L y = rhs
     for i in range(m):
-        entry = rhs[i]
-        for k in range(i):
-            entry = torch.addcmul(entry, L[i][k], y[k], value=-1)
-        y[i] = entry * inv[i]
+        y[i] = _minus_products(rhs[i], [(L[i][k], y[k]) for k in range(i)]) * inv[i]
     x = [None] * m  # L^T x = y
     for i in reversed(range(m)):
-        entry = y[i]
-        for k in range(i + 1, m):
-            entry = torch.addcmul(entry, L[k][i], x[k], value=-1)
-        x[i] = entry * inv[i]
+        x[i] = _minus_products(y[i], [(L[k][i], x[k]) for k in range(i + 1, m)]) * inv[i]
     return torch.stack(x)
+
+
+def _minus_products(x: Tensor, pairs: list[tuple[Tensor, Tensor]]) -> Tensor:
+    """``x - sum(a * b for a, b in pairs)``, one fused ``addcmul`` per pair."""
+    for a, b in pairs:
+        x = torch.addcmul(x, a, b, value=-1)
+    return x
 
 
 def dls_step_batch_last(J: Tensor, rhs: Tensor, damping: Tensor, floor: float, free: Tensor | None = None) -> Tensor:
