@@ -39,15 +39,12 @@ def minimize(
 
     Args:
         chain: the robot.
-        loss: ``loss(q, pose) -> (...)``, one value per problem, from the joint angles
-            ``q (..., n)`` and the end-effector pose ``chain.fk(q) (..., 4, 4)``; it may call
-            ``chain.fk_all(q)`` for other links (e.g. to keep the elbow high).
+        loss: ``loss(q, pose) -> (...)``, one value per problem, from ``q (..., n)`` and
+            ``pose = chain.fk(q) (..., 4, 4)`` (it may call ``chain.fk_all(q)`` for other links).
         q0: ``(..., n)`` starting joint angles (clamped into the limits); sets dtype and batch.
         target: ``(..., 4, 4)`` poses (``mode="pose"``) or ``(..., 3)`` positions
-            (``mode="position"``) that define ``pos_err``, ``rot_err`` and ``success``; the
-            loss itself should contain the reaching term (the target is not added to it).
-        success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion of the caller's
-            loss (e.g. "elbow above 0.5 m"); success needs it and the tolerances.
+            (``mode="position"``) for ``pos_err``, ``rot_err`` and ``success`` (not added to the loss).
+        success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion success needs.
         world, margin: optional :class:`~iiwa_torch.collision.World` (``q0``'s dtype and
             device, batch broadcasting to ``q0``'s) and a clearance in metres (>= 0): the loss
             gets the term ``clearance_weight *`` :func:`~iiwa_torch.ik.clearance.clearance_shortfall`,
@@ -55,8 +52,7 @@ def minimize(
         capsules: the capsule model with a world (default: the chain's preset model).
         options: a :class:`~iiwa_torch.ik.MinimizeOptions` (mode, optimizer, steps, lr,
             tolerances, clearance weight; its defaults if None).
-        **settings: any of its fields by name (``optimizer="lbfgs"``, ``steps=50``), replacing
-            the ones of ``options``.
+        **settings: any of its fields by name (``steps=50``), replacing those of ``options``.
 
     Joint limits are kept by projection (the loss sees the parameters clamped, and they are
     clamped after every step). Each problem returns the lowest-loss ``q`` seen; ``iterations``
