@@ -274,18 +274,15 @@ def _check_rows(rows: list[list[float]], rules: list[dict], tol: float) -> tuple
     problems, deviation = [], 0.0
     for j, ((a, alpha, d, _), rule) in enumerate(zip(rows, rules), start=1):
         pair = f"axes {j} and {j + 1}"
-        zeros = []
-        if rule.get("a0"):
-            zeros.append((abs(a), f"{pair} do not meet (closest approach {abs(a):.3g} m)"))
-        if rule.get("d0"):
-            zeros.append((abs(d), f"axes {j - 1}, {j} and {j + 1} do not meet in one point "
-                                  f"({abs(d):.3g} m apart along axis {j})"))
-        if rule.get("perp"):
-            off = abs(math.asin(math.cos(alpha)))
-            zeros.append((abs(math.cos(alpha)), f"{pair} are not perpendicular ({off:.3g} rad off)"))
-        if rule.get("twist0"):
-            zeros.append((abs(alpha), f"{pair} are not parallel ({abs(alpha):.3g} rad apart)"))
-        for value, text in zeros:
+        cos = math.cos(alpha)
+        zeros = {  # rule -> (the value it takes as 0, what a larger one means)
+            "a0": (abs(a), f"{pair} do not meet (closest approach {abs(a):.3g} m)"),
+            "d0": (abs(d), f"axes {j - 1}, {j} and {j + 1} do not meet in one point "
+                           f"({abs(d):.3g} m apart along axis {j})"),
+            "perp": (abs(cos), f"{pair} are not perpendicular ({abs(math.asin(cos)):.3g} rad off)"),
+            "twist0": (abs(alpha), f"{pair} are not parallel ({abs(alpha):.3g} rad apart)"),
+        }
+        for value, text in [zeros[key] for key in zeros if rule.get(key)]:
             if value > tol:
                 problems.append(text)
             else:
