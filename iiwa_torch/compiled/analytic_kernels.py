@@ -15,22 +15,29 @@ _TINY = 1e-30  # iiwa_torch.ik.analytic._common.TINY
 
 
 @inline
-def _safe_atan2(y, x):
-    """Mirrors :func:`iiwa_torch.ik.analytic._common.safe_atan2`."""
+def _safe_atan2(y, x):  # _common.safe_atan2
     return math.atan2(y, 1.0 if x * x + y * y < _TINY else x)
 
 
 @inline
-def _safe_norm2(x, y):
-    """Mirrors :func:`iiwa_torch.ik.analytic._common.safe_norm2`."""
+def _safe_norm2(x, y):  # _common.safe_norm2
     return math.sqrt(max(x * x + y * y, _TINY))
 
 
 @inline
+def _triangle(dist, a, b, tol):
+    """:func:`iiwa_torch.ik.analytic._common.triangle`: the angle between sides ``a, b`` opposite ``dist`` ->
+    ``(cos clamped to [-1, 1], |sin|, reachable)``."""
+    c = (dist * dist - (a * a + b * b)) / (2 * a * b)
+    outer, inner = a + b, abs(a - b)
+    s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
+    return min(max(c, -1.0), 1.0), math.sqrt(max(s2, _TINY)) / (2 * a * b), abs(c) <= 1 + tol
+
+
+@inline
 def _zxzxz_ab(m02, m12, m22, sig_a, sig_b):
-    """The first two angles ``(a, b)`` of branch 0 of a spherical triple, from column 2 of ``M``, and
-    ``(cos a, sin a, cos b, sin b)`` (the flip is ``(a + pi, -b)``). Mirrors
-    :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
+    """Branch 0's ``(a, b, cos a, sin a, cos b, sin b)`` of a spherical triple from column 2 of ``M`` (the flip:
+    ``(a + pi, -b)``), as :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
     sb = _safe_norm2(m02, m12)
     cb = -sig_a * sig_b * m22
     a = _safe_atan2(sig_b * m12, sig_b * m02)
@@ -39,8 +46,7 @@ def _zxzxz_ab(m02, m12, m22, sig_a, sig_b):
 
 @inline
 def _zxzxz_c(ab, m00, m10, m20, sig_a, sig_b):
-    """The third angle ``c`` of branch 0 (the flip: ``c + pi``) from ``ab`` (:func:`_zxzxz_ab`) and
-    column 0 of ``M``. Mirrors :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
+    """Branch 0's third angle ``c`` (the flip: ``c + pi``) from ``ab`` (:func:`_zxzxz_ab`) and column 0 of ``M``."""
     _, _, ca, sa, cb, sb = ab
     cos_c = cb * (ca * m00 + sa * m10) + sig_a * sb * m20
     sin_c = sig_a * sig_b * (sa * m00 - ca * m10)
@@ -55,13 +61,8 @@ def _iiwa_pose(rot, sw, d3, d5, sig, tol):
     (``_elbow``, ``_reference``)."""
     sx, sy, sz = sw[0], sw[1], sw[2]
     dist = _safe_norm2(_safe_norm2(sx, sy), sz)
-    # _common.triangle(dist, d3, d5, tol)
-    c = (dist * dist - (d3 * d3 + d5 * d5)) / (2 * d3 * d5)
-    reachable = abs(c) <= 1 + tol
-    outer, inner = d3 + d5, abs(d3 - d5)
-    s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
-    c4 = -sig[2] * sig[3] * min(max(c, -1.0), 1.0)
-    s4_abs = math.sqrt(max(s2, _TINY)) / (2 * d3 * d5)
+    c, s4_abs, reachable = _triangle(dist, d3, d5, tol)
+    c4 = -sig[2] * sig[3] * c
     ux, uy, uz = sx / dist, sy / dist, sz / dist
     b = _safe_atan2(uy, ux)
     cb, sb = math.cos(b), math.sin(b)
@@ -70,8 +71,7 @@ def _iiwa_pose(rot, sw, d3, d5, sig, tol):
 
 
 @inline
-def _dot_col(r, rot, col):
-    """``r . rot[:, col]``, summed left to right as in :func:`iiwa_torch.ik.analytic.srs.closed_form`."""
+def _dot_col(r, rot, col):  # r . rot[:, col], summed left to right as srs.closed_form sums it
     return r[0] * rot[0, col] + r[1] * rot[1, col] + r[2] * rot[2, col]
 
 
@@ -123,8 +123,7 @@ _DISTINCT = (2, 2, 4, 2, 4, 4, 4)  # distinct values of each joint over the 8 br
 
 @inline
 def _wrap_joint(theta, offset, lo, hi):
-    """One DH angle -> ``(q, within)``. Mirrors :func:`iiwa_torch.ik.analytic._common.wrap_joints`
-    (and :func:`iiwa_torch.ik.limits.shift_into_limits`)."""
+    """One DH angle -> ``(q, within)``, as :func:`iiwa_torch.ik.analytic._common.wrap_joints`."""
     turn = 2 * math.pi
     q = theta - offset if offset else theta
     q = q - turn * np.rint(q * (1 / turn))
@@ -240,14 +239,7 @@ def pieper_branches(frame5, consts, limits):
             big_x = along * (1.0 if sh == 0 else -1.0)
             theta[0] = _safe_atan2(wy, wx) - math.atan2(-s1 * lateral, big_x)
             px, py = big_x - a1, s1 * (wz - d1)
-            # _common.triangle(|(px, py)|, a2, L3, tol)
-            dist = _safe_norm2(px, py)
-            c = (dist * dist - (a2 * a2 + link3 * link3)) / (2 * a2 * link3)
-            elbow_ok = abs(c) <= 1 + tol
-            outer, inner = a2 + link3, abs(a2 - link3)
-            s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
-            c_el = min(max(c, -1.0), 1.0)
-            s_el_abs = math.sqrt(max(s2, _TINY)) / (2 * a2 * link3)
+            c_el, s_el_abs, elbow_ok = _triangle(_safe_norm2(px, py), a2, link3, tol)
             ca, sa = math.cos(theta[0]), math.sin(theta[0])
             for el in range(2):
                 s_el = s_el_abs * (1.0 if el == 0 else -1.0)
