@@ -153,14 +153,20 @@ def half_lengths(local):
 
 
 @inline
-def _pair_clearance(e1, e2, j, radius):
-    """The clearance ``|x - y| - radius`` (m) of lane ``j``'s capsules ``e1, e2 (9, LANES)`` at their
-    closest points: :func:`iiwa_torch.segments.closest_parameters`, compiled."""
+def _closest_gap(e1, e2, j):
+    """Lane ``j``'s capsules ``e1, e2 (9, LANES)`` (start ``x``, ``y``, vectors ``a``, ``b``) at their closest points
+    ``x + s a``, ``y + t b`` (:func:`iiwa_torch.segments.closest_parameters`, compiled) -> ``s, t`` and the gap's 3."""
     r0, r1, r2 = e1[0, j] - e2[0, j], e1[1, j] - e2[1, j], e1[2, j] - e2[2, j]
     a0, a1, a2, b0, b1, b2 = e1[3, j], e1[4, j], e1[5, j], e2[3, j], e2[4, j], e2[5, j]
     s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
                     a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
-    w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+    return s, t, r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+
+
+@inline
+def _pair_clearance(e1, e2, j, radius):
+    """The clearance ``|x - y| - radius`` (m) of lane ``j``'s capsules at their closest points."""
+    _, _, w0, w1, w2 = _closest_gap(e1, e2, j)
     return math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) - radius
 
 
@@ -261,16 +267,10 @@ def capsule_clearance(transforms, params, base, tool, q, frames, local, first, s
     n, k_all = q.shape[0], frames.shape[0]
     F, pose, Z, P = np.empty((n + 1, 4, 3)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
     frames_of(transforms, params, base, tool, q, pose, Z, P, F)
-    ends = np.empty((k_all, 6))  # per capsule: start point, start-to-end vector
-    for k in range(k_all):
-        f = frames[k]
-        u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
-        u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
-        for r in range(3):  # each end point: p + u x + v y + w z
-            x, y, z, p = F[f, 0, r], F[f, 1, r], F[f, 2, r], F[f, 3, r]
-            start = p + u0 * x + v0 * y + w0 * z
-            ends[k, r] = start
-            ends[k, 3 + r] = p + u1 * x + v1 * y + w1 * z - start
+    lane = np.empty((k_all, 9, 1))  # per capsule: start point, start-to-end vector, mid-point
+    for f in range(n + 1):
+        capsule_ends(frames, local, f, 1, F[f].reshape(12, 1), lane)
+    ends = lane[:, :, 0]
     candidate = np.empty(n)
     for k in range(k_all):
         distance[k] = np.inf
@@ -278,16 +278,12 @@ def capsule_clearance(transforms, params, base, tool, q, frames, local, first, s
     for pair in range(first.shape[0]):
         i, j, radius = first[pair], second[pair], pair_radius[pair, 0]
         a, b = ends[i], ends[j]
-        r0, r1, r2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
-        a0, a1, a2, b0, b1, b2 = a[3], a[4], a[5], b[3], b[4], b[5]
-        s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
-                        a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
-        w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+        s, t, w0, w1, w2 = _closest_gap(lane[i], lane[j], 0)
         norm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
         u0, u1, u2 = (w0 / norm, w1 / norm, w2 / norm) if norm > 0 else (0.0, 0.0, 0.0)
         candidate[:] = 0.0
-        _along(params, Z, P, frames[i], a[0] + s * a0, a[1] + s * a1, a[2] + s * a2, u0, u1, u2, candidate, 1.0)
-        _along(params, Z, P, frames[j], b[0] + t * b0, b[1] + t * b1, b[2] + t * b2, u0, u1, u2, candidate, -1.0)
+        _along(params, Z, P, frames[i], a[0] + s * a[3], a[1] + s * a[4], a[2] + s * a[5], u0, u1, u2, candidate, 1.0)
+        _along(params, Z, P, frames[j], b[0] + t * b[3], b[1] + t * b[4], b[2] + t * b[5], u0, u1, u2, candidate, -1.0)
         for k in (i, j):
             if norm - radius < distance[k]:
                 distance[k] = norm - radius
