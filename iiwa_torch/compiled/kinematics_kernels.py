@@ -1,5 +1,4 @@
-"""Compiled forward kinematics of one configuration at a time: the frame recursion, the Jacobian's
-columns and the pose error (:mod:`iiwa_torch.compiled.numba_kernels` describes the conventions)."""
+"""Compiled forward kinematics, one configuration at a time: frames, Jacobian columns, pose error."""
 
 from __future__ import annotations
 
@@ -20,8 +19,7 @@ def turn(u0, u1, u2, v0, v1, v2, c, s):
 
 
 @inline
-def _store_frame(f, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
-    """A frame's axes and origin into the rows of ``f (4, 3)``."""
+def _store_frame(f, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):  # axes and origin into the rows of f (4, 3)
     f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2] = x0, x1, x2, y0, y1, y2
     f[2, 0], f[2, 1], f[2, 2], f[3, 0], f[3, 1], f[3, 2] = z0, z1, z2, p0, p1, p2
 
@@ -81,12 +79,8 @@ def frames_of(transforms, params, base, tool, q, pose, Z, P, F):
     for k in range(4):  # column k of the tool, (u, v, w), in the world: u x + v y + w z
         u, v, w = tool[0, k], tool[1, k], tool[2, k]
         pose[0, k], pose[1, k] = u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1
-        pose[2, k] = u * x2 + v * y2 + w * z2
-        pose[3, k] = 0.0
-    pose[0, 3] += p0
-    pose[1, 3] += p1
-    pose[2, 3] += p2
-    pose[3, 3] = 1.0
+        pose[2, k], pose[3, k] = u * x2 + v * y2 + w * z2, 0.0
+    pose[0, 3], pose[1, 3], pose[2, 3], pose[3, 3] = pose[0, 3] + p0, pose[1, 3] + p1, pose[2, 3] + p2, 1.0
 
 
 @jit
@@ -115,9 +109,8 @@ def end_poses(transforms, params, base, tool, q):
 
 @jit
 def frames_axes(transforms, params, base, tool, q):
-    """Configurations ``q (b, n)`` -> the base and every link frame ``(b, n + 1, 4, 3)`` (rows: the
-    x, y, z axes and the origin; no tool), each joint's axis and a point on it ``(b, n, 3)``
-    each, and the end poses ``(b, 4, 4)`` (tool included), as :func:`frames_of`."""
+    """Configurations ``q (b, n)`` -> frames ``(b, n + 1, 4, 3)``, joint axes and points on them ``(b, n, 3)`` each,
+    end poses ``(b, 4, 4)``, as :func:`frames_of` writes them."""
     b, n = q.shape
     frames, z, p, poses = np.empty((b, n + 1, 4, 3)), np.empty((b, n, 3)), np.empty((b, n, 3)), np.empty((b, 4, 4))
     for k in range(b):
