@@ -75,8 +75,7 @@ def _block_angles(q, params, row, m, angle, cs):
 
 @inline
 def _transform_lanes(T, m, state):
-    """The moving frames ``state (12, LANES)`` (x, y, z axes and origin, 3 rows each) times the
-    constant transform ``T (4, 4)``, in place (:func:`~.kinematics_kernels.apply_transform`)."""
+    """The frames ``state (12, LANES)`` (x, y, z axes and origin, 3 rows each) times ``T (4, 4)``, in place."""
     for j in range(m):
         x0, x1, x2, y0, y1, y2 = state[0, j], state[1, j], state[2, j], state[3, j], state[4, j], state[5, j]
         z0, z1, z2, p0, p1, p2 = state[6, j], state[7, j], state[8, j], state[9, j], state[10, j], state[11, j]
@@ -88,9 +87,8 @@ def _transform_lanes(T, m, state):
 
 @inline
 def next_frame(transforms, params, i, m, angle, cs, state):
-    """The moving frames ``state (12, LANES)`` of link ``i`` -> link ``i + 1``, through joint i: the
-    recursion of :func:`~.kinematics_kernels.frames_of`. Each branch is taken once for the block,
-    outside the loops over it (a branch inside would keep LLVM from vectorising them)."""
+    """The frames ``state (12, LANES)`` of link ``i`` -> link ``i + 1``, as :func:`~.kinematics_kernels.frames_of`;
+    each branch once for the block, outside the loops (a branch inside would stop LLVM vectorising them)."""
     if params[i, 2]:
         _transform_lanes(transforms[i, 0], m, state)
     if params[i, 1]:  # prismatic: along z
@@ -109,11 +107,9 @@ def next_frame(transforms, params, i, m, angle, cs, state):
 
 @jit_fused
 def block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends):
-    """Every capsule of a block into ``ends (K, 9, LANES)``: its start point, start-to-end vector and
-    mid-point, from the frames of the block's angles (:func:`_block_angles`); the block's last frames
-    stay in ``state``. Its products and sums fuse into FMAs (~10% of the envs' compiled step: the
-    float64 results move in their last bits, far below what the clearance and the float32 end point
-    resolve)."""
+    """Every capsule of a block into ``ends (K, 9, LANES)`` (start point, start-to-end vector, mid-point) from the
+    block's angles (:func:`_block_angles`); the last frames stay in ``state``. Fused into FMAs: ~10% off the envs'
+    compiled step, float64 results moving in their last bits, far below what the clearance and float32 resolve."""
     for r in range(12):
         for j in range(m):
             state[r, j] = base[r % 3, r // 3]
@@ -211,20 +207,14 @@ def block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius
 @jit_nogil
 def own_clearance(q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius, height,
                   out):  # fmt: skip
-    """Self and floor clearance of ``q (N, n)`` (float32 or float64; computed in float64) into
-    ``out (N,)``, metres: the smallest of ``|x - y| - r`` over the self pairs ``first, second
-    (P,)`` (``pair_radius (P, 1)`` radius sums) and ``min(z_start, z_end) - (r + height)`` over the
-    capsules ``floor (F,)`` (``floor_radius (F, 1)``). Capsule k joins the homogeneous points
-    ``local[k] (4, 2)`` (columns) of frame ``frames[k]`` (0 the base, i link i; the tool is not
-    used). The arguments are :meth:`iiwa_torch.collision.Capsules.numpy_tables`' and the chain's
-    ``float_arrays``. Mirrors :func:`iiwa_torch.collision.distances.own_distances`: the
-    frames of :func:`iiwa_torch.kinematics.frames_batch_last`, the segments of
-    :func:`iiwa_torch.collision.primitives.segment_gap` (:func:`iiwa_torch.segments.closest_parameters`
-    itself, compiled). Each block of configurations goes through every step as a loop over the
-    block, straight-line and branch-free, which LLVM vectorises. A pair's exact distance is
-    computed only where it can be the minimum: each segment lies within half its length of its
-    mid-point, so a pair is at least ``|c1 - c2| - h1 - h2`` apart and at most ``|c1 - c2|``
-    (its mid-points' distance); the result is the exact minimum all the same."""
+    """Self and floor clearance (m) of ``q (N, n)`` (float32 or float64; computed in float64) into ``out (N,)``: the
+    least ``|x - y| - r`` over the self pairs ``first, second (P,)`` (radius sums ``pair_radius (P, 1)``) and
+    ``min(z_start, z_end) - (r + height)`` over the capsules ``floor (F,)`` (``floor_radius (F, 1)``). Capsule k joins
+    the points ``local[k] (4, 2)`` (columns) of frame ``frames[k]`` (0 the base, i link i; no tool): the tables of
+    :meth:`iiwa_torch.collision.Capsules.numpy_tables`. As :func:`iiwa_torch.collision.distances.own_distances`.
+    Blocks of configurations go through each step as a branch-free loop, which LLVM vectorises. A pair's exact
+    distance is computed only where it can be the minimum: each segment lies within half its length ``h`` of its
+    mid-point ``c``, so a pair is between ``|c1 - c2| - h1 - h2`` and ``|c1 - c2|`` apart; the result is exact."""
     count, k_all, last = q.shape[0], frames.shape[0], 0
     half = half_lengths(local)  # each segment lies within half its length of its mid-point
     for k in range(k_all):
