@@ -55,10 +55,8 @@ def _zxzxz_c(ab, m00, m10, m20, sig_a, sig_b):
 
 @inline
 def _iiwa_pose(rot, sw, d3, d5, sig, tol):
-    """What the closed form takes from one pose: ``rot (3, 3)`` and ``W - S`` ``sw (3,)`` ->
-    ``(dist, c4, s4_abs, theta4 of both elbow branches, reachable, u, v_ref, w_ref)`` (``w_ref``'s
-    third entry is 0). Mirrors the psi-independent part of :func:`iiwa_torch.ik.analytic.srs.closed_form`
-    (``_elbow``, ``_reference``)."""
+    """The psi-independent part of :func:`iiwa_torch.ik.analytic.srs.closed_form` (``_elbow``, ``_reference``) for
+    ``W - S`` ``sw (3,)`` -> ``(dist, c4, s4_abs, both elbows' theta4, reachable, u, v_ref, w_ref[:2])``."""
     sx, sy, sz = sw[0], sw[1], sw[2]
     dist = _safe_norm2(_safe_norm2(sx, sy), sz)
     c, s4_abs, reachable = _triangle(dist, d3, d5, tol)
@@ -77,11 +75,9 @@ def _dot_col(r, rot, col):  # r . rot[:, col], summed left to right as srs.close
 
 @inline
 def _iiwa_branches(pose, rot, psi, d3, d5, sig, theta):
-    """The DH angles of the 8 branches at arm angle ``psi`` into ``theta (7, 4)``: each joint's
-    distinct values (as the array code holds each joint at the size its branches need), branch
-    ``(s, e, w)`` taking joints 1-2 from column ``s``, joint 3 from ``2 s + e``, joint 4 from ``e``
-    and joints 5-7 from ``2 e + w``; ``pose`` from :func:`_iiwa_pose`. Mirrors
-    :func:`iiwa_torch.ik.analytic.srs.closed_form`."""
+    """:func:`iiwa_torch.ik.analytic.srs.closed_form`'s 8 branches at arm angle ``psi`` into ``theta (7, 4)``, each
+    joint's distinct values only: branch ``(s, e, w)`` takes joints 1-2 from column ``s``, joint 3 from ``2 s + e``,
+    joint 4 from ``e``, joints 5-7 from ``2 e + w``; ``pose`` from :func:`_iiwa_pose`."""
     dist, c4, s4_abs, theta4s, _, u, v_ref, w_ref = pose
     cp, sp = math.cos(psi), math.sin(psi)
     v0, v1, v2 = cp * v_ref[0] + sp * w_ref[0], cp * v_ref[1] + sp * w_ref[1], cp * v_ref[2] + sp * 0.0
@@ -137,13 +133,10 @@ def _wrap_joint(theta, offset, lo, hi):
 
 @inline
 def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, single, work, best_q):
-    """Best of the ``count * 8`` candidates of one pose at the arm angles ``psis[:count]`` into
-    ``best_q (7,)``, clamped into the limits; returns ``(found, psi_best)``. ``limits (7, 7)``: the
-    joints' offsets, lows and highs to check against, mid-points, half-widths, and the limits to
-    clamp into; ``single``: rank in float32; ``work``: scratch ``(7, 4)`` arrays for the angles, the
-    wrapped joints, their limit checks and scores. Mirrors :func:`iiwa_torch.ik.analytic.srs_sweep._pick`,
-    whose sum of squares it adds in the same order (``_common.reduce_grouped``: joint 4, then 1 + 2,
-    3, then 5 + 6 + 7)."""
+    """:func:`iiwa_torch.ik.analytic.srs_sweep._pick`: the best of one pose's ``count * 8`` candidates at arm angles
+    ``psis[:count]`` into ``best_q (7,)``, clamped; returns ``(found, psi_best)``. ``limits (7, 7)``: offsets, lows,
+    highs to check, mid-points, half-widths, limits to clamp into; ``single``: rank in float32; ``work``: ``(7, 4)``
+    scratch. Sums of squares in ``_common.reduce_grouped``'s order (joint 4, then 1 + 2, 3, then 5 + 6 + 7)."""
     theta, q, inside, score = work
     pose = _iiwa_pose(rot, sw, d3, d5, sig, tol)
     reachable = pose[4]
@@ -181,12 +174,10 @@ def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, singl
 
 @jit
 def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, limits, single):
-    """:func:`iiwa_torch.ik.analytic.srs_sweep._solve_all` for ``rot (B, 3, 3)``, ``sw (B, 3)``, ``q0 (B, 7)``
-    and its arm angles ``psi0 (B,)`` (both 0 rows: none) -> ``q (B, 7)``: per pose the sweep over
-    ``grid (K,)`` (after ``psi0``) and the refining passes ``local (P, 9)`` from the best so far, then,
-    where nothing valid was found, over ``fine_grid`` and ``fine_local`` (``srs_sweep._angles``).
-    ``consts``: ``d3, d5``, the six ``sin(alpha)`` and the reach tolerance; ``limits`` as
-    :func:`_iiwa_pick`. Mirrors :func:`iiwa_torch.ik.analytic.srs_sweep._sweep`."""
+    """:func:`iiwa_torch.ik.analytic.srs_sweep._solve_all` for ``rot (B, 3, 3)``, ``sw (B, 3)``, ``q0 (B, 7)`` and its
+    arm angles ``psi0 (B,)`` (both 0 rows: none) -> ``q (B, 7)``: per pose the sweep over ``grid (K,)`` (after
+    ``psi0``) and refining passes ``local (P, 9)``, then where nothing valid was found ``fine_grid``, ``fine_local``.
+    ``consts``: ``d3, d5``, the six ``sin(alpha)``, the reach tolerance; ``limits`` as :func:`_iiwa_pick`."""
     b = rot.shape[0]
     d3, d5, sig, tol = consts[0], consts[1], consts[2:8], consts[8]
     has_q0 = q0.shape[0] > 0
