@@ -173,8 +173,7 @@ def block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius
     into ``best``), then each pair's exact distance only in the lanes ``lanes`` where its lower
     bound ``gap - half-lengths - radius`` (``half (K,)``) is under ``best`` (exact, as the others
     are not the minimum: see :func:`own_clearance`)."""
-    for j in range(m):
-        best[j] = np.inf
+    best[:m] = np.inf
     for i in range(floor.shape[0]):
         e, offset = ends[floor[i]], floor_radius[i, 0] + height
         for j in range(m):
@@ -228,8 +227,7 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
         _block_angles(q, params, row, m, angle, cs)
         block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends)
         block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best)
-        for j in range(m):
-            out[row + j] = best[j]
+        out[row : row + m] = best[:m]
 
 
 @inline
@@ -262,9 +260,8 @@ def capsule_clearance(transforms, params, base, tool, q, frames, local, first, s
         capsule_ends(frames, local, f, 1, F[f].reshape(12, 1), lane)
     ends = lane[:, :, 0]
     candidate = np.empty(n)
-    for k in range(k_all):
-        distance[k] = np.inf
-        gradient[k, :] = 0.0
+    distance[:] = np.inf
+    gradient[:] = 0.0
     for pair in range(first.shape[0]):
         i, j, radius = first[pair], second[pair], pair_radius[pair, 0]
         a, b = ends[i], ends[j]
@@ -280,8 +277,7 @@ def capsule_clearance(transforms, params, base, tool, q, frames, local, first, s
                 gradient[k, :] = candidate
     for c in range(floor.shape[0]):
         k, e = floor[c], ends[floor[c]]
-        low = 0 if e[2] <= e[2] + e[5] else 1  # the lower end point
-        x0, x1, x2 = (e[0], e[1], e[2]) if low == 0 else (e[0] + e[3], e[1] + e[4], e[2] + e[5])
+        x0, x1, x2 = (e[0], e[1], e[2]) if e[2] <= e[2] + e[5] else (e[0] + e[3], e[1] + e[4], e[2] + e[5])  # lower end
         value = x2 - (floor_radius[c, 0] + height)
         if value < distance[k]:
             distance[k] = value

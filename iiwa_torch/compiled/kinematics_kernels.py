@@ -164,9 +164,7 @@ def answer_errors(transforms, params, base, tool, q, pos, rot, eps, single, pos_
     for k in range(b):
         frames_of(transforms, params, base, tool, q[k], pose, none, none, np.empty((0, 4, 3)))
         if single:
-            for r in range(3):
-                for c in range(4):
-                    pose[r, c] = np.float32(pose[r, c])
+            pose[:3] = pose[:3].astype(np.float32)
         target_rot = rot[k] if has_rot else pose[:3, :3]  # a placeholder without rotations
         pos_err[k], rot_err[k] = pose_error(pose, pos[k], target_rot, has_rot, eps, e)
         success[k] = pos_err[k] <= pos_tol and rot_err[k] <= rot_tol
