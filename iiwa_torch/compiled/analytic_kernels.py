@@ -208,13 +208,10 @@ def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, li
 # ---------------------------------------------------------------------- the closed form of pieper
 @jit
 def pieper_branches(frame5, consts, limits):
-    """All 8 branches of :func:`iiwa_torch.ik.analytic.pieper` for ``frame5 = T_05 Rz(theta6)
-    (B, 4, 4)``: ``consts`` ``a1, d1, a2, d2 + d3, L3 = |(a3, d4)|, gamma``, the four ``sin(alpha)``
-    of rows 1, 3, 4, 5 and the reach tolerance, ``limits (3, 6)`` the joints' offsets, lows and
-    highs -> joint angles ``(6, B, 8)`` (joint-major, as the array code lays them out), reachable and
-    within the limits ``(B, 8)``, branch ``4 shoulder + 2 elbow + wrist``. Mirrors
-    :func:`iiwa_torch.ik.analytic.spherical6r._closed_form` (with ``_common.zxzx`` and
-    ``transpose_times``) and :func:`iiwa_torch.ik.analytic._common.finish`."""
+    """The 8 branches of :func:`iiwa_torch.ik.analytic.pieper` (``spherical6r._closed_form``, ``_common.finish``) for
+    ``frame5 = T_05 Rz(theta6) (B, 4, 4)``; ``consts``: ``a1, d1, a2, d2 + d3, L3 = |(a3, d4)|, gamma``, the
+    ``sin(alpha)`` of rows 1, 3, 4, 5, the reach tolerance; ``limits (3, 6)``: offsets, lows, highs -> joint angles
+    ``(6, B, 8)`` (joint-major), reachable and within limits ``(B, 8)``; branch ``4 shoulder + 2 elbow + wrist``."""
     a1, d1, a2, lateral, link3, gamma = consts[0], consts[1], consts[2], consts[3], consts[4], consts[5]
     s1, s3, s4, s5, tol = consts[6], consts[7], consts[8], consts[9], consts[10]
     b = frame5.shape[0]
