@@ -54,7 +54,7 @@ def _zxzxz_c(ab, m00, m10, m20, sig_a, sig_b):
 
 
 @inline
-def _iiwa_pose(rot, sw, d3, d5, sig, tol):
+def _iiwa_pose(sw, d3, d5, sig, tol):
     """The psi-independent part of :func:`iiwa_torch.ik.analytic.srs.closed_form` (``_elbow``, ``_reference``) for
     ``W - S`` ``sw (3,)`` -> ``(dist, c4, s4_abs, both elbows' theta4, reachable, u, v_ref, w_ref[:2])``."""
     sx, sy, sz = sw[0], sw[1], sw[2]
@@ -138,7 +138,7 @@ def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, singl
     highs to check, mid-points, half-widths, limits to clamp into; ``single``: rank in float32; ``work``: ``(7, 4)``
     scratch. Sums of squares in ``_common.reduce_grouped``'s order (joint 4, then 1 + 2, 3, then 5 + 6 + 7)."""
     theta, q, inside, score = work
-    pose = _iiwa_pose(rot, sw, d3, d5, sig, tol)
+    pose = _iiwa_pose(sw, d3, d5, sig, tol)
     reachable = pose[4]
     best_key, best_found, psi_best = np.inf, False, psis[0]
     for k in range(count):
