@@ -14,7 +14,7 @@ from .capsules import Capsules, capsule_segments, pair_gaps, robot_capsules
 from .primitives import culled_box_distance, unchecked_segment_box_distance, unchecked_segment_distance
 from .world import World
 
-__all__ = ["distances", "own_distances", "resolve"]
+__all__ = ["distances", "minima", "own_distances", "resolve"]
 
 _BLOCK = 4096  # configurations per block of the robot's own distances
 
@@ -120,14 +120,16 @@ def _obstacle_distances(
         pair = getattr(world, field)
         if pair is None:
             continue
-        extra = {}
-        if cull and kind is _boxes:
-            extra["found"] = ([] if own is None else [own.amin(0).reshape(lead)]) + [
-                o.amin(-1) for o in others if o.shape[-1]]
-        dist = kind(a, b, r, pair, **extra)
+        found = (minima(own, others, lead),) if cull and kind is _boxes else ()
+        dist = kind(a, b, r, pair, *found)
         others.append(dist.flatten(-2))
         labels += [(name, f"{label}{m}") for name in names for m in range(dist.shape[-1])]
     return others, labels
+
+
+def minima(own: Tensor | None, others: list[Tensor], lead: torch.Size) -> list[Tensor]:
+    """The smallest distance ``lead`` of the robot's own and of each kind given an obstacle (M > 0)."""
+    return ([] if own is None else [own.amin(0).reshape(lead)]) + [o.amin(-1) for o in others if o.shape[-1]]
 
 
 def distances(

@@ -11,10 +11,11 @@ import torch
 from torch import Tensor
 
 from .. import compiled
+from .. import kinematics as kin
 from ..chain import Chain
 from .capsules import Capsules
 from .cpu_paths import capsule_clearance_compiled, plain_path
-from .distances import distances, resolve
+from .distances import distances, minima, resolve
 from .world import World
 
 __all__ = ["Clearances", "capsule_clearance", "capsule_clearance_of_one", "clearance", "pairwise_clearance"]
@@ -50,8 +51,7 @@ def clearance(chain: Chain, q: Tensor, world: World | None = None, capsules: Cap
     if plain is not None:
         return plain(chain, q, world, capsules)
     own, others, _ = distances(chain, q, world, capsules, cull=True)
-    # a kind given with no obstacle (M = 0) adds no distance
-    mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others if o.shape[-1]]
+    mins = minima(own, others, q.shape[:-1])
     if not mins:
         raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
     shape = torch.broadcast_shapes(*(m.shape for m in mins))
@@ -67,9 +67,8 @@ def capsule_clearance(
     world, capsules = resolve(chain, q, world, capsules)
     if compiled.ENABLED and q.numel() == chain.n_joints and q.is_cpu and not world.tensors():
         distance, gradient = capsule_clearance_compiled(chain, q, world.floor, capsules)
-        dtype = np.float32 if q.dtype == torch.float32 else np.float64
-        return (torch.from_numpy(distance.astype(dtype, copy=False).reshape(*q.shape[:-1], -1)),
-                torch.from_numpy(gradient.astype(dtype, copy=False).reshape(*q.shape[:-1], -1, chain.n_joints)))
+        lead = q.shape[:-1]
+        return kin.like(distance.reshape(*lead, -1), q), kin.like(gradient.reshape(*lead, -1, chain.n_joints), q)
     with torch.enable_grad():
         x = q.detach().requires_grad_(True)
         d = pairwise_clearance(chain, x, world, capsules)
