@@ -160,12 +160,10 @@ def self_collision_pairs(
     q = chain.random_q(samples, generator=torch.Generator().manual_seed(seed))
     start, direction = capsule_segments(chain, capsules, q)  # components (K, samples)
     k = len(capsules.names)
-    candidates = [(i, j) for i in range(k) for j in range(i + 2, k)]
+    candidates = tuple((i, j) for i in range(k) for j in range(i + 2, k))
     if not candidates:
         return ()
-    first, second = (torch.tensor(c) for c in zip(*candidates))
-    radii = capsules.radii.to(start)
-    gap = pair_gaps(start, direction, (radii[first] + radii[second])[:, None], first, second)
+    gap = pair_gaps(start, direction, dataclasses.replace(capsules, pairs=candidates).tables(start.dtype, start.device))
     keep = (gap > 0).any(1).tolist()
     return tuple(pair for pair, ok in zip(candidates, keep) if ok)
 
@@ -182,23 +180,20 @@ def capsule_segments(chain: Chain, capsules: Capsules, q: Tensor) -> tuple[Tenso
         ends = (frames @ tables["local"]).permute(3, 2, 1, 0)  # (2, 3, K, B)
     else:  # large batches: per capsule, multiply-adds of the nonzero local coordinates only (fewer bytes moved)
         frames, _ = kin.frames_batch_last(geometry, flat.T.contiguous())  # (x, y, z, p), (3, B) each
-        ends = torch.stack(
-            [
-                torch.stack(
-                    [
-                        sum((c * axis for c, axis in zip(local, frames[frame][:3]) if c), frames[frame][3])
-                        for frame, local in zip(capsules.frames, capsules.points[:, e].tolist())
-                    ],
-                    1,
-                )
-                for e in (0, 1)
-            ]
-        )  # (2, 3, K, B)
+        points = capsules.points.tolist()
+        ends = torch.stack([torch.stack([_place(frames[f], local[e]) for f, local in zip(capsules.frames, points)], 1)
+                            for e in (0, 1)])  # (2, 3, K, B)
     return ends[0], ends[1] - ends[0]
 
 
-def pair_gaps(start: Tensor, direction: Tensor, radii: Tensor, first: Tensor, second: Tensor) -> Tensor:
-    """Signed distances ``(P, B)`` of pairs ``first, second (P,)`` with radius sums ``radii (P, 1)``."""
+def _place(frame: tuple[Tensor, ...], local: list[float]) -> Tensor:
+    """The point of local coordinates ``local`` in ``frame`` ``(x, y, z, p)``, skipping zero coordinates."""
+    return sum((c * axis for c, axis in zip(local, frame[:3]) if c), frame[3])
+
+
+def pair_gaps(start: Tensor, direction: Tensor, tables: dict[str, Tensor]) -> Tensor:
+    """Signed distances ``(P, B)`` of the self pairs of :meth:`Capsules.tables`' ``tables``."""
+    first, second, radii = tables["first"], tables["second"], tables["pair_radius"]
     return segment_gap(start[:, first], direction[:, first], start[:, second], direction[:, second]) - radii
 
 

@@ -61,7 +61,7 @@ def own_distances(
             start, direction = capsule_segments(chain, capsules, block)
             parts = []
             if capsules.pairs:
-                parts.append(pair_gaps(start, direction, tables["pair_radius"], tables["first"], tables["second"]))
+                parts.append(pair_gaps(start, direction, tables))
             if floor is not None and floor_idx.numel():
                 low = torch.minimum(start[2], start[2] + direction[2])[floor_idx]
                 parts.append(low - (tables["floor_radius"] + floor))
