@@ -100,13 +100,10 @@ def dh_transforms(dh: Tensor, modified: bool) -> tuple[Tensor, Tensor]:
 def _link_coefficients(before: Tensor, after: Tensor, prismatic: Sequence[bool]) -> Tensor:
     """``(n, 3, 16)``: each link ``before_i M(theta_i) after_i`` as ``f0 C0 + f1 C1 + C2``, with
     ``(f0, f1) = (cos theta, sin theta)`` (revolute) or ``(theta, anything)`` (prismatic, ``C1 = 0``)."""
-    rz_cos = torch.diag(torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64))
-    rz_sin = torch.zeros(4, 4, dtype=torch.float64)
-    rz_sin[0, 1], rz_sin[1, 0] = -1.0, 1.0
-    rz_one = torch.diag(torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=torch.float64))
-    tz_unit = torch.zeros(4, 4, dtype=torch.float64)
-    tz_unit[2, 3] = 1.0
-    eye, zero = torch.eye(4, dtype=torch.float64), torch.zeros(4, 4, dtype=torch.float64)
+    eye = torch.eye(4, dtype=torch.float64)
+    rz_cos, rz_one = torch.diag(eye.new_tensor([1.0, 1.0, 0.0, 0.0])), torch.diag(eye.new_tensor([0.0, 0.0, 1.0, 1.0]))
+    rz_sin, tz_unit, zero = torch.zeros(3, 4, 4, dtype=torch.float64)
+    rz_sin[0, 1], rz_sin[1, 0], tz_unit[2, 3] = -1.0, 1.0, 1.0
     coeffs = []
     for b, a, slides in zip(before, after, prismatic):
         terms = (tz_unit, zero, eye) if slides else (rz_cos, rz_sin, rz_one)
@@ -362,8 +359,7 @@ def tool_frame_batch_last(g: Geometry, frame: Frame) -> Frame:
 def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """End-effector positions: ``q (n, b)`` (not checked) -> ``(3, b)``; ``trig``: ``(cos q, sin q)``
     if the caller has them."""
-    b = q.shape[1]
-    if b <= SMALL_BATCH:
+    if q.shape[1] <= SMALL_BATCH:
         return end_pose(g, q.T)[:, :3, 3].T
     return position_horner(g, q, trig)
 
