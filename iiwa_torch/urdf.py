@@ -189,17 +189,8 @@ def _movable(joint, origin: torch.Tensor) -> UrdfJoint:
     velocity = limit.velocity if limit is not None else None
     if velocity is not None and not (velocity >= 0 and math.isfinite(velocity)):
         raise ValueError(f"joint {joint.name!r}: velocity limit must be finite and >= 0, got {velocity}")
-    return UrdfJoint(
-        name=joint.name,
-        kind=joint.type,
-        origin=_rows(origin),
-        axis=tuple(v / norm for v in axis),
-        lower=lower,
-        upper=upper,
-        velocity=velocity or None,
-        child=joint.child,
-        parent=joint.parent,
-    )
+    return UrdfJoint(joint.name, joint.type, _rows(origin), tuple(v / norm for v in axis), lower, upper,
+                     velocity or None, joint.child, joint.parent)
 
 
 def _known_link(name, argument: str, links: list[str]) -> str:
@@ -306,14 +297,7 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
             carry = torch.eye(4, dtype=torch.float64)
     if not joints:
         raise ValueError(f"no movable joint between base_link {base!r} and end_link {end!r}")
-    return UrdfPath(
-        robot=robot.name or "",
-        base_link=base,
-        end_link=end,
-        joints=tuple(joints),
-        tool=_rows(carry),
-        links=tuple(j.child for j in joints),
-    )
+    return UrdfPath(robot.name or "", base, end, tuple(joints), _rows(carry), tuple(j.child for j in joints))
 
 
 @dataclass(frozen=True)
