@@ -80,17 +80,14 @@ class Capsules:
         return self._cache[key]
 
     def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
-        options = {"device": device}
-        index = {"dtype": torch.long, **options}
-        radii = self.radii.to(dtype=dtype, **options)
-        first, second = (
-            (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
-        )
+        float_type, index = {"dtype": dtype, "device": device}, {"dtype": torch.long, "device": device}
+        radii = self.radii.to(**float_type)
+        first, second = torch.tensor(self.pairs, **index).reshape(-1, 2).T.contiguous()  # each (P,), also for P = 0
         floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
-        ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
+        ones = torch.ones(len(self.names), 2, 1, **float_type)
         return {
             "frames": torch.tensor(self.frames, **index),
-            "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
+            "local": torch.cat([self.points.to(**float_type), ones], -1).mT.contiguous(),
             "first": first,
             "second": second,
             "pair_radius": (radii[first] + radii[second])[:, None],
