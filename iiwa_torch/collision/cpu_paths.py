@@ -56,8 +56,7 @@ def plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
     floor = world.floor is not None and tables["floor"].size > 0
     if q.numel() > CLEARANCE_NUMPY_BATCH * chain.n_joints:
         return _clearance_compiled if compiled.ENABLED and not world.tensors() and (capsules.pairs or floor) else None
-    solids = _present(world.spheres, -1) or _present(world.boxes, -2)
-    solids = solids and tables["world"].size > 0
+    solids = (_present(world.spheres, -1) or _present(world.boxes, -2)) and tables["world"].size > 0
     return _clearance_small if capsules.pairs or floor or solids else None
 
 

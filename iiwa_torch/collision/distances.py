@@ -19,7 +19,13 @@ __all__ = ["distances", "minima", "own_distances", "resolve"]
 _BLOCK = 4096  # configurations per block of the robot's own distances
 
 
-def _check_query(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> None:
+def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:
+    """A query's world and capsules, defaults filled in, every argument checked."""
+    check_instance(chain, Chain, "chain")
+    capsules = robot_capsules(chain) if capsules is None else capsules
+    world = World(floor=capsules.floor_height) if world is None else world
+    check_instance(capsules, Capsules, "capsules")
+    check_instance(world, World, "world")
     chain.check_q(q)
     if max(capsules.frames) > chain.n_joints:
         raise ValueError(f"capsules use frames {capsules.frames} but the chain has {chain.n_joints + 1} frames")
@@ -34,16 +40,6 @@ def _check_query(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> N
     except RuntimeError:
         raise ValueError(f"the world's batch shape {tuple(world.batch_shape)} does not broadcast with q's "
                          f"{tuple(q.shape[:-1])}: give one world, or one per configuration") from None
-
-
-def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:
-    """A query's world and capsules, defaults filled in, every argument checked."""
-    check_instance(chain, Chain, "chain")
-    capsules = robot_capsules(chain) if capsules is None else capsules
-    world = World(floor=capsules.floor_height) if world is None else world
-    check_instance(capsules, Capsules, "capsules")
-    check_instance(world, World, "world")
-    _check_query(chain, q, world, capsules)
     return world, capsules
 
 
