@@ -79,11 +79,8 @@ def to_urdf(chain: Chain, name: str | None = None) -> str:
             f'effort="100" velocity="{speeds[i]!r}"/></joint>'
         )
     tool = carry @ chain.tool.detach().cpu().to(torch.float64)
-    lines.append(
-        f'  <joint name="tool_joint" type="fixed"><parent link={quoteattr(links[-2])}/>'
-        f'<child link="tool0"/>{_origin(tool)}</joint>'
-    )
-    lines.append("</robot>")
+    lines += [f'  <joint name="tool_joint" type="fixed"><parent link={quoteattr(links[-2])}/>'
+              f'<child link="tool0"/>{_origin(tool)}</joint>', "</robot>"]
     return "\n".join(lines) + "\n"
 
 
@@ -430,9 +427,8 @@ def _elements(source, end_link, base_link, tag: str) -> tuple[UrdfCollision, ...
     directory = None if document is source else os.path.dirname(os.path.abspath(os.fspath(source)))
     robot = ElementTree.fromstring(document)
     elements = {link.get("name"): link.findall(tag) for link in robot.iter("link")}
-    named = None
-    if tag == "visual":
-        named = {m.get("name"): _colour(m, {}, f"material {m.get('name')!r}") for m in robot.findall("material")}
+    named = ({m.get("name"): _colour(m, {}, f"material {m.get('name')!r}") for m in robot.findall("material")}
+             if tag == "visual" else None)  # collisions have no colour
     on_path = {joint.name for joint in path.joints}
     found = []
     for frame, top in enumerate((path.base_link, *path.links)):
