@@ -105,19 +105,8 @@ class Capsules:
         return self._cache["numpy"]
 
     @classmethod
-    def build(
-        cls,
-        chain: Chain,
-        names,
-        frames,
-        points,
-        radii,
-        *,
-        pairs=None,
-        world=None,
-        floor=None,
-        floor_height: float | None = 0.0,
-    ) -> Capsules:
+    def build(cls, chain: Chain, names, frames, points, radii, *, pairs=None, world=None, floor=None,
+              floor_height: float | None = 0.0) -> Capsules:
         """Capsules for ``chain``, validated: ``points (K, 2, 3)``, ``radii (K,)`` (m), ``frames`` into
         ``fk_all``; ``pairs=None`` takes :func:`self_collision_pairs`, ``world``/``floor`` default to all."""
         names = tuple(str(n) for n in names)
@@ -125,16 +114,11 @@ class Capsules:
         frames = tuple(int(f) for f in frames)
         if any(f > chain.n_joints for f in frames):
             raise ValueError(f"frames must index the {chain.n_joints + 1} frames of fk_all, got {frames}")
-        model = cls(
-            names=names,
-            frames=frames,
-            points=torch.as_tensor(points, dtype=torch.float64),
-            radii=torch.as_tensor(radii, dtype=torch.float64),
-            pairs=(),
-            world=torch.ones(k, dtype=torch.bool) if world is None else torch.as_tensor(world),
-            floor=torch.ones(k, dtype=torch.bool) if floor is None else torch.as_tensor(floor),
-            floor_height=floor_height,
-        )
+        model = cls(names=names, frames=frames, points=torch.as_tensor(points, dtype=torch.float64),
+                    radii=torch.as_tensor(radii, dtype=torch.float64), pairs=(),
+                    world=torch.ones(k, dtype=torch.bool) if world is None else torch.as_tensor(world),
+                    floor=torch.ones(k, dtype=torch.bool) if floor is None else torch.as_tensor(floor),
+                    floor_height=floor_height)
         chosen = self_collision_pairs(chain, model) if pairs is None else tuple(tuple(int(i) for i in p) for p in pairs)
         return dataclasses.replace(model, pairs=chosen)
 
@@ -145,9 +129,8 @@ def _describe(x) -> str:
     return type(x).__name__
 
 
-def self_collision_pairs(
-    chain: Chain, capsules: Capsules, samples: int = 4096, seed: int = 0
-) -> tuple[tuple[int, int], ...]:
+def self_collision_pairs(chain: Chain, capsules: Capsules, samples: int = 4096,
+                         seed: int = 0) -> tuple[tuple[int, int], ...]:
     """Every pair ``(i, j)`` but neighbours (``j = i + 1``) and pairs overlapping in all of ``samples``
     random in-limit configurations (``seed``)."""
     check_instance(chain, Chain, "chain")
