@@ -155,10 +155,8 @@ class Geometry:
         return len(self.joints)
 
     @classmethod
-    def build(
-        cls, before: Tensor, after: Tensor, prismatic: Sequence[bool], offsets: Tensor, base: Tensor, tool: Tensor,
-        limits: Tensor, dtype: torch.dtype,
-    ) -> Geometry:
+    def build(cls, before: Tensor, after: Tensor, prismatic: Sequence[bool], offsets: Tensor, base: Tensor,
+              tool: Tensor, limits: Tensor, dtype: torch.dtype) -> Geometry:
         """From ``before, after (n, 4, 4)``, joint kinds, ``offsets (n,)``, ``base, tool (4, 4)`` and
         ``limits (2, n)`` on one device; tensors in ``dtype``. Entries within a few ulps of 0, +-1 or a
         multiple of pi/2 are snapped to it, so a float32 table's pi/2 twists give exact zeros."""
@@ -202,23 +200,16 @@ class Geometry:
         joints = tuple((p, _columns(b) if keep_b else None, _columns(a) if keep_a else None)
                        for p, b, a, (keep_b, keep_a) in zip(prismatic, before, after, kept))
         params = np.array([(o, p, kb, ka) for o, p, (kb, ka) in zip(offset_list, prismatic, kept)], dtype=np.float64)
-        return cls(
-            joints=joints,
-            has_base=not torch.equal(base, eye),
-            has_tool=not torch.equal(tool, eye),
-            has_offsets=any(offset_list),
-            has_prismatic=any(prismatic),
-            tool_columns=_columns(tool),
-            float_arrays=(torch.stack([before, after], 1).numpy().copy(), params.reshape(n, 4), base.numpy().copy(),
-                          tool.numpy().copy()),
-            **tensors,
-        )
+        arrays = (torch.stack([before, after], 1).numpy().copy(), params.reshape(n, 4), base.numpy().copy(),
+                  tool.numpy().copy())
+        return cls(joints=joints, has_base=not torch.equal(base, eye), has_tool=not torch.equal(tool, eye),
+                   has_offsets=any(offset_list), has_prismatic=any(prismatic), tool_columns=_columns(tool),
+                   float_arrays=arrays, **tensors)
 
 
 # ---------------------------------------------------------------------- the reference
-def reference_fk(
-    dh: Tensor, q: Tensor, modified: bool = False, base: Tensor | None = None, tool: Tensor | None = None
-) -> Tensor:
+def reference_fk(dh: Tensor, q: Tensor, modified: bool = False, base: Tensor | None = None,
+                 tool: Tensor | None = None) -> Tensor:
     """The DH definition, for tests: ``q (..., n)`` -> ``(..., n + 2, 4, 4)``: the base, the link frames
     ``base A_1 ... A_i``, then the end pose (tool applied), ``A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)``
     (standard) or ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` (modified), in ``q``'s dtype."""
