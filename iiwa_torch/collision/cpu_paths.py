@@ -178,9 +178,8 @@ def obstacle_clearance_of_one(chain: Chain, q: Tensor, capsules: Capsules, spher
     return solid
 
 
-def capsule_clearance_compiled(
-    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
-) -> tuple[np.ndarray, np.ndarray]:
+def capsule_clearance_compiled(chain: Chain, q: Tensor, floor: float | None,
+                               capsules: Capsules) -> tuple[np.ndarray, np.ndarray]:
     """:func:`~iiwa_torch.collision.capsule_clearance` of one configuration against itself and the floor,
     compiled: ``(K,)`` (m) and ``(K, n)`` (m/rad). By the envelope theorem each gradient is
     ``u . (dx/dq - dy/dq)`` at the closest points (``u`` the unit gap, or ``e_z``), as autograd gives."""

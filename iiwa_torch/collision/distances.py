@@ -43,9 +43,8 @@ def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | N
     return world, capsules
 
 
-def own_distances(
-    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules, keep_segments: bool = False
-) -> tuple[Tensor | None, tuple[Tensor, Tensor] | None]:
+def own_distances(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules,
+                  keep_segments: bool = False) -> tuple[Tensor | None, tuple[Tensor, Tensor] | None]:
     """The robot's own distances ``(P, B)`` over the flattened batch (self pairs, then the floor at
     ``floor``; ``None`` if none), and with ``keep_segments`` :func:`capsule_segments`' output."""
     tables = capsules.tables(q.dtype, q.device)
@@ -100,9 +99,8 @@ _KINDS = (("walls", "wall", _walls), ("spheres", "sphere", _spheres), ("boxes", 
           ("capsules", "capsule", _capsules))
 
 
-def _obstacle_distances(
-    world: World, capsules: Capsules, ends: tuple[Tensor, Tensor], lead: torch.Size, own: Tensor | None, cull: bool
-) -> tuple[list[Tensor], list[tuple[str, str]]]:
+def _obstacle_distances(world: World, capsules: Capsules, ends: tuple[Tensor, Tensor], lead: torch.Size,
+                        own: Tensor | None, cull: bool) -> tuple[list[Tensor], list[tuple[str, str]]]:
     """The capsules' distances to each kind of obstacle, ``(..., K * M)`` blocks, and their pairs' names.
     ``cull``: only the minimum matters (:func:`~iiwa_torch.collision.primitives.culled_box_distance`)."""
     tables = capsules.tables(ends[0].dtype, ends[0].device)
@@ -128,9 +126,8 @@ def minima(own: Tensor | None, others: list[Tensor], lead: torch.Size) -> list[T
     return ([] if own is None else [own.amin(0).reshape(lead)]) + [o.amin(-1) for o in others if o.shape[-1]]
 
 
-def distances(
-    chain: Chain, q: Tensor, world: World, capsules: Capsules, cull: bool = False
-) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
+def distances(chain: Chain, q: Tensor, world: World, capsules: Capsules,
+              cull: bool = False) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
     """The robot's own distances ``(P, B)``, the obstacles' ``(..., M)`` blocks and every pair's names,
     for arguments :func:`resolve` returned; ``cull`` as :func:`_obstacle_distances`."""
     obstacles = bool(world.tensors()) and bool(capsules.world.any())

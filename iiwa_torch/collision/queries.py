@@ -30,9 +30,8 @@ class Clearances:
     pairs: tuple[tuple[str, str], ...]
 
 
-def pairwise_clearance(
-    chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
-) -> Clearances:
+def pairwise_clearance(chain: Chain, q: Tensor, world: World | None = None,
+                       capsules: Capsules | None = None) -> Clearances:
     """Every checked distance for ``q (..., n)``: self pairs, then floor, walls, spheres, boxes, capsules.
     ``world=None``: the model's floor; ``capsules=None``: :func:`robot_capsules`."""
     own, others, labels = distances(chain, q, *resolve(chain, q, world, capsules))
@@ -58,9 +57,8 @@ def clearance(chain: Chain, q: Tensor, world: World | None = None, capsules: Cap
     return torch.stack([m.expand(shape) for m in mins]).amin(0)
 
 
-def capsule_clearance(
-    chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
-) -> tuple[Tensor, Tensor]:
+def capsule_clearance(chain: Chain, q: Tensor, world: World | None = None,
+                      capsules: Capsules | None = None) -> tuple[Tensor, Tensor]:
     """Each capsule's smallest signed distance over the pairs it is in and its gradient: ``q (..., n)`` ->
     ``distance (..., K)`` (m; ``inf`` in no pair) and ``gradient (..., K, n)`` (m/rad), not
     differentiable further (arguments as :func:`pairwise_clearance`)."""
@@ -85,9 +83,8 @@ def capsule_clearance(
     return distance.detach(), gradient.movedim(0, -2)
 
 
-def capsule_clearance_of_one(
-    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
-) -> tuple[np.ndarray, np.ndarray]:
+def capsule_clearance_of_one(chain: Chain, q: Tensor, floor: float | None,
+                             capsules: Capsules) -> tuple[np.ndarray, np.ndarray]:
     """:func:`capsule_clearance` of one CPU configuration against itself and the floor at ``floor`` (m or
     None), unchecked -> float64 arrays ``(K,)`` (m) and ``(K, n)`` (m/rad)."""
     if compiled.ENABLED:
