@@ -220,10 +220,8 @@ def _tree(links: list[str], joints: list) -> tuple[str, dict, dict[str, list[str
             if name not in children:
                 raise ValueError(f"joint {joint.name!r} names link {name!r}, which the URDF does not declare")
         if joint.child in parent_joint:
-            raise ValueError(
-                f"link {joint.child!r} is the child of two joints, {parent_joint[joint.child].name!r} "
-                f"and {joint.name!r}: a URDF is a tree"
-            )
+            raise ValueError(f"link {joint.child!r} is the child of two joints, {parent_joint[joint.child].name!r} "
+                             f"and {joint.name!r}: a URDF is a tree")
         parent_joint[joint.child] = joint
         children[joint.parent].append(joint.child)
     roots = [name for name in links if name not in parent_joint]
@@ -241,9 +239,8 @@ def _parse(document: str | bytes) -> tuple:
     try:
         from pytorch_kinematics.urdf_parser_py.urdf import URDF
     except ModuleNotFoundError as err:
-        raise ModuleNotFoundError(
-            f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'", name=err.name
-        ) from err
+        raise ModuleNotFoundError(f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'",
+                                  name=err.name) from err
     try:
         robot = URDF.from_xml_string(kinematic)
     except Exception as err:  # the parser raises its ParseError, AssertionError or a bare Exception
@@ -265,10 +262,8 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
     if end_link is None:
         leaves = [name for name in _below(base, children) if not children[name]]
         if len(leaves) != 1:
-            raise ValueError(
-                f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(leaves)}); "
-                "pass end_link= to choose one"
-            )
+            raise ValueError(f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(leaves)}); "
+                             "pass end_link= to choose one")
         end = leaves[0]
     else:
         end = _known_link(end_link, "end_link", links)
@@ -284,10 +279,8 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
         if joint.mimic is not None:
             raise ValueError(f"joint {joint.name!r} mimics {joint.mimic.joint!r}: mimic joints are not supported")
         if joint.type not in (*MOVABLE, "fixed"):
-            raise ValueError(
-                f"joint {joint.name!r} between {base!r} and {end!r} is {joint.type}; "
-                f"supported are {', '.join(MOVABLE)} and fixed joints"
-            )
+            raise ValueError(f"joint {joint.name!r} between {base!r} and {end!r} is {joint.type}; "
+                             f"supported are {', '.join(MOVABLE)} and fixed joints")
         carry = carry @ _transform(joint.origin, joint.name)
         if joint.type != "fixed":
             joints.append(_movable(joint, carry))

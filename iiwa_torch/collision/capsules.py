@@ -230,9 +230,8 @@ def _preset_capsules(chain: DHChain, dh: list[list[float]]) -> Capsules:
         spec = [(f"link{i + 1}", i + 1, ((-row[0], 0.0, 0.0), (0.0, 0.0, 0.0)), 0.05) for i, row in enumerate(dh)]
         floor_height = None
     else:
-        raise ValueError(
-            f"no capsule model for a chain named {chain.name!r}; build one with Capsules.build(chain, ...)"
-        )
+        raise ValueError(f"no capsule model for a chain named {chain.name!r}; build one with "
+                         "Capsules.build(chain, ...)")
     names, frames, points, radii = zip(*spec)
     floor = [name != "base" for name in names]
     # what self_collision_pairs finds for each preset (tested), fixed so a query samples nothing

@@ -31,10 +31,8 @@ def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | N
         raise ValueError(f"capsules use frames {capsules.frames} but the chain has {chain.n_joints + 1} frames")
     for t in world.tensors():
         if t.dtype != q.dtype or t.device != q.device:
-            raise TypeError(
-                f"world obstacles are {t.dtype} on {t.device} but q is {q.dtype} on {q.device}; "
-                "build the world in q's dtype and device"
-            )
+            raise TypeError(f"world obstacles are {t.dtype} on {t.device} but q is {q.dtype} on {q.device}; "
+                            "build the world in q's dtype and device")
     try:
         torch.broadcast_shapes(world.batch_shape, q.shape[:-1])
     except RuntimeError:

@@ -82,9 +82,8 @@ def _check_points(**points: Tensor) -> None:
     try:
         torch.broadcast_shapes(*(x.shape for x in points.values()))
     except RuntimeError:
-        raise ValueError(
-            f"{', '.join(points)} must broadcast together, got {[tuple(x.shape) for x in points.values()]}"
-        ) from None
+        raise ValueError(f"{', '.join(points)} must broadcast together, "
+                         f"got {[tuple(x.shape) for x in points.values()]}") from None
 
 
 def unchecked_segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:

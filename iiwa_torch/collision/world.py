@@ -67,9 +67,8 @@ class World:
                 if first is None:
                     first = t
                 if t.dtype != first.dtype or t.device != first.device:
-                    raise TypeError(
-                        f"{label} is {t.dtype} on {t.device} but other obstacles are {first.dtype} on {first.device}"
-                    )
+                    raise TypeError(f"{label} is {t.dtype} on {t.device} but other obstacles are "
+                                    f"{first.dtype} on {first.device}")
                 check_finite(t, label)
                 if t.numel() and float(t.detach().abs().amax()) > MAX_EXTENT:
                     raise ValueError(f"{label} must be within {MAX_EXTENT:g} m, got {float(t.abs().amax()):g}")
@@ -104,9 +103,8 @@ class World:
         except RuntimeError:
             fits = False
         if not fits:
-            raise ValueError(
-                f"the world's batch shape {tuple(self.batch_shape)} must broadcast to the {what}' {tuple(batch)}"
-            )
+            raise ValueError(f"the world's batch shape {tuple(self.batch_shape)} must broadcast to the {what}' "
+                             f"{tuple(batch)}")
 
     def map_batch(self, fn) -> World:
         """A world with ``fn(t, k)`` applied to every obstacle tensor ``t``, whose dims before the last
