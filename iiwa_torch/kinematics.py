@@ -375,9 +375,7 @@ def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None =
     """``q (n, b)`` -> ``(3, b)`` end-effector positions by Horner's scheme, in blocks of ``POSITION_BLOCK``."""
     theta, c, s = _joint_trig(g, q, trig)
     blocks = []
-    for i in range(0, q.shape[1], POSITION_BLOCK):
-        block = slice(i, i + POSITION_BLOCK)
-        tb, cb, sb = theta[:, block], c[:, block], s[:, block]
+    for tb, cb, sb in zip(*(x.split(POSITION_BLOCK, 1) for x in (theta, c, s))):
         blocks.append(torch.stack([v if isinstance(v, Tensor) else cb[0].new_full(cb[0].shape, v)
                                    for v in _carry_tool_point(g, tb, cb, sb)]))
     point = blocks[0] if len(blocks) == 1 else torch.cat(blocks, 1)
