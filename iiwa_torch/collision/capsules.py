@@ -124,9 +124,7 @@ class Capsules:
 
 
 def _describe(x) -> str:
-    if isinstance(x, Tensor):
-        return f"{x.dtype} tensor of shape {tuple(x.shape)}"
-    return type(x).__name__
+    return f"{x.dtype} tensor of shape {tuple(x.shape)}" if isinstance(x, Tensor) else type(x).__name__
 
 
 def self_collision_pairs(chain: Chain, capsules: Capsules, samples: int = 4096,
