@@ -20,31 +20,10 @@ import torch
 
 from . import compiled
 
-__all__ = [
-    "BLOCK",
-    "POSITION_BLOCK",
-    "SMALL_BATCH",
-    "EndPoseFunction",
-    "Frame",
-    "Geometry",
-    "all_poses",
-    "blockwise",
-    "dh_transforms",
-    "elementary_transform",
-    "end_pose",
-    "end_pose_matmul",
-    "frame_lists",
-    "float64_rows",
-    "frames_batch_last",
-    "jacobian",
-    "like",
-    "pose_vjp",
-    "position_batch_last",
-    "position_horner",
-    "reference_fk",
-    "tool_frame_batch_last",
-    "untracked_cpu",
-]
+__all__ = ["BLOCK", "POSITION_BLOCK", "SMALL_BATCH", "EndPoseFunction", "Frame", "Geometry", "all_poses", "blockwise",
+           "dh_transforms", "elementary_transform", "end_pose", "end_pose_matmul", "frame_lists", "float64_rows",
+           "frames_batch_last", "jacobian", "like", "pose_vjp", "position_batch_last", "position_horner",
+           "reference_fk", "tool_frame_batch_last", "untracked_cpu"]
 
 Tensor = torch.Tensor
 Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)

@@ -20,16 +20,8 @@ from .distances import own_distances
 from .primitives import norm_numpy, point_gap_numpy, unchecked_segment_box_distance
 from .world import World
 
-__all__ = [
-    "CLEARANCE_NUMPY_BATCH",
-    "NumpyPair",
-    "capsule_clearance_compiled",
-    "clearance_of_one",
-    "obstacle_clearance_of_one",
-    "own_clearance_of_one",
-    "plain_path",
-    "solids_numpy",
-]
+__all__ = ["CLEARANCE_NUMPY_BATCH", "NumpyPair", "capsule_clearance_compiled", "clearance_of_one",
+           "obstacle_clearance_of_one", "own_clearance_of_one", "plain_path", "solids_numpy"]
 
 CLEARANCE_NUMPY_BATCH = 32  # clearance: spheres and boxes in numpy up to this many CPU configurations without autograd
 # from this many configurations the compiled self + floor clearance splits the batch over torch's threads

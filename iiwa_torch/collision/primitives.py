@@ -17,17 +17,8 @@ from ..checks import check_tensor
 from ..segments import EPS, closest_parameters
 from ..so3 import check_rigid
 
-__all__ = [
-    "culled_box_distance",
-    "norm_numpy",
-    "point_gap_numpy",
-    "safe_norm",
-    "segment_box_distance",
-    "segment_distance",
-    "segment_gap",
-    "unchecked_segment_box_distance",
-    "unchecked_segment_distance",
-]
+__all__ = ["culled_box_distance", "norm_numpy", "point_gap_numpy", "safe_norm", "segment_box_distance",
+           "segment_distance", "segment_gap", "unchecked_segment_box_distance", "unchecked_segment_distance"]
 
 
 def _root(sq: Tensor) -> Tensor:
