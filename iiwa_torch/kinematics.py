@@ -20,31 +20,10 @@ import torch
 
 from . import compiled
 
-__all__ = [
-    "BLOCK",
-    "POSITION_BLOCK",
-    "SMALL_BATCH",
-    "EndPoseFunction",
-    "Frame",
-    "Geometry",
-    "all_poses",
-    "blockwise",
-    "dh_transforms",
-    "elementary_transform",
-    "end_pose",
-    "end_pose_matmul",
-    "frame_lists",
-    "float64_rows",
-    "frames_batch_last",
-    "jacobian",
-    "like",
-    "pose_vjp",
-    "position_batch_last",
-    "position_horner",
-    "reference_fk",
-    "tool_frame_batch_last",
-    "untracked_cpu",
-]
+__all__ = ["BLOCK", "POSITION_BLOCK", "SMALL_BATCH", "EndPoseFunction", "Frame", "Geometry", "all_poses", "blockwise",
+           "dh_transforms", "elementary_transform", "end_pose", "end_pose_matmul", "frame_lists", "float64_rows",
+           "frames_batch_last", "jacobian", "like", "pose_vjp", "position_batch_last", "position_horner",
+           "reference_fk", "tool_frame_batch_last", "untracked_cpu"]
 
 Tensor = torch.Tensor
 Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
@@ -100,13 +79,10 @@ def dh_transforms(dh: Tensor, modified: bool) -> tuple[Tensor, Tensor]:
 def _link_coefficients(before: Tensor, after: Tensor, prismatic: Sequence[bool]) -> Tensor:
     """``(n, 3, 16)``: each link ``before_i M(theta_i) after_i`` as ``f0 C0 + f1 C1 + C2``, with
     ``(f0, f1) = (cos theta, sin theta)`` (revolute) or ``(theta, anything)`` (prismatic, ``C1 = 0``)."""
-    rz_cos = torch.diag(torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64))
-    rz_sin = torch.zeros(4, 4, dtype=torch.float64)
-    rz_sin[0, 1], rz_sin[1, 0] = -1.0, 1.0
-    rz_one = torch.diag(torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=torch.float64))
-    tz_unit = torch.zeros(4, 4, dtype=torch.float64)
-    tz_unit[2, 3] = 1.0
-    eye, zero = torch.eye(4, dtype=torch.float64), torch.zeros(4, 4, dtype=torch.float64)
+    eye = torch.eye(4, dtype=torch.float64)
+    rz_cos, rz_one = torch.diag(eye.new_tensor([1.0, 1.0, 0.0, 0.0])), torch.diag(eye.new_tensor([0.0, 0.0, 1.0, 1.0]))
+    rz_sin, tz_unit, zero = torch.zeros(3, 4, 4, dtype=torch.float64)
+    rz_sin[0, 1], rz_sin[1, 0], tz_unit[2, 3] = -1.0, 1.0, 1.0
     coeffs = []
     for b, a, slides in zip(before, after, prismatic):
         terms = (tz_unit, zero, eye) if slides else (rz_cos, rz_sin, rz_one)
@@ -158,10 +134,8 @@ class Geometry:
         return len(self.joints)
 
     @classmethod
-    def build(
-        cls, before: Tensor, after: Tensor, prismatic: Sequence[bool], offsets: Tensor, base: Tensor, tool: Tensor,
-        limits: Tensor, dtype: torch.dtype,
-    ) -> Geometry:
+    def build(cls, before: Tensor, after: Tensor, prismatic: Sequence[bool], offsets: Tensor, base: Tensor,
+              tool: Tensor, limits: Tensor, dtype: torch.dtype) -> Geometry:
         """From ``before, after (n, 4, 4)``, joint kinds, ``offsets (n,)``, ``base, tool (4, 4)`` and
         ``limits (2, n)`` on one device; tensors in ``dtype``. Entries within a few ulps of 0, +-1 or a
         multiple of pi/2 are snapped to it, so a float32 table's pi/2 twists give exact zeros."""
@@ -205,23 +179,16 @@ class Geometry:
         joints = tuple((p, _columns(b) if keep_b else None, _columns(a) if keep_a else None)
                        for p, b, a, (keep_b, keep_a) in zip(prismatic, before, after, kept))
         params = np.array([(o, p, kb, ka) for o, p, (kb, ka) in zip(offset_list, prismatic, kept)], dtype=np.float64)
-        return cls(
-            joints=joints,
-            has_base=not torch.equal(base, eye),
-            has_tool=not torch.equal(tool, eye),
-            has_offsets=any(offset_list),
-            has_prismatic=any(prismatic),
-            tool_columns=_columns(tool),
-            float_arrays=(torch.stack([before, after], 1).numpy().copy(), params.reshape(n, 4), base.numpy().copy(),
-                          tool.numpy().copy()),
-            **tensors,
-        )
+        arrays = (torch.stack([before, after], 1).numpy().copy(), params.reshape(n, 4), base.numpy().copy(),
+                  tool.numpy().copy())
+        return cls(joints=joints, has_base=not torch.equal(base, eye), has_tool=not torch.equal(tool, eye),
+                   has_offsets=any(offset_list), has_prismatic=any(prismatic), tool_columns=_columns(tool),
+                   float_arrays=arrays, **tensors)
 
 
 # ---------------------------------------------------------------------- the reference
-def reference_fk(
-    dh: Tensor, q: Tensor, modified: bool = False, base: Tensor | None = None, tool: Tensor | None = None
-) -> Tensor:
+def reference_fk(dh: Tensor, q: Tensor, modified: bool = False, base: Tensor | None = None,
+                 tool: Tensor | None = None) -> Tensor:
     """The DH definition, for tests: ``q (..., n)`` -> ``(..., n + 2, 4, 4)``: the base, the link frames
     ``base A_1 ... A_i``, then the end pose (tool applied), ``A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)``
     (standard) or ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` (modified), in ``q``'s dtype."""
@@ -362,8 +329,7 @@ def tool_frame_batch_last(g: Geometry, frame: Frame) -> Frame:
 def position_batch_last(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """End-effector positions: ``q (n, b)`` (not checked) -> ``(3, b)``; ``trig``: ``(cos q, sin q)``
     if the caller has them."""
-    b = q.shape[1]
-    if b <= SMALL_BATCH:
+    if q.shape[1] <= SMALL_BATCH:
         return end_pose(g, q.T)[:, :3, 3].T
     return position_horner(g, q, trig)
 
@@ -388,9 +354,7 @@ def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None =
     """``q (n, b)`` -> ``(3, b)`` end-effector positions by Horner's scheme, in blocks of ``POSITION_BLOCK``."""
     theta, c, s = _joint_trig(g, q, trig)
     blocks = []
-    for i in range(0, q.shape[1], POSITION_BLOCK):
-        block = slice(i, i + POSITION_BLOCK)
-        tb, cb, sb = theta[:, block], c[:, block], s[:, block]
+    for tb, cb, sb in zip(*(x.split(POSITION_BLOCK, 1) for x in (theta, c, s))):
         blocks.append(torch.stack([v if isinstance(v, Tensor) else cb[0].new_full(cb[0].shape, v)
                                    for v in _carry_tool_point(g, tb, cb, sb)]))
     point = blocks[0] if len(blocks) == 1 else torch.cat(blocks, 1)

@@ -79,11 +79,8 @@ def to_urdf(chain: Chain, name: str | None = None) -> str:
             f'effort="100" velocity="{speeds[i]!r}"/></joint>'
         )
     tool = carry @ chain.tool.detach().cpu().to(torch.float64)
-    lines.append(
-        f'  <joint name="tool_joint" type="fixed"><parent link={quoteattr(links[-2])}/>'
-        f'<child link="tool0"/>{_origin(tool)}</joint>'
-    )
-    lines.append("</robot>")
+    lines += [f'  <joint name="tool_joint" type="fixed"><parent link={quoteattr(links[-2])}/>'
+              f'<child link="tool0"/>{_origin(tool)}</joint>', "</robot>"]
     return "\n".join(lines) + "\n"
 
 
@@ -189,17 +186,8 @@ def _movable(joint, origin: torch.Tensor) -> UrdfJoint:
     velocity = limit.velocity if limit is not None else None
     if velocity is not None and not (velocity >= 0 and math.isfinite(velocity)):
         raise ValueError(f"joint {joint.name!r}: velocity limit must be finite and >= 0, got {velocity}")
-    return UrdfJoint(
-        name=joint.name,
-        kind=joint.type,
-        origin=_rows(origin),
-        axis=tuple(v / norm for v in axis),
-        lower=lower,
-        upper=upper,
-        velocity=velocity or None,
-        child=joint.child,
-        parent=joint.parent,
-    )
+    return UrdfJoint(joint.name, joint.type, _rows(origin), tuple(v / norm for v in axis), lower, upper,
+                     velocity or None, joint.child, joint.parent)
 
 
 def _known_link(name, argument: str, links: list[str]) -> str:
@@ -232,10 +220,8 @@ def _tree(links: list[str], joints: list) -> tuple[str, dict, dict[str, list[str
             if name not in children:
                 raise ValueError(f"joint {joint.name!r} names link {name!r}, which the URDF does not declare")
         if joint.child in parent_joint:
-            raise ValueError(
-                f"link {joint.child!r} is the child of two joints, {parent_joint[joint.child].name!r} "
-                f"and {joint.name!r}: a URDF is a tree"
-            )
+            raise ValueError(f"link {joint.child!r} is the child of two joints, {parent_joint[joint.child].name!r} "
+                             f"and {joint.name!r}: a URDF is a tree")
         parent_joint[joint.child] = joint
         children[joint.parent].append(joint.child)
     roots = [name for name in links if name not in parent_joint]
@@ -253,9 +239,8 @@ def _parse(document: str | bytes) -> tuple:
     try:
         from pytorch_kinematics.urdf_parser_py.urdf import URDF
     except ModuleNotFoundError as err:
-        raise ModuleNotFoundError(
-            f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'", name=err.name
-        ) from err
+        raise ModuleNotFoundError(f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'",
+                                  name=err.name) from err
     try:
         robot = URDF.from_xml_string(kinematic)
     except Exception as err:  # the parser raises its ParseError, AssertionError or a bare Exception
@@ -277,10 +262,8 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
     if end_link is None:
         leaves = [name for name in _below(base, children) if not children[name]]
         if len(leaves) != 1:
-            raise ValueError(
-                f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(leaves)}); "
-                "pass end_link= to choose one"
-            )
+            raise ValueError(f"the URDF has {len(leaves)} leaf links below {base!r} ({', '.join(leaves)}); "
+                             "pass end_link= to choose one")
         end = leaves[0]
     else:
         end = _known_link(end_link, "end_link", links)
@@ -296,24 +279,15 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
         if joint.mimic is not None:
             raise ValueError(f"joint {joint.name!r} mimics {joint.mimic.joint!r}: mimic joints are not supported")
         if joint.type not in (*MOVABLE, "fixed"):
-            raise ValueError(
-                f"joint {joint.name!r} between {base!r} and {end!r} is {joint.type}; "
-                f"supported are {', '.join(MOVABLE)} and fixed joints"
-            )
+            raise ValueError(f"joint {joint.name!r} between {base!r} and {end!r} is {joint.type}; "
+                             f"supported are {', '.join(MOVABLE)} and fixed joints")
         carry = carry @ _transform(joint.origin, joint.name)
         if joint.type != "fixed":
             joints.append(_movable(joint, carry))
             carry = torch.eye(4, dtype=torch.float64)
     if not joints:
         raise ValueError(f"no movable joint between base_link {base!r} and end_link {end!r}")
-    return UrdfPath(
-        robot=robot.name or "",
-        base_link=base,
-        end_link=end,
-        joints=tuple(joints),
-        tool=_rows(carry),
-        links=tuple(j.child for j in joints),
-    )
+    return UrdfPath(robot.name or "", base, end, tuple(joints), _rows(carry), tuple(j.child for j in joints))
 
 
 @dataclass(frozen=True)
@@ -446,9 +420,8 @@ def _elements(source, end_link, base_link, tag: str) -> tuple[UrdfCollision, ...
     directory = None if document is source else os.path.dirname(os.path.abspath(os.fspath(source)))
     robot = ElementTree.fromstring(document)
     elements = {link.get("name"): link.findall(tag) for link in robot.iter("link")}
-    named = None
-    if tag == "visual":
-        named = {m.get("name"): _colour(m, {}, f"material {m.get('name')!r}") for m in robot.findall("material")}
+    named = ({m.get("name"): _colour(m, {}, f"material {m.get('name')!r}") for m in robot.findall("material")}
+             if tag == "visual" else None)  # collisions have no colour
     on_path = {joint.name for joint in path.joints}
     found = []
     for frame, top in enumerate((path.base_link, *path.links)):

@@ -80,17 +80,14 @@ class Capsules:
         return self._cache[key]
 
     def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
-        options = {"device": device}
-        index = {"dtype": torch.long, **options}
-        radii = self.radii.to(dtype=dtype, **options)
-        first, second = (
-            (torch.tensor(c, **index) for c in zip(*self.pairs)) if self.pairs else (torch.zeros(0, **index),) * 2
-        )
+        float_type, index = {"dtype": dtype, "device": device}, {"dtype": torch.long, "device": device}
+        radii = self.radii.to(**float_type)
+        first, second = torch.tensor(self.pairs, **index).reshape(-1, 2).T.contiguous()  # each (P,), also for P = 0
         floor, world = (m.to(device).nonzero().flatten() for m in (self.floor, self.world))
-        ones = torch.ones(len(self.names), 2, 1, dtype=dtype, **options)
+        ones = torch.ones(len(self.names), 2, 1, **float_type)
         return {
             "frames": torch.tensor(self.frames, **index),
-            "local": torch.cat([self.points.to(dtype=dtype, **options), ones], -1).mT.contiguous(),
+            "local": torch.cat([self.points.to(**float_type), ones], -1).mT.contiguous(),
             "first": first,
             "second": second,
             "pair_radius": (radii[first] + radii[second])[:, None],
@@ -108,19 +105,8 @@ class Capsules:
         return self._cache["numpy"]
 
     @classmethod
-    def build(
-        cls,
-        chain: Chain,
-        names,
-        frames,
-        points,
-        radii,
-        *,
-        pairs=None,
-        world=None,
-        floor=None,
-        floor_height: float | None = 0.0,
-    ) -> Capsules:
+    def build(cls, chain: Chain, names, frames, points, radii, *, pairs=None, world=None, floor=None,
+              floor_height: float | None = 0.0) -> Capsules:
         """Capsules for ``chain``, validated: ``points (K, 2, 3)``, ``radii (K,)`` (m), ``frames`` into
         ``fk_all``; ``pairs=None`` takes :func:`self_collision_pairs`, ``world``/``floor`` default to all."""
         names = tuple(str(n) for n in names)
@@ -128,29 +114,21 @@ class Capsules:
         frames = tuple(int(f) for f in frames)
         if any(f > chain.n_joints for f in frames):
             raise ValueError(f"frames must index the {chain.n_joints + 1} frames of fk_all, got {frames}")
-        model = cls(
-            names=names,
-            frames=frames,
-            points=torch.as_tensor(points, dtype=torch.float64),
-            radii=torch.as_tensor(radii, dtype=torch.float64),
-            pairs=(),
-            world=torch.ones(k, dtype=torch.bool) if world is None else torch.as_tensor(world),
-            floor=torch.ones(k, dtype=torch.bool) if floor is None else torch.as_tensor(floor),
-            floor_height=floor_height,
-        )
+        model = cls(names=names, frames=frames, points=torch.as_tensor(points, dtype=torch.float64),
+                    radii=torch.as_tensor(radii, dtype=torch.float64), pairs=(),
+                    world=torch.ones(k, dtype=torch.bool) if world is None else torch.as_tensor(world),
+                    floor=torch.ones(k, dtype=torch.bool) if floor is None else torch.as_tensor(floor),
+                    floor_height=floor_height)
         chosen = self_collision_pairs(chain, model) if pairs is None else tuple(tuple(int(i) for i in p) for p in pairs)
         return dataclasses.replace(model, pairs=chosen)
 
 
 def _describe(x) -> str:
-    if isinstance(x, Tensor):
-        return f"{x.dtype} tensor of shape {tuple(x.shape)}"
-    return type(x).__name__
+    return f"{x.dtype} tensor of shape {tuple(x.shape)}" if isinstance(x, Tensor) else type(x).__name__
 
 
-def self_collision_pairs(
-    chain: Chain, capsules: Capsules, samples: int = 4096, seed: int = 0
-) -> tuple[tuple[int, int], ...]:
+def self_collision_pairs(chain: Chain, capsules: Capsules, samples: int = 4096,
+                         seed: int = 0) -> tuple[tuple[int, int], ...]:
     """Every pair ``(i, j)`` but neighbours (``j = i + 1``) and pairs overlapping in all of ``samples``
     random in-limit configurations (``seed``)."""
     check_instance(chain, Chain, "chain")
@@ -160,12 +138,10 @@ def self_collision_pairs(
     q = chain.random_q(samples, generator=torch.Generator().manual_seed(seed))
     start, direction = capsule_segments(chain, capsules, q)  # components (K, samples)
     k = len(capsules.names)
-    candidates = [(i, j) for i in range(k) for j in range(i + 2, k)]
+    candidates = tuple((i, j) for i in range(k) for j in range(i + 2, k))
     if not candidates:
         return ()
-    first, second = (torch.tensor(c) for c in zip(*candidates))
-    radii = capsules.radii.to(start)
-    gap = pair_gaps(start, direction, (radii[first] + radii[second])[:, None], first, second)
+    gap = pair_gaps(start, direction, dataclasses.replace(capsules, pairs=candidates).tables(start.dtype, start.device))
     keep = (gap > 0).any(1).tolist()
     return tuple(pair for pair, ok in zip(candidates, keep) if ok)
 
@@ -182,23 +158,20 @@ def capsule_segments(chain: Chain, capsules: Capsules, q: Tensor) -> tuple[Tenso
         ends = (frames @ tables["local"]).permute(3, 2, 1, 0)  # (2, 3, K, B)
     else:  # large batches: per capsule, multiply-adds of the nonzero local coordinates only (fewer bytes moved)
         frames, _ = kin.frames_batch_last(geometry, flat.T.contiguous())  # (x, y, z, p), (3, B) each
-        ends = torch.stack(
-            [
-                torch.stack(
-                    [
-                        sum((c * axis for c, axis in zip(local, frames[frame][:3]) if c), frames[frame][3])
-                        for frame, local in zip(capsules.frames, capsules.points[:, e].tolist())
-                    ],
-                    1,
-                )
-                for e in (0, 1)
-            ]
-        )  # (2, 3, K, B)
+        points = capsules.points.tolist()
+        ends = torch.stack([torch.stack([_place(frames[f], local[e]) for f, local in zip(capsules.frames, points)], 1)
+                            for e in (0, 1)])  # (2, 3, K, B)
     return ends[0], ends[1] - ends[0]
 
 
-def pair_gaps(start: Tensor, direction: Tensor, radii: Tensor, first: Tensor, second: Tensor) -> Tensor:
-    """Signed distances ``(P, B)`` of pairs ``first, second (P,)`` with radius sums ``radii (P, 1)``."""
+def _place(frame: tuple[Tensor, ...], local: list[float]) -> Tensor:
+    """The point of local coordinates ``local`` in ``frame`` ``(x, y, z, p)``, skipping zero coordinates."""
+    return sum((c * axis for c, axis in zip(local, frame[:3]) if c), frame[3])
+
+
+def pair_gaps(start: Tensor, direction: Tensor, tables: dict[str, Tensor]) -> Tensor:
+    """Signed distances ``(P, B)`` of the self pairs of :meth:`Capsules.tables`' ``tables``."""
+    first, second, radii = tables["first"], tables["second"], tables["pair_radius"]
     return segment_gap(start[:, first], direction[:, first], start[:, second], direction[:, second]) - radii
 
 
@@ -255,9 +228,8 @@ def _preset_capsules(chain: DHChain, dh: list[list[float]]) -> Capsules:
         spec = [(f"link{i + 1}", i + 1, ((-row[0], 0.0, 0.0), (0.0, 0.0, 0.0)), 0.05) for i, row in enumerate(dh)]
         floor_height = None
     else:
-        raise ValueError(
-            f"no capsule model for a chain named {chain.name!r}; build one with Capsules.build(chain, ...)"
-        )
+        raise ValueError(f"no capsule model for a chain named {chain.name!r}; build one with "
+                         "Capsules.build(chain, ...)")
     names, frames, points, radii = zip(*spec)
     floor = [name != "base" for name in names]
     # what self_collision_pairs finds for each preset (tested), fixed so a query samples nothing

@@ -5,6 +5,7 @@ per-op cost would dominate (benchmarks/results/collision_twins.md); and the envs
 from __future__ import annotations
 
 import math
+from functools import reduce
 
 import numpy as np
 import torch
@@ -19,16 +20,8 @@ from .distances import own_distances
 from .primitives import norm_numpy, point_gap_numpy, unchecked_segment_box_distance
 from .world import World
 
-__all__ = [
-    "CLEARANCE_NUMPY_BATCH",
-    "NumpyPair",
-    "capsule_clearance_compiled",
-    "clearance_of_one",
-    "obstacle_clearance_of_one",
-    "own_clearance_of_one",
-    "plain_path",
-    "solids_numpy",
-]
+__all__ = ["CLEARANCE_NUMPY_BATCH", "NumpyPair", "capsule_clearance_compiled", "clearance_of_one",
+           "obstacle_clearance_of_one", "own_clearance_of_one", "plain_path", "solids_numpy"]
 
 CLEARANCE_NUMPY_BATCH = 32  # clearance: spheres and boxes in numpy up to this many CPU configurations without autograd
 # from this many configurations the compiled self + floor clearance splits the batch over torch's threads
@@ -55,8 +48,7 @@ def plain_path(chain: Chain, q: Tensor, world: World, capsules: Capsules):
     floor = world.floor is not None and tables["floor"].size > 0
     if q.numel() > CLEARANCE_NUMPY_BATCH * chain.n_joints:
         return _clearance_compiled if compiled.ENABLED and not world.tensors() and (capsules.pairs or floor) else None
-    solids = _present(world.spheres, -1) or _present(world.boxes, -2)
-    solids = solids and tables["world"].size > 0
+    solids = (_present(world.spheres, -1) or _present(world.boxes, -2)) and tables["world"].size > 0
     return _clearance_small if capsules.pairs or floor or solids else None
 
 
@@ -80,23 +72,19 @@ def _own_clearance(chain: Chain, x: np.ndarray, floor: float | None, capsules: C
     if not compiled.ENABLED:
         own, _ = own_distances(chain, torch.from_numpy(x), floor, capsules)
         return np.full(x.shape[0], math.inf) if own is None else own.amin(0).numpy()
-    tables = capsules.numpy_tables()
-    transforms, params, base, _ = chain.geometry().float_arrays
     out = np.empty(x.shape[0])
     kernel = compiled.kernels().own_clearance
-    floors = tables["floor"] if floor is not None else tables["floor"][:0]
-    args = (transforms, params, base, tables["frames"], tables["local"], tables["first"], tables["second"],
-            tables["pair_radius"], floors, tables["floor_radius"], 0.0 if floor is None else float(floor))
+    args = (*chain.geometry().float_arrays[:3], *_own_tables(capsules, floor))  # no tool
     in_parts(x.shape[0], lambda start, stop: kernel(x[start:stop], *args, out[start:stop]), CLEARANCE_THREADS_BATCH)
     return out
 
 
-def _least(values: list):
-    """The elementwise minimum of arrays (or floats) that broadcast; ``None`` for none."""
-    out = values[0] if values else None
-    for v in values[1:]:
-        out = np.minimum(out, v)
-    return out
+def _own_tables(capsules: Capsules, floor: float | None) -> tuple:
+    """The capsule arguments of the compiled self + floor kernels (no capsule faces an absent floor)."""
+    t = capsules.numpy_tables()
+    floors = t["floor"] if floor is not None else t["floor"][:0]
+    return (t["frames"], t["local"], t["first"], t["second"], t["pair_radius"], floors, t["floor_radius"],
+            0.0 if floor is None else float(floor))
 
 
 def solids_numpy(world: World) -> tuple[NumpyPair | None, NumpyPair | None]:
@@ -123,7 +111,7 @@ def _solid_gaps(a: np.ndarray, b: np.ndarray, radius: np.ndarray, spheres: Numpy
         pose, half = boxes[0][..., None, :, :, :], boxes[1][..., None, :, :]
         upper = point_gap_numpy(a, d, pose[..., :3, 3]) - radius  # (..., W, B): c is inside its box
         lower = upper - norm_numpy(half)  # every point of a box is within |h| of its centre
-        near = lower <= _least([upper.min((-2, -1)), found, *mins])[..., None, None]
+        near = lower <= reduce(np.minimum, [upper.min((-2, -1)), found, *mins])[..., None, None]
         if near.all():
             lower = unchecked_segment_box_distance(a, b, pose, half, np) - radius
         elif near.any():
@@ -152,7 +140,7 @@ def _solid_clearance(chain: Chain, x: np.ndarray, capsules: Capsules, spheres: N
     frames = _frames(chain, x.reshape(-1, x.shape[-1]))[:, tables["frames"][idx]]  # (B, W, 4, 3)
     ends = (tables["local"][idx].swapaxes(-1, -2) @ frames).reshape(*x.shape[:-1], idx.size, 2, 3)
     a, b = ends[..., None, 0, :], ends[..., None, 1, :]  # (..., W, 1, 3)
-    return _least(_solid_gaps(a, b, tables["world_radius"], spheres, boxes, found))
+    return reduce(np.minimum, _solid_gaps(a, b, tables["world_radius"], spheres, boxes, found))
 
 
 def own_clearance_of_one(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules) -> float:
@@ -182,18 +170,13 @@ def obstacle_clearance_of_one(chain: Chain, q: Tensor, capsules: Capsules, spher
     return solid
 
 
-def capsule_clearance_compiled(
-    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
-) -> tuple[np.ndarray, np.ndarray]:
+def capsule_clearance_compiled(chain: Chain, q: Tensor, floor: float | None,
+                               capsules: Capsules) -> tuple[np.ndarray, np.ndarray]:
     """:func:`~iiwa_torch.collision.capsule_clearance` of one configuration against itself and the floor,
     compiled: ``(K,)`` (m) and ``(K, n)`` (m/rad). By the envelope theorem each gradient is
     ``u . (dx/dq - dy/dq)`` at the closest points (``u`` the unit gap, or ``e_z``), as autograd gives."""
-    tables, n = capsules.numpy_tables(), chain.n_joints
-    k = len(capsules.names)
+    k, n = len(capsules.names), chain.n_joints
     distance, gradient = np.empty(k), np.empty((k, n))
-    floors = tables["floor"] if floor is not None else tables["floor"][:0]
-    compiled.kernels().capsule_clearance(*chain.geometry().float_arrays, kin.float64_rows(q, n)[0], tables["frames"],
-                                         tables["local"], tables["first"], tables["second"], tables["pair_radius"],
-                                         floors, tables["floor_radius"], 0.0 if floor is None else float(floor),
-                                         distance, gradient)
+    compiled.kernels().capsule_clearance(*chain.geometry().float_arrays, kin.float64_rows(q, n)[0],
+                                         *_own_tables(capsules, floor), distance, gradient)
     return distance, gradient

@@ -14,26 +14,9 @@ from .capsules import Capsules, capsule_segments, pair_gaps, robot_capsules
 from .primitives import culled_box_distance, unchecked_segment_box_distance, unchecked_segment_distance
 from .world import World
 
-__all__ = ["distances", "own_distances", "resolve"]
+__all__ = ["distances", "minima", "own_distances", "resolve"]
 
 _BLOCK = 4096  # configurations per block of the robot's own distances
-
-
-def _check_query(chain: Chain, q: Tensor, world: World, capsules: Capsules) -> None:
-    chain.check_q(q)
-    if max(capsules.frames) > chain.n_joints:
-        raise ValueError(f"capsules use frames {capsules.frames} but the chain has {chain.n_joints + 1} frames")
-    for t in world.tensors():
-        if t.dtype != q.dtype or t.device != q.device:
-            raise TypeError(
-                f"world obstacles are {t.dtype} on {t.device} but q is {q.dtype} on {q.device}; "
-                "build the world in q's dtype and device"
-            )
-    try:
-        torch.broadcast_shapes(world.batch_shape, q.shape[:-1])
-    except RuntimeError:
-        raise ValueError(f"the world's batch shape {tuple(world.batch_shape)} does not broadcast with q's "
-                         f"{tuple(q.shape[:-1])}: give one world, or one per configuration") from None
 
 
 def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | None) -> tuple[World, Capsules]:
@@ -43,13 +26,23 @@ def resolve(chain: Chain, q: Tensor, world: World | None, capsules: Capsules | N
     world = World(floor=capsules.floor_height) if world is None else world
     check_instance(capsules, Capsules, "capsules")
     check_instance(world, World, "world")
-    _check_query(chain, q, world, capsules)
+    chain.check_q(q)
+    if max(capsules.frames) > chain.n_joints:
+        raise ValueError(f"capsules use frames {capsules.frames} but the chain has {chain.n_joints + 1} frames")
+    for t in world.tensors():
+        if t.dtype != q.dtype or t.device != q.device:
+            raise TypeError(f"world obstacles are {t.dtype} on {t.device} but q is {q.dtype} on {q.device}; "
+                            "build the world in q's dtype and device")
+    try:
+        torch.broadcast_shapes(world.batch_shape, q.shape[:-1])
+    except RuntimeError:
+        raise ValueError(f"the world's batch shape {tuple(world.batch_shape)} does not broadcast with q's "
+                         f"{tuple(q.shape[:-1])}: give one world, or one per configuration") from None
     return world, capsules
 
 
-def own_distances(
-    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules, keep_segments: bool = False
-) -> tuple[Tensor | None, tuple[Tensor, Tensor] | None]:
+def own_distances(chain: Chain, q: Tensor, floor: float | None, capsules: Capsules,
+                  keep_segments: bool = False) -> tuple[Tensor | None, tuple[Tensor, Tensor] | None]:
     """The robot's own distances ``(P, B)`` over the flattened batch (self pairs, then the floor at
     ``floor``; ``None`` if none), and with ``keep_segments`` :func:`capsule_segments`' output."""
     tables = capsules.tables(q.dtype, q.device)
@@ -61,7 +54,7 @@ def own_distances(
             start, direction = capsule_segments(chain, capsules, block)
             parts = []
             if capsules.pairs:
-                parts.append(pair_gaps(start, direction, tables["pair_radius"], tables["first"], tables["second"]))
+                parts.append(pair_gaps(start, direction, tables))
             if floor is not None and floor_idx.numel():
                 low = torch.minimum(start[2], start[2] + direction[2])[floor_idx]
                 parts.append(low - (tables["floor_radius"] + floor))
@@ -104,9 +97,8 @@ _KINDS = (("walls", "wall", _walls), ("spheres", "sphere", _spheres), ("boxes", 
           ("capsules", "capsule", _capsules))
 
 
-def _obstacle_distances(
-    world: World, capsules: Capsules, ends: tuple[Tensor, Tensor], lead: torch.Size, own: Tensor | None, cull: bool
-) -> tuple[list[Tensor], list[tuple[str, str]]]:
+def _obstacle_distances(world: World, capsules: Capsules, ends: tuple[Tensor, Tensor], lead: torch.Size,
+                        own: Tensor | None, cull: bool) -> tuple[list[Tensor], list[tuple[str, str]]]:
     """The capsules' distances to each kind of obstacle, ``(..., K * M)`` blocks, and their pairs' names.
     ``cull``: only the minimum matters (:func:`~iiwa_torch.collision.primitives.culled_box_distance`)."""
     tables = capsules.tables(ends[0].dtype, ends[0].device)
@@ -120,19 +112,20 @@ def _obstacle_distances(
         pair = getattr(world, field)
         if pair is None:
             continue
-        extra = {}
-        if cull and kind is _boxes:
-            extra["found"] = ([] if own is None else [own.amin(0).reshape(lead)]) + [
-                o.amin(-1) for o in others if o.shape[-1]]
-        dist = kind(a, b, r, pair, **extra)
+        found = (minima(own, others, lead),) if cull and kind is _boxes else ()
+        dist = kind(a, b, r, pair, *found)
         others.append(dist.flatten(-2))
         labels += [(name, f"{label}{m}") for name in names for m in range(dist.shape[-1])]
     return others, labels
 
 
-def distances(
-    chain: Chain, q: Tensor, world: World, capsules: Capsules, cull: bool = False
-) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
+def minima(own: Tensor | None, others: list[Tensor], lead: torch.Size) -> list[Tensor]:
+    """The smallest distance ``lead`` of the robot's own and of each kind given an obstacle (M > 0)."""
+    return ([] if own is None else [own.amin(0).reshape(lead)]) + [o.amin(-1) for o in others if o.shape[-1]]
+
+
+def distances(chain: Chain, q: Tensor, world: World, capsules: Capsules,
+              cull: bool = False) -> tuple[Tensor | None, list[Tensor], list[tuple[str, str]]]:
     """The robot's own distances ``(P, B)``, the obstacles' ``(..., M)`` blocks and every pair's names,
     for arguments :func:`resolve` returned; ``cull`` as :func:`_obstacle_distances`."""
     obstacles = bool(world.tensors()) and bool(capsules.world.any())

@@ -7,6 +7,8 @@ finite for parallel, zero-length or touching segments.
 
 from __future__ import annotations
 
+from functools import reduce
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -15,17 +17,8 @@ from ..checks import check_tensor
 from ..segments import EPS, closest_parameters
 from ..so3 import check_rigid
 
-__all__ = [
-    "culled_box_distance",
-    "norm_numpy",
-    "point_gap_numpy",
-    "safe_norm",
-    "segment_box_distance",
-    "segment_distance",
-    "segment_gap",
-    "unchecked_segment_box_distance",
-    "unchecked_segment_distance",
-]
+__all__ = ["culled_box_distance", "norm_numpy", "point_gap_numpy", "safe_norm", "segment_box_distance",
+           "segment_distance", "segment_gap", "unchecked_segment_box_distance", "unchecked_segment_distance"]
 
 
 def _root(sq: Tensor) -> Tensor:
@@ -56,21 +49,15 @@ def segment_gap(p1: Tensor, d1: Tensor, p2: Tensor, d2: Tensor) -> Tensor:
     return _root((w * w).sum(0))
 
 
-def _unit(x: np.ndarray) -> np.ndarray:
-    """``x`` clamped to [0, 1] (two ufuncs: ``np.clip``'s Python wrapper costs more on tiny arrays)."""
-    return np.minimum(np.maximum(x, 0.0), 1.0)
-
-
 def point_gap_numpy(p: np.ndarray, d: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Distance from segments ``p + s d`` to points ``c``, numpy float64 ``(..., 3)`` each -> ``(...)``:
     :func:`~iiwa_torch.segments.closest_parameters` with a point for the second segment."""
     r = p - c
     a = (d * d).sum(-1)
-    eps = EPS
     with np.errstate(divide="ignore", invalid="ignore"):  # the quotient np.where discards
-        s = _unit(np.where(a <= eps * eps, 0.0, -(d * r).sum(-1) / a))
-    w = r + s[..., None] * d
-    return np.sqrt((w * w).sum(-1))
+        s = np.where(a <= EPS * EPS, 0.0, -(d * r).sum(-1) / a)
+    s = np.minimum(np.maximum(s, 0.0), 1.0)  # not np.clip: its Python wrapper costs more on tiny arrays
+    return norm_numpy(r + s[..., None] * d)
 
 
 def segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
@@ -86,9 +73,8 @@ def _check_points(**points: Tensor) -> None:
     try:
         torch.broadcast_shapes(*(x.shape for x in points.values()))
     except RuntimeError:
-        raise ValueError(
-            f"{', '.join(points)} must broadcast together, got {[tuple(x.shape) for x in points.values()]}"
-        ) from None
+        raise ValueError(f"{', '.join(points)} must broadcast together, "
+                         f"got {[tuple(x.shape) for x in points.values()]}") from None
 
 
 def unchecked_segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
@@ -188,9 +174,7 @@ def culled_box_distance(a: Tensor, b: Tensor, pose: Tensor, half: Tensor, radius
     gap = safe_norm(mid - centre)  # (..., K, M)
     shape = gap.shape
     lower = gap - span - safe_norm(half) - radius
-    upper = (gap - radius).flatten(-2).amin(-1)
-    for f in found:
-        upper = torch.minimum(upper, f)
+    upper = reduce(torch.minimum, found, (gap - radius).flatten(-2).amin(-1))
     near = lower <= upper[..., None, None]
     if bool(near.all()):
         return unchecked_segment_box_distance(a, b, pose, half) - radius

@@ -11,10 +11,11 @@ import torch
 from torch import Tensor
 
 from .. import compiled
+from .. import kinematics as kin
 from ..chain import Chain
 from .capsules import Capsules
 from .cpu_paths import capsule_clearance_compiled, plain_path
-from .distances import distances, resolve
+from .distances import distances, minima, resolve
 from .world import World
 
 __all__ = ["Clearances", "capsule_clearance", "capsule_clearance_of_one", "clearance", "pairwise_clearance"]
@@ -29,9 +30,8 @@ class Clearances:
     pairs: tuple[tuple[str, str], ...]
 
 
-def pairwise_clearance(
-    chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
-) -> Clearances:
+def pairwise_clearance(chain: Chain, q: Tensor, world: World | None = None,
+                       capsules: Capsules | None = None) -> Clearances:
     """Every checked distance for ``q (..., n)``: self pairs, then floor, walls, spheres, boxes, capsules.
     ``world=None``: the model's floor; ``capsules=None``: :func:`robot_capsules`."""
     own, others, labels = distances(chain, q, *resolve(chain, q, world, capsules))
@@ -50,26 +50,23 @@ def clearance(chain: Chain, q: Tensor, world: World | None = None, capsules: Cap
     if plain is not None:
         return plain(chain, q, world, capsules)
     own, others, _ = distances(chain, q, world, capsules, cull=True)
-    # a kind given with no obstacle (M = 0) adds no distance
-    mins = ([] if own is None else [own.amin(0).reshape(q.shape[:-1])]) + [o.amin(-1) for o in others if o.shape[-1]]
+    mins = minima(own, others, q.shape[:-1])
     if not mins:
         raise ValueError("nothing to check: the capsules have no self pairs and the world no obstacle they face")
     shape = torch.broadcast_shapes(*(m.shape for m in mins))
     return torch.stack([m.expand(shape) for m in mins]).amin(0)
 
 
-def capsule_clearance(
-    chain: Chain, q: Tensor, world: World | None = None, capsules: Capsules | None = None
-) -> tuple[Tensor, Tensor]:
+def capsule_clearance(chain: Chain, q: Tensor, world: World | None = None,
+                      capsules: Capsules | None = None) -> tuple[Tensor, Tensor]:
     """Each capsule's smallest signed distance over the pairs it is in and its gradient: ``q (..., n)`` ->
     ``distance (..., K)`` (m; ``inf`` in no pair) and ``gradient (..., K, n)`` (m/rad), not
     differentiable further (arguments as :func:`pairwise_clearance`)."""
     world, capsules = resolve(chain, q, world, capsules)
     if compiled.ENABLED and q.numel() == chain.n_joints and q.is_cpu and not world.tensors():
         distance, gradient = capsule_clearance_compiled(chain, q, world.floor, capsules)
-        dtype = np.float32 if q.dtype == torch.float32 else np.float64
-        return (torch.from_numpy(distance.astype(dtype, copy=False).reshape(*q.shape[:-1], -1)),
-                torch.from_numpy(gradient.astype(dtype, copy=False).reshape(*q.shape[:-1], -1, chain.n_joints)))
+        lead = q.shape[:-1]
+        return kin.like(distance.reshape(*lead, -1), q), kin.like(gradient.reshape(*lead, -1, chain.n_joints), q)
     with torch.enable_grad():
         x = q.detach().requires_grad_(True)
         d = pairwise_clearance(chain, x, world, capsules)
@@ -86,9 +83,8 @@ def capsule_clearance(
     return distance.detach(), gradient.movedim(0, -2)
 
 
-def capsule_clearance_of_one(
-    chain: Chain, q: Tensor, floor: float | None, capsules: Capsules
-) -> tuple[np.ndarray, np.ndarray]:
+def capsule_clearance_of_one(chain: Chain, q: Tensor, floor: float | None,
+                             capsules: Capsules) -> tuple[np.ndarray, np.ndarray]:
     """:func:`capsule_clearance` of one CPU configuration against itself and the floor at ``floor`` (m or
     None), unchecked -> float64 arrays ``(K,)`` (m) and ``(K, n)`` (m/rad)."""
     if compiled.ENABLED:

@@ -67,9 +67,8 @@ class World:
                 if first is None:
                     first = t
                 if t.dtype != first.dtype or t.device != first.device:
-                    raise TypeError(
-                        f"{label} is {t.dtype} on {t.device} but other obstacles are {first.dtype} on {first.device}"
-                    )
+                    raise TypeError(f"{label} is {t.dtype} on {t.device} but other obstacles are "
+                                    f"{first.dtype} on {first.device}")
                 check_finite(t, label)
                 if t.numel() and float(t.detach().abs().amax()) > MAX_EXTENT:
                     raise ValueError(f"{label} must be within {MAX_EXTENT:g} m, got {float(t.abs().amax()):g}")
@@ -80,15 +79,12 @@ class World:
             norm = self.walls[0].norm(dim=-1)
             if not torch.allclose(norm, torch.ones_like(norm), atol=1e-5):
                 raise ValueError(f"walls[0] normals must be unit vectors, got norms {norm.flatten()[:8].tolist()}")
-        for kind in ("spheres", "capsules"):
+        for kind, sizes in (("spheres", "radii"), ("capsules", "radii"), ("boxes", "half extents")):
             pair = getattr(self, kind)
             if pair is not None and not (pair[1] > 0).all():
-                raise ValueError(f"{kind}[1] radii must be positive, got min {pair[1].min().item()}")
+                raise ValueError(f"{kind}[1] {sizes} must be positive, got min {pair[1].min().item()}")
         if self.boxes is not None:
-            pose, half = self.boxes
-            if not (half > 0).all():
-                raise ValueError(f"boxes[1] half extents must be positive, got min {half.min().item()}")
-            check_rigid(pose, "boxes[0]", exact_bottom_row=True)
+            check_rigid(self.boxes[0], "boxes[0]", exact_bottom_row=True)
 
     def tensors(self) -> list[Tensor]:
         """Every obstacle tensor (for dtype/device checks and moving)."""
@@ -107,9 +103,8 @@ class World:
         except RuntimeError:
             fits = False
         if not fits:
-            raise ValueError(
-                f"the world's batch shape {tuple(self.batch_shape)} must broadcast to the {what}' {tuple(batch)}"
-            )
+            raise ValueError(f"the world's batch shape {tuple(self.batch_shape)} must broadcast to the {what}' "
+                             f"{tuple(batch)}")
 
     def map_batch(self, fn) -> World:
         """A world with ``fn(t, k)`` applied to every obstacle tensor ``t``, whose dims before the last

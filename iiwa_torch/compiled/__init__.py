@@ -1,16 +1,9 @@
-"""Optional compiled kernels (numba) for the small-batch CPU paths: one configuration's end pose
-and Jacobian, the Levenberg-Marquardt rounds of :func:`~iiwa_torch.ik.solve`, the arm-angle
-sweep of :func:`~iiwa_torch.ik.analytic.iiwa_solve` and the closed form of
-:func:`~iiwa_torch.ik.analytic.pieper`; and for large CPU batches without autograd, the self and
-floor :func:`~iiwa_torch.collision.clearance`.
+"""Optional numba kernels for the small-batch CPU paths (end pose and Jacobian, ``ik.solve``'s LM rounds,
+``iiwa_solve``'s sweep, ``pieper``) and the large-batch self and floor ``collision.clearance``.
 
-numba is an optional extra (``pip install iiwa-torch[fast]``). This package only looks for
-it; :func:`kernels` imports numba and the kernels (:mod:`iiwa_torch.compiled.numba_kernels`) on
-the first call that uses them, never at ``import iiwa_torch``, and each kernel compiles on its
-first call (``cache=True``: numba's on-disk cache serves later processes). Without numba, or
-with the environment variable ``IIWA_TORCH_NUMBA=0``, :data:`ENABLED` is False and the callers
-run their torch code instead (or numpy, where docs/kinematics.md lists a kept twin): the same
-method, which the kernels restate.
+numba is an optional extra (``pip install iiwa-torch[fast]``), imported by :func:`kernels` on first use, never at
+``import iiwa_torch``; kernels compile on first call (``cache=True``). Without numba, or with ``IIWA_TORCH_NUMBA=0``,
+:data:`ENABLED` is False and the callers run their torch (or numpy) code, the same method.
 """
 
 from __future__ import annotations

@@ -15,22 +15,29 @@ _TINY = 1e-30  # iiwa_torch.ik.analytic._common.TINY
 
 
 @inline
-def _safe_atan2(y, x):
-    """Mirrors :func:`iiwa_torch.ik.analytic._common.safe_atan2`."""
+def _safe_atan2(y, x):  # _common.safe_atan2
     return math.atan2(y, 1.0 if x * x + y * y < _TINY else x)
 
 
 @inline
-def _safe_norm2(x, y):
-    """Mirrors :func:`iiwa_torch.ik.analytic._common.safe_norm2`."""
+def _safe_norm2(x, y):  # _common.safe_norm2
     return math.sqrt(max(x * x + y * y, _TINY))
 
 
 @inline
+def _triangle(dist, a, b, tol):
+    """:func:`iiwa_torch.ik.analytic._common.triangle`: the angle between sides ``a, b`` opposite ``dist`` ->
+    ``(cos clamped to [-1, 1], |sin|, reachable)``."""
+    c = (dist * dist - (a * a + b * b)) / (2 * a * b)
+    outer, inner = a + b, abs(a - b)
+    s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
+    return min(max(c, -1.0), 1.0), math.sqrt(max(s2, _TINY)) / (2 * a * b), abs(c) <= 1 + tol
+
+
+@inline
 def _zxzxz_ab(m02, m12, m22, sig_a, sig_b):
-    """The first two angles ``(a, b)`` of branch 0 of a spherical triple, from column 2 of ``M``, and
-    ``(cos a, sin a, cos b, sin b)`` (the flip is ``(a + pi, -b)``). Mirrors
-    :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
+    """Branch 0's ``(a, b, cos a, sin a, cos b, sin b)`` of a spherical triple from column 2 of ``M`` (the flip:
+    ``(a + pi, -b)``), as :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
     sb = _safe_norm2(m02, m12)
     cb = -sig_a * sig_b * m22
     a = _safe_atan2(sig_b * m12, sig_b * m02)
@@ -39,8 +46,7 @@ def _zxzxz_ab(m02, m12, m22, sig_a, sig_b):
 
 @inline
 def _zxzxz_c(ab, m00, m10, m20, sig_a, sig_b):
-    """The third angle ``c`` of branch 0 (the flip: ``c + pi``) from ``ab`` (:func:`_zxzxz_ab`) and
-    column 0 of ``M``. Mirrors :func:`iiwa_torch.ik.analytic._common.decompose_zxzxz`."""
+    """Branch 0's third angle ``c`` (the flip: ``c + pi``) from ``ab`` (:func:`_zxzxz_ab`) and column 0 of ``M``."""
     _, _, ca, sa, cb, sb = ab
     cos_c = cb * (ca * m00 + sa * m10) + sig_a * sb * m20
     sin_c = sig_a * sig_b * (sa * m00 - ca * m10)
@@ -48,20 +54,13 @@ def _zxzxz_c(ab, m00, m10, m20, sig_a, sig_b):
 
 
 @inline
-def _iiwa_pose(rot, sw, d3, d5, sig, tol):
-    """What the closed form takes from one pose: ``rot (3, 3)`` and ``W - S`` ``sw (3,)`` ->
-    ``(dist, c4, s4_abs, theta4 of both elbow branches, reachable, u, v_ref, w_ref)`` (``w_ref``'s
-    third entry is 0). Mirrors the psi-independent part of :func:`iiwa_torch.ik.analytic.srs.closed_form`
-    (``_elbow``, ``_reference``)."""
+def _iiwa_pose(sw, d3, d5, sig, tol):
+    """The psi-independent part of :func:`iiwa_torch.ik.analytic.srs.closed_form` (``_elbow``, ``_reference``) for
+    ``W - S`` ``sw (3,)`` -> ``(dist, c4, s4_abs, both elbows' theta4, reachable, u, v_ref, w_ref[:2])``."""
     sx, sy, sz = sw[0], sw[1], sw[2]
     dist = _safe_norm2(_safe_norm2(sx, sy), sz)
-    # _common.triangle(dist, d3, d5, tol)
-    c = (dist * dist - (d3 * d3 + d5 * d5)) / (2 * d3 * d5)
-    reachable = abs(c) <= 1 + tol
-    outer, inner = d3 + d5, abs(d3 - d5)
-    s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
-    c4 = -sig[2] * sig[3] * min(max(c, -1.0), 1.0)
-    s4_abs = math.sqrt(max(s2, _TINY)) / (2 * d3 * d5)
+    c, s4_abs, reachable = _triangle(dist, d3, d5, tol)
+    c4 = -sig[2] * sig[3] * c
     ux, uy, uz = sx / dist, sy / dist, sz / dist
     b = _safe_atan2(uy, ux)
     cb, sb = math.cos(b), math.sin(b)
@@ -70,18 +69,15 @@ def _iiwa_pose(rot, sw, d3, d5, sig, tol):
 
 
 @inline
-def _dot_col(r, rot, col):
-    """``r . rot[:, col]``, summed left to right as in :func:`iiwa_torch.ik.analytic.srs.closed_form`."""
+def _dot_col(r, rot, col):  # r . rot[:, col], summed left to right as srs.closed_form sums it
     return r[0] * rot[0, col] + r[1] * rot[1, col] + r[2] * rot[2, col]
 
 
 @inline
 def _iiwa_branches(pose, rot, psi, d3, d5, sig, theta):
-    """The DH angles of the 8 branches at arm angle ``psi`` into ``theta (7, 4)``: each joint's
-    distinct values (as the array code holds each joint at the size its branches need), branch
-    ``(s, e, w)`` taking joints 1-2 from column ``s``, joint 3 from ``2 s + e``, joint 4 from ``e``
-    and joints 5-7 from ``2 e + w``; ``pose`` from :func:`_iiwa_pose`. Mirrors
-    :func:`iiwa_torch.ik.analytic.srs.closed_form`."""
+    """:func:`iiwa_torch.ik.analytic.srs.closed_form`'s 8 branches at arm angle ``psi`` into ``theta (7, 4)``, each
+    joint's distinct values only: branch ``(s, e, w)`` takes joints 1-2 from column ``s``, joint 3 from ``2 s + e``,
+    joint 4 from ``e``, joints 5-7 from ``2 e + w``; ``pose`` from :func:`_iiwa_pose`."""
     dist, c4, s4_abs, theta4s, _, u, v_ref, w_ref = pose
     cp, sp = math.cos(psi), math.sin(psi)
     v0, v1, v2 = cp * v_ref[0] + sp * w_ref[0], cp * v_ref[1] + sp * w_ref[1], cp * v_ref[2] + sp * 0.0
@@ -123,8 +119,7 @@ _DISTINCT = (2, 2, 4, 2, 4, 4, 4)  # distinct values of each joint over the 8 br
 
 @inline
 def _wrap_joint(theta, offset, lo, hi):
-    """One DH angle -> ``(q, within)``. Mirrors :func:`iiwa_torch.ik.analytic._common.wrap_joints`
-    (and :func:`iiwa_torch.ik.limits.shift_into_limits`)."""
+    """One DH angle -> ``(q, within)``, as :func:`iiwa_torch.ik.analytic._common.wrap_joints`."""
     turn = 2 * math.pi
     q = theta - offset if offset else theta
     q = q - turn * np.rint(q * (1 / turn))
@@ -138,15 +133,12 @@ def _wrap_joint(theta, offset, lo, hi):
 
 @inline
 def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, single, work, best_q):
-    """Best of the ``count * 8`` candidates of one pose at the arm angles ``psis[:count]`` into
-    ``best_q (7,)``, clamped into the limits; returns ``(found, psi_best)``. ``limits (7, 7)``: the
-    joints' offsets, lows and highs to check against, mid-points, half-widths, and the limits to
-    clamp into; ``single``: rank in float32; ``work``: scratch ``(7, 4)`` arrays for the angles, the
-    wrapped joints, their limit checks and scores. Mirrors :func:`iiwa_torch.ik.analytic.srs_sweep._pick`,
-    whose sum of squares it adds in the same order (``_common.reduce_grouped``: joint 4, then 1 + 2,
-    3, then 5 + 6 + 7)."""
+    """:func:`iiwa_torch.ik.analytic.srs_sweep._pick`: the best of one pose's ``count * 8`` candidates at arm angles
+    ``psis[:count]`` into ``best_q (7,)``, clamped; returns ``(found, psi_best)``. ``limits (7, 7)``: offsets, lows,
+    highs to check, mid-points, half-widths, limits to clamp into; ``single``: rank in float32; ``work``: ``(7, 4)``
+    scratch. Sums of squares in ``_common.reduce_grouped``'s order (joint 4, then 1 + 2, 3, then 5 + 6 + 7)."""
     theta, q, inside, score = work
-    pose = _iiwa_pose(rot, sw, d3, d5, sig, tol)
+    pose = _iiwa_pose(sw, d3, d5, sig, tol)
     reachable = pose[4]
     best_key, best_found, psi_best = np.inf, False, psis[0]
     for k in range(count):
@@ -182,12 +174,10 @@ def _iiwa_pick(rot, sw, psis, count, q0, has_q0, d3, d5, sig, tol, limits, singl
 
 @jit
 def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, limits, single):
-    """:func:`iiwa_torch.ik.analytic.srs_sweep._solve_all` for ``rot (B, 3, 3)``, ``sw (B, 3)``, ``q0 (B, 7)``
-    and its arm angles ``psi0 (B,)`` (both 0 rows: none) -> ``q (B, 7)``: per pose the sweep over
-    ``grid (K,)`` (after ``psi0``) and the refining passes ``local (P, 9)`` from the best so far, then,
-    where nothing valid was found, over ``fine_grid`` and ``fine_local`` (``srs_sweep._angles``).
-    ``consts``: ``d3, d5``, the six ``sin(alpha)`` and the reach tolerance; ``limits`` as
-    :func:`_iiwa_pick`. Mirrors :func:`iiwa_torch.ik.analytic.srs_sweep._sweep`."""
+    """:func:`iiwa_torch.ik.analytic.srs_sweep._solve_all` for ``rot (B, 3, 3)``, ``sw (B, 3)``, ``q0 (B, 7)`` and its
+    arm angles ``psi0 (B,)`` (both 0 rows: none) -> ``q (B, 7)``: per pose the sweep over ``grid (K,)`` (after
+    ``psi0``) and refining passes ``local (P, 9)``, then where nothing valid was found ``fine_grid``, ``fine_local``.
+    ``consts``: ``d3, d5``, the six ``sin(alpha)``, the reach tolerance; ``limits`` as :func:`_iiwa_pick`."""
     b = rot.shape[0]
     d3, d5, sig, tol = consts[0], consts[1], consts[2:8], consts[8]
     has_q0 = q0.shape[0] > 0
@@ -218,13 +208,10 @@ def iiwa_sweep(rot, sw, q0, psi0, grid, local, fine_grid, fine_local, consts, li
 # ---------------------------------------------------------------------- the closed form of pieper
 @jit
 def pieper_branches(frame5, consts, limits):
-    """All 8 branches of :func:`iiwa_torch.ik.analytic.pieper` for ``frame5 = T_05 Rz(theta6)
-    (B, 4, 4)``: ``consts`` ``a1, d1, a2, d2 + d3, L3 = |(a3, d4)|, gamma``, the four ``sin(alpha)``
-    of rows 1, 3, 4, 5 and the reach tolerance, ``limits (3, 6)`` the joints' offsets, lows and
-    highs -> joint angles ``(6, B, 8)`` (joint-major, as the array code lays them out), reachable and
-    within the limits ``(B, 8)``, branch ``4 shoulder + 2 elbow + wrist``. Mirrors
-    :func:`iiwa_torch.ik.analytic.spherical6r._closed_form` (with ``_common.zxzx`` and
-    ``transpose_times``) and :func:`iiwa_torch.ik.analytic._common.finish`."""
+    """The 8 branches of :func:`iiwa_torch.ik.analytic.pieper` (``spherical6r._closed_form``, ``_common.finish``) for
+    ``frame5 = T_05 Rz(theta6) (B, 4, 4)``; ``consts``: ``a1, d1, a2, d2 + d3, L3 = |(a3, d4)|, gamma``, the
+    ``sin(alpha)`` of rows 1, 3, 4, 5, the reach tolerance; ``limits (3, 6)``: offsets, lows, highs -> joint angles
+    ``(6, B, 8)`` (joint-major), reachable and within limits ``(B, 8)``; branch ``4 shoulder + 2 elbow + wrist``."""
     a1, d1, a2, lateral, link3, gamma = consts[0], consts[1], consts[2], consts[3], consts[4], consts[5]
     s1, s3, s4, s5, tol = consts[6], consts[7], consts[8], consts[9], consts[10]
     b = frame5.shape[0]
@@ -240,14 +227,7 @@ def pieper_branches(frame5, consts, limits):
             big_x = along * (1.0 if sh == 0 else -1.0)
             theta[0] = _safe_atan2(wy, wx) - math.atan2(-s1 * lateral, big_x)
             px, py = big_x - a1, s1 * (wz - d1)
-            # _common.triangle(|(px, py)|, a2, L3, tol)
-            dist = _safe_norm2(px, py)
-            c = (dist * dist - (a2 * a2 + link3 * link3)) / (2 * a2 * link3)
-            elbow_ok = abs(c) <= 1 + tol
-            outer, inner = a2 + link3, abs(a2 - link3)
-            s2 = (outer - dist) * (outer + dist) * (dist - inner) * (dist + inner)
-            c_el = min(max(c, -1.0), 1.0)
-            s_el_abs = math.sqrt(max(s2, _TINY)) / (2 * a2 * link3)
+            c_el, s_el_abs, elbow_ok = _triangle(_safe_norm2(px, py), a2, link3, tol)
             ca, sa = math.cos(theta[0]), math.sin(theta[0])
             for el in range(2):
                 s_el = s_el_abs * (1.0 if el == 0 else -1.0)

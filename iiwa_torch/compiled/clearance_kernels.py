@@ -75,8 +75,7 @@ def _block_angles(q, params, row, m, angle, cs):
 
 @inline
 def _transform_lanes(T, m, state):
-    """The moving frames ``state (12, LANES)`` (x, y, z axes and origin, 3 rows each) times the
-    constant transform ``T (4, 4)``, in place (:func:`~.kinematics_kernels.apply_transform`)."""
+    """The frames ``state (12, LANES)`` (x, y, z axes and origin, 3 rows each) times ``T (4, 4)``, in place."""
     for j in range(m):
         x0, x1, x2, y0, y1, y2 = state[0, j], state[1, j], state[2, j], state[3, j], state[4, j], state[5, j]
         z0, z1, z2, p0, p1, p2 = state[6, j], state[7, j], state[8, j], state[9, j], state[10, j], state[11, j]
@@ -88,9 +87,8 @@ def _transform_lanes(T, m, state):
 
 @inline
 def next_frame(transforms, params, i, m, angle, cs, state):
-    """The moving frames ``state (12, LANES)`` of link ``i`` -> link ``i + 1``, through joint i: the
-    recursion of :func:`~.kinematics_kernels.frames_of`. Each branch is taken once for the block,
-    outside the loops over it (a branch inside would keep LLVM from vectorising them)."""
+    """The frames ``state (12, LANES)`` of link ``i`` -> link ``i + 1``, as :func:`~.kinematics_kernels.frames_of`;
+    each branch once for the block, outside the loops (a branch inside would stop LLVM vectorising them)."""
     if params[i, 2]:
         _transform_lanes(transforms[i, 0], m, state)
     if params[i, 1]:  # prismatic: along z
@@ -109,11 +107,9 @@ def next_frame(transforms, params, i, m, angle, cs, state):
 
 @jit_fused
 def block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends):
-    """Every capsule of a block into ``ends (K, 9, LANES)``: its start point, start-to-end vector and
-    mid-point, from the frames of the block's angles (:func:`_block_angles`); the block's last frames
-    stay in ``state``. Its products and sums fuse into FMAs (~10% of the envs' compiled step: the
-    float64 results move in their last bits, far below what the clearance and the float32 end point
-    resolve)."""
+    """Every capsule of a block into ``ends (K, 9, LANES)`` (start point, start-to-end vector, mid-point) from the
+    block's angles (:func:`_block_angles`); the last frames stay in ``state``. Fused into FMAs: ~10% off the envs'
+    compiled step, float64 results moving in their last bits, far below what the clearance and float32 resolve."""
     for r in range(12):
         for j in range(m):
             state[r, j] = base[r % 3, r // 3]
@@ -153,14 +149,20 @@ def half_lengths(local):
 
 
 @inline
-def _pair_clearance(e1, e2, j, radius):
-    """The clearance ``|x - y| - radius`` (m) of lane ``j``'s capsules ``e1, e2 (9, LANES)`` at their
-    closest points: :func:`iiwa_torch.segments.closest_parameters`, compiled."""
+def _closest_gap(e1, e2, j):
+    """Lane ``j``'s capsules ``e1, e2 (9, LANES)`` (start ``x``, ``y``, vectors ``a``, ``b``) at their closest points
+    ``x + s a``, ``y + t b`` (:func:`iiwa_torch.segments.closest_parameters`, compiled) -> ``s, t`` and the gap's 3."""
     r0, r1, r2 = e1[0, j] - e2[0, j], e1[1, j] - e2[1, j], e1[2, j] - e2[2, j]
     a0, a1, a2, b0, b1, b2 = e1[3, j], e1[4, j], e1[5, j], e2[3, j], e2[4, j], e2[5, j]
     s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
                     a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
-    w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+    return s, t, r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+
+
+@inline
+def _pair_clearance(e1, e2, j, radius):
+    """The clearance ``|x - y| - radius`` (m) of lane ``j``'s capsules at their closest points."""
+    _, _, w0, w1, w2 = _closest_gap(e1, e2, j)
     return math.sqrt(w0 * w0 + w1 * w1 + w2 * w2) - radius
 
 
@@ -171,8 +173,7 @@ def block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius
     into ``best``), then each pair's exact distance only in the lanes ``lanes`` where its lower
     bound ``gap - half-lengths - radius`` (``half (K,)``) is under ``best`` (exact, as the others
     are not the minimum: see :func:`own_clearance`)."""
-    for j in range(m):
-        best[j] = np.inf
+    best[:m] = np.inf
     for i in range(floor.shape[0]):
         e, offset = ends[floor[i]], floor_radius[i, 0] + height
         for j in range(m):
@@ -205,20 +206,14 @@ def block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius
 @jit_nogil
 def own_clearance(q, transforms, params, base, frames, local, first, second, pair_radius, floor, floor_radius, height,
                   out):  # fmt: skip
-    """Self and floor clearance of ``q (N, n)`` (float32 or float64; computed in float64) into
-    ``out (N,)``, metres: the smallest of ``|x - y| - r`` over the self pairs ``first, second
-    (P,)`` (``pair_radius (P, 1)`` radius sums) and ``min(z_start, z_end) - (r + height)`` over the
-    capsules ``floor (F,)`` (``floor_radius (F, 1)``). Capsule k joins the homogeneous points
-    ``local[k] (4, 2)`` (columns) of frame ``frames[k]`` (0 the base, i link i; the tool is not
-    used). The arguments are :meth:`iiwa_torch.collision.Capsules.numpy_tables`' and the chain's
-    ``float_arrays``. Mirrors :func:`iiwa_torch.collision.distances.own_distances`: the
-    frames of :func:`iiwa_torch.kinematics.frames_batch_last`, the segments of
-    :func:`iiwa_torch.collision.primitives.segment_gap` (:func:`iiwa_torch.segments.closest_parameters`
-    itself, compiled). Each block of configurations goes through every step as a loop over the
-    block, straight-line and branch-free, which LLVM vectorises. A pair's exact distance is
-    computed only where it can be the minimum: each segment lies within half its length of its
-    mid-point, so a pair is at least ``|c1 - c2| - h1 - h2`` apart and at most ``|c1 - c2|``
-    (its mid-points' distance); the result is the exact minimum all the same."""
+    """Self and floor clearance (m) of ``q (N, n)`` (float32 or float64; computed in float64) into ``out (N,)``: the
+    least ``|x - y| - r`` over the self pairs ``first, second (P,)`` (radius sums ``pair_radius (P, 1)``) and
+    ``min(z_start, z_end) - (r + height)`` over the capsules ``floor (F,)`` (``floor_radius (F, 1)``). Capsule k joins
+    the points ``local[k] (4, 2)`` (columns) of frame ``frames[k]`` (0 the base, i link i; no tool): the tables of
+    :meth:`iiwa_torch.collision.Capsules.numpy_tables`. As :func:`iiwa_torch.collision.distances.own_distances`.
+    Blocks of configurations go through each step as a branch-free loop, which LLVM vectorises. A pair's exact
+    distance is computed only where it can be the minimum: each segment lies within half its length ``h`` of its
+    mid-point ``c``, so a pair is between ``|c1 - c2| - h1 - h2`` and ``|c1 - c2|`` apart; the result is exact."""
     count, k_all, last = q.shape[0], frames.shape[0], 0
     half = half_lengths(local)  # each segment lies within half its length of its mid-point
     for k in range(k_all):
@@ -232,8 +227,7 @@ def own_clearance(q, transforms, params, base, frames, local, first, second, pai
         _block_angles(q, params, row, m, angle, cs)
         block_capsules(transforms, params, base, frames, local, m, angle, cs, state, ends)
         block_minimum(ends, m, first, second, pair_radius, half, floor, floor_radius, height, gap, lanes, best)
-        for j in range(m):
-            out[row + j] = best[j]
+        out[row : row + m] = best[:m]
 
 
 @inline
@@ -261,41 +255,29 @@ def capsule_clearance(transforms, params, base, tool, q, frames, local, first, s
     n, k_all = q.shape[0], frames.shape[0]
     F, pose, Z, P = np.empty((n + 1, 4, 3)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
     frames_of(transforms, params, base, tool, q, pose, Z, P, F)
-    ends = np.empty((k_all, 6))  # per capsule: start point, start-to-end vector
-    for k in range(k_all):
-        f = frames[k]
-        u0, v0, w0 = local[k, 0, 0], local[k, 1, 0], local[k, 2, 0]
-        u1, v1, w1 = local[k, 0, 1], local[k, 1, 1], local[k, 2, 1]
-        for r in range(3):  # each end point: p + u x + v y + w z
-            x, y, z, p = F[f, 0, r], F[f, 1, r], F[f, 2, r], F[f, 3, r]
-            start = p + u0 * x + v0 * y + w0 * z
-            ends[k, r] = start
-            ends[k, 3 + r] = p + u1 * x + v1 * y + w1 * z - start
+    lane = np.empty((k_all, 9, 1))  # per capsule: start point, start-to-end vector, mid-point
+    for f in range(n + 1):
+        capsule_ends(frames, local, f, 1, F[f].reshape(12, 1), lane)
+    ends = lane[:, :, 0]
     candidate = np.empty(n)
-    for k in range(k_all):
-        distance[k] = np.inf
-        gradient[k, :] = 0.0
+    distance[:] = np.inf
+    gradient[:] = 0.0
     for pair in range(first.shape[0]):
         i, j, radius = first[pair], second[pair], pair_radius[pair, 0]
         a, b = ends[i], ends[j]
-        r0, r1, r2 = a[0] - b[0], a[1] - b[1], a[2] - b[2]
-        a0, a1, a2, b0, b1, b2 = a[3], a[4], a[5], b[3], b[4], b[5]
-        s, t = _closest(a0 * a0 + a1 * a1 + a2 * a2, b0 * b0 + b1 * b1 + b2 * b2, a0 * b0 + a1 * b1 + a2 * b2,
-                        a0 * r0 + a1 * r1 + a2 * r2, b0 * r0 + b1 * r1 + b2 * r2, _choose, _unit, _quotient)
-        w0, w1, w2 = r0 + s * a0 - t * b0, r1 + s * a1 - t * b1, r2 + s * a2 - t * b2
+        s, t, w0, w1, w2 = _closest_gap(lane[i], lane[j], 0)
         norm = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
         u0, u1, u2 = (w0 / norm, w1 / norm, w2 / norm) if norm > 0 else (0.0, 0.0, 0.0)
         candidate[:] = 0.0
-        _along(params, Z, P, frames[i], a[0] + s * a0, a[1] + s * a1, a[2] + s * a2, u0, u1, u2, candidate, 1.0)
-        _along(params, Z, P, frames[j], b[0] + t * b0, b[1] + t * b1, b[2] + t * b2, u0, u1, u2, candidate, -1.0)
+        _along(params, Z, P, frames[i], a[0] + s * a[3], a[1] + s * a[4], a[2] + s * a[5], u0, u1, u2, candidate, 1.0)
+        _along(params, Z, P, frames[j], b[0] + t * b[3], b[1] + t * b[4], b[2] + t * b[5], u0, u1, u2, candidate, -1.0)
         for k in (i, j):
             if norm - radius < distance[k]:
                 distance[k] = norm - radius
                 gradient[k, :] = candidate
     for c in range(floor.shape[0]):
         k, e = floor[c], ends[floor[c]]
-        low = 0 if e[2] <= e[2] + e[5] else 1  # the lower end point
-        x0, x1, x2 = (e[0], e[1], e[2]) if low == 0 else (e[0] + e[3], e[1] + e[4], e[2] + e[5])
+        x0, x1, x2 = (e[0], e[1], e[2]) if e[2] <= e[2] + e[5] else (e[0] + e[3], e[1] + e[4], e[2] + e[5])  # lower end
         value = x2 - (floor_radius[c, 0] + height)
         if value < distance[k]:
             distance[k] = value

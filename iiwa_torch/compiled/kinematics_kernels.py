@@ -1,5 +1,4 @@
-"""Compiled forward kinematics of one configuration at a time: the frame recursion, the Jacobian's
-columns and the pose error (:mod:`iiwa_torch.compiled.numba_kernels` describes the conventions)."""
+"""Compiled forward kinematics, one configuration at a time: frames, Jacobian columns, pose error."""
 
 from __future__ import annotations
 
@@ -20,8 +19,7 @@ def turn(u0, u1, u2, v0, v1, v2, c, s):
 
 
 @inline
-def _store_frame(f, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
-    """A frame's axes and origin into the rows of ``f (4, 3)``."""
+def _store_frame(f, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):  # axes and origin into the rows of f (4, 3)
     f[0, 0], f[0, 1], f[0, 2], f[1, 0], f[1, 1], f[1, 2] = x0, x1, x2, y0, y1, y2
     f[2, 0], f[2, 1], f[2, 2], f[3, 0], f[3, 1], f[3, 2] = z0, z1, z2, p0, p1, p2
 
@@ -60,11 +58,9 @@ def _joint(transforms, params, i, theta, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0,
 
 @jit
 def frames_of(transforms, params, base, tool, q, pose, Z, P, F):
-    """``q (n,)`` -> the end pose (tool included) into ``pose (4, 4)``; if ``Z`` has ``n`` rows,
-    joint i's axis into ``Z[i]`` and a point on it into ``P[i]`` (both ``(n, 3)``); if ``F`` has
-    ``n + 1`` rows, the base and every link frame (no tool) into ``F (n + 1, 4, 3)``, each as its
-    x, y, z axes and origin. The frame recursion of :func:`iiwa_torch.kinematics.frames_batch_last`
-    (the torch elementwise kernel), one configuration at a time in scalars."""
+    """:func:`iiwa_torch.kinematics.frames_batch_last`'s recursion in scalars: ``q (n,)`` -> the end pose (with tool)
+    into ``pose (4, 4)``; if ``Z`` has ``n`` rows, joint i's axis into ``Z[i]`` and a point on it into ``P[i]``; if
+    ``F`` has ``n + 1`` rows, the base and link frames (no tool) into ``F (n + 1, 4, 3)``: x, y, z axes and origin."""
     x0, x1, x2, y0, y1, y2 = base[0, 0], base[1, 0], base[2, 0], base[0, 1], base[1, 1], base[2, 1]
     z0, z1, z2, p0, p1, p2 = base[0, 2], base[1, 2], base[2, 2], base[0, 3], base[1, 3], base[2, 3]
     keep, every = Z.shape[0] > 0, F.shape[0] > 0
@@ -81,12 +77,8 @@ def frames_of(transforms, params, base, tool, q, pose, Z, P, F):
     for k in range(4):  # column k of the tool, (u, v, w), in the world: u x + v y + w z
         u, v, w = tool[0, k], tool[1, k], tool[2, k]
         pose[0, k], pose[1, k] = u * x0 + v * y0 + w * z0, u * x1 + v * y1 + w * z1
-        pose[2, k] = u * x2 + v * y2 + w * z2
-        pose[3, k] = 0.0
-    pose[0, 3] += p0
-    pose[1, 3] += p1
-    pose[2, 3] += p2
-    pose[3, 3] = 1.0
+        pose[2, k], pose[3, k] = u * x2 + v * y2 + w * z2, 0.0
+    pose[0, 3], pose[1, 3], pose[2, 3], pose[3, 3] = pose[0, 3] + p0, pose[1, 3] + p1, pose[2, 3] + p2, 1.0
 
 
 @jit
@@ -115,9 +107,8 @@ def end_poses(transforms, params, base, tool, q):
 
 @jit
 def frames_axes(transforms, params, base, tool, q):
-    """Configurations ``q (b, n)`` -> the base and every link frame ``(b, n + 1, 4, 3)`` (rows: the
-    x, y, z axes and the origin; no tool), each joint's axis and a point on it ``(b, n, 3)``
-    each, and the end poses ``(b, 4, 4)`` (tool included), as :func:`frames_of`."""
+    """Configurations ``q (b, n)`` -> frames ``(b, n + 1, 4, 3)``, joint axes and points on them ``(b, n, 3)`` each,
+    end poses ``(b, 4, 4)``, as :func:`frames_of` writes them."""
     b, n = q.shape
     frames, z, p, poses = np.empty((b, n + 1, 4, 3)), np.empty((b, n, 3)), np.empty((b, n, 3)), np.empty((b, 4, 4))
     for k in range(b):
@@ -138,10 +129,8 @@ def jacobians(transforms, params, base, tool, q):
 
 @jit
 def pose_error(pose, pos, rot, has_rot, eps, e):
-    """End pose ``(4, 4)`` against a target position ``pos (3,)`` and rotation ``rot (3, 3)``
-    -> the position error into ``e[:3]`` (target - pose, m), the rotation vector
-    ``log(rot R^T)`` into ``e[3:6]`` (if ``has_rot``), and their norms ``(pos_err, rot_err)``.
-    As :func:`iiwa_torch.so3.pose_error` (and the torch loop's ``_pose_terms``) define them."""
+    """:func:`iiwa_torch.so3.pose_error`: ``pose (4, 4)`` against ``pos (3,)``, ``rot (3, 3)`` -> target - pose (m) into
+    ``e[:3]``, ``log(rot R^T)`` into ``e[3:6]`` (if ``has_rot``); returns their norms ``(pos_err, rot_err)``."""
     e[0], e[1], e[2] = pos[0] - pose[0, 3], pos[1] - pose[1, 3], pos[2] - pose[2, 3]
     pos_err = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
     if not has_rot:
@@ -161,19 +150,16 @@ def pose_error(pose, pos, rot, has_rot, eps, e):
 
 @jit
 def answer_errors(transforms, params, base, tool, q, pos, rot, eps, single, pos_tol, rot_tol):
-    """Answers ``q (b, n)`` scored against targets ``pos (b, 3)``, ``rot (b, 3, 3)`` (0 rows: position
-    only) as :func:`iiwa_torch.ik.result.ik_result` scores them: the end pose (rounded to float32
-    if ``single``, as ``chain.fk`` returns it), then :func:`pose_error` -> position and rotation
-    errors ``(b,)`` each (m, rad) and success (both within ``pos_tol``, ``rot_tol``)."""
+    """Answers ``q (b, n)`` against ``pos (b, 3)``, ``rot (b, 3, 3)`` (0 rows: position only), as
+    :func:`iiwa_torch.ik.result.ik_result` scores them (pose rounded to float32 if ``single``, as ``chain.fk``)
+    -> position and rotation errors ``(b,)`` (m, rad) and success (within ``pos_tol``, ``rot_tol``)."""
     b, has_rot = q.shape[0], rot.shape[0] > 0
     pos_err, rot_err, success = np.empty(b), np.empty(b), np.empty(b, dtype=np.bool_)
     pose, e, none = np.empty((4, 4)), np.empty(6), np.empty((0, 3))
     for k in range(b):
         frames_of(transforms, params, base, tool, q[k], pose, none, none, np.empty((0, 4, 3)))
         if single:
-            for r in range(3):
-                for c in range(4):
-                    pose[r, c] = np.float32(pose[r, c])
+            pose[:3] = pose[:3].astype(np.float32)
         target_rot = rot[k] if has_rot else pose[:3, :3]  # a placeholder without rotations
         pos_err[k], rot_err[k] = pose_error(pose, pos[k], target_rot, has_rot, eps, e)
         success[k] = pos_err[k] <= pos_tol and rot_err[k] <= rot_tol

@@ -14,9 +14,8 @@ __all__ = ["cholesky_solve", "into_limits", "lm_round", "lm_rounds"]
 
 @inline
 def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
-    """``q (n,)`` -> weighted Jacobian into ``J (m, n)`` and weighted error into ``e (m,)`` (m = 6,
-    or 3 without ``has_rot``); returns the squared weighted error, position and rotation error.
-    The torch loop's ``_evaluate`` (:mod:`iiwa_torch.ik.lm`) for one slot."""
+    """``q (n,)`` -> weighted Jacobian into ``J (m, n)``, weighted error into ``e (m,)`` (m = 6, or 3 without
+    ``has_rot``); returns (squared weighted error, pos_err, rot_err). :mod:`iiwa_torch.ik.lm`'s ``_evaluate``."""
     transforms, params, base, tool = arrays
     pose, Z, P, J6 = scratch
     frames_of(transforms, params, base, tool, q, pose, Z, P, np.empty((0, 4, 3)))
@@ -35,8 +34,7 @@ def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
 
 @jit
 def into_limits(x, lo, hi):
-    """One angle into ``[lo, hi]``: shifted by a multiple of 2 pi if that fits, else the nearer
-    limit around the circle. Mirrors :func:`iiwa_torch.ik.lm_setup.into_limits`."""
+    """One angle into ``[lo, hi]``, as :func:`iiwa_torch.ik.lm_setup.into_limits`."""
     turn = 2 * math.pi
     turned = lo + (x - lo) % turn  # Python's float remainder: fmod, then the divisor's sign, as torch's
     if lo <= x <= hi:
@@ -73,12 +71,9 @@ def cholesky_solve(A, y, k, floor):
 
 @inline
 def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest, opts, limits, lo, hi, work):
-    """One LM step of one slot, in place on its ``q (n,)``, ``J (m, n)``, ``e (m,)``; returns the
-    new ``E``, position and rotation errors and damping (the old ones but the damping if the
-    step is rejected). ``opts``: weight, rest gain, eps, lam_min, then
-    :class:`~iiwa_torch.ik.options.SolveOptions`' damping, damping_down and damping_up.
-    The torch loop's ``_lm_step`` (:mod:`iiwa_torch.ik.lm`) for one slot: ``J diag(free) J^T + lam I`` solved by
-    Cholesky (pivots floored at lam_min, as :func:`~iiwa_torch.ik.dls.cholesky_solve_batch_last`)."""
+    """One LM step of one slot (:mod:`iiwa_torch.ik.lm`'s ``_lm_step``), in place on ``q (n,)``, ``J (m, n)``,
+    ``e (m,)``; returns the new ``E``, pos_err, rot_err and damping (the old ones if rejected). ``opts``: weight,
+    rest gain, eps, lam_min, then :class:`~iiwa_torch.ik.options.SolveOptions`' damping, damping_down, damping_up."""
     weight, rest_gain, eps, lam_min, lambda0, damp_down, damp_up = opts
     m, n = J.shape
     free, pull, q_new, A, y, J_new, e_new, scratch = work
@@ -126,11 +121,10 @@ def _lm_step(arrays, q, J, e, E, pos_err, rot_err, lam, pos, rot, has_rot, rest,
 
 @inline
 def _rank_slots(q, problem, number, status, key, done, lowest, used, lo, hi, step, checked, bounds):
-    """The check after ``step``: each active slot's key into ``key`` (converged slots rank below
-    every error, the lowest seed number first) and whether it converged into ``done``, each
-    problem's lowest key into ``lowest`` (from its best so far), the iterations since the last
-    check into ``used``. ``status``: E, pos_err, rot_err, active ``(s,)``; ``bounds``: free_steps,
-    seeds, pos_tol, rot_tol. The torch loop's ``_check_slots`` (:mod:`iiwa_torch.ik.lm`)."""
+    """The check after ``step`` (:mod:`iiwa_torch.ik.lm`'s ``_check_slots``): each active slot's key (converged
+    slots below every error, lowest seed number first) into ``key``, converged into ``done``, each problem's lowest
+    key into ``lowest``, iterations since the last check into ``used``. ``status``: E, pos_err, rot_err, active
+    ``(s,)``; ``bounds``: free_steps, seeds, pos_tol, rot_tol."""
     E, pos_err, rot_err, active = status
     free_steps, seeds, pos_tol, rot_tol = bounds
     for k in range(q.shape[0]):

@@ -1,13 +1,6 @@
-"""The numba kernels of :mod:`iiwa_torch.compiled`, gathered from their modules (importing this
-module imports numba): :mod:`~iiwa_torch.compiled.kinematics_kernels` (end poses, frames,
-Jacobians, answers' errors), :mod:`~iiwa_torch.compiled.lm_kernels` (the LM rounds of ``ik.solve``),
-:mod:`~iiwa_torch.compiled.analytic_kernels` (``iiwa_solve``'s sweep, ``pieper``) and
-:mod:`~iiwa_torch.compiled.clearance_kernels` (self and floor clearance).
-
-Each kernel restates a formula of the torch code, and its docstring names the function it
-restates (``tests/test_backends.py`` holds them together). Everything is float64
-and unchecked: the callers check. A chain enters as the four
-:attr:`~iiwa_torch.kinematics.Geometry.float_arrays` ``transforms, params, base, tool``.
+"""The numba kernels of :mod:`iiwa_torch.compiled`, gathered (importing this imports numba). Each restates a torch
+formula and names it (``tests/test_backends.py`` holds them together); all float64 and unchecked (the callers
+check). A chain enters as its :attr:`~iiwa_torch.kinematics.Geometry.float_arrays` ``transforms, params, base, tool``.
 """
 
 from __future__ import annotations

@@ -87,12 +87,10 @@ def clearance_row(q: Tensor, obstacles: Obstacles) -> tuple[Tensor, Tensor]:
     """``q (n, b)`` -> the clearance residual ``r = |max(0, margin + buffer - d)| (b,)`` (m) over
     every checked pair's distance ``d``, and its gradient ``(n, b)`` (m/rad).
 
-    A residual beside the six pose rows, rather than a clearance-gradient step projected into
-    the Jacobian's null space, lets LM weigh the two: where the arm's redundancy can satisfy
-    both, the 7-row system's solution moves along the null space of the pose rows; where it
-    cannot, the step is the least-squares compromise and the answer stays finite. The norm
-    over all pairs (not the minimum) keeps every pair that is too near in the step at once,
-    so it does not alternate between two obstacles."""
+    A residual beside the six pose rows (not a clearance step projected into the Jacobian's null
+    space) lets LM weigh the two: with redundancy to spare the step moves in the pose rows' null
+    space, else it is the least-squares compromise. The norm over all pairs (not the minimum)
+    keeps every too-near pair in the step, so it does not alternate between two obstacles."""
     with torch.enable_grad():
         x = q.T.detach().requires_grad_(True)
         sq = clearance_shortfall(obstacles.chain, x, obstacles.world, obstacles.margin, obstacles.capsules)

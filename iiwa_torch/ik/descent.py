@@ -39,15 +39,12 @@ def minimize(
 
     Args:
         chain: the robot.
-        loss: ``loss(q, pose) -> (...)``, one value per problem, from the joint angles
-            ``q (..., n)`` and the end-effector pose ``chain.fk(q) (..., 4, 4)``; it may call
-            ``chain.fk_all(q)`` for other links (e.g. to keep the elbow high).
+        loss: ``loss(q, pose) -> (...)``, one value per problem, from ``q (..., n)`` and
+            ``pose = chain.fk(q) (..., 4, 4)`` (it may call ``chain.fk_all(q)`` for other links).
         q0: ``(..., n)`` starting joint angles (clamped into the limits); sets dtype and batch.
         target: ``(..., 4, 4)`` poses (``mode="pose"``) or ``(..., 3)`` positions
-            (``mode="position"``) that define ``pos_err``, ``rot_err`` and ``success``; the
-            loss itself should contain the reaching term (the target is not added to it).
-        success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion of the caller's
-            loss (e.g. "elbow above 0.5 m"); success needs it and the tolerances.
+            (``mode="position"``) for ``pos_err``, ``rot_err`` and ``success`` (not added to the loss).
+        success_fn: optional ``(q, pose) -> (...)`` bool, a further criterion success needs.
         world, margin: optional :class:`~iiwa_torch.collision.World` (``q0``'s dtype and
             device, batch broadcasting to ``q0``'s) and a clearance in metres (>= 0): the loss
             gets the term ``clearance_weight *`` :func:`~iiwa_torch.ik.clearance.clearance_shortfall`,
@@ -55,12 +52,11 @@ def minimize(
         capsules: the capsule model with a world (default: the chain's preset model).
         options: a :class:`~iiwa_torch.ik.MinimizeOptions` (mode, optimizer, steps, lr,
             tolerances, clearance weight; its defaults if None).
-        **settings: any of its fields by name (``optimizer="lbfgs"``, ``steps=50``), replacing
-            the ones of ``options``.
+        **settings: any of its fields by name (``steps=50``), replacing those of ``options``.
 
-    Joint limits are kept by projection: the loss sees the parameters clamped into the limits,
-    and the parameters are clamped after every step. Each problem returns the lowest-loss ``q``
-    seen; ``iterations`` is ``steps`` for every problem.
+    Joint limits are kept by projection (the loss sees the parameters clamped, and they are
+    clamped after every step). Each problem returns the lowest-loss ``q`` seen; ``iterations``
+    is ``steps``.
     """
     opts = resolve(MinimizeOptions, options, settings, "minimize")
     check_instance(chain, Chain, "chain")
@@ -140,17 +136,9 @@ def _optimizer(u: Tensor, opts: MinimizeOptions):
         opt = torch.optim.Adam([u], lr=0.1 if opts.lr is None else opts.lr)
         return opt, torch.optim.lr_scheduler.ExponentialLR(opt, gamma=0.01 ** (1 / opts.steps))
     # One call runs every iteration: torch's L-BFGS keeps its history within a call.
-    opt = torch.optim.LBFGS(
-        [u],
-        lr=1.0 if opts.lr is None else opts.lr,
-        max_iter=opts.steps,
-        max_eval=2 * opts.steps,
-        line_search_fn="strong_wolfe",
-        tolerance_grad=0.0,
-        tolerance_change=0.0,
-        history_size=20,
-    )
-    return opt, None
+    lr = 1.0 if opts.lr is None else opts.lr
+    return torch.optim.LBFGS([u], lr=lr, max_iter=opts.steps, max_eval=2 * opts.steps, line_search_fn="strong_wolfe",
+                             tolerance_grad=0.0, tolerance_change=0.0, history_size=20), None
 
 
 def _minimize_result(chain, q, target, opts: MinimizeOptions, success_fn) -> IKResult:

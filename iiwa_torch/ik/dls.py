@@ -1,15 +1,10 @@
-"""The damped-least-squares (DLS) joint step, written once for the whole library.
+"""The damped-least-squares (DLS) joint step, written once for the whole library:
+``dq = J^T (J J^T + damping I)^-1 e`` (rad) for ``J (m, n)`` (m = 6 pose, 3 position) and ``e (m,)``.
 
-For a Jacobian ``J (m, n)`` (m = 6 for a pose, 3 for a position; rows in m/rad, or the
-angular rows in rad/rad) and an error ``e (m,)`` (m, or rad for the rotation rows):
-
-    dq = J^T (J J^T + damping I)^-1 e        (rad)
-
-``damping`` (the squared damping factor, in the units of ``J J^T``: m^2 for an arm) keeps
-``dq`` finite where ``J`` loses rank (Nakamura and Hanafusa; Wampler). :func:`dls_step` takes
-any leading batch shape; :func:`dls_step_batch_last` is the same step in the batch-last layout
-the gradient solver iterates in, and :func:`cholesky_solve_batch_last` its linear solve;
-:func:`dls_step_numpy` the same step on numpy arrays, for a few problems at a time.
+``damping`` (the squared damping factor, units of ``J J^T``: m^2 for an arm) keeps ``dq`` finite
+where ``J`` loses rank (Nakamura and Hanafusa; Wampler). :func:`dls_step` takes any batch shape;
+:func:`dls_step_batch_last` is the gradient solver's batch-last layout (its solve
+:func:`cholesky_solve_batch_last`), :func:`dls_step_numpy` the step for a few numpy problems.
 """
 
 from __future__ import annotations
@@ -42,28 +37,23 @@ def cholesky_solve_batch_last(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
     L = [[None] * m for _ in range(m)]  # L[i][j], (b,) each
     inv = [None] * m  # 1 / L[j][j]
     for j in range(m):
-        pivot = A[j, j]
-        for k in range(j):
-            pivot = torch.addcmul(pivot, L[j][k], L[j][k], value=-1)
-        inv[j] = pivot.clamp_min(floor).rsqrt()
+        inv[j] = _minus_products(A[j, j], [(L[j][k], L[j][k]) for k in range(j)]).clamp_min(floor).rsqrt()
         for i in range(j + 1, m):
-            entry = A[i, j]
-            for k in range(j):
-                entry = torch.addcmul(entry, L[i][k], L[j][k], value=-1)
-            L[i][j] = entry * inv[j]
+            L[i][j] = _minus_products(A[i, j], [(L[i][k], L[j][k]) for k in range(j)]) * inv[j]
     y = [None] * m  # L y = rhs
     for i in range(m):
-        entry = rhs[i]
-        for k in range(i):
-            entry = torch.addcmul(entry, L[i][k], y[k], value=-1)
-        y[i] = entry * inv[i]
+        y[i] = _minus_products(rhs[i], [(L[i][k], y[k]) for k in range(i)]) * inv[i]
     x = [None] * m  # L^T x = y
     for i in reversed(range(m)):
-        entry = y[i]
-        for k in range(i + 1, m):
-            entry = torch.addcmul(entry, L[k][i], x[k], value=-1)
-        x[i] = entry * inv[i]
+        x[i] = _minus_products(y[i], [(L[k][i], x[k]) for k in range(i + 1, m)]) * inv[i]
     return torch.stack(x)
+
+
+def _minus_products(x: Tensor, pairs: list[tuple[Tensor, Tensor]]) -> Tensor:
+    """``x - sum(a * b for a, b in pairs)``, one fused ``addcmul`` per pair."""
+    for a, b in pairs:
+        x = torch.addcmul(x, a, b, value=-1)
+    return x
 
 
 def dls_step_batch_last(J: Tensor, rhs: Tensor, damping: Tensor, floor: float, free: Tensor | None = None) -> Tensor:
@@ -82,11 +72,9 @@ def dls_step_batch_last(J: Tensor, rhs: Tensor, damping: Tensor, floor: float, f
 
 def dls_step_numpy(jacobian: np.ndarray, error: np.ndarray, damping: np.ndarray, free: np.ndarray | None = None
                    ) -> np.ndarray:
-    """:func:`dls_step` on numpy arrays, unchecked, for a few problems with nothing to differentiate
-    (a numpy op costs a fraction of a torch op): ``jacobian (..., m, n)``, ``error (..., m)``,
-    ``damping`` broadcasting to the batch ``(...)``, ``free (..., n)`` (0 or 1) or None as in
-    :func:`dls_step_batch_last` -> ``(..., n)``. An LU solve rather than Cholesky: the same step
-    to rounding."""
+    """:func:`dls_step` on numpy arrays, unchecked (a numpy op costs a fraction of a torch op):
+    ``jacobian (..., m, n)``, ``error (..., m)``, ``damping`` broadcasting to ``(...)``, ``free``
+    as in :func:`dls_step_batch_last` -> ``(..., n)``. LU, not Cholesky: the same step to rounding."""
     held = jacobian if free is None else jacobian * free[..., None, :]
     A = (held[..., :, None, :] * jacobian[..., None, :, :]).sum(-1) + np.asarray(damping)[..., None, None] * np.eye(
         jacobian.shape[-2])

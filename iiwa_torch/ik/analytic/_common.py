@@ -1,13 +1,10 @@
-"""Shared pieces of the closed-form solvers: the result type, guarded trigonometry,
-structure checks, the spherical-joint decomposition and the joint-limit bookkeeping.
+"""Shared pieces of the closed-form solvers: result type, guarded trigonometry, structure
+checks, the spherical-joint decomposition and joint-limit bookkeeping.
 
-Guarded trigonometry: every ``acos`` is written as ``atan2(+-s, c)`` with ``c`` clamped to
-``[-1, 1]`` and ``s`` the square root of ``1 - c^2`` (or of its factored form for a law of
-cosines, :func:`triangle`) clamped to at least ``TINY``, and every ``atan2(y, x)`` whose
-arguments may both vanish replaces ``x`` by 1 there. So
-values are finite everywhere (also in unreachable branches and at singularities) and so
-are gradients: an infinite local derivative in a branch a caller masks out would
-otherwise turn into NaN through ``0 * inf`` in the backward pass.
+Guarded trigonometry: ``acos`` is ``atan2(+-s, c)`` with ``c`` clamped to ``[-1, 1]`` and ``s``
+floored at ``TINY`` under the root; an ``atan2(y, x)`` whose arguments may both vanish has ``x``
+set to 1 there. Values and gradients stay finite everywhere (also in unreachable branches): an
+infinite derivative in a masked-out branch would otherwise give NaN through ``0 * inf``.
 """
 
 from __future__ import annotations
@@ -64,12 +61,9 @@ class AnalyticSolutions:
 
 
 # ---------------------------------------------------------------- array libraries
-# The closed forms are written once over the few functions they take from their array library:
-# ``TORCH`` (batched, differentiable, any device) or ``NUMPY`` (arrays on the CPU: the
-# low-overhead path for a few poses, where a torch op's overhead dominates; float64 in
-# ``iiwa_solve``, the target's dtype in ``pieper``). Operators (+, *, /, abs, &, ~, comparisons,
-# indexing, reshape) are the arrays' own; ``tensor`` turns a result into a torch tensor, and
-# ``stack_full`` stacks arrays broadcast to a shape.
+# The closed forms are written once over the functions they take from ``TORCH`` (batched,
+# differentiable) or ``NUMPY`` (CPU arrays: for a few poses, where a torch op's overhead
+# dominates). Operators and indexing are the arrays' own; ``tensor`` turns a result into torch.
 TORCH = SimpleNamespace(
     atan2=torch.atan2,
     cos=torch.cos,
@@ -201,11 +195,8 @@ def reach_tol(dtype: torch.dtype) -> float:
 # ---------------------------------------------------------------- rotations
 def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float, ops=TORCH) -> list[list]:
     """Entries ``A[i][k]`` of ``A = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b)`` for ``sin(alpha) =
-    sig_a, sig_b = +-1``: tensors broadcast from ``a, b (...)`` (a structural zero is 0.0).
-
-    Kept as separate contiguous tensors ("structure of arrays"): products of such matrices
-    are then a few elementwise kernels over the batch, with no batched 3x3 product and no
-    strided access."""
+    sig_a, sig_b = +-1``, broadcast from ``a, b (...)`` (a structural zero is 0.0). Separate
+    contiguous arrays: a product is a few elementwise kernels, no batched 3x3 product."""
     ca, sa, cb, sb = ops.cos(a), ops.sin(a), ops.cos(b), ops.sin(b)
     k = sig_a * sig_b
     return [
@@ -217,14 +208,11 @@ def zxzx(a: Tensor, b: Tensor, sig_a: float, sig_b: float, ops=TORCH) -> list[li
 
 def transpose_times(a: list[list], b: list[list]) -> list[list]:
     """Entries of ``A^T B`` for entries ``a`` (3 x 3) and ``b`` (3 x m), skipping zeros."""
-    out = []
-    for i in range(3):
-        row = []
-        for j in range(len(b[0])):
-            terms = [a[k][i] * b[k][j] for k in range(3) if not (isinstance(a[k][i], float) and a[k][i] == 0.0)]
-            row.append(functools.reduce(operator.add, terms))
-        out.append(row)
-    return out
+    def entry(i: int, j: int):
+        terms = [a[k][i] * b[k][j] for k in range(3) if not (isinstance(a[k][i], float) and a[k][i] == 0.0)]
+        return functools.reduce(operator.add, terms)
+
+    return [[entry(i, j) for j in range(len(b[0]))] for i in range(3)]
 
 
 def entries(m: Tensor, ops=TORCH) -> list[list]:
@@ -237,12 +225,10 @@ def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float, ops=TORCH) -> tup
     """All angles of ``M = Rz(a) Rx(alpha_a) Rz(b) Rx(alpha_b) Rz(c)`` for twists with
     ``sin(alpha) = sig_a, sig_b = +-1``: a spherical joint triple (shoulder or wrist).
 
-    ``m``: the entries ``(3 x 2)`` of the columns 0 and 2 of ``M`` (all it takes), each
-    ``(...)`` ``-> a, b, c``, each ``(..., 2)``; branch 0 has ``sin(b) >= 0``, branch 1 is
-    its flip ``(a + pi, -b, c + pi)`` (angles not wrapped). ``M[2,2] = -sig_a sig_b cos b``,
-    ``M[0:2, 2] = sig_b sin b (cos a, sin a)``. ``c`` is taken from what is left once ``a``
-    and ``b`` are fixed, so the triple reproduces ``M`` exactly also at ``sin b = 0`` (the
-    singularity, where only ``a +- c`` is determined and ``a`` is set to 0, or pi in the flip).
+    ``m``: the entries ``(3 x 2)`` of columns 0 and 2 of ``M``, each ``(...)`` -> ``a, b, c``,
+    each ``(..., 2)``: branch 0 has ``sin(b) >= 0``, branch 1 is ``(a + pi, -b, c + pi)`` (not
+    wrapped). ``c`` is taken from what is left once ``a, b`` are fixed, so the triple reproduces
+    ``M`` also at ``sin b = 0`` (only ``a +- c`` determined there; ``a`` set to 0).
     """
     (m00, m02), (m10, m12), (m20, m22) = m
     sb = safe_norm2(m02, m12, ops)  # sin b >= 0
@@ -259,7 +245,6 @@ def decompose_zxzxz(m: list[list], sig_a: float, sig_b: float, ops=TORCH) -> tup
 
 # ---------------------------------------------------------------- chain structure
 def _check_dh(chain, robot: str) -> None:
-    """Raise unless ``chain`` is a DH chain: a clear word for another arm, which has no closed form here."""
     check_instance(chain, Chain, "chain")
     if not isinstance(chain, DHChain):
         raise ValueError(f"the {robot} closed form solves the DH chains of its structure; {chain.name!r} is a "
@@ -283,19 +268,15 @@ def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tu
     table = [tuple(float(v) for v in row) for row in chain.dh.tolist()]
     eps = 1e-6  # float32 chains hold cos(pi/2) = -4e-8
     for i, ((a, alpha, d, _), rule) in enumerate(zip(table, rows)):
-        problems = []
-        if rule.get("a0") and abs(a) > eps:
-            problems.append(f"a = 0 (got {a:g})")
-        if rule.get("d0") and abs(d) > eps:
-            problems.append(f"d = 0 (got {d:g})")
-        if rule.get("a+") and a <= eps:
-            problems.append(f"a > 0 (got {a:g})")
-        if rule.get("d+") and d <= eps:
-            problems.append(f"d > 0 (got {d:g})")
-        if rule.get("perp") and abs(math.cos(alpha)) > eps:
-            problems.append(f"alpha = +-pi/2 (got {alpha:g})")
-        if rule.get("twist0") and abs(alpha) > eps:
-            problems.append(f"alpha = 0 (got {alpha:g})")
+        broken = {
+            "a0": (abs(a) > eps, f"a = 0 (got {a:g})"),
+            "d0": (abs(d) > eps, f"d = 0 (got {d:g})"),
+            "a+": (a <= eps, f"a > 0 (got {a:g})"),
+            "d+": (d <= eps, f"d > 0 (got {d:g})"),
+            "perp": (abs(math.cos(alpha)) > eps, f"alpha = +-pi/2 (got {alpha:g})"),
+            "twist0": (abs(alpha) > eps, f"alpha = 0 (got {alpha:g})"),
+        }
+        problems = [text for key, (bad, text) in broken.items() if rule.get(key) and bad]
         if problems:
             raise ValueError(
                 f"chain {chain.name!r} does not have the {robot} structure: row {i + 1} needs "
@@ -339,12 +320,8 @@ def check_target(chain: DHChain, target: Tensor) -> None:
 
 
 def last_frame_target(chain: DHChain, target: Tensor) -> Tensor:
-    """``(..., 4, 4)``: the target pose expressed as ``T_0,n-1 Rz(theta_n)``.
-
-    Strips the base, the tool and the last row's constant part ``Tz(d_n) Tx(a_n) Rx(alpha_n)``
-    from ``target``; its origin is then the origin of frame ``n - 1`` (the wrist centre of
-    a spherical wrist), its rotation ``R_0,n-1 Rz(theta_n)``.
-    """
+    """``(..., 4, 4)``: the target as ``T_0,n-1 Rz(theta_n)`` (base, tool and the last row's
+    ``Tz(d_n) Tx(a_n) Rx(alpha_n)`` stripped): its origin is frame ``n - 1``'s (a wrist centre)."""
     flange_inv, base_inv = strip_transforms(chain)
     if base_inv is not None:
         target = base_inv.to(target.dtype) @ target
@@ -398,11 +375,9 @@ def numpy_applies(chain: DHChain, size: int, limit: int, *tensors: Tensor) -> bo
 def joint_angles(chain: DHChain, thetas: list[Tensor], ops=TORCH) -> tuple[list[Tensor], Tensor]:
     """DH angles -> joint angles and whether all are within the limits (arrays of ``ops``).
 
-    ``thetas`` holds one array per joint, all broadcastable together (a joint that does not
-    depend on some branch sign has size 1 in that dim, so it is wrapped and checked once, not
-    once per branch). Each joint gets its offset removed, is wrapped into ``[-pi, pi]`` and
-    then shifted by 2 pi if that brings it within its limits. Returns the joint angles (same
-    shapes) and the broadcast ``within`` mask.
+    ``thetas``: one array per joint, broadcastable together (size 1 in a branch dim a joint does
+    not depend on: wrapped once). Each loses its offset, is wrapped into ``[-pi, pi]``, then
+    shifted by 2 pi where that gets it within its limits. Returns the joints and ``within``.
     """
     return wrap_joints(thetas, chain.dh[:, 3].tolist(), *chain.limits.tolist(), ops)
 
@@ -434,12 +409,9 @@ def reduce_grouped(op, tensors: list[Tensor]) -> Tensor:
 
 
 def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims: int, ops=TORCH) -> AnalyticSolutions:
-    """DH angles -> :class:`AnalyticSolutions` (see :func:`joint_angles`; arrays of ``ops``, the
-    result in torch tensors).
-
-    The joints and ``reachable`` broadcast to a common shape ``(..., b_1, ..., b_m)`` whose
-    last ``m = branch_dims`` dims index the branch signs. Returns ``q (..., B, n)``.
-    """
+    """DH angles (arrays of ``ops``) -> :class:`AnalyticSolutions` (torch): the joints and
+    ``reachable`` broadcast to ``(..., b_1, ..., b_m)``, the last ``m = branch_dims`` dims the
+    branch signs, flattened into ``q (..., B, n)``."""
     qs, within = joint_angles(chain, thetas, ops)
     shape = ops.broadcast_shapes(*(q.shape for q in qs), reachable.shape)
     batch, branches = tuple(shape[:-branch_dims]), math.prod(shape[-branch_dims:])
@@ -451,18 +423,11 @@ def finish(chain: DHChain, thetas: list[Tensor], reachable: Tensor, branch_dims:
     return AnalyticSolutions(q=q, valid=valid, reachable=reachable, within_limits=within)
 
 
-def with_clearance(
-    chain: DHChain,
-    sol: AnalyticSolutions,
-    batch_ndim: int,
-    world: World | None,
-    margin: float,
-    capsules: Capsules | None,
-) -> AnalyticSolutions:
-    """``sol`` with every branch's clearance against ``world`` (``sol`` itself for ``None``).
-
-    The world's batch shape broadcasts with the targets' ``(...)``, the first ``batch_ndim``
-    dims of ``sol.valid``; the branch dims after them are inserted into it."""
+def with_clearance(chain: DHChain, sol: AnalyticSolutions, batch_ndim: int, world: World | None, margin: float,
+                   capsules: Capsules | None) -> AnalyticSolutions:
+    """``sol`` with every branch's clearance against ``world`` (``sol`` itself for ``None``). The
+    world's batch shape broadcasts with the targets' ``(...)``, the first ``batch_ndim`` dims of
+    ``sol.valid``; the branch dims after them are inserted into it."""
     check_world(world, margin, capsules)
     if world is None:
         return sol

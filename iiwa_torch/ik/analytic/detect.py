@@ -1,23 +1,15 @@
 """Which closed form solves a chain, found from its joint axes, and solving with it.
 
-A serial arm's kinematics is fixed by its joint axes as lines in space at ``q = 0`` (plus the
-base and the end-effector frame), whatever frames its file uses. :func:`structure` reads those
-lines from the chain's Jacobian at ``q = 0``, builds a standard Denavit-Hartenberg table of
-them (the classic construction: frame ``k`` on axis ``k + 1``, its x axis along the common
-normal of axes ``k`` and ``k + 1``; for parallel axes the normal through the previous origin,
-``d = 0``; for intersecting ones ``x = z_{k-1} x z_k``), with the base, tool and joint signs
-that make the :class:`~iiwa_torch.dh.DHChain` move exactly as the chain (``q_dh = sign * q``),
-and checks the table against the rows a solver needs, within ``tol``:
+:func:`structure` reads the joint axes (lines at ``q = 0``) from the chain's Jacobian and builds
+the standard-DH table of them (frame ``k`` on axis ``k + 1``, x along the common normal; for
+parallel axes the normal through the previous origin, ``d = 0``), with the base, tool and joint
+signs that make the :class:`~iiwa_torch.dh.DHChain` move as the chain (``q_dh = sign * q``); it
+then checks the rows a solver needs, within ``tol``: planar 3R (3 parallel distinct axes), Pieper
+(6R, axes 4-6 meet, 2 and 3 parallel, the others perpendicular) or S-R-S (7R like the iiwa).
 
-- 3 joints: planar 3R (axes 1-3 parallel and distinct);
-- 6 joints: Pieper (axes 4-6 meet in a point, axes 2 and 3 parallel, the others perpendicular);
-- 7 joints: S-R-S like the iiwa (axes 1-3 meet, axes 5-7 meet, axis 4 meets axes 3 and 5,
-  consecutive axes perpendicular, the elbow away from shoulder and wrist).
-
-:func:`solve` runs that solver on the equivalent chain and maps its joint values back. A file
-whose numbers are rounded (``1.57079632679`` for pi/2) leaves the axes meeting only within
-about ``1e-11``; the closed form then solves the ideal arm and one Gauss-Newton step on the
-chain itself removes the remaining error.
+:func:`solve` runs that solver and maps the joints back. A file with rounded numbers
+(``1.57079632679`` for pi/2) leaves axes meeting only within about ``1e-11``: the closed form
+solves the ideal arm and one Gauss-Newton step on the chain removes the rest.
 """
 
 from __future__ import annotations
@@ -155,14 +147,11 @@ def solve(
             (clearances of the chain itself; a chain that is not a DH preset needs ``capsules``).
 
     Returns:
-        :class:`AnalyticSolutions` of the chain's joint values: ``q (..., 2, 3)`` (planar 3R,
-        the target's heading about and position in the plane of the arm; a target off that plane
-        is unreachable), ``(..., 8, 6)`` (Pieper) or ``(..., [K,] 8, 7)`` (S-R-S), branches as
-        for :func:`~iiwa_torch.ik.analytic.planar3r`, :func:`~iiwa_torch.ik.analytic.pieper` and
-        :func:`~iiwa_torch.ik.analytic.iiwa` on :attr:`Structure.dh` (their signs are those of the
-        DH angles). Where the chain departs from the ideal structure by more than rounding, each
-        reachable branch gets one Gauss-Newton step on the chain (kept where it lowers the pose
-        error), and ``within_limits`` and ``valid`` are recomputed.
+        :class:`AnalyticSolutions` of the chain's joint values: ``q (..., 2, 3)`` (planar 3R; a
+        target off the arm's plane is unreachable), ``(..., 8, 6)`` (Pieper) or ``(..., [K,] 8, 7)``
+        (S-R-S), branches as for :func:`~iiwa_torch.ik.analytic.planar3r`, ``pieper`` and ``iiwa``
+        on :attr:`Structure.dh`. Where the chain departs from the ideal by more than rounding, each
+        reachable branch gets one Gauss-Newton step (kept where it lowers the pose error).
     """
     found = structure(chain, tol)
     if (psi is None) == (found.form is ClosedForm.SRS):
@@ -267,13 +256,9 @@ def _signs(rows: list[list[float]], rules: list[dict], dirs: Tensor, tol: float)
     """``(n,)`` axis signs that meet the sign rules of ``rules``, the table ``rows`` built with the
     axes as given: a positive ``d`` (``"d+"``: turn the axis the row runs along) and parallel
     axes pointing the same way (``"twist0"``: turn the next axis, unless its own ``d+`` fixes it)."""
-    n = len(rows)
-    signs = [1.0] * n
     pinned = [bool(rule.get("d+")) and abs(row[2]) > tol for row, rule in zip(rows, rules)]
-    for j, row in enumerate(rows):
-        if pinned[j]:
-            signs[j] = math.copysign(1.0, row[2])
-    for j, rule in enumerate(rules[: n - 1]):
+    signs = [math.copysign(1.0, row[2]) if pin else 1.0 for row, pin in zip(rows, pinned)]
+    for j, rule in enumerate(rules[: len(rows) - 1]):
         if rule.get("twist0"):
             same = math.copysign(1.0, float(dirs[j] @ dirs[j + 1]))
             if pinned[j + 1]:
@@ -289,18 +274,15 @@ def _check_rows(rows: list[list[float]], rules: list[dict], tol: float) -> tuple
     problems, deviation = [], 0.0
     for j, ((a, alpha, d, _), rule) in enumerate(zip(rows, rules), start=1):
         pair = f"axes {j} and {j + 1}"
-        zeros = []
-        if rule.get("a0"):
-            zeros.append((abs(a), f"{pair} do not meet (closest approach {abs(a):.3g} m)"))
-        if rule.get("d0"):
-            zeros.append((abs(d), f"axes {j - 1}, {j} and {j + 1} do not meet in one point "
-                                  f"({abs(d):.3g} m apart along axis {j})"))
-        if rule.get("perp"):
-            off = abs(math.asin(math.cos(alpha)))
-            zeros.append((abs(math.cos(alpha)), f"{pair} are not perpendicular ({off:.3g} rad off)"))
-        if rule.get("twist0"):
-            zeros.append((abs(alpha), f"{pair} are not parallel ({abs(alpha):.3g} rad apart)"))
-        for value, text in zeros:
+        cos = math.cos(alpha)
+        zeros = {  # rule -> (the value it takes as 0, what a larger one means)
+            "a0": (abs(a), f"{pair} do not meet (closest approach {abs(a):.3g} m)"),
+            "d0": (abs(d), f"axes {j - 1}, {j} and {j + 1} do not meet in one point "
+                           f"({abs(d):.3g} m apart along axis {j})"),
+            "perp": (abs(cos), f"{pair} are not perpendicular ({abs(math.asin(cos)):.3g} rad off)"),
+            "twist0": (abs(alpha), f"{pair} are not parallel ({abs(alpha):.3g} rad apart)"),
+        }
+        for value, text in [zeros[key] for key in zeros if rule.get(key)]:
             if value > tol:
                 problems.append(text)
             else:

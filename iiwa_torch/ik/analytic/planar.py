@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from ...checks import check_float_tensor
@@ -42,9 +44,7 @@ def _pose_values(chain: DHChain, x, y, phi) -> tuple[Tensor, Tensor, Tensor]:
         if isinstance(v, torch.Tensor):
             check_float_tensor(v, name, "(...)")
     floats = [v.dtype for v in (x, y, phi) if isinstance(v, torch.Tensor)]
-    dtype = floats[0] if floats else chain.dh.dtype  # plain numbers: the chain's float64
-    for other in floats[1:]:
-        dtype = torch.promote_types(dtype, other)
+    dtype = functools.reduce(torch.promote_types, floats) if floats else chain.dh.dtype  # numbers: float64
     x, y, phi = (as_values(v, name, dtype, chain.dh.device) for name, v in named)
     try:
         return tuple(torch.broadcast_tensors(x, y, phi))
@@ -72,12 +72,10 @@ def planar3r(
         :class:`AnalyticSolutions` with ``q (..., 2, 3)``; branch 0 has the elbow angle
         ``q2 + offset_2`` in ``[0, pi]`` ("elbow down" for ``x > 0``), branch 1 in ``[-pi, 0]``.
 
-    The wrist point (origin of frame 2) is ``w = p - a_3 (cos h, sin h)`` for the heading
-    ``h`` of frame 3; then ``cos(theta_2) = (|w|^2 - a_1^2 - a_2^2) / (2 a_1 a_2)``,
-    ``theta_1 = atan2(w_y, w_x) - atan2(a_2 sin theta_2, a_1 + a_2 cos theta_2)`` and
-    ``theta_3 = h - theta_1 - theta_2``. Out of reach (``|cos theta_2| > 1``): ``reachable``
-    is False and the arm is stretched towards the target. Singular (finite values, infinite
-    derivative of ``theta_2``): arm stretched or folded (``|cos theta_2| = 1``).
+    The wrist point (frame 2's origin) is ``w = p - a_3 (cos h, sin h)`` for frame 3's heading
+    ``h``; ``theta_2`` follows by the law of cosines, ``theta_1 = atan2(w_y, w_x) - atan2(a_2 sin
+    theta_2, a_1 + a_2 cos theta_2)``, ``theta_3 = h - theta_1 - theta_2``. Out of reach: not
+    ``reachable``, the arm stretched towards the target. Stretched or folded: singular.
     """
     rows = check_chain(chain, 3, PLANAR_ROWS, "planar 3R")
     _check_planar_transform(chain.base, "base")

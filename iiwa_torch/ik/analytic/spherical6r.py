@@ -14,27 +14,21 @@ row   a        alpha       d      role
 6     a6       alpha6      d6     wrist roll / flange (folded into the tool)
 ====  =======  ==========  =====  ===================================================
 
-Method: the wrist centre ``w`` (origin of frame 5) is the target with the tool and row 6
-stripped. Joint 1 puts ``w`` in the arm's plane: ``w`` seen from frame 0 is at distance
-``r`` from the z axis and must sit at lateral offset ``D = d2 + d3``, so
-``theta_1 = atan2(w_y, w_x) - atan2(-sig1 D, +-sqrt(r^2 - D^2))`` (shoulder branch, index
-0 for ``+``: the wrist in front of the waist). Joints 2 and 3 are then a planar two-link
-arm of lengths ``a2`` and ``L3 = |(a3, d4)|`` in frame 1 (elbow branch, index 0 for
-``sin(theta_3 + gamma) >= 0``). Joints 4-6 follow from ``R_03^T R_06`` (wrist branch,
-index 0 for ``sin(theta_5) >= 0``). Branch ``k = 4 shoulder + 2 elbow + wrist``.
+Method: the wrist centre ``w`` (frame 5's origin) is the target with tool and row 6 stripped.
+Joint 1 puts ``w`` at the lateral offset ``D = d2 + d3``: ``theta_1 = atan2(w_y, w_x) -
+atan2(-sig1 D, +-sqrt(r^2 - D^2))`` (shoulder branch 0 for ``+``: wrist in front of the waist).
+Joints 2, 3 are a planar two-link arm ``a2``, ``L3 = |(a3, d4)|`` (elbow branch 0 for
+``sin(theta_3 + gamma) >= 0``); joints 4-6 follow from ``R_03^T R_06`` (wrist branch 0 for
+``sin(theta_5) >= 0``). Branch ``k = 4 shoulder + 2 elbow + wrist``.
 
-Singularities (finite values, documented, not errors): wrist centre on the cylinder
-``r = |D|`` (or on the waist axis when ``D = 0``: ``theta_1`` then arbitrary and set from
-``atan2(0, 0) = 0``), arm stretched or folded (``theta_3 + gamma`` in ``{0, pi}``), wrist
-aligned (``sin theta_5 = 0``: only ``theta_4 +- theta_6`` is determined; ``theta_4`` is set
-so that the pose is still reproduced exactly).
+Singularities (finite values, not errors): ``r = |D|`` (``D = 0``: ``w`` on the waist axis,
+``theta_1 = 0``), arm stretched or folded, wrist aligned (``sin theta_5 = 0``: ``theta_4`` set
+so the pose is still reproduced).
 
-Up to ``PIEPER_NUMPY_BATCH`` poses on the CPU with nothing to differentiate and no world run
-the same closed form in numpy, in the target's dtype (``_common``'s array libraries): a torch
-op's overhead (several microseconds) is most of a small call. float64 ones go through one
-compiled call instead when numba is enabled (:func:`iiwa_torch.compiled.numba_kernels.pieper_branches`,
-which restates the closed form and the wrap into the limits as scalar loops: numba cannot run the
-array code; ``tests/test_pieper_numpy.py`` runs every case both ways).
+Up to ``PIEPER_NUMPY_BATCH`` CPU poses with nothing to differentiate and no world run in numpy,
+in the target's dtype (a torch op's few microseconds are most of a small call); float64 ones go
+through :func:`iiwa_torch.compiled.numba_kernels.pieper_branches` when numba is enabled (the same
+closed form as scalar loops; ``tests/test_pieper_numpy.py`` runs every case both ways).
 """
 
 from __future__ import annotations
@@ -122,9 +116,7 @@ def pieper(
 def _solve_compiled(chain: DHChain, rows: list[tuple], frame5: np.ndarray, tol: float) -> AnalyticSolutions:
     """:func:`_closed_form` and :func:`~._common.finish` by
     :func:`iiwa_torch.compiled.numba_kernels.pieper_branches` for a float64 ``frame5 (..., 4, 4)``."""
-    (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
-    consts = np.array([a1, d1, a2, d2 + d3, math.hypot(a3, d4), math.atan2(-sigma(al3) * d4, a3),
-                       *(sigma(al) for al in (al1, al3, al4, al5)), tol])  # fmt: skip
+    consts = np.array([*_geometry(rows), tol])
     limits = np.array([[row[3] for row in rows], *chain.limits.tolist()])
     batch = frame5.shape[:-2]
     q, reachable, within = compiled.kernels().pieper_branches(np.ascontiguousarray(frame5.reshape(-1, 4, 4)),
@@ -134,17 +126,24 @@ def _solve_compiled(chain: DHChain, rows: list[tuple], frame5: np.ndarray, tol: 
     return AnalyticSolutions(*(torch.from_numpy(x) for x in (q, reachable & within, reachable, within)))
 
 
+def _geometry(rows: list[tuple]) -> tuple[float, ...]:
+    """What the closed form takes from the rows ``(a, alpha, d, offset)``: ``a1, d1, a2``, the
+    lateral offset ``d2 + d3``, the forearm ``(a3, d4)`` as length and angle, and ``sigma`` of
+    ``alpha1, alpha3, alpha4, alpha5`` (the order :func:`~iiwa_torch.compiled.numba_kernels.pieper_branches` reads)."""
+    (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
+    return (a1, d1, a2, d2 + d3, math.hypot(a3, d4), math.atan2(-sigma(al3) * d4, a3),
+            *(sigma(al) for al in (al1, al3, al4, al5)))  # fmt: skip
+
+
 def _closed_form(rows: list[tuple], frame5, tol: float, ops=TORCH) -> tuple[list, Tensor]:
     """The DH angles of every branch from the chain's rows ``(a, alpha, d, offset)`` and
     ``frame5 = T_05 Rz(theta6) (..., 4, 4)`` (:func:`~._common.last_frame_target`), in the arrays of
     ``ops`` (``_common``): 6 arrays broadcasting to ``(..., 2 shoulder, 2 elbow, 2 wrist)`` and
     ``reachable``, broadcastable too."""
-    (a1, al1, d1, _), (a2, _, d2, _), (a3, al3, d3, _), (_, al4, d4, _), (_, al5, *_), _ = rows
-    s1, s3, s4, s5 = sigma(al1), sigma(al3), sigma(al4), sigma(al5)
+    a1, d1, a2, lateral, link3, gamma, s1, s3, s4, s5 = _geometry(rows)
     wx, wy, wz = frame5[..., 0, 3], frame5[..., 1, 3], frame5[..., 2, 3]
 
     # Waist (shoulder branch): Rz(-theta1) w = (X, -s1 D, wz) with X = +-sqrt(r^2 - D^2).
-    lateral = d2 + d3
     r = safe_norm2(wx, wy, ops)
     shoulder_ok = r >= abs(lateral) * (1 - tol)
     along = ops.sqrt(ops.clamp_min((r - abs(lateral)) * (r + abs(lateral)), TINY))  # sqrt(r^2 - D^2)
@@ -155,8 +154,6 @@ def _closed_form(rows: list[tuple], frame5, tol: float, ops=TORCH) -> tuple[list
     # Shoulder and elbow: planar two-link arm in frame 1's xy plane, second link (a3, -s3 d4).
     px = big_x - a1  # (..., 2)
     py = ops.expand((s1 * (wz - d1))[..., None], px.shape)
-    link3 = math.hypot(a3, d4)
-    gamma = math.atan2(-s3 * d4, a3)
     c_el, s_el_abs, elbow_ok = triangle(safe_norm2(px, py, ops), a2, link3, tol, ops)
     s_el = s_el_abs[..., None] * sign  # (..., 2 shoulder, 2 elbow)
     c_el = ops.expand(c_el[..., None], s_el.shape)
