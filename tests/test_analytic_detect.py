@@ -164,6 +164,27 @@ def test_hand_made_chain_with_a_base_and_turned_axes(name):
         assert (torch.where(sol.valid, dist, math.inf).amin(-1) < 1e-7).all()
 
 
+@pytest.mark.parametrize("name", ["puma560", "iiwa14"])
+def test_first_axis_along_the_world_x_axis(name):
+    """A preset mounted on a wall (base turned so joint 1's axis is the world x axis, where frame 0's
+    x axis cannot follow the world's): still recognised, with the preset's branches."""
+    placed = robots.PRESETS[name]()
+    placed.base[:3, :3] = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]], dtype=F64)
+    q = placed.random_q(N, generator=torch.Generator().manual_seed(5))
+    target = placed.fk(q)
+    exported = _exported(robots.PRESETS[name]())
+    chain = Chain(exported.origins, exported.axes, base=placed.base, tool=exported.tool, limits=placed.limits)
+    assert (chain.fk(q) - target).abs().max() < 1e-12
+    if name == "iiwa14":
+        psi = analytic.iiwa_arm_angle(placed, q)
+        sol, ref = analytic.solve(chain, target, psi), analytic.iiwa(placed, target, psi)
+    else:
+        sol, ref = analytic.solve(chain, target), analytic.pieper(placed, target)
+    pos, rot = _closure(chain, sol, target)
+    assert pos <= 1e-12 and rot <= 1e-12
+    _assert_same_branches(sol.q, sol.reachable, ref.q, ref.reachable, 1e-9)
+
+
 def test_panda_is_refused_naming_the_failed_conditions():
     panda = robots.from_urdf(pybullet_data.getDataPath() + "/franka_panda/panda.urdf", end_link="panda_hand")
     with pytest.raises(ValueError) as info:

@@ -220,9 +220,9 @@ def _table(points: Tensor, dirs: Tensor, end: Tensor, tol: float) -> tuple[list[
     The last frame sits on axis n level with the end effector ``end (4, 4)``, its x axis that of
     frame n - 1 at ``q = 0`` (row n ``(0, 0, d_n, 0)``); the tool takes the rest."""
     z_prev = dirs[0]
-    x_prev = _unit(_perpendicular(torch.eye(3, dtype=torch.float64)[0], z_prev))
-    if x_prev.norm() < 0.5:  # axis 1 along the world x axis
-        x_prev = _unit(_perpendicular(torch.eye(3, dtype=torch.float64)[1], z_prev))
+    world = torch.eye(3, dtype=torch.float64)
+    x_prev = _perpendicular(world[0], z_prev)
+    x_prev = _unit(x_prev if x_prev.norm() > 0.5 else _perpendicular(world[1], z_prev))  # else axis 1 is along x
     o_prev = points[0]
     base = torch.eye(4, dtype=torch.float64)
     base[:3, 0], base[:3, 1], base[:3, 2], base[:3, 3] = x_prev, torch.linalg.cross(z_prev, x_prev), z_prev, o_prev
