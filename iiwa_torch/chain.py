@@ -25,7 +25,6 @@ from .kinematics import Frame, Geometry
 __all__ = ["Chain", "JointKind"]
 
 Tensor = torch.Tensor
-_FLOAT_DTYPES = (torch.float64, torch.float32)  # the dtypes of Chain._one_by_kernel
 _version = attrgetter("_version")
 
 
@@ -267,17 +266,17 @@ class Chain(nn.Module):
             )
         check_finite(q, name)
 
-    def _one_by_kernel(self, q, kernel: str) -> Tensor | None:
+    def _one_by_kernel(self, q, kernel: str, shape: tuple[int, int]) -> Tensor | None:
         """The compiled ``kernel`` (of :mod:`iiwa_torch.compiled.numba_kernels`) of one plain finite CPU
-        configuration ``(n,)`` or ``(1, n)`` without ``requires_grad``, with a current CPU geometry;
-        else ``None``, and the caller takes the checked path.
+        configuration ``(n,)`` or ``(1, n)`` without ``requires_grad``, with a current CPU geometry, as
+        ``(*shape)`` or ``(1, *shape)``; else ``None``, and the caller takes the checked path.
 
         One configuration's call is mostly overhead, so each check is one attribute read, and the
         finiteness check is the Python sum of ``q.tolist()`` (a third of ``numpy()``'s cost; an
         overflow only sends ``q`` to the checked path): benchmarks/results/small.md, fk at batch 1."""
         arrays = self._one_arrays
-        if (arrays is None or type(q) is not Tensor or q.dtype not in _FLOAT_DTYPES or not q.is_cpu or q.requires_grad
-                or q.shape not in self._one_shapes or not compiled.ENABLED):  # fmt: skip
+        if (arrays is None or type(q) is not Tensor or q.dtype not in kin.NUMPY_DTYPES or not q.is_cpu
+                or q.requires_grad or q.shape not in self._one_shapes or not compiled.ENABLED):  # fmt: skip
             return None
         try:
             values = q.tolist()
@@ -288,8 +287,9 @@ class Chain(nn.Module):
             values = values[0]
         if not math.isfinite(sum(values)) or self._buffer_stamp() != self._stamp:
             return None
-        out = getattr(compiled.kernels(), kernel)(*arrays, np.array(values)[None])
-        return kin.like(out if row else out[0], q)
+        out = np.empty((1, *shape), kin.NUMPY_DTYPES[q.dtype])
+        getattr(compiled.kernels(), kernel)(*arrays, np.array(values)[None], out)
+        return torch.from_numpy(out if row else out[0])
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
@@ -354,7 +354,7 @@ class Chain(nn.Module):
         Differentiable; above ``SMALL_BATCH`` configurations the backward is ``J^T`` times the pose
         gradient's twist (:class:`~iiwa_torch.kinematics.EndPoseFunction`).
         """
-        out = self._one_by_kernel(q, "end_poses")
+        out = self._one_by_kernel(q, "end_poses", (4, 4))
         if out is not None:
             return out
         self.check_q(q)
@@ -379,7 +379,7 @@ class Chain(nn.Module):
     def jacobian(self, q: Tensor) -> Tensor:
         """Geometric Jacobian in the world frame: ``q (..., n) -> (..., 6, n)``: linear (m/s) then angular
         (rad/s) rows; column i is ``[z_i x (p_e - p_i); z_i]``, or ``[z_i; 0]`` for a prismatic joint."""
-        out = self._one_by_kernel(q, "jacobians")
+        out = self._one_by_kernel(q, "jacobians", (6, self.n_joints))
         if out is not None:
             return out
         self.check_q(q)

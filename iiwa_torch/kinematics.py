@@ -3,8 +3,7 @@ which :class:`~iiwa_torch.chain.Chain` derives from its buffers.
 
 Up to ``SMALL_BATCH`` configurations: the compiled recursion (CPU, no autograd, numba) or 4x4
 link products; above, the elementwise batch-last kernel :func:`frames_batch_last` in blocks of
-``BLOCK``. Which kernel runs, and why: docs/kinematics.md. :func:`reference_fk` is the plain DH
-definition the fast paths are tested against.
+``BLOCK``. Which kernel runs, and why: docs/kinematics.md.
 """
 
 from __future__ import annotations
@@ -22,8 +21,9 @@ from . import compiled
 
 __all__ = ["BLOCK", "POSITION_BLOCK", "SMALL_BATCH", "EndPoseFunction", "Frame", "Geometry", "all_poses", "blockwise",
            "dh_transforms", "elementary_transform", "end_pose", "end_pose_matmul", "frame_lists", "float64_rows",
-           "frames_batch_last", "jacobian", "like", "pose_vjp", "position_batch_last", "position_horner",
-           "reference_fk", "tool_frame_batch_last", "untracked_cpu"]
+           "frames_batch_last", "jacobian", "like", "NUMPY_DTYPES",
+           "pose_vjp", "position_batch_last", "position_horner",
+           "tool_frame_batch_last", "untracked_cpu"]
 
 Tensor = torch.Tensor
 Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
@@ -184,31 +184,6 @@ class Geometry:
         return cls(joints=joints, has_base=not torch.equal(base, eye), has_tool=not torch.equal(tool, eye),
                    has_offsets=any(offset_list), has_prismatic=any(prismatic), tool_columns=_columns(tool),
                    float_arrays=arrays, **tensors)
-
-
-# ---------------------------------------------------------------------- the reference
-def reference_fk(dh: Tensor, q: Tensor, modified: bool = False, base: Tensor | None = None,
-                 tool: Tensor | None = None) -> Tensor:
-    """The DH definition, for tests: ``q (..., n)`` -> ``(..., n + 2, 4, 4)``: the base, the link frames
-    ``base A_1 ... A_i``, then the end pose (tool applied), ``A_i = Rz(theta) Tz(d) Tx(a) Rx(alpha)``
-    (standard) or ``Rx(alpha) Tx(a) Rz(theta) Tz(d)`` (modified), in ``q``'s dtype."""
-    dh = dh.to(q)
-    eye = torch.eye(4, dtype=q.dtype, device=q.device)
-    frame = (eye if base is None else base.to(q)).expand(*q.shape[:-1], 4, 4)
-    frames = [frame]
-    for i, (a, alpha, d, offset) in enumerate(dh.unbind(0)):
-        theta = q[..., i] + offset
-        c, s, zero, one = theta.cos(), theta.sin(), torch.zeros_like(theta), torch.ones_like(theta)
-        rz = torch.stack([c, -s, zero, zero, s, c, zero, zero, zero, zero, one, zero, zero, zero, zero, one], -1)
-        rz = rz.reshape(*theta.shape, 4, 4)
-        tz, tx, rx = eye.clone(), eye.clone(), eye.clone()
-        tz[2, 3], tx[0, 3] = d, a
-        rx[1, 1], rx[1, 2], rx[2, 1], rx[2, 2] = alpha.cos(), -alpha.sin(), alpha.sin(), alpha.cos()
-        link = rx @ tx @ rz @ tz if modified else rz @ tz @ tx @ rx
-        frame = frame @ link
-        frames.append(frame)
-    frames.append(frame @ (eye if tool is None else tool.to(q)))
-    return torch.stack(frames, -3)
 
 
 # ---------------------------------------------------------------------- elementwise helpers
@@ -381,15 +356,22 @@ def float64_rows(q: Tensor, n: int) -> np.ndarray:
     return x
 
 
+#: the numpy dtype of each float dtype the compiled paths return
+NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+
+
 def like(out, q: Tensor) -> Tensor:
     """A float64 array (or scalar) as a tensor in ``q``'s dtype, outside autograd."""
     return torch.from_numpy(np.asarray(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
 
 
 def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
-    """A compiled ``kernel(*g.float_arrays, q (b, n))`` on ``q (..., n)`` -> ``(..., *shape)`` in ``q``'s dtype."""
-    out = like(kernel(*g.float_arrays, float64_rows(q, g.n_joints)), q)
-    return out if q.ndim == 2 else out.reshape(*q.shape[:-1], *shape)
+    """A compiled ``kernel(*g.float_arrays, q (b, n), out (b, *shape))`` on ``q (..., n)`` -> ``(..., *shape)``,
+    written straight into ``q``'s dtype."""
+    rows = float64_rows(q, g.n_joints)
+    out = np.empty((rows.shape[0], *shape), NUMPY_DTYPES[q.dtype])
+    kernel(*g.float_arrays, rows, out)
+    return torch.from_numpy(out).reshape(*q.shape[:-1], *shape)
 
 
 def _frames_batch_last_compiled(g: Geometry, q: Tensor, keep: bool) -> tuple[list[Frame], list[tuple[Tensor, Tensor]]]:

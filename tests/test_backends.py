@@ -197,7 +197,7 @@ def test_one_configuration_shortcut(shape, dtype):
     NaN or inf, so q goes to check_q; huge finite values whose sum overflows go there too, and pass."""
     chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
     q = chain.random_q(1, generator=torch.Generator().manual_seed(5), dtype=dtype).reshape(shape)
-    assert chain._one_by_kernel(q, "end_poses") is not None
+    assert chain._one_by_kernel(q, "end_poses", (4, 4)) is not None
     for method in (chain.fk, chain.jacobian):
         fast = method(q)
         assert fast.dtype == dtype and torch.equal(fast, method(torch.nn.Parameter(q, requires_grad=False)))
@@ -214,7 +214,7 @@ def test_one_configuration_shortcut(shape, dtype):
                     method(x)
     if dtype == torch.float64:  # float32 values cannot overflow a sum in Python's float64
         huge = torch.full(shape, 1e308, dtype=torch.float64)
-        assert chain._one_by_kernel(huge, "end_poses") is None and torch.isfinite(chain.fk(huge)).all()
+        assert chain._one_by_kernel(huge, "end_poses", (4, 4)) is None and torch.isfinite(chain.fk(huge)).all()
     strided = torch.stack([q.reshape(-1), q.reshape(-1)], -1)[..., 0].reshape(shape)  # not contiguous: the same
     assert not strided.is_contiguous() and torch.equal(chain.fk(strided), chain.fk(q))
 
@@ -228,7 +228,7 @@ def test_one_configuration_shortcut_follows_the_buffers():
         for q in (torch.full((6,), 0.3, dtype=torch.float64), torch.full((1, 6), -0.7, dtype=torch.float64)):
             for method, other in ((chain.fk, fresh.fk), (chain.jacobian, fresh.jacobian)):
                 assert torch.equal(method(q), other(torch.nn.Parameter(q, requires_grad=False)))
-                assert chain._one_by_kernel(q, "end_poses") is not None  # the shortcut again, rebuilt
+                assert chain._one_by_kernel(q, "end_poses", (4, 4)) is not None  # the shortcut again, rebuilt
 
     chain = robots.puma560()
     same(chain, robots.puma560())

@@ -181,7 +181,8 @@ def features(observation, achieved, desired, e, q, inv_scales, damping_sq, joint
     G, S, k = desired.shape[1], inv_scales.shape[0], e.shape[1]
     nj, L, K = q.shape[1], damping_sq.shape[0], o.K
     out = np.empty((B, width_obs + (2 + S) * G + (L + 2) * nj + 1 + K * (nj + 1)), dtype=observation.dtype)
-    jac = jacobians(transforms, params, base, tool, q)
+    jac = np.empty((B, 6, nj))
+    jacobians(transforms, params, base, tool, q, jac)
     jp, row, prior, gain = np.empty((k, nj)), np.empty(k), np.zeros(nj), np.empty(nj)
     normal, bound = np.zeros((K, nj)), np.empty(K)
     scratch = (np.empty((k, k)), np.empty((k, 1)), np.empty(nj), np.empty(nj), np.empty(nj), np.zeros(nj),

@@ -97,12 +97,13 @@ def jacobian_columns(params, pose, Z, P, J):
 
 
 @jit
-def end_poses(transforms, params, base, tool, q):
-    """Configurations ``q (b, n)`` -> their end poses ``(b, 4, 4)``, as :func:`frames_of`."""
-    out, none = np.empty((q.shape[0], 4, 4)), np.empty((0, 3))
+def end_poses(transforms, params, base, tool, q, out):
+    """Configurations ``q (b, n)`` -> their end poses into ``out (b, 4, 4)`` (float32 or float64), as
+    :func:`frames_of`."""
+    pose, none = np.empty((4, 4)), np.empty((0, 3))
     for k in range(q.shape[0]):
-        frames_of(transforms, params, base, tool, q[k], out[k], none, none, np.empty((0, 4, 3)))
-    return out
+        frames_of(transforms, params, base, tool, q[k], pose, none, none, np.empty((0, 4, 3)))
+        out[k] = pose
 
 
 @jit
@@ -117,14 +118,14 @@ def frames_axes(transforms, params, base, tool, q):
 
 
 @jit
-def jacobians(transforms, params, base, tool, q):
-    """Configurations ``q (b, n)`` -> their Jacobians ``(b, 6, n)`` (linear rows first, world frame)."""
-    b, n = q.shape
-    out, pose, Z, P = np.empty((b, 6, n)), np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
-    for k in range(b):
+def jacobians(transforms, params, base, tool, q, out):
+    """Configurations ``q (b, n)`` -> their Jacobians into ``out (b, 6, n)`` (float32 or float64; linear rows first,
+    world frame)."""
+    n = q.shape[1]
+    pose, Z, P = np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
+    for k in range(q.shape[0]):
         frames_of(transforms, params, base, tool, q[k], pose, Z, P, np.empty((0, 4, 3)))
         jacobian_columns(params, pose, Z, P, out[k])
-    return out
 
 
 @jit
