@@ -26,6 +26,7 @@ from ...checks import check_instance, check_positive
 from ...collision import Capsules, World
 from ...dh import DHChain
 from ...so3 import pose_error
+from ..dls import dls_step
 from ._common import AnalyticSolutions, reach_tol, with_clearance
 from .planar import PLANAR_ROWS, planar3r
 from .spherical6r import PIEPER_ROWS, pieper
@@ -192,10 +193,7 @@ def _newton_step(chain: Chain, q: Tensor, target: Tensor, reachable: Tensor) -> 
     branch_dims = q.ndim - 1 - (target.ndim - 2)
     goal = target.reshape(*target.shape[:-2], *(1,) * branch_dims, 4, 4).expand(*q.shape[:-1], 4, 4)
     errors = torch.cat(pose_error(chain.fk(q), goal), -1)  # (..., B, 6)
-    jac = chain.jacobian(q)  # (..., B, 6, n)
-    damped = jac @ jac.transpose(-1, -2) + _DAMPING * torch.eye(6, dtype=q.dtype, device=q.device)
-    step = (jac.transpose(-1, -2) @ torch.linalg.solve(damped, errors[..., None]))[..., 0]  # least squares
-    moved = q + step
+    moved = q + dls_step(chain.jacobian(q), errors, _DAMPING)
     better = torch.cat(pose_error(chain.fk(moved), goal), -1).norm(dim=-1) < errors.norm(dim=-1)
     return torch.where((better & reachable)[..., None], moved, q)
 
