@@ -257,7 +257,12 @@ def read_urdf(source: str | os.PathLike, end_link: str | None = None, base_link:
     Raises ``ValueError`` for a malformed file, unknown links, an ``end_link`` not below
     ``base_link``, a floating, planar or mimic joint on the path, a zero axis, or no movable joint.
     """
-    robot, links, root, parent_joint, children = _parse(_document(source))
+    return _path(_parse(_document(source)), end_link, base_link)
+
+
+def _path(parsed: tuple, end_link: str | None, base_link: str | None) -> UrdfPath:
+    """:func:`read_urdf` of a robot as :func:`_parse` returns it."""
+    robot, links, root, parent_joint, children = parsed
     base = root if base_link is None else _known_link(base_link, "base_link", links)
     if end_link is None:
         leaves = [name for name in _below(base, children) if not children[name]]
@@ -415,8 +420,9 @@ def read_visuals(source: str | os.PathLike, end_link: str | None = None,
 
 def _elements(source, end_link, base_link, tag: str) -> tuple[UrdfCollision, ...]:
     document = _document(source)
-    path = read_urdf(source, end_link=end_link, base_link=base_link)
-    _, _, _, parent_joint, children = _parse(document)
+    parsed = _parse(document)
+    path = _path(parsed, end_link, base_link)
+    parent_joint, children = parsed[3:]
     directory = None if document is source else os.path.dirname(os.path.abspath(os.fspath(source)))
     robot = ElementTree.fromstring(document)
     elements = {link.get("name"): link.findall(tag) for link in robot.iter("link")}
