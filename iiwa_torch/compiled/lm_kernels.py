@@ -10,7 +10,7 @@ import numpy as np
 from .decorators import inline, jit
 from .kinematics_kernels import frames_of, jacobian_columns, pose_error
 
-__all__ = ["cholesky_solve", "into_limits", "lm_round", "lm_rounds"]
+__all__ = ["cholesky_solve", "into_limits", "lm_rounds"]
 
 @inline
 def _evaluate(arrays, q, pos, rot, has_rot, weight, eps, scratch, J, e):
@@ -167,7 +167,7 @@ def _record_slots(q, problem, number, active, key, done, lowest, winner, best_q,
 
 
 @jit
-def lm_round(transforms, params, base, tool, q, problem, number, pos, rot, rest, lo, hi, opts, counts,
+def _lm_round(transforms, params, base, tool, q, problem, number, pos, rot, rest, lo, hi, opts, counts,
              best_q, best_E, used):  # fmt: skip
     """The LM iterations of one round of seeds ``q (s, n)`` (in place), slot ``k`` a seed of
     problem ``problem[k]`` with seed number ``number[k]``; targets ``pos (b, 3)``, ``rot (b, 3, 3)``
@@ -231,7 +231,7 @@ def lm_rounds(transforms, params, base, tool, pool, order, first, pos, rot, rest
               used):  # fmt: skip
     """Every round of seeds of ``b = best_q.shape[0]`` problems, one seed per problem a round:
     ``first (b, n)`` (q0; 0 rows: none), then the pool ``(P, n)`` entries of ranks ``order (ranks, b)``,
-    until a problem converges or runs out of its ``counts[3]`` seeds; the rest as :func:`lm_round`.
+    until a problem converges or runs out of its ``counts[3]`` seeds; the rest as :func:`_lm_round`.
     The torch loop's ``_run_rounds`` (:mod:`iiwa_torch.ik.lm`) with rounds one seed wide."""
     b, n = best_q.shape
     shift = 1 if first.shape[0] else 0
@@ -246,7 +246,7 @@ def lm_rounds(transforms, params, base, tool, pool, order, first, pos, rot, rest
             q[j] = first[p] if k < shift else pool[order[k - shift, p]]
             if k == 0:  # until a better one is found, a problem's answer is its first seed
                 best_q[p] = q[j]
-        lm_round(transforms, params, base, tool, q, remaining, np.full(s, k), pos, rot, rest, lo, hi, opts, counts,
+        _lm_round(transforms, params, base, tool, q, remaining, np.full(s, k), pos, rot, rest, lo, hi, opts, counts,
                  best_q, best_E, used)  # fmt: skip
         remaining = remaining[best_E[remaining] >= 0]
 
