@@ -21,9 +21,8 @@ from . import compiled
 
 __all__ = ["BLOCK", "POSITION_BLOCK", "SMALL_BATCH", "EndPoseFunction", "Frame", "Geometry", "all_poses", "blockwise",
            "dh_transforms", "elementary_transform", "end_pose", "end_pose_matmul", "frame_lists", "float64_rows",
-           "frames_batch_last", "jacobian", "like", "NUMPY_DTYPES",
-           "pose_vjp", "position_batch_last", "position_horner",
-           "tool_frame_batch_last", "untracked_cpu"]
+           "frames_batch_last", "jacobian", "like", "NUMPY_DTYPES", "pose_vjp", "position_batch_last",
+           "position_horner", "tool_frame_batch_last", "untracked_cpu"]
 
 Tensor = torch.Tensor
 Frame = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z axis columns and origin, each (3, batch)
@@ -362,7 +361,7 @@ NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 def like(out, q: Tensor) -> Tensor:
     """A float64 array (or scalar) as a tensor in ``q``'s dtype, outside autograd."""
-    return torch.from_numpy(np.asarray(out, dtype=np.float32 if q.dtype == torch.float32 else np.float64))
+    return torch.from_numpy(np.asarray(out, dtype=NUMPY_DTYPES.get(q.dtype, np.float64)))
 
 
 def by_kernel(kernel, g: Geometry, q: Tensor, shape: tuple[int, ...]) -> Tensor:
