@@ -267,13 +267,14 @@ class Chain(nn.Module):
         check_finite(q, name)
 
     def _one_by_kernel(self, q, kernel: str, shape: tuple[int, int]) -> Tensor | None:
-        """The compiled ``kernel`` (of :mod:`iiwa_torch.compiled.numba_kernels`) of one plain finite CPU
-        configuration ``(n,)`` or ``(1, n)`` without ``requires_grad``, with a current CPU geometry, as
-        ``(*shape)`` or ``(1, *shape)``; else ``None``, and the caller takes the checked path.
+        """The compiled one-configuration ``kernel`` (``end_pose`` or ``jacobian`` of
+        :mod:`iiwa_torch.compiled.numba_kernels`) of one plain finite CPU configuration ``(n,)`` or ``(1, n)``
+        without ``requires_grad``, with a current CPU geometry, as ``(*shape)`` or ``(1, *shape)``; else ``None``,
+        and the caller takes the checked path.
 
-        One configuration's call is mostly overhead, so each check is one attribute read, and the
-        finiteness check is the Python sum of ``q.tolist()`` (a third of ``numpy()``'s cost; an
-        overflow only sends ``q`` to the checked path): benchmarks/results/small.md, fk at batch 1."""
+        One configuration's call is mostly overhead, so each check is one attribute read, ``q`` enters the kernel
+        as a tuple of floats (cheaper to build and pass than an array) and the kernel checks that it is finite:
+        benchmarks/results/small.md, fk at batch 1."""
         arrays = self._one_arrays
         if (arrays is None or type(q) is not Tensor or q.dtype not in kin.NUMPY_DTYPES or not q.is_cpu
                 or q.requires_grad or q.shape not in self._one_shapes or not compiled.ENABLED):  # fmt: skip
@@ -282,14 +283,13 @@ class Chain(nn.Module):
             values = q.tolist()
         except RuntimeError:  # no storage to read (torch.func.vmap): check_q says so
             return None
-        row = q.ndim == 2
-        if row:
-            values = values[0]
-        if not math.isfinite(sum(values)) or self._buffer_stamp() != self._stamp:
+        if self._buffer_stamp() != self._stamp:
             return None
-        out = np.empty((1, *shape), kin.NUMPY_DTYPES[q.dtype])
-        getattr(compiled.kernels(), kernel)(*arrays, np.array(values)[None], out)
-        return torch.from_numpy(out if row else out[0])
+        row = q.ndim == 2
+        out = np.empty(shape, kin.NUMPY_DTYPES[q.dtype])
+        if not getattr(compiled.kernels(), kernel)(*arrays, tuple(values[0] if row else values), out):
+            return None  # not finite
+        return torch.from_numpy(out[None] if row else out)
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
@@ -354,7 +354,7 @@ class Chain(nn.Module):
         Differentiable; above ``SMALL_BATCH`` configurations the backward is ``J^T`` times the pose
         gradient's twist (:class:`~iiwa_torch.kinematics.EndPoseFunction`).
         """
-        out = self._one_by_kernel(q, "end_poses", (4, 4))
+        out = self._one_by_kernel(q, "end_pose", (4, 4))
         if out is not None:
             return out
         self.check_q(q)
@@ -379,7 +379,7 @@ class Chain(nn.Module):
     def jacobian(self, q: Tensor) -> Tensor:
         """Geometric Jacobian in the world frame: ``q (..., n) -> (..., 6, n)``: linear (m/s) then angular
         (rad/s) rows; column i is ``[z_i x (p_e - p_i); z_i]``, or ``[z_i; 0]`` for a prismatic joint."""
-        out = self._one_by_kernel(q, "jacobians", (6, self.n_joints))
+        out = self._one_by_kernel(q, "jacobian", (6, self.n_joints))
         if out is not None:
             return out
         self.check_q(q)

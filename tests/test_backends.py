@@ -193,11 +193,11 @@ def test_fk_and_jacobian_of_a_few_configurations(monkeypatch, name, dtype):
 def test_one_configuration_shortcut(shape, dtype):
     """fk/jacobian of one plain float64 or float32 configuration skip check_q (Chain._one_by_kernel):
     the same numbers and dtype, bit for bit, as the checked path (taken by a Parameter), the chain's
-    current buffers (load_state_dict), and the same errors: a NaN or inf makes the Python sum of q
-    NaN or inf, so q goes to check_q; huge finite values whose sum overflows go there too, and pass."""
+    current buffers (load_state_dict), and the same errors: the kernel refuses a NaN or inf, so q goes
+    to check_q; huge finite values are answered, as the checked path answers them."""
     chain = robots.iiwa14(tool=_tilted(0.3, (0.01, -0.02, 0.05)))
     q = chain.random_q(1, generator=torch.Generator().manual_seed(5), dtype=dtype).reshape(shape)
-    assert chain._one_by_kernel(q, "end_poses", (4, 4)) is not None
+    assert chain._one_by_kernel(q, "end_pose", (4, 4)) is not None
     for method in (chain.fk, chain.jacobian):
         fast = method(q)
         assert fast.dtype == dtype and torch.equal(fast, method(torch.nn.Parameter(q, requires_grad=False)))
@@ -212,9 +212,9 @@ def test_one_configuration_shortcut(shape, dtype):
             for method in (chain.fk, chain.jacobian):
                 with pytest.raises(ValueError, match=re.escape(f"q contains NaN or inf (first at index {index})")):
                     method(x)
-    if dtype == torch.float64:  # float32 values cannot overflow a sum in Python's float64
-        huge = torch.full(shape, 1e308, dtype=torch.float64)
-        assert chain._one_by_kernel(huge, "end_poses", (4, 4)) is None and torch.isfinite(chain.fk(huge)).all()
+    huge = torch.full(shape, torch.finfo(dtype).max, dtype=dtype)
+    assert chain._one_by_kernel(huge, "end_pose", (4, 4)) is not None
+    assert torch.equal(chain.fk(huge), chain.fk(torch.nn.Parameter(huge, requires_grad=False)))
     strided = torch.stack([q.reshape(-1), q.reshape(-1)], -1)[..., 0].reshape(shape)  # not contiguous: the same
     assert not strided.is_contiguous() and torch.equal(chain.fk(strided), chain.fk(q))
 
@@ -228,7 +228,7 @@ def test_one_configuration_shortcut_follows_the_buffers():
         for q in (torch.full((6,), 0.3, dtype=torch.float64), torch.full((1, 6), -0.7, dtype=torch.float64)):
             for method, other in ((chain.fk, fresh.fk), (chain.jacobian, fresh.jacobian)):
                 assert torch.equal(method(q), other(torch.nn.Parameter(q, requires_grad=False)))
-                assert chain._one_by_kernel(q, "end_poses", (4, 4)) is not None  # the shortcut again, rebuilt
+                assert chain._one_by_kernel(q, "end_pose", (4, 4)) is not None  # the shortcut again, rebuilt
 
     chain = robots.puma560()
     same(chain, robots.puma560())

@@ -7,8 +7,9 @@ from __future__ import annotations
 
 from .analytic_kernels import iiwa_sweep, pieper_branches
 from .clearance_kernels import capsule_clearance, own_clearance, sin_cos
-from .kinematics_kernels import answer_errors, end_poses, frames_axes, jacobians
+from .kinematics_kernels import answer_errors, end_pose, end_poses, frames_axes, jacobian, jacobians
 from .lm_kernels import cholesky_solve, into_limits, lm_rounds
 
-__all__ = ["answer_errors", "capsule_clearance", "cholesky_solve", "end_poses", "frames_axes", "iiwa_sweep",
-           "into_limits", "jacobians", "lm_rounds", "own_clearance", "pieper_branches", "sin_cos"]
+__all__ = ["answer_errors", "capsule_clearance", "cholesky_solve", "end_pose", "end_poses", "frames_axes",
+           "iiwa_sweep", "into_limits", "jacobian", "jacobians", "lm_rounds", "own_clearance", "pieper_branches",
+           "sin_cos"]
