@@ -172,18 +172,18 @@ class Chain(nn.Module):
         turn[:, :3, :3] = torch.stack([z_onto(a) for a in axes])
         return origins @ turn, turn.transpose(1, 2), torch.zeros(n, dtype=torch.float64)
 
-    def _buffer_stamp(self) -> tuple:
+    def _buffer_stamp(self) -> list[int]:
         """The geometry buffers' version counters (bumped by in-place writes) and storage addresses
         (changed by ``.data =``); assigning a buffer anew forgets them (:meth:`register_buffer`)."""
         watched = self._watched
         if watched is None:
             watched = self._watched = self._geometry_buffers()
-        return (*map(_version, watched), *map(Tensor.data_ptr, watched))
+        return [*map(_version, watched), *map(Tensor.data_ptr, watched)]
 
     def _forget_geometry(self) -> None:
         """Drop the cached geometry: the next call rebuilds it from the buffers as they are then."""
         self._geometry: dict[torch.dtype, Geometry] = {}
-        self._stamp: tuple = ()
+        self._stamp: list[int] = []
         self._watched: tuple[Tensor, ...] | None = None
         self._one_arrays: tuple | None = None  # the float64 geometry's float_arrays, on a CPU chain
 
@@ -266,18 +266,20 @@ class Chain(nn.Module):
             )
         check_finite(q, name)
 
-    def _one_by_kernel(self, q, kernel: str, shape: tuple[int, int]) -> Tensor | None:
+    def _one_by_kernel(self, q, kernel: str, shape: tuple[int, int]) -> np.ndarray | None:
         """The compiled one-configuration ``kernel`` (``end_pose`` or ``jacobian`` of
         :mod:`iiwa_torch.compiled.numba_kernels`) of one plain finite CPU configuration ``(n,)`` or ``(1, n)``
-        without ``requires_grad``, with a current CPU geometry, as ``(*shape)`` or ``(1, *shape)``; else ``None``,
-        and the caller takes the checked path.
+        without ``requires_grad``, with a current CPU geometry, as an array ``(*shape)`` or ``(1, *shape)`` in
+        ``q``'s dtype; else ``None``, and the caller takes the checked path.
 
         One configuration's call is mostly overhead, so each check is one attribute read, ``q`` enters the kernel
         as a tuple of floats (cheaper to build and pass than an array) and the kernel checks that it is finite:
         benchmarks/results/small.md, fk at batch 1."""
         arrays = self._one_arrays
-        if (arrays is None or type(q) is not Tensor or q.dtype not in kin.NUMPY_DTYPES or not q.is_cpu
-                or q.requires_grad or q.shape not in self._one_shapes or not compiled.ENABLED):  # fmt: skip
+        if arrays is None or type(q) is not Tensor or not q.is_cpu or q.requires_grad:
+            return None
+        dtype, q_shape = kin.NUMPY_DTYPES.get(q.dtype), q.shape
+        if dtype is None or q_shape not in self._one_shapes or not compiled.ENABLED:
             return None
         try:
             values = q.tolist()
@@ -285,11 +287,11 @@ class Chain(nn.Module):
             return None
         if self._buffer_stamp() != self._stamp:
             return None
-        row = q.ndim == 2
-        out = np.empty(shape, kin.NUMPY_DTYPES[q.dtype])
+        row = len(q_shape) == 2
+        out = np.empty(shape, dtype)
         if not getattr(compiled.kernels(), kernel)(*arrays, tuple(values[0] if row else values), out):
             return None  # not finite
-        return torch.from_numpy(out[None] if row else out)
+        return out[None] if row else out
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
         """``(..., n) -> (...)`` bool: every joint within ``[lower - tol, upper + tol]``."""
@@ -356,7 +358,7 @@ class Chain(nn.Module):
         """
         out = self._one_by_kernel(q, "end_pose", (4, 4))
         if out is not None:
-            return out
+            return torch.from_numpy(out)
         self.check_q(q)
         g = self.geometry(q.dtype)
         if q.requires_grad and torch.is_grad_enabled() and q.numel() > kin.SMALL_BATCH * self.n_joints:
@@ -371,7 +373,11 @@ class Chain(nn.Module):
         return kin.blockwise(q, self.n_joints, (self.n_joints + 1, 4, 4), lambda qb: kin.all_poses(g, qb))
 
     def position(self, q: Tensor) -> Tensor:
-        """``fk(q)[..., :3, 3]``: ``q (..., n)`` -> ``(..., 3)`` (m), without rotations; differentiable."""
+        """``fk(q)[..., :3, 3]``: ``q (..., n)`` -> ``(..., 3)`` (m), without rotations (but for one configuration,
+        whose :meth:`fk` costs less than the batched position kernel's set-up); differentiable."""
+        out = self._one_by_kernel(q, "end_pose", (4, 4))
+        if out is not None:
+            return torch.from_numpy(out[..., :3, 3])
         self.check_q(q)
         g = self.geometry(q.dtype)
         return kin.position_batch_last(g, q.reshape(-1, self.n_joints).T).T.reshape(*q.shape[:-1], 3)
@@ -381,7 +387,7 @@ class Chain(nn.Module):
         (rad/s) rows; column i is ``[z_i x (p_e - p_i); z_i]``, or ``[z_i; 0]`` for a prismatic joint."""
         out = self._one_by_kernel(q, "jacobian", (6, self.n_joints))
         if out is not None:
-            return out
+            return torch.from_numpy(out)
         self.check_q(q)
         g = self.geometry(q.dtype)
         return kin.blockwise(q, self.n_joints, (6, self.n_joints), lambda qb: kin.jacobian(g, qb))

@@ -201,6 +201,9 @@ def test_one_configuration_shortcut(shape, dtype):
     for method in (chain.fk, chain.jacobian):
         fast = method(q)
         assert fast.dtype == dtype and torch.equal(fast, method(torch.nn.Parameter(q, requires_grad=False)))
+    position = chain.position(q)  # one configuration: fk's translation; the batched kernel's to rounding
+    assert position.shape == (*shape[:-1], 3) and torch.equal(position, chain.fk(q)[..., :3, 3])
+    torch.testing.assert_close(position, chain.position(torch.nn.Parameter(q, requires_grad=False)))
     other = robots.iiwa7()
     chain.load_state_dict(other.state_dict())
     assert torch.equal(chain.fk(q), other.fk(torch.nn.Parameter(q, requires_grad=False)))
