@@ -223,6 +223,23 @@ def test_one_configuration_shortcut(shape, dtype):
 
 
 @needs_numba
+def test_a_non_finite_configuration_gives_a_nan_pose():
+    """The kernels leave no row unwritten: a configuration with a NaN or inf gives an all-NaN pose (and
+    ``False`` from the one-configuration kernels), its neighbours their poses."""
+    kernels = compiled.kernels()
+    chain = robots.iiwa14()
+    arrays = chain.geometry().float_arrays
+    q = chain.random_q(3, generator=torch.Generator().manual_seed(2)).numpy()
+    q[1, 4] = math.inf
+    poses = np.zeros((3, 4, 4))
+    kernels.end_poses(*arrays, q, poses)
+    assert np.isnan(poses[1]).all() and np.array_equal(poses[[0, 2]], chain.fk(torch.from_numpy(q[[0, 2]])).numpy())
+    jac = np.zeros((6, 7))
+    assert not kernels.jacobian(*arrays, tuple(q[1]), jac) and np.isnan(jac).all()
+    assert not kernels.end_pose(*arrays, (math.nan,) * 7, poses[0]) and np.isnan(poses[0]).all()
+
+
+@needs_numba
 def test_one_configuration_shortcut_follows_the_buffers():
     """The shortcut's cached geometry follows every way a buffer changes: an in-place write to any
     geometry buffer, ``.data =``, a buffer assigned or registered anew, a dtype round trip; each

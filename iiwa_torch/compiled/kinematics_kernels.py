@@ -99,9 +99,10 @@ def jacobian_columns(params, pose, Z, P, J):
 @jit
 def end_pose(transforms, params, base, tool, q, out):
     """One configuration ``q`` (n floats: a tuple, or a row of an array) -> its end pose into ``out (4, 4)`` (float32
-    or float64), as :func:`frames_of`; ``False``, ``out`` untouched, if ``q`` is not finite."""
+    or float64), as :func:`frames_of`; ``False``, ``out`` all NaN, if ``q`` is not finite."""
     for v in q:
         if not math.isfinite(v):
+            out[:] = np.nan
             return False
     pose, none = np.empty((4, 4)), np.empty((0, 3))
     frames_of(transforms, params, base, tool, q, pose, none, none, np.empty((0, 4, 3)))
@@ -130,9 +131,10 @@ def frames_axes(transforms, params, base, tool, q):
 @jit
 def jacobian(transforms, params, base, tool, q, out):
     """One configuration ``q`` (n floats: a tuple, or a row of an array) -> its Jacobian into ``out (6, n)`` (float32
-    or float64; linear rows first, world frame); ``False``, ``out`` untouched, if ``q`` is not finite."""
+    or float64; linear rows first, world frame); ``False``, ``out`` all NaN, if ``q`` is not finite."""
     for v in q:
         if not math.isfinite(v):
+            out[:] = np.nan
             return False
     n = len(q)
     pose, Z, P = np.empty((4, 4)), np.empty((n, 3)), np.empty((n, 3))
