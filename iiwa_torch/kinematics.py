@@ -356,7 +356,7 @@ def float64_rows(q: Tensor, n: int) -> np.ndarray:
 
 
 #: the numpy dtype of each float dtype the compiled paths return
-NUMPY_DTYPES = {torch.float32: np.float32, torch.float64: np.float64}
+NUMPY_DTYPES = {torch.float32: np.dtype(np.float32), torch.float64: np.dtype(np.float64)}
 
 
 def like(out, q: Tensor) -> Tensor:

@@ -37,15 +37,15 @@ def apply_transform(T, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2):
 
 
 @inline
-def _joint(transforms, params, i, theta, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, axis):
+def _joint(transforms, params, i, theta, x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, Z, P):
     """Link frame ``i - 1`` -> link frame ``i`` through joint i at ``theta = q_i + offset_i``:
-    ``before_i M(theta) after_i`` (identities skipped); joint i's axis and a point on it into
-    ``axis (6,)`` if it has 6 entries."""
+    ``before_i M(theta) after_i`` (identities skipped); joint i's axis into ``Z[i]`` and a point on
+    it into ``P[i]`` if ``Z`` has rows."""
     if params[i, 2]:
         x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = apply_transform(transforms[i, 0], x0, x1, x2, y0, y1, y2,
                                                                          z0, z1, z2, p0, p1, p2)
-    if axis.shape[0] == 6:
-        axis[0], axis[1], axis[2], axis[3], axis[4], axis[5] = z0, z1, z2, p0, p1, p2
+    if Z.shape[0] > 0:
+        Z[i, 0], Z[i, 1], Z[i, 2], P[i, 0], P[i, 1], P[i, 2] = z0, z1, z2, p0, p1, p2
     if params[i, 1]:  # prismatic: along z
         p0, p1, p2 = p0 + theta * z0, p1 + theta * z1, p2 + theta * z2
     else:
@@ -63,15 +63,12 @@ def frames_of(transforms, params, base, tool, q, pose, Z, P, F):
     ``F`` has ``n + 1`` rows, the base and link frames (no tool) into ``F (n + 1, 4, 3)``: x, y, z axes and origin."""
     x0, x1, x2, y0, y1, y2 = base[0, 0], base[1, 0], base[2, 0], base[0, 1], base[1, 1], base[2, 1]
     z0, z1, z2, p0, p1, p2 = base[0, 2], base[1, 2], base[2, 2], base[0, 3], base[1, 3], base[2, 3]
-    keep, every = Z.shape[0] > 0, F.shape[0] > 0
-    axis = np.empty(6 if keep else 0)
+    every = F.shape[0] > 0
     if every:
         _store_frame(F[0], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
     for i in range(params.shape[0]):
         x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2 = _joint(transforms, params, i, q[i] + params[i, 0], x0, x1,
-                                                                x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, axis)
-        if keep:
-            Z[i, 0], Z[i, 1], Z[i, 2], P[i, 0], P[i, 1], P[i, 2] = axis[0], axis[1], axis[2], axis[3], axis[4], axis[5]
+                                                                x2, y0, y1, y2, z0, z1, z2, p0, p1, p2, Z, P)
         if every:
             _store_frame(F[i + 1], x0, x1, x2, y0, y1, y2, z0, z1, z2, p0, p1, p2)
     for k in range(4):  # column k of the tool, (u, v, w), in the world: u x + v y + w z
