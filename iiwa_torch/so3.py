@@ -178,7 +178,7 @@ def check_rotation(rot: torch.Tensor, name: str = "rot") -> None:
 RIGID_TOL = {torch.float64: 1e-6, torch.float32: 1e-5}
 
 
-_RIGID_NUMPY_BATCH = 64  # up to this many CPU poses check_rigid computes in numpy (a torch op's fixed cost dominates)
+_RIGID_NUMPY_BATCH = 256  # up to this many CPU poses check_rigid computes in numpy (benchmarks/results/paths.md)
 
 
 def _rigid_numpy(pose: np.ndarray, tol: float) -> bool:

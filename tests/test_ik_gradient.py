@@ -351,7 +351,7 @@ def test_dls_step_numpy_is_damped_least_squares_with_held_joints(rows):
 
 def test_dls_step_gradient_same_on_both_cholesky_paths():
     gen = torch.Generator().manual_seed(28)
-    J = torch.randn(600, 6, 7, generator=gen, dtype=torch.float64, requires_grad=True)  # > 512: unrolled
+    J = torch.randn(600, 6, 7, generator=gen, dtype=torch.float64, requires_grad=True)  # > 384: unrolled
     e = torch.randn(600, 6, generator=gen, dtype=torch.float64)
     weights = torch.randn(600, 7, generator=gen, dtype=torch.float64)
     (grad_all,) = torch.autograd.grad((dls_step(J, e, 1e-2) * weights).sum(), J)

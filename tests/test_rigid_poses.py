@@ -79,7 +79,7 @@ def test_check_rigid_tolerance_per_dtype():
     so3.check_rigid(torch.empty(0, 4, 4))
 
 
-@pytest.mark.parametrize("count", [1, 4, 100])  # one pose in Python floats, a few in numpy, more in torch
+@pytest.mark.parametrize("count", [1, 4, 300])  # one pose in Python floats, a few in numpy, > 256 in torch
 @pytest.mark.parametrize("kind", KINDS)
 def test_check_rigid_at_every_batch_size(kind, count):
     chain = robots.iiwa14()

@@ -18,7 +18,7 @@ __all__ = ["dls_step", "dls_step_batch_last", "dls_step_numpy", "cholesky_solve_
 
 Tensor = torch.Tensor
 
-_LAPACK_BATCH = 512  # up to this many problems, LAPACK's per-matrix Cholesky beats the unrolled one
+_LAPACK_BATCH = 384  # up to this many problems, LAPACK's per-matrix Cholesky beats the unrolled one (paths.md)
 
 
 def cholesky_solve_batch_last(A: Tensor, rhs: Tensor, floor: float) -> Tensor:
