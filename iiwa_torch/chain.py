@@ -242,11 +242,12 @@ class Chain(nn.Module):
 
     def extra_repr(self) -> str:
         head = f"name={self.name!r}, n_joints={self.n_joints}"
-        rows = [f"  {'joint':<16}{'kind':<11}{'axis':<22}{'min':>9}{'max':>9}   (deg or m)"]
+        width = max(map(len, ("joint", *self.joint_names))) + 2
+        rows = [f"  {'joint':<{width}}{'kind':<11}{'axis':<22}{'min':>9}{'max':>9}   (deg or m)"]
         for name, kind, axis, lo, hi in zip(self.joint_names, self.kinds, self.axes.tolist(), *self.limits.tolist()):
             scale = 1.0 if kind is JointKind.PRISMATIC else math.degrees(1.0)
-            text = "(" + ", ".join(f"{v:.3g}" for v in axis) + ")"
-            rows.append(f"  {name:<16}{kind.value:<11}{text:<22}{lo * scale:9.1f}{hi * scale:9.1f}")
+            text = "(" + ", ".join(f"{v + 0.0:.3g}" for v in axis) + ")"  # + 0.0: no "-0"
+            rows.append(f"  {name:<{width}}{kind.value:<11}{text:<22}{lo * scale:9.1f}{hi * scale:9.1f}")
         return head + "\n" + "\n".join(rows)
 
     # ------------------------------------------------------------------ input checks

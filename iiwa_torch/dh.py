@@ -83,10 +83,10 @@ class DHChain(Chain):
 
     def extra_repr(self) -> str:
         head = f"name={self.name!r}, convention={self.convention.value!r}, n_joints={self.n_joints}"
-        rows = [f"  {'joint':<10}{'a':>9}{'alpha':>9}{'d':>9}{'offset':>9}{'min':>9}{'max':>9}   (m, deg)"]
+        width = max(map(len, ("joint", *self.joint_names))) + 2
+        rows = [f"  {'joint':<{width}}{'a':>9}{'alpha':>9}{'d':>9}{'offset':>9}{'min':>9}{'max':>9}   (m, deg)"]
         for name, (a, al, d, off), lo, hi in zip(self.joint_names, self.dh.tolist(), *self.limits.tolist()):
-            rows.append(
-                f"  {name:<10}{a:9.4f}{math.degrees(al):9.1f}{d:9.4f}{math.degrees(off):9.1f}"
-                f"{math.degrees(lo):9.1f}{math.degrees(hi):9.1f}"
-            )
+            # rounded, then + 0.0: a -1e-17 shows as 0.0000, not -0.0000
+            a, d, al, off, lo, hi = (round(v, 4) + 0.0 for v in (a, d, *map(math.degrees, (al, off, lo, hi))))
+            rows.append(f"  {name:<{width}}{a:9.4f}{al:9.1f}{d:9.4f}{off:9.1f}{lo:9.1f}{hi:9.1f}")
         return head + "\n" + "\n".join(rows)

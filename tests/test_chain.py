@@ -11,6 +11,7 @@ import torch
 from urdf_samples import ODD_URDF, pinocchio_q
 
 from iiwa_torch import Chain, ik, robots, urdf
+from iiwa_torch.dh import DHChain
 
 pin = pytest.importorskip("pinocchio")
 pytest.importorskip("pytorch_kinematics")
@@ -156,6 +157,16 @@ def test_continuous_and_prismatic_joints():
     np.testing.assert_allclose((chain.fk(slide) - chain.fk(zero))[:3, 3].numpy(), (0.2 * axis).numpy(), atol=1e-15)
     with pytest.raises(ValueError, match="prismatic"):
         Chain(torch.eye(4)[None], [[0.0, 0.0, 1.0]], kinds=["prismatic"])
+
+
+def test_repr_keeps_long_joint_names_apart_from_their_columns():
+    names = ["a_rather_long_joint_name_1", "j2"]
+    chain = Chain(torch.eye(4).repeat(2, 1, 1), [[0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], joint_names=names)
+    rows = repr(chain).splitlines()[3:5]
+    assert [row.split()[:3] for row in rows] == [[names[0], "revolute", "(0,"], ["j2", "revolute", "(0,"]]
+    assert "(0, -1, 0)" in rows[1] and "-0" not in rows[0]
+    dh = DHChain([[-1e-17, -math.pi / 2, 0.36, 0.0]], joint_names=["A1_of_a_long_name"])
+    assert repr(dh).splitlines()[3].split()[:4] == ["A1_of_a_long_name", "0.0000", "-90.0", "0.3600"]
 
 
 def test_buffers_are_the_truth():
