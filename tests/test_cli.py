@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from urdf_samples import ODD_URDF
 
 from iiwa_torch import robots, so3
 from iiwa_torch.cli import main
@@ -127,6 +128,25 @@ def test_robots_list_and_table(capsys):
     assert table["dh_rows_a_alpha_d_offset"][0] == pytest.approx([0, -math.pi / 2, 0.36, 0])
     assert table["velocity_limits_rad_s"][3] == pytest.approx(math.radians(75))
     assert main(["robots", "puma560"]) == 0 and "puma560" in capsys.readouterr().out
+
+
+def test_robots_prints_a_urdf_arms_joints(capsys, tmp_path):
+    path = tmp_path / "odd.urdf"
+    path.write_text(ODD_URDF)
+    out = _run_json(capsys, "robots", "--urdf", str(path), "--end-link", "tip")
+    joints = {j["name"]: j for j in out["joints"]}
+    assert list(joints) == ["j1", "j2", "j3", "j4"]  # the fixed joints folded, the side branch left out
+    assert [j["kind"] for j in joints.values()] == ["revolute", "prismatic", "continuous", "revolute"]
+    # the numbers written in ODD_URDF; the axis normalised
+    assert joints["j1"]["axis"] == pytest.approx([0.2 / math.sqrt(1.01), -0.4 / math.sqrt(1.01), 0.9 / math.sqrt(1.01)])
+    assert (joints["j2"]["min"], joints["j2"]["max"]) == (-0.1, 0.3)
+    assert {j["velocity_limit"] for j in joints.values()} == {None}  # j3 has none: a chain's speeds are all or none
+    assert (joints["j3"]["min"], joints["j3"]["max"], joints["j3"]["child_link"]) == (None, None, "d")
+    assert main(["robots", "--urdf", str(path), "--end-link", "tip"]) == 0
+    table = capsys.readouterr().out
+    assert re.search(r"j2 .* prismatic .* 0\.707 0\.707 0 .* -0\.1 .* 0\.3 .* - ", table)
+    assert re.search(r"j4 .* revolute .* 0 0 -1 .* -57\.3 .* 57\.3 ", table)  # 1 rad in degrees
+    assert "leaf links below 'root' (tip, side); pass --end-link" in _fails(capsys, "robots", "--urdf", str(path))
 
 
 def test_demo_runs(capsys, tmp_path):
@@ -428,7 +448,7 @@ def test_any_arm_from_its_urdf(capsys):
     assert "no URDF file" in _fails(capsys, "fk", "0", "--urdf", "/no/such.urdf")
     if Path("/proc/self/mem").exists():  # a file that is there but cannot be read, even by root
         assert "cannot read it: Input/output error" in _fails(capsys, "fk", "0", "--urdf", "/proc/self/mem")
-    assert "pass end_link=" in _fails(capsys, "fk", "0", "--urdf", panda_file)
+    assert "pass --end-link to choose" in _fails(capsys, "fk", "0", "--urdf", panda_file)
     assert "presets only" in _fails(capsys, "fk", "0", "--urdf", panda_file, "--robot", "iiwa14")
     assert "--urdf only" in _fails(capsys, "fk", "0", "--end-link", "tool0")
     assert "do not meet" in _fails(capsys, "ik", "--pose", *flat, "--urdf", panda_file, "--end-link", "panda_hand",

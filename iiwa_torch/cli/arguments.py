@@ -29,8 +29,8 @@ def chain_of(args: argparse.Namespace) -> Chain:
             return robots.from_urdf(args.urdf, end_link=args.end_link)
         except OSError as err:  # a file that exists but cannot be read
             raise UsageError(f"--urdf {args.urdf}: cannot read it: {err.strerror or err}") from None
-        except (ValueError, TypeError) as err:
-            raise UsageError(f"--urdf {args.urdf}: {err}") from None
+        except (ValueError, TypeError) as err:  # the library's keyword end_link= is this option here
+            raise UsageError(f"--urdf {args.urdf}: {str(err).replace('end_link=', '--end-link')}") from None
     if args.end_link is not None:
         raise UsageError("--end-link applies to --urdf only")
     robot = args.robot or "iiwa14"

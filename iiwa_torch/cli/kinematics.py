@@ -10,7 +10,7 @@ import sys
 import torch
 
 from .. import robots, so3
-from ..chain import Chain
+from ..chain import Chain, JointKind
 from ..dh import DHChain
 from .arguments import F64, UsageError, chain_of, drawing, joint_angles, pose_of, writable
 from .output import fmt, pose_summary, print_json, print_pose, say, table
@@ -170,7 +170,12 @@ def _ik_gradient(
 
 # ---------------------------------------------------------------- robots
 def run_robots(args: argparse.Namespace) -> int:
-    """``iiwa-torch robots [NAME]``: the presets, or one preset's DH table, limits and speeds."""
+    """``iiwa-torch robots [NAME | --urdf FILE]``: the presets, or one preset's DH table, limits and
+    speeds, or the joints a URDF file's path gives."""
+    if args.urdf is not None or args.end_link is not None:
+        if args.name is not None:
+            raise UsageError("give a preset NAME or --urdf, not both")
+        return _print_joints(chain_of(args), args.json)
     if args.name is None:
         chains = [fn() for fn in robots.PRESETS.values()]
         if args.json:
@@ -208,4 +213,24 @@ def run_robots(args: argparse.Namespace) -> int:
         )
     cols = ["joint", "a (m)", "alpha (deg)", "d (m)", "offset (deg)", "min (deg)", "max (deg)", "speed (deg/s)"]
     table(f"{chain.name}: {chain.convention.value} DH", cols, rows)
+    return 0
+
+
+def _print_joints(chain: Chain, as_json: bool) -> int:
+    """``robots --urdf``: each joint's kind, axis (in its own frame), child link, limits and speed."""
+    vel = [None] * chain.n_joints if chain.velocity_limits is None else chain.velocity_limits.tolist()
+    lows, highs = ([x if math.isfinite(x) else None for x in row] for row in chain.limits.tolist())  # continuous: None
+    columns = (chain.joint_names, chain.kinds, chain.axes.tolist(), chain.link_names, lows, highs, vel)
+    if as_json:
+        keys = ("name", "kind", "axis", "child_link", "min", "max", "velocity_limit")
+        joints = [dict(zip(keys, (n, k.value, *rest))) for n, k, *rest in zip(*columns)]
+        print_json({"name": chain.name, "joints": joints, "base": chain.base.tolist(), "tool": chain.tool.tolist()})
+        return 0
+    rows = []
+    for name, kind, axis, link, lo, hi, v in zip(*columns):
+        unit = 1.0 if kind is JointKind.PRISMATIC else math.degrees(1.0)
+        shown = ["-" if x is None else f"{x * unit:.4g}" for x in (lo, hi, v)]
+        rows.append([name, kind.value, " ".join(f"{x + 0.0:.3g}" for x in axis), link, *shown])
+    cols = ["joint", "kind", "axis", "child link", "min", "max", "speed (per s)"]
+    table(f"{chain.name}: {chain.n_joints} joints (deg, or m for a prismatic joint)", cols, rows)
     return 0

@@ -25,6 +25,7 @@ examples:
   iiwa-torch ik --pose 0.5 0.1 0.4                 (position only: 3 numbers)
   iiwa-torch traj --from-q 0 30 0 -60 0 60 0 --to-pose 0.5 0.2 0.6 180 0 180 --gif line.gif
   iiwa-torch robots iiwa14
+  iiwa-torch robots --urdf panda.urdf --end-link panda_hand
   iiwa-torch demo
   iiwa-torch view --world '{"spheres": [[0.5, 0, 0.5, 0.1]]}' --capsules
 """
@@ -95,10 +96,12 @@ def _add_traj(sub, common: argparse.ArgumentParser) -> None:
 
 
 def _add_robots(sub, common: argparse.ArgumentParser) -> None:
-    p = sub.add_parser("robots", help="list presets, or print one's DH table")
+    p = sub.add_parser("robots", help="list presets, print one's DH table, or a URDF arm's joints")
     p.add_argument("name", nargs="?", help="a preset name")
+    p.add_argument("--urdf", metavar="FILE", help="print the joints of this URDF file's arm instead")
+    p.add_argument("--end-link", metavar="LINK", help="with --urdf: the end effector's link (default: the only leaf)")
     p.add_argument("--json", action="store_true", help="print JSON (metres, radians) instead of tables")
-    p.set_defaults(func=run_robots, parser=p)
+    p.set_defaults(func=run_robots, parser=p, robot=None, flange=None)  # chain_of reads them
 
 
 def _add_demo(sub, common: argparse.ArgumentParser) -> None:
