@@ -123,6 +123,8 @@ def _document(source: str | os.PathLike) -> str | bytes:
     if not isinstance(source, (str, os.PathLike)):
         raise TypeError(f"source must be a URDF file path or URDF XML text, got {type(source).__name__}")
     path = os.fspath(source)
+    if os.path.isdir(path):
+        raise ValueError(f"source: {path!r} is a folder; pass the URDF file in it (or the XML text itself)")
     if not os.path.isfile(path):
         raise ValueError(f"source: no URDF file at {path!r} (pass a file path or the XML text itself)")
     with open(path, "rb") as file:  # bytes: the parser reads the encoding declaration itself

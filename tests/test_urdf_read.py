@@ -213,6 +213,7 @@ ERRORS = {  # (URDF, read_urdf's arguments, message)
     "not xml": (_robot("<joint>"), {}, "not well-formed XML"),
     "not a robot": ("<sdf/>", {}, "root element is <robot>"),
     "missing file": ("/nonexistent/robot.urdf", {}, "no URDF file at '/nonexistent/robot.urdf'"),
+    "a folder": ("/", {}, "'/' is a folder; pass the URDF file in it"),
     "unknown end": (
         _robot(J + _joint("k", "a", "c"), "abc"),
         {"end_link": "z"},
