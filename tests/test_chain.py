@@ -12,6 +12,7 @@ from urdf_samples import ODD_URDF, pinocchio_q
 
 from iiwa_torch import Chain, ik, robots, urdf
 from iiwa_torch.dh import DHChain
+from iiwa_torch.ik.lm_compiled import COMPILED_BATCH
 
 pin = pytest.importorskip("pinocchio")
 pytest.importorskip("pytorch_kinematics")
@@ -240,12 +241,16 @@ def test_link_frames_match_pybullet():
         pybullet.disconnect(client)
 
 
-@pytest.mark.parametrize("count", [3, 200])  # the small-batch (compiled) and the batched solver
-def test_gradient_ik_with_continuous_and_prismatic_joints(count):
+@pytest.mark.parametrize("mode", ["position", "pose"])
+@pytest.mark.parametrize("count", [3, COMPILED_BATCH + 1, "grad"])  # the compiled and the torch solver
+def test_gradient_ik_with_continuous_and_prismatic_joints(count, mode):
     odd = _chain("odd")
-    q = odd.random_q(count, generator=torch.Generator().manual_seed(12))
+    q = odd.random_q(200 if count == "grad" else count, generator=torch.Generator().manual_seed(12))
     q[:, 2] += 7.0  # the continuous joint beyond a turn
-    target = odd.fk(q)[:, :3, 3]
-    result = ik.solve(odd, target, mode="position")
+    target = odd.fk(q) if mode == "pose" else odd.fk(q)[:, :3, 3]
+    if count == "grad":  # a target that requires grad takes the torch solver at any size
+        target.requires_grad_(True)
+    result = ik.solve(odd, target, mode=mode)
     assert result.success.all() and odd.within_limits(result.q).all()
-    assert (odd.position(result.q) - target).norm(dim=-1).max() <= 1e-4
+    assert (odd.fk(result.q)[:, :3, 3] - target[..., :3, 3] if mode == "pose" else odd.position(result.q) - target
+            ).norm(dim=-1).max() <= 1e-4

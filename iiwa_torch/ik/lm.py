@@ -110,6 +110,11 @@ def _pose_terms(
     for r, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # z x lever, one component per row
         torch.mul(Z[i], lever[j], out=J[r])
         J[r].addcmul_(Z[j], lever[i], value=-1)
+    g = chain.geometry(q.dtype)
+    if g.has_prismatic:  # a sliding joint's column is [z; 0]
+        J[:3] = torch.where(g.prismatic, Z, J[:3])
+        if pose:
+            J[3:].masked_fill_(g.prismatic, 0.0)
     if not pose:
         return J, e_pos, pos_err.square(), pos_err, torch.zeros_like(pos_err)
     if weight != 1:
