@@ -149,6 +149,20 @@ def test_robots_prints_a_urdf_arms_joints(capsys, tmp_path):
     assert "leaf links below 'root' (tip, side); pass --end-link" in _fails(capsys, "robots", "--urdf", str(path))
 
 
+def test_a_prismatic_joint_is_read_and_shown_in_metres(capsys, tmp_path):
+    path = tmp_path / "odd.urdf"
+    path.write_text(ODD_URDF)
+    odd = ["--urdf", str(path), "--end-link", "tip"]
+    out = _run_json(capsys, "fk", "10", "0.1", "20", "30", *odd)  # j2 slides 0.1 m
+    assert out["q_rad"] == pytest.approx([math.radians(10), 0.1, math.radians(20), math.radians(30)], abs=1e-15)
+    target = [str(v) for v in out["xyz_m"]]
+    assert main(["ik", "--pose", *target, *odd, "--seed", "3"]) in (0, 1)
+    text = capsys.readouterr().out
+    assert "joints in deg, m for prismatic" in text
+    row = next(line for line in text.splitlines() if " lm " in line).replace("│", " ").split()
+    assert -0.1 <= float(row[2]) <= 0.3  # j2 within its limits in metres (in degrees it would read ~ +-6)
+
+
 def test_demo_runs(capsys, tmp_path):
     assert main(["demo", "--batch", "64", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out

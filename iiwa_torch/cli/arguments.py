@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 from .. import robots, so3
-from ..chain import Chain
+from ..chain import Chain, JointKind
 from ..checks import require
 
 F64 = torch.float64
@@ -63,11 +63,22 @@ def radians(values: list[float], rad: bool) -> list[float]:
     return list(values) if rad else [math.radians(v) for v in values]
 
 
+def joint_scales(chain: Chain, rad: bool) -> list[float]:
+    """Per joint of ``chain``, its command-line unit in the chain's: 1 (radians, or a prismatic joint's
+    metres) or ``pi / 180`` (degrees)."""
+    return [1.0 if rad or kind is JointKind.PRISMATIC else math.pi / 180 for kind in chain.kinds]
+
+
+def joint_unit(chain: Chain, rad: bool) -> str:
+    """The command line's joint unit for ``chain``: ``deg`` or ``rad``, and metres for prismatic joints."""
+    return ("rad" if rad else "deg") + (", m for prismatic" if JointKind.PRISMATIC in chain.kinds else "")
+
+
 def joint_angles(chain: Chain, values: list[float], rad: bool, name: str) -> torch.Tensor:
-    """``(n,)`` float64 radians of the option ``name``'s ``values``, one per joint of ``chain``."""
+    """``(n,)`` float64 joint values (rad, m) of the option ``name``'s ``values``, one per joint of ``chain``."""
     if len(values) != chain.n_joints:
         raise UsageError(f"{name} needs {chain.n_joints} joint angles for {chain.name}, got {len(values)}")
-    return torch.tensor(radians(values, rad), dtype=F64)
+    return torch.tensor([v * s for v, s in zip(values, joint_scales(chain, rad))], dtype=F64)
 
 
 def pose_of(values: list[float], rad: bool, name: str) -> torch.Tensor:

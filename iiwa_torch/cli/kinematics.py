@@ -12,7 +12,7 @@ import torch
 from .. import robots, so3
 from ..chain import Chain, JointKind
 from ..dh import DHChain
-from .arguments import F64, UsageError, chain_of, drawing, joint_angles, pose_of, writable
+from .arguments import F64, UsageError, chain_of, drawing, joint_angles, joint_scales, joint_unit, pose_of, writable
 from .output import fmt, pose_summary, print_json, print_pose, say, table
 
 POS_TOL, ROT_TOL = 1e-9, 1e-8  # m, rad: the gradient IK's tolerances; a solution missing by more is invalid
@@ -29,8 +29,8 @@ def run_fk(args: argparse.Namespace) -> int:
         viz = drawing()
         writable(args.plot, "--plot")
         xyz = ", ".join(f"{v:.3f}" for v in pose[:3, 3].tolist())
-        degrees = " ".join(f"{math.degrees(v):.0f}" for v in q.tolist())
-        title = f"{chain.name}, q = ({degrees}) deg\nend effector at ({xyz}) m"
+        shown = " ".join(f"{v / k:.3g}" for v, k in zip(q.tolist(), joint_scales(chain, args.rad)))
+        title = f"{chain.name}, q = ({shown}) {joint_unit(chain, args.rad)}\nend effector at ({xyz}) m"
         viz.save_png(chain, q, args.plot, frames=True, title=title)
     if args.json:
         print_json({"robot": chain.name, "q_rad": q.tolist(), "within_limits": inside, **pose_summary(pose)})
@@ -93,13 +93,13 @@ def run_ik(args: argparse.Namespace) -> int:
 
 def _print_solutions(chain: Chain, args, label, q, why, pos_err, rot_err) -> None:
     """``ik``'s solutions ``q (m, n)`` rad as a table, then why each invalid one is."""
-    unit = "rad" if args.rad else "deg"
+    scales = joint_scales(chain, args.rad)
     rows = []
     for b, qi, w, pe, re in zip(label, q.tolist(), why, pos_err.tolist(), rot_err.tolist()):
-        shown = qi if args.rad else [math.degrees(x) for x in qi]
-        rows.append([b, *fmt(shown, 2), "no" if w else "yes", f"{pe:.1e}", "-" if math.isnan(re) else f"{re:.1e}"])
+        shown = [fmt([x / k], 2 if k != 1.0 else 4)[0] for x, k in zip(qi, scales)]  # degrees to 0.01, else 1e-4
+        rows.append([b, *shown, "no" if w else "yes", f"{pe:.1e}", "-" if math.isnan(re) else f"{re:.1e}"])
     cols = ["branch", *chain.joint_names, "valid", "pos err (m)", "rot err (rad)"]
-    table(f"{chain.name}: IK solutions ({args.method}), joint angles in {unit}", cols, rows)
+    table(f"{chain.name}: IK solutions ({args.method}), joints in {joint_unit(chain, args.rad)}", cols, rows)
     for b, w in zip(label, why):
         if w:
             say(f"{b} invalid: {w}")
@@ -111,12 +111,14 @@ def _why_invalid(chain: Chain, q: list[float], pos_err: float, rot_err: float, r
     if not pos_err <= POS_TOL or rot_err > ROT_TOL:
         missed = f"{pos_err:.1e} m" + ("" if math.isnan(rot_err) else f", {rot_err:.1e} rad")
         return f"misses the target by {missed}"
-    unit, shown = ("rad", lambda v: f"{round(v, 4):g}") if rad else ("deg", lambda v: f"{round(math.degrees(v), 2):g}")
     outside = []
-    for name, v, lo, hi in zip(chain.joint_names, q, *chain.limits.tolist()):
+    limits = zip(*chain.limits.tolist())
+    for name, kind, k, v, (lo, hi) in zip(chain.joint_names, chain.kinds, joint_scales(chain, rad), q, limits):
         if not lo <= v <= hi:
-            span = f"+-{shown(hi)}" if lo == -hi else f"[{shown(lo)}, {shown(hi)}]"
-            outside.append(f"{name} = {shown(v)} {unit} outside {span}")
+            unit = "m" if kind is JointKind.PRISMATIC else "rad" if rad else "deg"
+            lo, v, hi = (f"{round(x / k, 4 if k == 1.0 else 2):g}" for x in (lo, v, hi))
+            span = f"+-{hi}" if lo == f"-{hi}" else f"[{lo}, {hi}]"
+            outside.append(f"{name} = {v} {unit} outside {span}")
     return ", ".join(outside) or "outside the joint limits"
 
 

@@ -50,7 +50,7 @@ def _common_options() -> argparse.ArgumentParser:
 
 def _add_fk(sub, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser("fk", parents=[common], help="joint angles -> end-effector pose")
-    p.add_argument("q", nargs="+", type=float, help="joint angles (deg unless --rad)")
+    p.add_argument("q", nargs="+", type=float, help="joint values (deg unless --rad; m for a prismatic joint)")
     p.add_argument("--plot", metavar="PNG", help="also draw the arm to this PNG file")
     p.set_defaults(func=run_fk, parser=p)
 
@@ -77,7 +77,8 @@ def _add_ik(sub, common: argparse.ArgumentParser) -> None:
 
 def _add_traj(sub, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser("traj", parents=[common], help="trajectory between configurations or poses -> CSV, animation")
-    p.add_argument("--from-q", nargs="+", type=float, metavar="Q", help="start joint angles")
+    p.add_argument("--from-q", nargs="+", type=float, metavar="Q",
+                   help="start joint values (deg unless --rad; m for a prismatic joint)")
     p.add_argument("--from-pose", nargs="+", type=float, metavar="V", help="start pose: x y z roll pitch yaw, or a 4x4")
     p.add_argument("--to-q", nargs="+", type=float, metavar="Q", help="goal joint angles (a joint-space quintic)")
     p.add_argument("--to-pose", nargs="+", type=float, metavar="V", help="goal pose (a straight line tracked by IK)")
@@ -115,7 +116,8 @@ def _add_demo(sub, common: argparse.ArgumentParser) -> None:
 
 def _add_view(sub, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser("view", parents=[common], help="browser viewer: joint sliders, pose read-out, IK target")
-    p.add_argument("--q", nargs="+", type=float, metavar="Q", help="first configuration (deg unless --rad)")
+    p.add_argument("--q", nargs="+", type=float, metavar="Q",
+                   help="first configuration (deg unless --rad; m for a prismatic joint)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: any free one; busy: the next free)")
     p.add_argument(
