@@ -206,9 +206,11 @@ def test_segment_box_distance_is_the_minimum_of_dense_samples_in_every_configura
 
 
 def test_segment_box_distance_gradient_matches_finite_differences():
+    """Outside and inside: inside, the deepest point is where two of the lines |x_i| - h_i cross, and it
+    moves with the segment (its gradient is not the sdf's at a fixed point)."""
     rng = np.random.default_rng(10)
-    checked = 0
-    for case in range(40):
+    inside = 0
+    for case in range(60):
         pose = torch.eye(4, dtype=torch.float64)
         pose[:3, :3] = torch.from_numpy(_random_rotation(rng))
         half = torch.from_numpy(rng.uniform(0.1, 0.4, 3))
@@ -216,9 +218,7 @@ def test_segment_box_distance_gradient_matches_finite_differences():
         d = segment_box_distance(seg[0], seg[1], pose, half)
         (grad,) = torch.autograd.grad(d, seg)
         assert torch.isfinite(grad).all()
-        if d.item() < 1e-3:
-            continue  # inside, the minimum sits at a kink of the box's sdf: a subgradient
-        checked += 1
+        inside += d.item() < 0
         h = 1e-6
         fd = torch.zeros(2, 3, dtype=torch.float64)
         for i in range(2):
@@ -231,7 +231,17 @@ def test_segment_box_distance_gradient_matches_finite_differences():
                     - segment_box_distance(minus[0], minus[1], pose, half)
                 ) / (2 * h)
         torch.testing.assert_close(grad, fd, atol=1e-5, rtol=0)
-    assert checked > 10
+    assert 10 < inside < 50
+    # a segment through a box's middle: the deepest point slides along it as p moves (was held still)
+    p = torch.tensor([-0.05, 0.0, 0.0], dtype=torch.float64, requires_grad=True)
+    q, half = torch.tensor([0.05, 0.1, 0.5], dtype=torch.float64), torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    d = segment_box_distance(p, q, torch.eye(4, dtype=torch.float64), half)
+    # closed form: the lines -x - h_x and z - h_z cross at t = (h_z - h_x - p_x - p_z) / (q_z - p_z + q_x - p_x)
+    # (y stays clear of its faces), and the distance there is z(t) - h_z
+    t = (half[2] - half[0] - p[0] - p[2]) / (q[2] - p[2] + q[0] - p[0])
+    closed = p[2] + t * (q[2] - p[2]) - half[2]
+    torch.testing.assert_close(d, closed, atol=1e-15, rtol=0)
+    torch.testing.assert_close(torch.autograd.grad(d, p)[0], torch.autograd.grad(closed, p)[0], atol=1e-12, rtol=0)
 
 
 def test_world_obstacles_match_coal_for_a_robot():

@@ -146,9 +146,26 @@ def _box_minimisers(p, d, half, xp=torch):
     if xp is torch:
         with torch.no_grad():
             wide = torch.broadcast_tensors(p.double(), d.double(), half.double())
-            return _box_parameters(*wide, torch).to(half.dtype)
+            t = _box_parameters(*wide, torch).to(half.dtype)
+        if torch.is_grad_enabled() and (p.requires_grad or d.requires_grad or half.requires_grad):
+            t = torch.stack([t[..., 0], _moving_crossing(p, d, half, t[..., 1])], -1)
+        return t
     with np.errstate(divide="ignore", invalid="ignore"):  # the quotients nan_to_num and clip discard
         return _box_parameters(*np.broadcast_arrays(p, d, half), np)
+
+
+def _moving_crossing(p: Tensor, d: Tensor, h: Tensor, t: Tensor) -> Tensor:
+    """The inside candidate ``t (...)`` of :func:`_box_parameters`, same value, with the derivative in
+    ``p, d, h`` of the crossing it sits on. The envelope theorem that lets the outside candidate's
+    gradient ignore ``t`` does not hold at a kink: there the minimum moves with the two lines."""
+    p, d, h = torch.broadcast_tensors(p, d, h)
+    u = torch.where(d < 0, -p, p)
+    den = d.abs()[..., :, None] + d.abs()[..., None, :]
+    cross = ((h - u)[..., :, None] - (h + u)[..., None, :]) / torch.where(den > 0, den, 1.0)  # (..., 3, 3)
+    with torch.no_grad():  # the crossing t is (two constant lines have none)
+        gap = torch.where(den > 0, (cross - t[..., None, None]).abs(), torch.inf).flatten(-2)
+    moving = cross.flatten(-2).gather(-1, gap.argmin(-1, keepdim=True))[..., 0]
+    return torch.where((t > 0) & (t < 1), t + (moving - moving.detach()), t)  # at an end t stays put
 
 
 def unchecked_segment_box_distance(p, q, pose, half, xp=torch):
@@ -158,7 +175,10 @@ def unchecked_segment_box_distance(p, q, pose, half, xp=torch):
     lp, lq = (((x - centre)[..., None, :] @ rot)[..., 0, :] for x in (p, q))
     t = _box_minimisers(lp, lq - lp, half, xp)
     points = lp[..., None, :] + t[..., None] * (lq - lp)[..., None, :]  # (..., 2, 3)
-    return xp.amin(_box_sdf(points, half[..., None, :], xp), -1)
+    sdf = _box_sdf(points, half[..., None, :], xp)
+    # the inside candidate minimises max_i(|x_i| - h_i) <= sdf: where that reaches 0 or below, it is the
+    # minimum (picked, not tied with the outside one: only its gradient follows the moving crossing)
+    return xp.where(sdf[..., 1] <= 0, sdf[..., 1], sdf[..., 0])
 
 
 def culled_box_distance(a: Tensor, b: Tensor, pose: Tensor, half: Tensor, radius: Tensor,
