@@ -16,6 +16,7 @@ from operator import attrgetter
 import numpy as np
 import torch
 from torch import nn
+from torch.compiler import is_dynamo_compiling
 
 from . import compiled, so3
 from . import kinematics as kin
@@ -260,12 +261,12 @@ class Chain(nn.Module):
             raise ValueError(f"{name} must have shape {self._q_shape}, got {tuple(q.shape)}")
         # not self.limits: nn.Module's attribute lookup is a large share of this check, which one
         # configuration's fk pays on every call (benchmarks/results/small.md, fk at batch 1)
+        check_finite(q, name)  # first: a meta q is told it has no values, not to move the chain to meta
         lim = self._buffers["limits"]
         if not (q.is_cpu and lim.is_cpu) and q.device != lim.device:  # is_cpu: no device object built
             raise ValueError(
                 f"{name} is on {q.device} but the chain is on {lim.device}; use chain.to({str(q.device)!r})"
             )
-        check_finite(q, name)
 
     def _one_by_kernel(self, q, kernel: str, shape: tuple[int, int]) -> np.ndarray | None:
         """The compiled one-configuration ``kernel`` (``end_pose`` or ``jacobian`` of
@@ -277,8 +278,8 @@ class Chain(nn.Module):
         as a tuple of floats (cheaper to build and pass than an array) and the kernel checks that it is finite:
         benchmarks/results/small.md, fk at batch 1."""
         arrays = self._one_arrays
-        if arrays is None or type(q) is not Tensor or not q.is_cpu or q.requires_grad:
-            return None
+        if arrays is None or type(q) is not Tensor or not q.is_cpu or q.requires_grad or is_dynamo_compiling():
+            return None  # torch.compile traces the torch path (it cannot trace into numba)
         dtype, q_shape = kin.NUMPY_DTYPES.get(q.dtype), q.shape
         if dtype is None or q_shape not in self._one_shapes or not compiled.ENABLED:
             return None

@@ -16,6 +16,7 @@ from itertools import accumulate
 
 import numpy as np
 import torch
+from torch.compiler import is_dynamo_compiling
 
 from . import compiled
 
@@ -338,8 +339,9 @@ def position_horner(g: Geometry, q: Tensor, trig: tuple[Tensor, Tensor] | None =
 
 
 def untracked_cpu(q: Tensor) -> bool:
-    """Whether ``q`` is on the CPU with nothing to differentiate: what compiled or numpy code may take."""
-    return q.is_cpu and not (q.requires_grad and torch.is_grad_enabled())
+    """Whether ``q`` is on the CPU with nothing to differentiate, outside ``torch.compile``'s tracing: what
+    compiled or numpy code may take."""
+    return q.is_cpu and not (q.requires_grad and torch.is_grad_enabled()) and not is_dynamo_compiling()
 
 
 def compilable(q: Tensor) -> bool:

@@ -408,9 +408,21 @@ def test_meta_and_vmap_give_clear_errors():
     with pytest.raises(ValueError, match="meta tensor, without values"):
         chain.fk(torch.zeros(3, 7, device="meta"))
     chain, q = robots.iiwa14(), sample(robots.iiwa14(), 4, seed=30)
+    with pytest.raises(ValueError, match="meta tensor, without values"):  # not "use chain.to('meta')"
+        chain.fk(torch.zeros(3, 7, device="meta"))
     for method in (chain.fk, chain.position, chain.jacobian):
         with pytest.raises(TypeError, match=r"torch.func.vmap.*leading dimensions"):
             torch.func.vmap(method)(q)
+
+
+@pytest.mark.parametrize("batch", [3, 200])  # the compiled kernels' sizes, and the elementwise kernel's
+def test_torch_compile_traces_the_torch_path(batch):
+    """torch.compile cannot trace into numba: under its tracing every call takes the torch path (Dynamo
+    alone, backend="eager": it is Dynamo that failed)."""
+    chain, q = robots.iiwa14(), sample(robots.iiwa14(), batch, seed=31)
+    for method in (chain.fk, chain.jacobian):
+        torch.testing.assert_close(torch.compile(method, backend="eager")(q), method(q), atol=1e-12, rtol=0)
+    torch.testing.assert_close(torch.compile(chain.fk, backend="eager")(q[0]), chain.fk(q[0]), atol=1e-12, rtol=0)
 
 
 # ---------------------------------------------------------------- every kernel against the reference
