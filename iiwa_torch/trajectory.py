@@ -315,7 +315,8 @@ def _track_gradient(chain: Chain, poses: Tensor, q0: Tensor, batch: torch.Size, 
     """The gradient method's joint path ``(..., T, n)``."""
     from .ik import lm_compiled, solve
 
-    if batch == poses.shape[:-3] and lm_compiled.handles(poses, q0, q0, world, batch.numel()):
+    poses = poses.expand(*batch, *poses.shape[-3:])  # one path per start when q0 has the larger batch
+    if lm_compiled.handles(poses, q0, q0, world, batch.numel()):
         # a few CPU paths: every step of the loop below in one call, the same answers
         return lm_compiled.track_compiled(chain, poses, q0, options)
     rest = q0.to(poses.dtype)

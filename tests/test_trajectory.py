@@ -231,6 +231,16 @@ def test_track_batched_paths(arm):
         torch.testing.assert_close(single.q, res.q[i], rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("method", ["gradient", "analytic"])
+def test_track_one_path_from_several_starts(arm, method):
+    """q0 (3, n) with one path (T, 4, 4): three tracks of the same path, as the batch shapes broadcast."""
+    q0 = Q_START + 0.01 * torch.randn(3, 7, generator=torch.Generator().manual_seed(4), dtype=F64)
+    path = _line(arm, Q_START, [0.0, 0.0, -0.05], 6)
+    res = track(arm, path, q0, method=method)
+    assert res.q.shape == (3, 6, 7) and res.success.all()
+    torch.testing.assert_close(res.q[1], track(arm, path, q0[1], method=method).q, rtol=0, atol=1e-9)
+
+
 def _solve_per_pose(arm, path, q0, pos_tol=1e-7, rot_tol=1e-6, rest_gain=0.0):
     """The gradient method as one ik.solve per pose, each from the last answer (q0 first)."""
     q, out = q0.to(path.dtype), []

@@ -61,7 +61,8 @@ def broadcast_q(value: Tensor, chain: Chain, batch: torch.Size, name: str, dtype
         return torch.broadcast_to(value.to(dtype), (*batch, chain.n_joints)).reshape(-1, chain.n_joints)
     except RuntimeError:
         raise ValueError(
-            f"{name} must broadcast to the targets' batch shape {(*batch, chain.n_joints)}, got {tuple(value.shape)}"
+            f"{name} must broadcast to {(*batch, chain.n_joints)} (the targets' batch shape {tuple(batch)}, then "
+            f"{chain.n_joints} joints), got {tuple(value.shape)}"
         ) from None
 
 
