@@ -319,7 +319,7 @@ def _track_gradient(chain: Chain, poses: Tensor, q0: Tensor, batch: torch.Size, 
     if lm_compiled.handles(poses, q0, q0, world, batch.numel()):
         # a few CPU paths: every step of the loop below in one call, the same answers
         return lm_compiled.track_compiled(chain, poses, q0, options)
-    rest = q0.to(poses.dtype)
+    rest = q0.to(poses.dtype) if options.rest_gain else None
 
     def step(pose: Tensor, q_prev: Tensor) -> Tensor:
         return solve(chain, pose, q_prev, rest=rest, world=world, margin=margin, capsules=capsules,

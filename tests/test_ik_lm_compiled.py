@@ -204,7 +204,8 @@ def test_bad_q0_and_rest_raise_as_before():
         solve(chain, target, q.tolist())
     with pytest.raises(TypeError, match="rest"):
         solve(chain, target, rest=q.tolist(), rest_gain=0.1)
-    assert bool(solve(chain, target, rest="ignored without a gain").success.all())
+    with pytest.raises(ValueError, match="rest has no effect with rest_gain=0"):
+        solve(chain, target, rest=q)
 
 
 def test_default_pool_is_cached_per_geometry():

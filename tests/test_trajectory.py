@@ -246,7 +246,7 @@ def _solve_per_pose(arm, path, q0, pos_tol=1e-7, rot_tol=1e-6, rest_gain=0.0):
     q, out = q0.to(path.dtype), []
     for k in range(path.shape[-3]):
         q = solve(arm, path[..., k, :, :], q, pos_tol=pos_tol, rot_tol=rot_tol, seeds=1, iterations=50,
-                  rest=q0.to(path.dtype), rest_gain=rest_gain).q
+                  rest=q0.to(path.dtype) if rest_gain else None, rest_gain=rest_gain).q
         out.append(q)
     return torch.stack(out, -2)
 

@@ -238,8 +238,8 @@ def solve(
         q0: optional ``(..., n)`` first seed (broadcast to the targets), e.g. the previous
             solution when tracking; an angle outside its limits is shifted by 2 pi or clamped.
         rest: optional ``(..., n)`` posture that ``rest_gain`` pulls toward inside the
-            Jacobian's null space, so a redundant arm (the iiwa) stays near it (pass ``rest=q0``
-            when tracking).
+            Jacobian's null space, so a redundant arm (the iiwa) stays near it (e.g. ``rest=q0``
+            when tracking); it needs ``rest_gain > 0`` (a ``ValueError`` otherwise).
         generator: source of the random seeds (default: a fresh generator seeded with 0, so
             results are reproducible).
         world, margin: optional :class:`~iiwa_torch.collision.World` (the target's dtype and
@@ -270,7 +270,9 @@ def solve(
         raise ValueError(f"target is on {target.device} but the chain is on {chain.limits.device}")
     check_world_for(world, margin, target, batch, capsules)
     work = work_dtype(target.dtype, opts)
-    rest_flat = None if rest is None or opts.rest_gain == 0 else broadcast_q(rest, chain, batch, "rest", work)
+    if rest is not None and opts.rest_gain == 0:
+        raise ValueError("rest has no effect with rest_gain=0: pass rest_gain > 0 (e.g. 0.1) to pull toward it")
+    rest_flat = None if rest is None else broadcast_q(rest, chain, batch, "rest", work)
     if lm_compiled.handles(target, q0, rest, world, batch.numel()):  # it caches the default generator's pool
         return lm_compiled.solve_compiled(chain, target, q0, rest_flat, opts, work, generator)
     with torch.no_grad():
