@@ -231,6 +231,13 @@ class Chain(nn.Module):
         self._forget_geometry()
         return super()._apply(fn, recurse)
 
+    def __setattr__(self, name: str, value) -> None:
+        # nn.Module would drop the buffer before registering the parameter: refuse first, losing nothing
+        if isinstance(value, nn.Parameter) and name in self._buffers:
+            raise TypeError(f"chain.{name} is a buffer: assign a plain tensor (the kinematics are not "
+                            "differentiable in the chain's own numbers)")
+        super().__setattr__(name, value)
+
     def register_buffer(self, name: str, tensor: Tensor | None, persistent: bool = True) -> None:
         """``nn.Module``'s (assigning ``chain.tool = t`` calls it too), then the geometry is forgotten."""
         super().register_buffer(name, tensor, persistent)

@@ -170,6 +170,16 @@ def test_repr_keeps_long_joint_names_apart_from_their_columns():
     assert repr(dh).splitlines()[3].split()[:4] == ["A1_of_a_long_name", "0.0000", "-90.0", "0.3600"]
 
 
+def test_a_parameter_in_place_of_a_buffer_is_refused_and_loses_nothing():
+    for chain in (_chain("odd"), robots.iiwa14()):
+        q = chain.random_q(generator=torch.Generator().manual_seed(1))
+        before = chain.fk(q)
+        for name in ("tool", "base", "limits"):
+            with pytest.raises(TypeError, match=f"chain.{name} is a buffer: assign a plain tensor"):
+                setattr(chain, name, torch.nn.Parameter(getattr(chain, name).clone()))
+        torch.testing.assert_close(chain.fk(q), before, atol=0, rtol=0)
+
+
 def test_buffers_are_the_truth():
     chain = _chain("panda")
     q = chain.random_q(50, generator=torch.Generator().manual_seed(8))

@@ -348,7 +348,7 @@ def test_bad_input(method):
     q[2, 3] = float("inf")
     with pytest.raises(ValueError, match="NaN or inf"):
         call(q)
-    with pytest.raises(ValueError, match="is on meta but the chain is on cpu"):
+    with pytest.raises(ValueError, match="meta tensor, without values"):
         call(torch.zeros(7, device="meta"))
 
 
@@ -407,6 +407,8 @@ def test_meta_and_vmap_give_clear_errors():
     chain = robots.iiwa14().to("meta")
     with pytest.raises(ValueError, match="meta tensor, without values"):
         chain.fk(torch.zeros(3, 7, device="meta"))
+    with pytest.raises(ValueError, match=r"q is on cpu but the chain is on meta; use chain.to\('cpu'\)"):
+        chain.fk(torch.zeros(3, 7))
     chain, q = robots.iiwa14(), sample(robots.iiwa14(), 4, seed=30)
     with pytest.raises(ValueError, match="meta tensor, without values"):  # not "use chain.to('meta')"
         chain.fk(torch.zeros(3, 7, device="meta"))
