@@ -131,12 +131,12 @@ def _log(rot: torch.Tensor) -> torch.Tensor:
 
 def matrix_to_rpy(rot: torch.Tensor) -> torch.Tensor:
     """Rotation ``(..., 3, 3)`` -> URDF's roll, pitch, yaw ``(..., 3)``, ``R = Rz(yaw) Ry(pitch) Rx(roll)``;
-    roll 0 at gimbal lock."""
+    roll 0 at gimbal lock (``cos(pitch) = 0`` exactly; near it the general formulas stay exact)."""
     check_tensor(rot, "rot", (3, 3))
-    r20 = rot[..., 2, 0].clamp(-1, 1)
-    pitch = torch.asin(-r20)
-    locked = r20.abs() > 1 - 1e-12
-    roll = torch.where(locked, torch.zeros_like(r20), torch.atan2(rot[..., 2, 1], rot[..., 2, 2]))
+    cos_pitch = torch.hypot(rot[..., 0, 0], rot[..., 1, 0])
+    pitch = torch.atan2(-rot[..., 2, 0], cos_pitch)  # asin(-r20) loses digits near +-pi/2
+    locked = cos_pitch == 0
+    roll = torch.where(locked, torch.zeros_like(pitch), torch.atan2(rot[..., 2, 1], rot[..., 2, 2]))
     yaw = torch.where(
         locked,
         torch.atan2(-rot[..., 0, 1], rot[..., 1, 1]),

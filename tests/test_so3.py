@@ -63,9 +63,16 @@ def test_rpy_matches_scipy_and_round_trips():
     torch.testing.assert_close(so3.matrix_to_rpy(rot), rpy)
 
 
-def test_rpy_gimbal_lock_still_reproduces_rotation():
-    rot = so3.rpy_to_matrix(torch.tensor([0.4, math.pi / 2, -0.3], dtype=torch.float64))
-    torch.testing.assert_close(so3.rpy_to_matrix(so3.matrix_to_rpy(rot)), rot)
+@pytest.mark.parametrize("off", [0.0, 1e-13, 1e-10, 1e-7, 1e-6, 1e-4])
+@pytest.mark.parametrize("sign", [1, -1])
+def test_rpy_at_and_near_gimbal_lock_reproduces_the_rotation(off, sign):
+    """Near pitch +-pi/2 too (asin lost half the digits there: 3e-7 at 1e-7 rad from the lock)."""
+    rot = so3.rpy_to_matrix(torch.tensor([0.4, sign * (math.pi / 2 - off), -0.3], dtype=torch.float64))
+    torch.testing.assert_close(so3.rpy_to_matrix(so3.matrix_to_rpy(rot)), rot, atol=1e-15, rtol=0)
+    locked = so3.rpy_to_matrix(torch.tensor([0.4, sign * math.pi / 2, -0.3], dtype=torch.float64))
+    locked[:2, 0] = locked[2, 1:] = 0.0  # exactly locked: cos(pitch) = 0 (6e-17 entries zeroed)
+    locked[2, 0] = -sign
+    torch.testing.assert_close(so3.rpy_to_matrix(so3.matrix_to_rpy(locked)), locked, atol=1e-15, rtol=0)
 
 
 def test_pose_error_closed_form():
