@@ -20,7 +20,7 @@ from torch.compiler import is_dynamo_compiling
 
 from . import compiled, so3
 from . import kinematics as kin
-from .checks import as_point, check_finite, check_float_tensor, check_generator, check_nonnegative
+from .checks import as_point, check_finite, check_float_tensor, check_generator, check_nonnegative, is_integer
 from .kinematics import Frame, Geometry
 
 __all__ = ["Chain", "JointKind"]
@@ -334,9 +334,9 @@ class Chain(nn.Module):
         self, *shape: int, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float64
     ) -> Tensor:
         """``(*shape, n)`` joint values uniform within the limits (a continuous joint within ``[-pi, pi]``)."""
-        for size in shape:
-            if isinstance(size, bool) or not isinstance(size, int) or size < 0:
-                raise ValueError(f"random_q's shape must be non-negative integers, got {shape}")
+        if not all(is_integer(size) and size >= 0 for size in shape):
+            raise ValueError(f"random_q's shape must be non-negative integers, got {shape}")
+        shape = tuple(map(int, shape))  # numpy's integers too
         if dtype not in (torch.float32, torch.float64):
             raise TypeError(f"random_q's dtype must be float32 or float64, got {dtype!r}")
         check_generator(generator)

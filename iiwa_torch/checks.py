@@ -74,6 +74,15 @@ def check_instance(value, kind: type, name: str) -> None:
         raise TypeError(f"{name} must be a {kind.__name__}, got {type(value).__name__}")
 
 
+def broadcast_shapes(shapes: dict[str, tuple[int, ...]]) -> torch.Size:
+    """``torch.broadcast_shapes`` of the named ``shapes``, or a ``ValueError`` that names each."""
+    try:
+        return torch.broadcast_shapes(*shapes.values())
+    except RuntimeError:
+        got = ", ".join(f"{name} {tuple(shape)}" for name, shape in shapes.items())
+        raise ValueError(f"{', '.join(shapes)} must broadcast together, got {got}") from None
+
+
 def check_bool(value, name: str) -> None:
     """Raise ``TypeError`` unless ``value`` is a ``bool`` or numpy ``bool_`` (not merely truthy)."""
     if not isinstance(value, (bool, np.bool_)):

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import torch
 
-from .checks import all_finite, check_finite, check_tensor
+from .checks import all_finite, broadcast_shapes, check_finite, check_tensor
 
 __all__ = [
     "skew",
@@ -171,7 +171,7 @@ def check_rotation(rot: torch.Tensor, name: str = "rot") -> None:
     check_tensor(rot, name, (3, 3))
     pose = torch.nn.functional.pad(rot.detach(), (0, 1, 0, 1))  # (..., 4, 4), bottom row 0 0 0 0
     pose[..., 3, 3] = 1.0
-    check_rigid(pose, name)
+    check_rigid(pose, name, rotation_only=True)
 
 
 #: Largest deviation a pose may have from a rigid transform, per dtype (see :func:`check_rigid`).
@@ -198,10 +198,12 @@ def _rigid_numpy(pose: np.ndarray, tol: float) -> bool:
     return bool(np.isfinite(pose).all() and (np.linalg.det(R) > 0).all() and max(gram, bottom) <= tol)
 
 
-def check_rigid(pose: torch.Tensor, name: str = "pose", exact_bottom_row: bool = False) -> None:
+def check_rigid(pose: torch.Tensor, name: str = "pose", exact_bottom_row: bool = False, *,
+                rotation_only: bool = False) -> None:
     """Raise ``TypeError``/``ValueError`` unless ``pose`` is a finite float ``(..., 4, 4)`` batch of rigid
     transforms: ``|R^T R - I| <= tol`` entrywise, ``det R > 0``, bottom row ``[0, 0, 0, 1]`` within
-    ``tol`` (exactly if ``exact_bottom_row``), ``tol = RIGID_TOL[dtype]``."""
+    ``tol`` (exactly if ``exact_bottom_row``), ``tol = RIGID_TOL[dtype]``. ``rotation_only``: the message
+    speaks of the rotations alone (:func:`check_rotation`'s padded input)."""
     check_tensor(pose, name, (4, 4), finite=False)
     if pose.numel() == 0:
         return
@@ -227,11 +229,14 @@ def check_rigid(pose: torch.Tensor, name: str = "pose", exact_bottom_row: bool =
     if float(worst.max()) <= tol:
         return
     index = tuple((worst > tol).nonzero()[0].tolist())
-    what, where = ("a rigid transform", name) if pose.dim() == 2 else ("rigid transforms", f"{name}[{index}]")
+    what = ("a rotation", "rotations") if rotation_only else ("a rigid transform", "rigid transforms")
+    what, where = (what[0], name) if pose.dim() == 2 else (what[1], f"{name}[{index}]")
+    rule, bottom = ("", "") if rotation_only else (
+        ", bottom row [0, 0, 0, 1]", f", bottom row {pose[index][3].tolist()}"
+    )
     raise ValueError(
-        f"{name} must be {what} (orthonormal rotation with det +1, bottom row [0, 0, 0, 1], "
-        f"within {tol:g}); {where} has max |R^T R - I| = {float(gram[index].abs().max()):.3g}, "
-        f"det R = {float(det[index]):.6g}, bottom row {pose[index][3].tolist()}"
+        f"{name} must be {what} (orthonormal with det +1{rule}, within {tol:g}); {where} has max "
+        f"|R^T R - I| = {float(gram[index].abs().max()):.3g}, det R = {float(det[index]):.6g}{bottom}"
     )
 
 
@@ -240,6 +245,7 @@ def pose_error(pose: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, 
     (m) and ``log(target_R pose_R^T)`` (rad), each ``(..., 3)``, so that ``J dq ~ (pos_err, rot_err)``."""
     check_rigid(pose, "pose")
     check_rigid(target, "target")
+    broadcast_shapes({"pose": pose.shape, "target": target.shape})
     if pose.dtype != target.dtype or pose.device != target.device:
         raise ValueError(
             f"pose and target must share dtype and device, got {pose.dtype}/{pose.device} "

@@ -20,6 +20,7 @@ from . import so3
 from .chain import Chain
 from .checks import (
     all_finite,
+    broadcast_shapes,
     check_choice,
     check_finite,
     check_float_tensor,
@@ -139,13 +140,12 @@ def _check_jtraj_inputs(q0, q1, qd0, qd1, t, chain, world, capsules) -> None:
             if value.ndim == 0:
                 raise ValueError(f"{name} must have shape (..., n), got a scalar")
             check_finite(value, name)
-    given = [x for x in (q0, q1, qd0, qd1) if x is not None]
     _check_same_kind(("q0", "q1", "qd0", "qd1"), (q0, q1, qd0, qd1))
-    try:
-        ends = torch.broadcast_shapes(*(x.shape for x in given))
-    except RuntimeError:
-        raise ValueError(f"q0, q1, qd0, qd1 must broadcast together, got {[tuple(x.shape) for x in given]}") from None
+    named = {name: x.shape for name, x in zip(("q0", "q1", "qd0", "qd1"), (q0, q1, qd0, qd1)) if x is not None}
+    ends = broadcast_shapes(named)
     steps = int(t) if is_integer(t) else (t.shape[-1] if isinstance(t, torch.Tensor) and t.ndim else 0)
+    if isinstance(t, torch.Tensor) and t.ndim > 1:  # a time vector per path
+        broadcast_shapes({"the batch of t (..., T)": t.shape[:-1], "of q0 (..., n)": ends[:-1]})
     # q, qd, qdd (T, *ends) and the three (T, 6) bases with their factors (T each)
     check_memory(steps * (3 * ends.numel() + 24) * q0.element_size(), f"jtraj with {steps} steps")
 
@@ -206,6 +206,7 @@ def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
     so3.check_rigid(T0, "T0")
     so3.check_rigid(T1, "T1")
     _check_same_kind(("T0", "T1"), (T0, T1))
+    broadcast_shapes({"T0": T0.shape, "T1": T1.shape})
     s, _ = _times(t, T0.dtype, T0.device)
     if profile == "quintic":
         zero = torch.zeros(1, dtype=T0.dtype, device=T0.device)
@@ -224,25 +225,26 @@ def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
 def shortest_duration(chain: Chain, q0: Tensor, q1: Tensor, *, speed_scale: float = 1.0) -> Tensor:
     """Shortest duration (s) ``(...)`` of a rest-to-rest :func:`jtraj` from ``q0`` to ``q1`` ``(..., n)``
     within ``speed_scale * chain.velocity_limits``: ``max_j 15/8 |q1_j - q0_j| / vmax_j``."""
-    vmax = _speed_limits(chain, speed_scale, q0.dtype)
-    chain.check_q(q0, "q0")
-    chain.check_q(q1, "q1")
+    vmax = _speed_limits(chain, speed_scale, q0=q0, q1=q1)
     return (_PEAK_SPEED * (q1 - q0).abs() / vmax).amax(-1)
 
 
 def sampled_duration(chain: Chain, q: Tensor, *, speed_scale: float = 1.0) -> Tensor:
     """Shortest duration (s) ``(...)`` of a path sampled at even times, ``q (..., T, n)`` (e.g. from
     :func:`track`), whose finite-difference speeds stay within ``speed_scale * chain.velocity_limits``."""
-    vmax = _speed_limits(chain, speed_scale, q.dtype)
-    chain.check_q(q)
+    vmax = _speed_limits(chain, speed_scale, q=q)
     if q.ndim < 2 or q.shape[-2] < 2:
         raise ValueError(f"q must have shape (..., T, {chain.n_joints}) with T >= 2, got {tuple(q.shape)}")
     dt = (q.diff(dim=-2).abs() / vmax).amax((-2, -1))
     return (q.shape[-2] - 1) * dt
 
 
-def _speed_limits(chain: Chain, speed_scale: float, dtype: torch.dtype) -> Tensor:
+def _speed_limits(chain: Chain, speed_scale: float, **joint_values: Tensor) -> Tensor:
+    """``speed_scale * chain.velocity_limits`` in the dtype of ``joint_values`` (checked first)."""
     check_instance(chain, Chain, "chain")
+    for name, q in joint_values.items():
+        chain.check_q(q, name)
+    dtype = next(iter(joint_values.values())).dtype
     if chain.velocity_limits is None:
         raise ValueError(f"chain {chain.name!r} has no velocity_limits; pass them to Chain to time-scale")
     if not is_number(speed_scale) or not 0 < speed_scale <= 1:

@@ -18,7 +18,7 @@ from xml.sax.saxutils import quoteattr
 import torch
 
 from .chain import Chain, JointKind
-from .checks import require
+from .checks import check_instance, require
 from .dh import Convention, DHChain
 from .kinematics import elementary_transform
 from .so3 import matrix_to_rpy, rpy_to_matrix
@@ -58,6 +58,7 @@ def _dh_joints(chain: DHChain) -> tuple[list[torch.Tensor], list[tuple[float, fl
 
 def to_urdf(chain: Chain, name: str | None = None) -> str:
     """The chain as a URDF string, with kinds, limits and speeds; ``from_urdf(to_urdf(c))`` has ``c``'s frames."""
+    check_instance(chain, Chain, "chain")
     robot = name or chain.name
     if isinstance(chain, DHChain):
         origins, axes, carry = _dh_joints(chain)

@@ -779,6 +779,30 @@ def test_a_world_batch_that_does_not_fit_q_is_named(n):
     assert collision.clearance(CHAIN, q[:n], world).shape == (n,)  # one world per configuration fits
 
 
+def test_batches_that_do_not_broadcast_are_named():
+    two, three = CHAIN.fk(Q[:2]), CHAIN.fk(Q[:3])
+    cases = [
+        (lambda: trajectory.ctraj(two, three, 5), r"T0, T1 must broadcast together, got T0 \(2, 4, 4\), T1 \(3,"),
+        (lambda: so3.pose_error(two, three), r"pose, target must broadcast together"),
+        (lambda: trajectory.jtraj(Q, Q.flip(0), torch.linspace(0, 1, 20, dtype=torch.float64).reshape(4, 5)),
+         r"the batch of t \(\.\.\., T\), of q0 \(\.\.\., n\) must broadcast together, got .* \(4,\), .* \(3,\)"),
+        (lambda: dls_step(torch.ones(5, 6, 7, dtype=torch.float64), torch.ones(3, 6, dtype=torch.float64), 1e-3),
+         r"jacobian's batch, error's, damping's must broadcast together, got jacobian's batch \(5,\), error's \(3,\)"),
+    ]
+    for call, message in cases:
+        with pytest.raises(ValueError, match=message):
+            call()
+
+
+def test_wrong_types_and_rotation_messages():
+    with pytest.raises(TypeError, match=r"q0 must be a torch.Tensor of shape \(\.\.\., 7\), got list"):
+        trajectory.shortest_duration(CHAIN, [0.0] * 7, Q[0])
+    with pytest.raises(TypeError, match="chain must be a Chain, got str"):
+        urdf.to_urdf("iiwa14")
+    with pytest.raises(ValueError, match=r"rot must be a rotation \(orthonormal with det \+1, within 1e-06\); rot has"):
+        so3.log(2 * torch.eye(3, dtype=torch.float64))
+
+
 def test_numpy_scalars_are_numbers():
     """Counts and sizes of any numeric type give what the Python numbers give; bools stay refused."""
     seed = lambda: torch.Generator().manual_seed(3)  # noqa: E731
@@ -791,6 +815,7 @@ def test_numpy_scalars_are_numbers():
     assert collision.World(floor=np.float32(0.5)).floor == 0.5
     assert ReachTask(floor=np.float64(0.1), obstacles=np.int64(0), max_episode_steps=np.int16(9)).max_episode_steps == 9
     assert IiwaReachVecEnv(np.int64(2), "IiwaReach-v0").num_envs == 2
+    assert torch.equal(CHAIN.random_q(np.int64(3), generator=seed()), CHAIN.random_q(3, generator=seed()))
     for value in (True, np.bool_(True)):
         with pytest.raises(ValueError, match="n must be a positive integer"):
             workspace.sample_points(CHAIN, value)

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..checks import check_tensor
+from ..checks import broadcast_shapes, check_tensor
 from ..segments import EPS, closest_parameters
 from ..so3 import check_rigid
 
@@ -70,11 +70,7 @@ def segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:
 def _check_points(**points: Tensor) -> None:
     for name, x in points.items():
         check_tensor(x, name, (3,))
-    try:
-        torch.broadcast_shapes(*(x.shape for x in points.values()))
-    except RuntimeError:
-        raise ValueError(f"{', '.join(points)} must broadcast together, "
-                         f"got {[tuple(x.shape) for x in points.values()]}") from None
+    broadcast_shapes({name: x.shape for name, x in points.items()})
 
 
 def unchecked_segment_distance(p1: Tensor, q1: Tensor, p2: Tensor, q2: Tensor) -> Tensor:

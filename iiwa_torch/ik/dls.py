@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..checks import all_finite, check_finite, check_float_tensor, check_positive
+from ..checks import all_finite, broadcast_shapes, check_finite, check_float_tensor, check_positive
 
 __all__ = ["dls_step", "dls_step_batch_last", "dls_step_numpy", "cholesky_solve_batch_last"]
 
@@ -113,7 +113,8 @@ def dls_step(jacobian: Tensor, error: Tensor, damping: Tensor | float) -> Tensor
     damping = torch.as_tensor(damping, dtype=jacobian.dtype, device=jacobian.device)
     if not all_finite(damping) or not bool((damping > 0).all()):
         raise ValueError("damping must be positive and finite")
-    batch = torch.broadcast_shapes(jacobian.shape[:-2], error.shape[:-1], damping.shape)
+    batches = {"jacobian's batch": jacobian.shape[:-2], "error's": error.shape[:-1], "damping's": damping.shape}
+    batch = broadcast_shapes(batches)
     J = jacobian.expand(*batch, m, n).reshape(-1, m, n).permute(1, 2, 0)  # (m, n, b)
     e = error.expand(*batch, m).reshape(-1, m).T[:, None]  # (m, 1, b)
     lam = damping.expand(batch).reshape(-1)

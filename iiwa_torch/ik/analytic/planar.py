@@ -6,7 +6,7 @@ import functools
 
 import torch
 
-from ...checks import check_float_tensor
+from ...checks import broadcast_shapes, check_float_tensor
 from ...collision import Capsules, World
 from ...dh import DHChain
 from ._common import (
@@ -46,10 +46,8 @@ def _pose_values(chain: DHChain, x, y, phi) -> tuple[Tensor, Tensor, Tensor]:
     floats = [v.dtype for v in (x, y, phi) if isinstance(v, torch.Tensor)]
     dtype = functools.reduce(torch.promote_types, floats) if floats else chain.dh.dtype  # numbers: float64
     x, y, phi = (as_values(v, name, dtype, chain.dh.device) for name, v in named)
-    try:
-        return tuple(torch.broadcast_tensors(x, y, phi))
-    except RuntimeError:
-        raise ValueError(f"x, y, phi must broadcast together, got {[tuple(v.shape) for v in (x, y, phi)]}") from None
+    broadcast_shapes({"x": x.shape, "y": y.shape, "phi": phi.shape})
+    return tuple(torch.broadcast_tensors(x, y, phi))
 
 
 def planar3r(
