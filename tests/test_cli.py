@@ -163,6 +163,19 @@ def test_a_prismatic_joint_is_read_and_shown_in_metres(capsys, tmp_path):
     assert -0.1 <= float(row[2]) <= 0.3  # j2 within its limits in metres (in degrees it would read ~ +-6)
 
 
+def test_ik_without_psi_finds_an_arm_angle_where_psi_0_has_no_valid_branch(capsys):
+    straight_down = ["--pose", "0.5", "0", "0.4", "180", "0", "0"]  # at psi = 0 every branch has a joint at 180 deg
+    assert main(["ik", *straight_down, "--psi", "0"]) == 1
+    capsys.readouterr()
+    out = _run_json(capsys, "ik", *straight_down)
+    valid = [torch.tensor(s["q_rad"], dtype=F64) for s in out["solutions"] if s["valid"]]
+    arm = robots.iiwa14()
+    assert len(valid) == 8 and all(bool(arm.within_limits(q)) for q in valid)
+    pose = arm.fk(torch.stack(valid))
+    assert (pose[:, :3, 3] - torch.tensor([0.5, 0.0, 0.4], dtype=F64)).norm(dim=-1).max() < 1e-9
+    assert (pose[:, :3, 2] - torch.tensor([0.0, 0.0, -1.0], dtype=F64)).norm(dim=-1).max() < 1e-9  # z down
+
+
 def test_demo_runs(capsys, tmp_path):
     assert main(["demo", "--batch", "64", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out

@@ -141,14 +141,21 @@ def _ik_analytic(chain: Chain, target: torch.Tensor, args) -> tuple[torch.Tensor
     psi = 0.0 if args.psi is None else args.psi if args.rad else math.radians(args.psi)
     if not isinstance(chain, DHChain):  # another arm: the closed form its joint axes admit, if any
         try:
-            form = analytic.structure(chain).form.value
+            found = analytic.structure(chain)
         except ValueError as err:
             raise UsageError(f"--method analytic: {err}") from None
-        sol = analytic.solve(chain, target, psi if chain.n_joints == 7 else None)
-        labels = [f"{form} {k}" for k in range(sol.q.shape[-2])]
+        srs = found.form is analytic.ClosedForm.SRS
+        sol = analytic.solve(chain, target, psi if srs else None)
+        if srs and args.psi is None and not bool(sol.valid.any()):
+            psi = _arm_angle_that_solves(chain, target, found.dh, found.signs)
+            sol = sol if psi is None else analytic.solve(chain, target, psi)
+        labels = [f"{found.form.value} {k}" for k in range(sol.q.shape[-2])]
         return sol.q.contiguous(), sol.valid, labels
     if chain.n_joints == 7:
         sol = analytic.iiwa(chain, target, psi)
+        if args.psi is None and not bool(sol.valid.any()):
+            psi = _arm_angle_that_solves(chain, target, chain, torch.ones(7, dtype=F64))
+            sol = sol if psi is None else analytic.iiwa(chain, target, psi)
     elif chain.n_joints == 6:
         sol = analytic.pieper(chain, target)
     elif chain.n_joints == 3:  # planar: the target's x, y and its rotation about z
@@ -158,6 +165,20 @@ def _ik_analytic(chain: Chain, target: torch.Tensor, args) -> tuple[torch.Tensor
         raise UsageError(f"--method analytic has no closed form for {chain.name}; use --method gradient")
     labels = [f"{'+-'[k >> 2 & 1]}{'+-'[k >> 1 & 1]}{'+-'[k & 1]}" for k in range(sol.q.shape[-2])]
     return sol.q.contiguous(), sol.valid, labels
+
+
+def _arm_angle_that_solves(chain: Chain, target: torch.Tensor, dh: DHChain, signs: torch.Tensor) -> float | None:
+    """Without ``--psi``, when no branch at psi = 0 is valid: the arm angle (rad, in ``dh``'s terms,
+    ``q_dh = signs * q``) of the gradient IK's answer, said on stderr; None if that fails too."""
+    from ..ik import analytic, solve
+
+    result = solve(chain, target, pos_tol=POS_TOL, rot_tol=ROT_TOL)
+    if not bool(result.success):
+        return None
+    psi = float(analytic.iiwa_arm_angle(dh, result.q * signs.to(result.q)))
+    print(f"no valid branch at psi = 0; psi = {math.degrees(psi):.2f} deg, the arm angle of a gradient IK "
+          "solution (--psi sets it)", file=sys.stderr)
+    return psi
 
 
 def _ik_gradient(

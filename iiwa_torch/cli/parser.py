@@ -70,7 +70,8 @@ def _add_ik(sub, common: argparse.ArgumentParser) -> None:
         choices=["analytic", "gradient"],
         help="closed form (all branches) or gradient IK (default: analytic; gradient for x y z)",
     )
-    p.add_argument("--psi", type=float, help="iiwa arm angle for the analytic solver (default 0)")
+    p.add_argument("--psi", type=float, help="iiwa arm angle for the analytic solver (default 0; where no branch "
+                   "is valid at 0, the arm angle of a gradient IK solution)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the gradient solver")
     p.set_defaults(func=run_ik, parser=p)
 
