@@ -26,7 +26,17 @@ from . import lm_compiled
 from .clearance import COLLIDING_RANK, Obstacles, clearance_row, with_clearance
 from .dls import dls_step_batch_last
 from .inputs import check_target, check_world_for
-from .lm_setup import POOL, broadcast_q, inner_limits, into_limits, pool_distance, round_width, seed_ranks, work_dtype
+from .lm_setup import (
+    POOL,
+    broadcast_q,
+    inner_limits,
+    into_limits,
+    pool_distance,
+    rest_rows,
+    round_width,
+    seed_ranks,
+    work_dtype,
+)
 from .options import SolveOptions, resolve
 from .result import IKResult, ik_result
 
@@ -270,9 +280,7 @@ def solve(
         raise ValueError(f"target is on {target.device} but the chain is on {chain.limits.device}")
     check_world_for(world, margin, target, batch, capsules)
     work = work_dtype(target.dtype, opts)
-    if rest is not None and opts.rest_gain == 0:
-        raise ValueError("rest has no effect with rest_gain=0: pass rest_gain > 0 (e.g. 0.1) to pull toward it")
-    rest_flat = None if rest is None else broadcast_q(rest, chain, batch, "rest", work)
+    rest_flat = rest_rows(rest, opts.rest_gain, chain, batch, work)
     if lm_compiled.handles(target, q0, rest, world, batch.numel()):  # it caches the default generator's pool
         return lm_compiled.solve_compiled(chain, target, q0, rest_flat, opts, work, generator)
     with torch.no_grad():

@@ -66,6 +66,15 @@ def broadcast_q(value: Tensor, chain: Chain, batch: torch.Size, name: str, dtype
         ) from None
 
 
+def rest_rows(rest: Tensor | None, rest_gain: float, chain: Chain, batch: torch.Size, dtype: torch.dtype
+              ) -> Tensor | None:
+    """The rest posture ``(..., n)`` checked and broadcast as :func:`broadcast_q`, or None; an error
+    if given without a gain to pull toward it."""
+    if rest is not None and rest_gain == 0:
+        raise ValueError("rest has no effect with rest_gain=0: pass rest_gain > 0 (e.g. 0.1) to pull toward it")
+    return None if rest is None else broadcast_q(rest, chain, batch, "rest", dtype)
+
+
 def pool_distance(chain: Chain, pool: Tensor, target: Tensor, mode: str, features=None) -> Tensor:
     """``(pool, b)``: how far each pool configuration's end pose is from each target (poses
     ``(b, 4, 4)`` or positions ``(b, 3)``), as the squared position distance plus ``0.3^2``
