@@ -127,6 +127,10 @@ def test_resume_after_kill_restores_steps_and_model(tmp_path, capsys):
     assert not torch.equal(_params(model), reference)
     steps = [e["steps"] for e in json.loads((run / "evaluations.json").read_text())]
     assert steps == sorted(steps) and steps[-1] == saved + 1024
+    assert yaml.safe_load((run / "config.yaml").read_text())["hyperparams"]["n_timesteps"] == saved + 1024
+    with pytest.raises(SystemExit):  # the run's own settings: only -n may change on --resume
+        tr.main(["--resume", "--out", str(run), "--n-envs", "8", "--seed", "5", "--hyperparams", "gamma=0.9"])
+    assert "(only -n may change): drop --seed, --n-envs, --hyperparams" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -263,6 +267,12 @@ def test_an_out_that_is_a_file_is_a_clear_error(tmp_path, capsys):
             assert exc.value.code == 2
             err = capsys.readouterr().err
             assert f"--out {out}: {tmp_path / 'file'} is a file, not a folder" in err and "Traceback" not in err
+
+
+def test_a_linear_schedule_stops_at_zero():
+    """SB3 completes the last rollout past n_timesteps: the remaining progress goes below 0 there."""
+    lr = tr._schedule("learning_rate", "lin_1e-3")
+    assert lr(1.0) == 1e-3 and lr(0.25) == 2.5e-4 and lr(0.0) == 0.0 and lr(-15.4) == 0.0
 
 
 def test_resume_without_a_run_and_existing_out_are_errors(tmp_path, capsys):

@@ -142,7 +142,8 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
 
 
 def _schedule(key: str, value):
-    """``"lin_1e-3"`` -> a linear decay to 0 (SB3 passes the remaining progress 1 -> 0); numbers unchanged.
+    """``"lin_1e-3"`` -> a linear decay to 0 (SB3 passes the remaining progress 1 -> 0; it goes below 0 in
+    the last rollout, which SB3 always completes, and is held at 0 there); numbers unchanged.
     ValueError names ``key`` if ``value`` is neither a number nor ``lin_<number>``."""
     text = value[4:] if isinstance(value, str) and value.startswith("lin_") else value
     try:
@@ -151,7 +152,7 @@ def _schedule(key: str, value):
         start = None
     if isinstance(start, bool) or not isinstance(start, (int, float)):
         raise ValueError(f"{key} must be a number or lin_<number> (a linear decay), got {value!r}")
-    return (lambda progress: progress * start) if text is not value else start
+    return (lambda progress: max(progress, 0.0) * start) if text is not value else start
 
 
 def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
@@ -305,6 +306,10 @@ def new_model(run: RunDir, config: dict[str, Any], verbose: int = 0):
     """A fresh model on fresh envs; raises on an unknown hyper-parameter before anything is written.
     For HER it raises ``learning_starts`` to the first episodes of every env (recorded in ``config``)."""
     hp, algo, seed = config["hyperparams"], config["algo"], config["seed"]
+    rollout = hp["n_envs"] * hp.get("n_steps", 2048)  # SB3's PPO default
+    if algo == "ppo" and hp["n_timesteps"] < rollout:  # a smoke run may want that: said, not refused
+        print(f"warning: n_timesteps {hp['n_timesteps']} is less than one PPO rollout (n_envs x n_steps = {rollout}):"
+              " SB3 runs the whole rollout, and a lin_ learning rate has decayed to 0 by its one update", flush=True)
     venv = build_venv(config["env_id"], hp, seed)
     starts = her_learning_starts(hp, episode_steps(venv))
     if starts is not None and starts != hp.get("learning_starts"):
@@ -443,6 +448,7 @@ def run_training(run: RunDir, config: dict[str, Any], model=None, *, verbose: in
     with run.lock():
         if model is None:
             model, clock = _restore(run, config, verbose)
+            run.write_config(config)  # a new -n is the run's total from now on
         else:
             _check_new(run)  # again under the lock: another process may have started here meanwhile
             run.write_config(config)
@@ -469,8 +475,13 @@ def train(args: argparse.Namespace) -> Path:
     run = RunDir(args.out)
     model = None
     if args.resume:
-        if args.config is not None:
-            raise ValueError("--resume continues the config.yaml in --out: drop --config")
+        given = [flag for flag, value in (("--config", args.config), ("--algo", args.algo), ("--env", args.env_id),
+                                          ("--seed", args.seed), ("--n-envs", args.n_envs),
+                                          ("--conf-file", args.conf_file), ("--hyperparams", args.hyperparams or None))
+                 if value is not None]
+        if given:
+            raise ValueError(f"--resume continues the config.yaml in --out (only -n may change): drop "
+                             f"{', '.join(given)}")
         config = run.read_config()
         if args.timesteps is not None:
             config["hyperparams"]["n_timesteps"] = int(args.timesteps)
