@@ -20,7 +20,15 @@ from torch.compiler import is_dynamo_compiling
 
 from . import compiled, so3
 from . import kinematics as kin
-from .checks import as_point, check_finite, check_float_tensor, check_generator, check_nonnegative, is_integer
+from .checks import (
+    all_finite,
+    as_point,
+    check_finite,
+    check_float_tensor,
+    check_generator,
+    check_nonnegative,
+    is_integer,
+)
 from .kinematics import Frame, Geometry
 
 __all__ = ["Chain", "JointKind"]
@@ -153,8 +161,6 @@ class Chain(nn.Module):
         self.register_buffer("base", as_transform(base, "base"))
         self.register_buffer("tool", as_transform(tool, "tool"))
         vel = None if velocity_limits is None else torch.as_tensor(velocity_limits, dtype=torch.float64)
-        if vel is not None and (vel.shape != (n,) or not (vel > 0).all()):
-            raise ValueError(f"velocity_limits must be {n} positive speeds, got {vel.tolist()}")
         self.register_buffer("velocity_limits", vel)
         self._forget_geometry()
         self.register_load_state_dict_post_hook(_after_load)
@@ -223,6 +229,7 @@ class Chain(nn.Module):
         self._check_common()
 
     def _check_common(self) -> None:
+        _check_speeds(self.velocity_limits, self.n_joints)
         check_limits(self.limits, self.kinds)
         check_transform(self.base, "base")
         check_transform(self.tool, "tool")
@@ -239,7 +246,10 @@ class Chain(nn.Module):
         super().__setattr__(name, value)
 
     def register_buffer(self, name: str, tensor: Tensor | None, persistent: bool = True) -> None:
-        """``nn.Module``'s (assigning ``chain.tool = t`` calls it too), then the geometry is forgotten."""
+        """``nn.Module``'s (assigning ``chain.tool = t`` calls it too), then the geometry is forgotten;
+        ``velocity_limits`` (read by the trajectories and envs, not by the geometry) is checked here."""
+        if name == "velocity_limits":
+            _check_speeds(tensor, len(self.joint_names))
         super().register_buffer(name, tensor, persistent)
         self._forget_geometry()
 
@@ -410,6 +420,15 @@ def _after_load(chain: Chain, incompatible_keys) -> None:
     """``load_state_dict`` post-hook: check the loaded buffers now (fail early)."""
     chain._forget_geometry()
     chain._check_buffers()
+
+
+def _check_speeds(speeds, n: int) -> None:
+    """``velocity_limits``: None, or ``n`` positive finite speeds (rad/s, m/s)."""
+    if speeds is None:
+        return
+    if not (isinstance(speeds, Tensor) and speeds.shape == (n,) and bool((speeds > 0).all()) and all_finite(speeds)):
+        shown = speeds.tolist() if isinstance(speeds, Tensor) else speeds
+        raise ValueError(f"velocity_limits must be {n} positive finite speeds (rad/s, m/s), got {shown}")
 
 
 def _names(names, what: str, stem: str, n: int) -> tuple[str, ...]:

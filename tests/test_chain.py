@@ -180,6 +180,22 @@ def test_a_parameter_in_place_of_a_buffer_is_refused_and_loses_nothing():
         torch.testing.assert_close(chain.fk(q), before, atol=0, rtol=0)
 
 
+@pytest.mark.parametrize("bad", [[0.0] * 7, [math.nan] * 7, [math.inf] * 7, [-1.0] * 7, [1.0] * 5])
+def test_velocity_limits_are_checked_when_assigned_or_loaded(bad):
+    """The envs and trajectories divide by them: NaN observations followed from zeros."""
+    arm = robots.iiwa14()
+    kept = arm.velocity_limits.clone()
+    with pytest.raises(ValueError, match="velocity_limits must be 7 positive finite speeds"):
+        arm.velocity_limits = torch.tensor(bad, dtype=F64)
+    assert torch.equal(arm.velocity_limits, kept)
+    with pytest.raises(ValueError, match="velocity_limits must be 7 positive finite speeds"):
+        Chain(torch.eye(4).repeat(7, 1, 1), [[0.0, 0.0, 1.0]] * 7, velocity_limits=bad)
+    if len(bad) == 7:
+        state = {**robots.iiwa14().state_dict(), "velocity_limits": torch.tensor(bad, dtype=F64)}
+        with pytest.raises(ValueError, match="velocity_limits must be 7 positive finite speeds"):
+            arm.load_state_dict(state)
+
+
 def test_buffers_are_the_truth():
     chain = _chain("panda")
     q = chain.random_q(50, generator=torch.Generator().manual_seed(8))
