@@ -139,7 +139,8 @@ class JointVelocityArm:
             home = default_home(chain)
         home = torch.as_tensor(home, dtype=dtype, device=device)
         if home.shape != (n,) or not torch.isfinite(home).all() or not bool(self.chain.within_limits(home)):
-            raise ValueError(f"home must be {n} finite joint angles within the limits, got {home.tolist()}")
+            raise ValueError(f"home must be {n} finite joint angles within the limits of {chain.name!r}, got "
+                             f"{home.tolist()} (home=None takes the robot's default; the Franka* ids set the Panda's)")
         self.home = home
         self.lower, self.upper = self.chain.limits.to(dtype)
         # where random configurations are drawn: the limits, one turn for a continuous joint

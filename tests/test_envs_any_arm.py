@@ -284,6 +284,12 @@ def test_bad_robot_options(options, error, message):
         ReachTask(**options)
 
 
+def test_a_franka_id_with_another_robot_says_whose_home_it_has():
+    with pytest.raises(ValueError, match=r"within the limits of 'iiwa14', .* \(home=None takes the robot's default"):
+        gym.make("FrankaReachPandaGym-v0", robot="iiwa14")
+    assert gym.make("FrankaReachPandaGym-v0", robot="iiwa14", home=None).reset(seed=0)[0]["observation"].shape
+
+
 def test_a_chain_without_capsules_needs_them_or_no_collisions():
     chain = from_urdf(PANDA_URDF, end_link="panda_hand")
     with pytest.raises(ValueError, match="pass capsules= .* or collision='off'"):
