@@ -14,7 +14,7 @@ from enum import Enum
 import numpy as np
 import torch
 
-from iiwa_torch.checks import check_finite
+from iiwa_torch.checks import broadcast_shapes, check_finite
 from iiwa_torch.so3 import check_rigid
 
 from .arrays import NUMPY, TORCH, ArrayOps
@@ -197,11 +197,7 @@ class ReachGoals:
         for g, name in ((ag, "achieved_goal"), (dg, "desired_goal")):
             if g.shape[-1:] != (self.size,):
                 raise ValueError(f"{name} must have shape (..., {self.size}), got {tuple(g.shape)}")
-        try:
-            torch.broadcast_shapes(ag.shape, dg.shape)
-        except RuntimeError:
-            raise ValueError(
-                f"achieved_goal {tuple(ag.shape)} and desired_goal {tuple(dg.shape)} do not broadcast"
-            ) from None
+        shape = broadcast_shapes({"achieved_goal": ag.shape, "desired_goal": dg.shape})
+        ag, dg = ag.expand(shape), dg.expand(shape)  # before the components go first: ranks may differ
         with torch.no_grad():
             return self.reward(ag.movedim(-1, 0), dg.movedim(-1, 0)).numpy(force=True)

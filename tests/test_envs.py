@@ -411,6 +411,9 @@ def test_rewards_and_success_against_numpy():
     for env, a, b in [(pose, pa, pd), (dense, ag, dg)]:
         one_by_one = np.array([env.compute_reward(a[i], b[i], None) for i in range(50)])
         np.testing.assert_array_equal(env.compute_reward(a, b, None), one_by_one)
+        # goals of different ranks broadcast as numpy does: one desired goal for every achieved one
+        np.testing.assert_array_equal(env.compute_reward(a, b[7], None), [env.compute_reward(x, b[7], None) for x in a])
+        np.testing.assert_array_equal(env.compute_reward(b[7], a[None], None)[0], env.compute_reward(a, b[7], None))
 
 
 def test_pose_success_needs_the_orientation_too():
