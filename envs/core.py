@@ -345,8 +345,9 @@ class ReachTask:
         clearance = self.clearance_rows(q, obstacles)[0] if self.observe_clearance else blank
         return ReachState(
             q=q,
-            cos_q=torch.cos(q),
-            sin_q=torch.sin(q),
+            # in float64, then rounded: as one env's compiled reset (torch's float32 ones miss the last bit of some)
+            cos_q=torch.cos(q.double()).to(q.dtype),
+            sin_q=torch.sin(q.double()).to(q.dtype),
             velocity=torch.zeros(nj, n, dtype=self.dtype, device=self.device),
             goal=goal.contiguous(),
             achieved=start_goal["all"].clone(memory_format=torch.contiguous_format),
