@@ -171,13 +171,20 @@ class Transport:
         """:meth:`check_action`'s checks -> the action as a numpy array or a tensor, in the state's
         dtype (a tensor on its device), in the shape given."""
         nj = self.n_joints
+        real = f"action must be real numbers of shape ({n}, {nj})"
         if isinstance(action, torch.Tensor):
+            if action.is_meta or action.is_complex() or action.dtype == torch.bool:
+                raise ValueError(f"{real}, got a {'meta' if action.is_meta else action.dtype} tensor")
             a = action.to(self.device, self.dtype)
         else:  # numpy all the way to the transposed copy: a fraction of torch's per-call cost
-            try:  # a number beyond the dtype's range becomes inf (numpy warns): reported below
-                a = np.asarray(action, dtype=np.float32 if self.dtype == torch.float32 else np.float64)
-            except (TypeError, ValueError, OverflowError):
-                raise ValueError(f"action must be numbers of shape ({n}, {nj}), got {action!r}") from None
+            try:
+                given = np.asarray(action)
+            except ValueError:  # ragged
+                given = np.asarray(None)
+            if given.dtype.kind not in "fiu":  # bools, complex numbers (imaginary parts dropped), objects
+                raise ValueError(f"{real}, got {action!r} ({given.dtype})")
+            with np.errstate(over="ignore"):  # a number beyond the dtype's range becomes inf: reported below
+                a = given.astype(np.float32 if self.dtype == torch.float32 else np.float64, copy=False)
         if tuple(a.shape) != (n, nj) and not (n == 1 and tuple(a.shape) == (nj,)):
             single = f" (or ({nj},))" if n == 1 else ""
             raise ValueError(f"action must have shape ({n}, {nj}){single}, got {tuple(a.shape)}")

@@ -251,6 +251,13 @@ def test_bad_actions_raise_clear_errors():
         IiwaReachEnv(goal="orientation")
     with pytest.raises(ValueError, match="dt"):
         IiwaReachEnv(dt=0.0)
+    # not real numbers: numpy's complex-to-float cast dropped the imaginary parts with a warning only
+    for bad, shown in [(None, "None"), (np.ones(7, complex), "complex128"), (np.ones(7, bool), "bool"),
+                       ([[1.0, 2.0], [3.0]], "object"), (torch.ones(7, dtype=torch.complex64), "torch.complex64"),
+                       (torch.zeros(7, device="meta"), "meta")]:
+        for target in (env, vec):
+            with pytest.raises(ValueError, match=rf"action must be real numbers of shape .*{shown}"):
+                target.step(bad)
 
 
 def test_out_of_range_actions_are_clipped_without_touching_the_callers_array():
