@@ -247,6 +247,11 @@ def test_ship_needs_a_finished_run(tmp_path, capsys):
      "learning_rate must be a number or lin_<number> (a linear decay), got 'abc'"),
     (["--algo", "sac", "--env", "IiwaReach-v0", "--hyperparams", "learning_rate=lin_x"],
      "learning_rate must be a number or lin_<number> (a linear decay), got 'lin_x'"),
+    (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "her={n_sampled_goal: 4}"],
+     "her (a replay-buffer option) needs an off-policy algo (sac)"),
+    (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "policy_kwargs=5"],
+     "policy_kwargs must be a mapping (e.g. {net_arch: [256, 256]}), got 5"),
+    (["--algo", "sac", "--env", "IiwaReach-v0", "--hyperparams", "gamma=2"], "gamma must be a number in (0, 1], got 2"),
 ])
 def test_bad_train_flags_give_clear_errors(tmp_path, capsys, argv, message):
     with pytest.raises(SystemExit) as exc:

@@ -80,6 +80,9 @@ def load_hyperparams(algo: str, env_id: str, overrides: dict[str, Any] | None = 
         raise ValueError(f"{path}: expected a mapping of env ids to hyper-parameters, got {type(table).__name__}")
     if env_id not in table:
         raise ValueError(f"no hyper-parameters for env {env_id!r} in {path}; it has {sorted(table)}")
+    if not isinstance(table[env_id], dict):
+        raise ValueError(f"{path}: the entry of {env_id!r} must be a mapping of hyper-parameters, "
+                         f"got {table[env_id]!r}")
     return check_hyperparams({**table[env_id], **(overrides or {})}, env_id)
 
 
@@ -167,7 +170,13 @@ def algo_kwargs(algo: str, hp: dict[str, Any]) -> dict[str, Any]:
     for key in ("learning_rate", "clip_range"):
         if key in kwargs:
             kwargs[key] = _schedule(key, kwargs[key])
-    policy_kwargs = dict(kwargs.pop("policy_kwargs", None) or {})
+    gamma = kwargs.get("gamma", 0.99)
+    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0 < gamma <= 1:
+        raise ValueError(f"gamma must be a number in (0, 1], got {kwargs['gamma']!r}")
+    policy_kwargs = kwargs.pop("policy_kwargs", None) or {}
+    if not isinstance(policy_kwargs, dict):
+        raise ValueError(f"policy_kwargs must be a mapping (e.g. {{net_arch: [256, 256]}}), got {policy_kwargs!r}")
+    policy_kwargs = dict(policy_kwargs)
     if "activation_fn" in policy_kwargs:
         name = policy_kwargs["activation_fn"]
         if name not in _ACTIVATIONS:
@@ -311,7 +320,7 @@ def new_model(run: RunDir, config: dict[str, Any], verbose: int = 0):
         print(f"warning: n_timesteps {hp['n_timesteps']} is less than one PPO rollout (n_envs x n_steps = {rollout}):"
               " SB3 runs the whole rollout, and a lin_ learning rate has decayed to 0 by its one update", flush=True)
     venv = build_venv(config["env_id"], hp, seed)
-    starts = her_learning_starts(hp, episode_steps(venv))
+    starts = her_learning_starts(hp, episode_steps(venv)) if algo == "sac" else None  # PPO: algo_kwargs refuses her
     if starts is not None and starts != hp.get("learning_starts"):
         print(f"learning_starts {hp.get('learning_starts', 100)} -> {starts}: HER samples only finished episodes, "
               f"and {hp['n_envs']} envs end their first ones after {starts} env steps", flush=True)
