@@ -133,6 +133,37 @@ def test_resume_after_kill_restores_steps_and_model(tmp_path, capsys):
     assert "(only -n may change): drop --seed, --n-envs, --hyperparams" in capsys.readouterr().err
 
 
+def test_a_second_ctrl_c_while_the_checkpoint_is_saved_is_ignored(tmp_path, capsys, monkeypatch):
+    """The first press stops the run; a second one during its checkpoint no longer cuts the message (and
+    the pruning) short with a traceback."""
+    from train.callbacks import EvalAndCheckpoint
+
+    steps = {"n": 0}
+    on_step, checkpoint = EvalAndCheckpoint._on_step, EvalAndCheckpoint.checkpoint
+
+    def pressed_once(self):
+        steps["n"] += 1
+        if steps["n"] == 40:
+            raise KeyboardInterrupt
+        return on_step(self)
+
+    def pressed_again(self):
+        signal.raise_signal(signal.SIGINT)
+        return checkpoint(self)
+
+    monkeypatch.setattr(EvalAndCheckpoint, "_on_step", pressed_once)
+    monkeypatch.setattr(EvalAndCheckpoint, "checkpoint", pressed_again)
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)  # a background shell may ignore Ctrl-C
+    try:
+        with pytest.raises(SystemExit) as exc:
+            tr.main(["--algo", "sac", "--env", "IiwaReach-v0", "--out", str(tmp_path / "run"), "--timesteps", "4000",
+                     "--no-progress-bar", *sac_small(100_000)])
+    finally:
+        signal.signal(signal.SIGINT, inherited)
+    assert exc.value.code == 130 and "--resume" in capsys.readouterr().out
+    assert RunDir(tmp_path / "run").latest_checkpoint() is not None
+
+
 @pytest.mark.slow
 def test_sigterm_saves_a_checkpoint_at_the_current_step(tmp_path):
     run = tmp_path / "term"

@@ -406,6 +406,18 @@ def _learn(model, callback, total: int, progress_bar: bool) -> bool:
     return True
 
 
+def _checkpoint_ignoring_interrupts(callback) -> Path:
+    """The interrupted run's checkpoint with further Ctrl-C presses and SIGTERMs ignored until it is
+    written and the old ones pruned (a second press showed a traceback and left the pruning undone)."""
+    ignored = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in ignored}
+    try:
+        return callback.checkpoint()
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
 def _finish(run: RunDir, model, callback) -> None:
     """The final evaluation, checkpoint, model and ``train_info.json``."""
     from iiwa_torch.runtime import machine_info
@@ -466,7 +478,7 @@ def run_training(run: RunDir, config: dict[str, Any], model=None, *, verbose: in
         hp = config["hyperparams"]
         cb = (callback or EvalAndCheckpoint)(run, hp, config["env_id"], dict(hp.get("env_kwargs") or {}), clock)
         if not _learn(model, cb, hp["n_timesteps"], progress_bar):
-            raise Interrupted(model.num_timesteps, cb.checkpoint())
+            raise Interrupted(model.num_timesteps, _checkpoint_ignoring_interrupts(cb))
         if model.num_timesteps < hp["n_timesteps"]:
             path = cb.checkpoint()
             print(f"stopped by the callback at step {model.num_timesteps}: checkpoint {path}", flush=True)
