@@ -283,6 +283,10 @@ def test_ship_needs_a_finished_run(tmp_path, capsys):
     (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "policy_kwargs=5"],
      "policy_kwargs must be a mapping (e.g. {net_arch: [256, 256]}), got 5"),
     (["--algo", "sac", "--env", "IiwaReach-v0", "--hyperparams", "gamma=2"], "gamma must be a number in (0, 1], got 2"),
+    (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "log_distance_bonus={weight: -1}"],
+     "log_distance_bonus: weight must be a positive number, got -1"),
+    (["--algo", "ppo", "--env", "IiwaReach-v0", "--hyperparams", "clearance_penalty=3"],
+     "clearance_penalty must be a mapping of its options, got 3"),
 ])
 def test_bad_train_flags_give_clear_errors(tmp_path, capsys, argv, message):
     with pytest.raises(SystemExit) as exc:

@@ -41,10 +41,16 @@ def build_venv(env_id: str, hp: dict[str, Any], seed: int):
     from train.wrappers import ClearancePenalty, LogDistanceBonus
 
     venv = VecMonitor(make_env(env_id, hp["n_envs"], seed, hp.get("env_kwargs")))
-    if hp.get("log_distance_bonus") is not None:
-        venv = LogDistanceBonus(venv, **hp["log_distance_bonus"])
-    if hp.get("clearance_penalty") is not None:
-        venv = ClearancePenalty(venv, **hp["clearance_penalty"])
+    for key, wrapper in (("log_distance_bonus", LogDistanceBonus), ("clearance_penalty", ClearancePenalty)):
+        options = hp.get(key)
+        if options is None:
+            continue
+        if not isinstance(options, dict):
+            raise ValueError(f"{key} must be a mapping of its options, got {options!r}")
+        try:
+            venv = wrapper(venv, **options)
+        except (TypeError, ValueError) as err:  # the option's own message, said as whose it is
+            raise ValueError(f"{key}: {err}") from None
     return venv
 
 
