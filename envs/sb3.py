@@ -137,6 +137,13 @@ class IiwaReachVecEnv(VecEnv):
         self._state = None
 
     # ------------------------------------------------------------------ the VecEnv attribute API
+    def _get_indices(self, indices: VecEnvIndices) -> list[int]:
+        """SB3's, checked: an index beyond the environments is an ``IndexError`` (SB3 lists it anyway)."""
+        chosen = list(super()._get_indices(indices))
+        if any(not -self.num_envs <= i < self.num_envs for i in chosen):
+            raise IndexError(f"indices {chosen} out of range for {self.num_envs} environments")
+        return chosen
+
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         value = getattr(self, attr_name)  # AttributeError if missing, as VecEnv.has_attr expects
         return [value for _ in self._get_indices(indices)]

@@ -168,6 +168,9 @@ def test_sb3_vecenv_attribute_api_and_her_reward():
     vec = IiwaReachVecEnv(4, "IiwaReachSparse-v0", seed=0)
     obs = vec.reset()
     assert vec.get_attr("render_mode") == [None] * 4
+    assert vec.get_attr("num_envs", indices=[1, -1]) == [4, 4]
+    with pytest.raises(IndexError, match=r"indices \[5\] out of range for 4 environments"):
+        vec.get_attr("render_mode", indices=[5])
     assert vec.has_attr("compute_reward") and not vec.has_attr("no_such_attribute")
     assert vec.env_is_wrapped(gym.Wrapper) == [False] * 4
     # HerReplayBuffer's call: a batch of relabelled goals through env 0's method
