@@ -28,6 +28,7 @@ __all__ = [
     "DATASHEET",
     "frame_point",
     "sample_points",
+    "side_view",
     "occupancy",
     "volume",
     "extent",
@@ -111,7 +112,8 @@ class Volume:
 
 @dataclass(frozen=True)
 class Extent:
-    """Highest and lowest sampled ``z`` and largest distance ``r_max`` from the z axis (m)."""
+    """Highest and lowest sampled ``z`` and largest distance ``r_max`` from the z axis (m), in the base
+    frame (:func:`side_view`)."""
 
     z_max: float
     z_min: float
@@ -185,11 +187,17 @@ def sample_points(
     return pose[:, :3, 3] + pose[:, :3, :3] @ p.to(dtype)
 
 
-def _cell_index(xyz: Tensor, section: Section, lower: tuple[float, ...], shape: tuple[int, ...], h: float) -> Tensor:
-    if section is Section.RZ:
-        coords = torch.stack([torch.hypot(xyz[:, 0], xyz[:, 1]), xyz[:, 2]], 1)
-    else:
-        coords = xyz[:, : len(shape)]
+def side_view(chain: Chain, xyz: Tensor) -> Tensor:
+    """World points ``xyz (b, 3)`` -> ``(b, 2)``: their distance ``r`` from the base's z axis and their
+    height ``z`` along it, from the base origin (m): the RZ section's coordinates."""
+    base = chain.base.to(xyz)
+    local = (xyz - base[:3, 3]) @ base[:3, :3]
+    return torch.stack([torch.hypot(local[:, 0], local[:, 1]), local[:, 2]], 1)
+
+
+def _cell_index(chain: Chain, xyz: Tensor, section: Section, lower: tuple[float, ...], shape: tuple[int, ...],
+                h: float) -> Tensor:
+    coords = side_view(chain, xyz) if section is Section.RZ else xyz[:, : len(shape)]
     idx = ((coords - torch.tensor(lower, dtype=coords.dtype)) / h).floor().long()
     idx = idx.clamp(min=torch.zeros(len(shape), dtype=torch.long), max=torch.tensor(shape) - 1)
     strides = torch.tensor([math.prod(shape[k + 1 :]) for k in range(len(shape))])
@@ -252,7 +260,7 @@ def occupancy(
         done = counts.n_samples
     for b in _blocks(n_samples, block):
         xyz = sample_points(chain, b, point=p, generator=generator)
-        total += torch.bincount(_cell_index(xyz, section, lower, shape, h), minlength=total.numel())
+        total += torch.bincount(_cell_index(chain, xyz, section, lower, shape, h), minlength=total.numel())
     return Occupancy(section, float(h), lower, total.numpy().reshape(shape), done + n_samples)
 
 
@@ -321,10 +329,8 @@ def extent(
     check_positive(block, "block", integer=True)
     z_max, z_min, r_max = -math.inf, math.inf, 0.0
     for b in _blocks(n_samples, block):
-        xyz = sample_points(chain, b, point=point, generator=generator, dtype=torch.float64)
-        z_max = max(z_max, xyz[:, 2].max().item())
-        z_min = min(z_min, xyz[:, 2].min().item())
-        r_max = max(r_max, torch.hypot(xyz[:, 0], xyz[:, 1]).max().item())
+        r, z = side_view(chain, sample_points(chain, b, point=point, generator=generator, dtype=torch.float64)).T
+        z_max, z_min, r_max = max(z_max, z.max().item()), min(z_min, z.min().item()), max(r_max, r.max().item())
     return Extent(z_max, z_min, r_max, n_samples)
 
 
@@ -363,7 +369,7 @@ def dexterity_map(
         pose = chain.fk(q)
         xyz = pose[:, :3, 3] + pose[:, :3, :3] @ p
         m = dexterity(chain, q, position_only=position_only).manipulability
-        idx = _cell_index(xyz, Section.RZ, lower, shape, h)
+        idx = _cell_index(chain, xyz, Section.RZ, lower, shape, h)
         count += torch.bincount(idx, minlength=size).double()
         total += torch.bincount(idx, weights=m, minlength=size)
         peak.scatter_reduce_(0, idx, m, reduce="amax")

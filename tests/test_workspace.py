@@ -62,6 +62,22 @@ def test_sphere_shell_volume_xyz_and_revolved():
     assert xyz.estimate == pytest.approx(exact, rel=2e-2)
 
 
+def test_the_side_view_turns_about_the_base_axis_wherever_the_base_is():
+    """A base moved sideways and tilted (a URDF arm off the world origin): rings about the world z axis
+    made the shell six times too big."""
+    l1, l2 = 0.5, 0.3
+    exact = 4 / 3 * math.pi * ((l1 + l2) ** 3 - (l1 - l2) ** 3)
+    base = torch.eye(4, dtype=torch.float64)
+    base[:3, 3] = torch.tensor([1.0, -0.4, 0.3], dtype=torch.float64)
+    base[:3, :3] = torch.tensor([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]], dtype=torch.float64)  # 90 deg about x
+    moved = DHChain(spherical_arm(l1, l2).dh, base=base)
+    rz = volume(moved, 0.005, section=Section.RZ, n_start=1 << 20, generator=gen(1))
+    assert rz.low <= exact <= rz.high and rz.estimate == pytest.approx(exact, rel=5e-3)
+    reach = extent(moved, 20_000, generator=gen(3))  # the shell about the base origin: |z| and r up to l1 + l2
+    assert reach.r_max == pytest.approx(l1 + l2, abs=0.01) and reach.z_max == pytest.approx(l1 + l2, abs=0.01)
+    assert reach.z_min == pytest.approx(-(l1 + l2), abs=0.01)
+
+
 def test_shell_envelopes_are_the_two_circles():
     l1, l2, h = 0.5, 0.3, 0.005
     occ = occupancy(spherical_arm(l1, l2), 1 << 20, h, section="rz", generator=gen(3))
