@@ -28,7 +28,6 @@ __all__ = [
     "DATASHEET",
     "frame_point",
     "sample_points",
-    "side_view",
     "occupancy",
     "volume",
     "extent",
@@ -113,7 +112,7 @@ class Volume:
 @dataclass(frozen=True)
 class Extent:
     """Highest and lowest sampled ``z`` and largest distance ``r_max`` from the z axis (m), in the base
-    frame (:func:`side_view`)."""
+    frame (:func:`_base_rz`)."""
 
     z_max: float
     z_min: float
@@ -187,7 +186,7 @@ def sample_points(
     return pose[:, :3, 3] + pose[:, :3, :3] @ p.to(dtype)
 
 
-def side_view(chain: Chain, xyz: Tensor) -> Tensor:
+def _base_rz(chain: Chain, xyz: Tensor) -> Tensor:
     """World points ``xyz (b, 3)`` -> ``(b, 2)``: their distance ``r`` from the base's z axis and their
     height ``z`` along it, from the base origin (m): the RZ section's coordinates."""
     base = chain.base.to(xyz)
@@ -197,7 +196,7 @@ def side_view(chain: Chain, xyz: Tensor) -> Tensor:
 
 def _cell_index(chain: Chain, xyz: Tensor, section: Section, lower: tuple[float, ...], shape: tuple[int, ...],
                 h: float) -> Tensor:
-    coords = side_view(chain, xyz) if section is Section.RZ else xyz[:, : len(shape)]
+    coords = _base_rz(chain, xyz) if section is Section.RZ else xyz[:, : len(shape)]
     idx = ((coords - torch.tensor(lower, dtype=coords.dtype)) / h).floor().long()
     idx = idx.clamp(min=torch.zeros(len(shape), dtype=torch.long), max=torch.tensor(shape) - 1)
     strides = torch.tensor([math.prod(shape[k + 1 :]) for k in range(len(shape))])
@@ -329,7 +328,7 @@ def extent(
     check_positive(block, "block", integer=True)
     z_max, z_min, r_max = -math.inf, math.inf, 0.0
     for b in _blocks(n_samples, block):
-        r, z = side_view(chain, sample_points(chain, b, point=point, generator=generator, dtype=torch.float64)).T
+        r, z = _base_rz(chain, sample_points(chain, b, point=point, generator=generator, dtype=torch.float64)).T
         z_max, z_min, r_max = max(z_max, z.max().item()), min(z_min, z.min().item()), max(r_max, r.max().item())
     return Extent(z_max, z_min, r_max, n_samples)
 
