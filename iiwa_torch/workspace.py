@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from .chain import Chain
-from .checks import as_point, check_generator, check_instance, check_positive, is_integer, require
+from .checks import as_point, check_bool, check_generator, check_instance, check_positive, is_integer, require
 
 __all__ = [
     "Section",
@@ -336,6 +336,7 @@ def extent(
 def dexterity(chain: Chain, q: Tensor, *, position_only: bool = False) -> Dexterity:
     """:class:`Dexterity` of the Jacobian at ``q (..., n)`` rad; ``position_only``: its 3 linear rows (m/rad)."""
     check_instance(chain, Chain, "chain")
+    check_bool(position_only, "position_only")
     jac = chain.jacobian(q)
     if position_only:
         jac = jac[..., :3, :]

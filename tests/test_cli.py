@@ -384,6 +384,12 @@ def test_workspace_writes_the_side_view_and_rejects_a_missing_folder(capsys, tmp
     assert Image.open(png).size[0] > 400
     assert "does not exist" in _fails(capsys, "workspace", "--plot", str(tmp_path / "no" / "side.png"))
     assert "positive" in _fails(capsys, "workspace", "--plot", str(png), "--samples", "0")
+    assert "positive" in _fails(capsys, "workspace", "--json", "--h", "nan")
+    # matplotlib adds .png to another name: the file written would not be the one named (or reported)
+    assert "--plot must name a .png file" in _fails(capsys, "workspace", "--plot", str(tmp_path / "side"))
+    assert "--plot must name a .png file" in _fails(capsys, "workspace", "--plot", str(tmp_path))
+    assert "--point wrist is the wrist centre of a 6- or 7-joint DH preset; use --point flange for planar3r" in _fails(
+        capsys, "workspace", "--json", "--robot", "planar3r", "--point", "wrist")
 
 
 def test_view_serves_on_localhost_and_stops_on_ctrl_c(tmp_path):

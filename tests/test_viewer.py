@@ -740,11 +740,15 @@ def test_cli_view_plays_a_traj_csv(shown, tmp_path, capsys):
     assert kwargs["dt"] == pytest.approx(0.2)
 
 
-def test_cli_view_rejects_a_bad_world(capsys):
+@pytest.mark.parametrize(("world", "message"), [('{"spheres": [[1, 2]]}', "4 numbers"), ("array", "world must be")])
+def test_cli_view_rejects_a_bad_world(capsys, tmp_path, world, message):
+    if world == "array":  # a file holding a JSON array where the object belongs (a traceback, exit 1, before)
+        world = str(tmp_path / "world.json")
+        Path(world).write_text("[1, 2]")
     with pytest.raises(SystemExit) as exc:
-        cli.main(["view", "--world", '{"spheres": [[1, 2]]}'])
+        cli.main(["view", "--world", world])
     assert exc.value.code == 2
-    assert "4 numbers" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

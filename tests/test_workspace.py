@@ -168,6 +168,12 @@ def test_dexterity_planar_closed_form():
     assert stretched.manipulability.item() == 0 and stretched.condition.item() == math.inf
 
 
+def test_dexterity_takes_a_real_bool():
+    arm = robots.iiwa14()
+    with pytest.raises(TypeError, match="position_only"):
+        dexterity(arm, arm.random_q(2), position_only="no")  # a non-empty string was True
+
+
 def test_dexterity_iiwa_singular_and_shapes():
     chain = robots.iiwa14()
     q = chain.random_q(4, 5, generator=gen(8))

@@ -22,7 +22,10 @@ def run_view(args: argparse.Namespace) -> int:
 
     chain = chain_of(args)
     q = None if args.q is None else joint_angles(chain, args.q, args.rad, "view")
-    world = None if args.world is None else viewer.load_world(args.world)
+    try:
+        world = None if args.world is None else viewer.load_world(args.world)
+    except TypeError as err:  # e.g. a JSON array where the object of obstacles belongs
+        raise UsageError(f"--world {args.world}: {err}") from None
     if args.policy is not None and args.path is not None:
         raise UsageError("give at most one of --policy and --path")
     path, dt, goals = None, 0.05, None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import torch
 
@@ -20,16 +21,21 @@ def run_workspace(args: argparse.Namespace) -> int:
     if args.plot is not None:
         drawing()  # matplotlib is needed: say which extra if it is missing
     chain = chain_of(args)
-    if args.plot is not None:
-        writable(args.plot, "--plot")
-    if args.manipulability:
-        if args.plot is None:
-            raise UsageError("--manipulability is drawn with the side view: give --plot too")
-        writable(args.manipulability, "--manipulability")
-    if args.samples <= 0 or args.h <= 0:
+    if args.manipulability and args.plot is None:
+        raise UsageError("--manipulability is drawn with the side view: give --plot too")
+    for option, file in (("--plot", args.plot), ("--manipulability", args.manipulability)):
+        if file is not None and Path(file).suffix.lower() != ".png":  # matplotlib would add .png to the name
+            raise UsageError(f"{option} must name a .png file, got {file}")
+        if file is not None:
+            writable(file, option)
+    if not (args.samples > 0 and args.h > 0):  # NaN too
         raise UsageError(f"--samples and --h must be positive, got {args.samples} and {args.h}")
-    if args.point is None:  # the wrist centre of the presets' spherical wrists; any other arm's flange
-        args.point = "wrist" if isinstance(chain, DHChain) and chain.n_joints >= 6 else "flange"
+    has_wrist = isinstance(chain, DHChain) and chain.n_joints >= 6  # the presets' spherical wrists
+    if args.point == "wrist" and not has_wrist:
+        raise UsageError(f"--point wrist is the wrist centre of a 6- or 7-joint DH preset; use --point flange "
+                         f"for {chain.name}")
+    if args.point is None:
+        args.point = "wrist" if has_wrist else "flange"
     wrist = args.point == "wrist"
     point = workspace.frame_point(chain, 5) if wrist else None
     if args.plot is not None:
