@@ -123,7 +123,8 @@ class Extent:
 @dataclass(frozen=True)
 class Dexterity:
     """Per configuration ``(...)``: manipulability (the product of J's singular values),
-    condition number ``sigma_max / sigma_min`` (inf at a singularity) and ``sigma_min``."""
+    condition number ``sigma_max / sigma_min`` (inf at a singularity: ``sigma_min`` within rounding of 0,
+    below ``sigma_max * max(rows, n) * eps``) and ``sigma_min``."""
 
     manipulability: Tensor
     condition: Tensor
@@ -343,7 +344,10 @@ def dexterity(chain: Chain, q: Tensor, *, position_only: bool = False) -> Dexter
     s = torch.linalg.svdvals(jac)  # (..., min(rows, n)), descending
     sigma_min = s[..., -1]
     manip = s.prod(-1)
-    cond = torch.where(sigma_min > 0, s[..., 0] / sigma_min, torch.full_like(sigma_min, math.inf))
+    # singular within rounding (numpy's matrix_rank tolerance): a URDF arm's exact singularity leaves
+    # sigma_min ~ 1e-16, not 0
+    rank_tol = s[..., 0] * max(jac.shape[-2:]) * torch.finfo(s.dtype).eps
+    cond = torch.where(sigma_min > rank_tol, s[..., 0] / sigma_min, torch.full_like(sigma_min, math.inf))
     return Dexterity(manip, cond, sigma_min)
 
 

@@ -168,6 +168,15 @@ def test_dexterity_planar_closed_form():
     assert stretched.manipulability.item() == 0 and stretched.condition.item() == math.inf
 
 
+def test_an_exact_singularity_of_a_urdf_arm_has_an_infinite_condition():
+    """Its sigma_min is rounding (1e-16), not 0: the condition was 1.8e16 on the Panda at q = 0."""
+    pybullet_data = pytest.importorskip("pybullet_data")
+    panda = robots.from_urdf(f"{pybullet_data.getDataPath()}/franka_panda/panda.urdf", end_link="panda_hand")
+    d = dexterity(panda, torch.zeros(7, dtype=torch.float64))  # joints 1 and 3 on one line
+    assert d.condition.item() == math.inf and d.sigma_min.item() < 1e-15
+    assert math.isfinite(dexterity(panda, panda.random_q(generator=gen(4))).condition.item())
+
+
 def test_dexterity_takes_a_real_bool():
     arm = robots.iiwa14()
     with pytest.raises(TypeError, match="position_only"):
