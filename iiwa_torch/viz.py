@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from .chain import Chain
-from .checks import require
+from .checks import check_positive, require
 from .collision import Capsules, World, pairwise_clearance, robot_capsules
 
 __all__ = [
@@ -41,6 +41,8 @@ def _as_q(chain: Chain, q, one: str | None = None) -> torch.Tensor:
     if q.ndim != 2:
         raise ValueError(f"q must have shape ({chain.n_joints},) or (k, {chain.n_joints}), got {tuple(q.shape)}")
     chain.check_q(q)
+    if q.shape[0] == 0:
+        raise ValueError(f"q must hold at least one configuration to draw, got {tuple(q.shape)}")
     if one and q.shape[0] != 1:
         raise ValueError(f"{one} draws one configuration ({chain.n_joints},), got {q.shape[0]} configurations")
     return q
@@ -87,6 +89,7 @@ def _scene(chain: Chain, size: tuple[int, int], dpi: int, elev: float, azim: flo
     FigureCanvasAgg = require("matplotlib.backends.backend_agg", "viz").FigureCanvasAgg
     Figure = require("matplotlib.figure", "viz").Figure
 
+    check_positive(dpi, "dpi")
     width, height = size
     fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
     canvas = FigureCanvasAgg(fig)
@@ -108,27 +111,24 @@ def _scene(chain: Chain, size: tuple[int, int], dpi: int, elev: float, azim: flo
     return fig, canvas, ax
 
 
-def _positions(x) -> np.ndarray:
-    """Positions ``(..., 3)`` or poses ``(..., 4, 4)`` -> positions ``(..., 3)`` (numpy, m)."""
+def _positions(x, name: str) -> np.ndarray:
+    """Positions ``(k, 3)`` or poses ``(k, 4, 4)`` (or one of either) -> positions ``(k, 3)`` (numpy, m)."""
     x = torch.as_tensor(x, dtype=torch.float64).cpu()
-    return (x[..., :3, 3] if x.shape[-2:] == (4, 4) else x).numpy()
-
-
-def _goal_xyz(goal) -> np.ndarray:
-    """Goal as ``(3,)``, ``(4, 4)``, ``(k, 3)`` or ``(k, 4, 4)`` -> ``(k, 3)`` positions."""
-    g = _positions(goal)
-    if g.shape[-1] != 3 or g.ndim > 2:
-        raise ValueError(f"goal must be a position (3,) / (k, 3) or a pose (4, 4) / (k, 4, 4), got {g.shape}")
-    return g.reshape(-1, 3)
+    p = (x[..., :3, 3] if x.shape[-2:] == (4, 4) else x).numpy()
+    if p.ndim not in (1, 2) or p.shape[-1] != 3:
+        raise ValueError(f"{name} must be positions (3,) / (k, 3) or poses (4, 4) / (k, 4, 4), got {tuple(x.shape)}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name} contains NaN or inf")
+    return p.reshape(-1, 3)
 
 
 def _draw_extras(ax, goal, path, title):
     artists = []
     if path is not None:
-        p = _positions(path)
+        p = _positions(path, "path")
         artists += ax.plot(p[:, 0], p[:, 1], p[:, 2], "--", color="tab:purple", lw=2)
     if goal is not None:
-        g = _goal_xyz(goal)
+        g = _positions(goal, "goal")
         artists.append(ax.scatter(g[:, 0], g[:, 1], g[:, 2], color="tab:red", marker="*", s=160, depthshade=False))
     if title:
         artists.append(ax.text2D(0.02, 0.99, title, transform=ax.transAxes, fontsize=9, va="top"))
@@ -198,16 +198,15 @@ def animate(
         raise ValueError(f"animation file must end in .gif or .mp4, got {file.name!r}")
     if suffix == ".mp4" and shutil.which("ffmpeg") is None:
         raise RuntimeError("writing .mp4 needs the ffmpeg executable on the PATH; write a .gif instead")
-    if fps <= 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+    check_positive(fps, "fps")
     q = _as_q(chain, qs)
     joints = _points(chain, q)[0]  # (T, joints, 3)
     trace = joints[:, -1]  # (T, 3) end-effector positions
     base = chain.base[:3, 3].cpu().numpy()
     fig, canvas, ax = _scene(chain, size, dpi, elev, side_view(trace, base) if azim is None else azim)
-    drawn = [joints.reshape(-1, 3), base[None]] + ([] if goal is None else [_goal_xyz(goal)])
+    drawn = [joints.reshape(-1, 3), base[None]] + ([] if goal is None else [_positions(goal, "goal")])
     if path is not None:
-        drawn.append(_positions(path).reshape(-1, 3))
+        drawn.append(_positions(path, "path"))
     everything = np.concatenate(drawn)
     _fit_cube(ax, np.stack([everything.min(0), everything.max(0)]), margin=0.15)
     _draw_extras(ax, goal, path, None)

@@ -103,8 +103,17 @@ def test_animate_rejects_bad_files_and_rates(arm, tmp_path):
     qs = torch.zeros(3, 7, dtype=F64)
     with pytest.raises(ValueError, match=r"\.gif or \.mp4"):
         viz.animate(arm, qs, tmp_path / "x.avi")
-    with pytest.raises(ValueError, match="fps"):
-        viz.animate(arm, qs, tmp_path / "x.gif", fps=0)
+    for fps in (0, float("nan"), float("inf"), "10"):  # NaN failed only after every frame was drawn
+        with pytest.raises(ValueError, match="fps must be a positive number"):
+            viz.animate(arm, qs, tmp_path / "x.gif", fps=fps)
+    with pytest.raises(ValueError, match=r"q must hold at least one configuration to draw, got \(0, 7\)"):
+        viz.animate(arm, qs[:0], tmp_path / "x.gif")
+    with pytest.raises(ValueError, match=r"path must be positions .* got \(4, 2\)"):
+        viz.animate(arm, qs, tmp_path / "x.gif", path=torch.zeros(4, 2, dtype=F64))
+    with pytest.raises(ValueError, match="goal contains NaN or inf"):
+        viz.save_png(arm, qs[0], tmp_path / "x.png", goal=torch.full((3,), float("nan"), dtype=F64))
+    with pytest.raises(ValueError, match="dpi must be a positive number"):
+        viz.save_png(arm, qs[0], tmp_path / "x.png", dpi=0)
     if shutil.which("ffmpeg") is None:
         with pytest.raises(RuntimeError, match="ffmpeg"):
             viz.animate(arm, qs, tmp_path / "x.mp4")
