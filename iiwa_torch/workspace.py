@@ -289,6 +289,8 @@ def volume(
     check_positive(tol, "tol")
     check_positive(n_start, "n_start", integer=True)
     check_positive(max_samples, "max_samples", integer=True)
+    if max_samples < n_start:
+        raise ValueError(f"max_samples ({max_samples}) must be at least n_start ({n_start})")
     occ = occupancy(chain, n_start, h, section=section, point=point, generator=generator)
     est, low, high = _measure(occ)
     converged = False

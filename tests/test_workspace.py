@@ -177,6 +177,11 @@ def test_an_exact_singularity_of_a_urdf_arm_has_an_infinite_condition():
     assert math.isfinite(dexterity(panda, panda.random_q(generator=gen(4))).condition.item())
 
 
+def test_volume_refuses_a_cap_below_its_start():
+    with pytest.raises(ValueError, match=r"max_samples \(10\) must be at least n_start \(1000\)"):
+        volume(planar2(), 0.05, section="xy", n_start=1000, max_samples=10)
+
+
 def test_dexterity_takes_a_real_bool():
     arm = robots.iiwa14()
     with pytest.raises(TypeError, match="position_only"):
