@@ -74,6 +74,20 @@ def joint_unit(chain: Chain, rad: bool) -> str:
     return ("rad" if rad else "deg") + (", m for prismatic" if JointKind.PRISMATIC in chain.kinds else "")
 
 
+def outside_limits(chain: Chain, q: list[float], rad: bool) -> str:
+    """The joints of ``q`` (rad, m) outside their limits in the command line's units, e.g.
+    ``A3 = -180 deg outside +-170``; empty if none is."""
+    outside = []
+    limits = zip(*chain.limits.tolist())
+    for name, kind, k, v, (lo, hi) in zip(chain.joint_names, chain.kinds, joint_scales(chain, rad), q, limits):
+        if not lo <= v <= hi:
+            unit = "m" if kind is JointKind.PRISMATIC else "rad" if rad else "deg"
+            lo, v, hi = (f"{round(x / k, 4 if k == 1.0 else 2):g}" for x in (lo, v, hi))
+            span = f"+-{hi}" if lo == f"-{hi}" else f"[{lo}, {hi}]"
+            outside.append(f"{name} = {v} {unit} outside {span}")
+    return ", ".join(outside)
+
+
 def joint_angles(chain: Chain, values: list[float], rad: bool, name: str) -> torch.Tensor:
     """``(n,)`` float64 joint values (rad, m) of the option ``name``'s ``values``, one per joint of ``chain``."""
     if len(values) != chain.n_joints:

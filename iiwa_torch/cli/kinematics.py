@@ -12,7 +12,18 @@ import torch
 from .. import robots, so3
 from ..chain import Chain, JointKind
 from ..dh import DHChain
-from .arguments import F64, UsageError, chain_of, drawing, joint_angles, joint_scales, joint_unit, pose_of, writable
+from .arguments import (
+    F64,
+    UsageError,
+    chain_of,
+    drawing,
+    joint_angles,
+    joint_scales,
+    joint_unit,
+    outside_limits,
+    pose_of,
+    writable,
+)
 from .output import fmt, pose_summary, print_json, print_pose, say, table
 
 POS_TOL, ROT_TOL = 1e-9, 1e-8  # m, rad: the gradient IK's tolerances; a solution missing by more is invalid
@@ -111,15 +122,7 @@ def _why_invalid(chain: Chain, q: list[float], pos_err: float, rot_err: float, r
     if not pos_err <= POS_TOL or rot_err > ROT_TOL:
         missed = f"{pos_err:.1e} m" + ("" if math.isnan(rot_err) else f", {rot_err:.1e} rad")
         return f"misses the target by {missed}"
-    outside = []
-    limits = zip(*chain.limits.tolist())
-    for name, kind, k, v, (lo, hi) in zip(chain.joint_names, chain.kinds, joint_scales(chain, rad), q, limits):
-        if not lo <= v <= hi:
-            unit = "m" if kind is JointKind.PRISMATIC else "rad" if rad else "deg"
-            lo, v, hi = (f"{round(x / k, 4 if k == 1.0 else 2):g}" for x in (lo, v, hi))
-            span = f"+-{hi}" if lo == f"-{hi}" else f"[{lo}, {hi}]"
-            outside.append(f"{name} = {v} {unit} outside {span}")
-    return ", ".join(outside) or "outside the joint limits"
+    return outside_limits(chain, q, rad) or "outside the joint limits"
 
 
 def _has_closed_form(chain: Chain) -> bool:

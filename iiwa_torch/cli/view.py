@@ -11,7 +11,7 @@ import torch
 
 from ..chain import Chain
 from ..checks import require
-from .arguments import F64, UsageError, chain_of, joint_angles
+from .arguments import F64, UsageError, chain_of, joint_angles, outside_limits
 from .output import say
 
 
@@ -22,6 +22,8 @@ def run_view(args: argparse.Namespace) -> int:
 
     chain = chain_of(args)
     q = None if args.q is None else joint_angles(chain, args.q, args.rad, "view")
+    if q is not None and outside_limits(chain, q.tolist(), args.rad):
+        raise UsageError(f"--q: {outside_limits(chain, q.tolist(), args.rad)}")
     try:
         world = None if args.world is None else viewer.load_world(args.world)
     except TypeError as err:  # e.g. a JSON array where the object of obstacles belongs
