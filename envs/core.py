@@ -494,7 +494,11 @@ class ReachTask:
         collision = _collision_of(info)
         if collision is None or self.world is None:
             return reward
-        flags = torch.as_tensor(np.broadcast_to(collision, reward.shape).copy())
+        try:
+            flags = torch.as_tensor(np.broadcast_to(collision, reward.shape).copy())
+        except ValueError:
+            raise ValueError(f"info's collision flags {collision.shape} do not fit the rewards {reward.shape}"
+                             ) from None
         return self.penalised(torch.from_numpy(np.asarray(reward)), flags).numpy()
 
     def reset_transition(self, state: ReachState) -> Transition:
@@ -579,6 +583,8 @@ def _collision_of(info):
     elif info is None or (isinstance(info, np.ndarray) and info.dtype != object):
         return None
     else:
+        if not all(isinstance(i, dict) for i in (info if isinstance(info, (list, tuple, np.ndarray)) else [info])):
+            raise TypeError(f"info must be a dict, a sequence of per-env dicts or None, got {info!r:.200}")
         flags = [i.get("collision") for i in info]
         if any(f is None for f in flags):
             return None

@@ -103,6 +103,15 @@ def test_compute_reward_refuses_collision_flags_that_are_not_booleans(flag):
     assert env.compute_reward(goal, goal, {"collision": np.True_}) == np.float32(-1.0)  # minus the penalty
 
 
+def test_compute_reward_names_an_info_it_cannot_read():
+    env = gym.make("IiwaReach-v0").unwrapped
+    goals = np.zeros((4, 3), dtype=np.float32)
+    with pytest.raises(TypeError, match="info must be a dict, a sequence of per-env dicts or None, got 5"):
+        env.compute_reward(goals, goals, 5)
+    with pytest.raises(ValueError, match=r"info's collision flags \(3,\) do not fit the rewards \(4,\)"):
+        env.compute_reward(goals, goals, [{"collision": True}] * 3)
+
+
 def test_penalize_keeps_the_episode_going():
     steps = _drive_into_floor(gym.make("IiwaReach-v0", collision="penalize", collision_penalty=0.5), steps=40)
     hits = [s for s in steps if s[4]["collision"]]
