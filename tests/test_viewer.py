@@ -573,11 +573,19 @@ def test_load_world_reads_every_kind(tmp_path):
         ({"floor": True}, "floor must be a height in metres"),
         ("{not json", "invalid JSON"),
         ("no/such/file.json", "neither a JSON object nor an existing file"),
+        ({"walls": [[float("nan"), 0, 0, 1]]}, "walls must be finite numbers"),  # was "a wall normal must be nonzero"
+        ({"spheres": [[0, 0, 0, float("inf")]]}, "spheres must be finite numbers"),
     ],
 )
 def test_load_world_rejects_bad_specs(spec, message):
     with pytest.raises(ValueError, match=message):
         load_world(spec)
+
+
+def test_load_world_names_a_binary_file(tmp_path):
+    (tmp_path / "world.json").write_bytes(bytes(range(256)))
+    with pytest.raises(ValueError, match="is not JSON text"):
+        load_world(str(tmp_path / "world.json"))
 
 
 def test_the_world_is_drawn_where_it_is(world_viewer):

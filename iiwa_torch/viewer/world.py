@@ -49,7 +49,10 @@ def _spec(spec) -> dict:
             path = Path(text)
             if not path.is_file():
                 raise ValueError(f"world {text!r} is neither a JSON object nor an existing file")
-            text = path.read_text()
+            try:
+                text = path.read_text()
+            except UnicodeDecodeError:
+                raise ValueError(f"world file {text!r} is not JSON text") from None
         try:
             spec = json.loads(text)
         except json.JSONDecodeError as err:
@@ -75,7 +78,10 @@ def _rows(spec: dict, kind: str, widths: tuple[int, ...]) -> torch.Tensor | None
     if any(isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) for row in items for v in row):
         raise ValueError(f"world: {kind} must hold numbers, got {items}")
     width = max(len(row) for row in items)
-    return torch.tensor([list(row) + [0.0] * (width - len(row)) for row in items], dtype=_F64)
+    rows = torch.tensor([list(row) + [0.0] * (width - len(row)) for row in items], dtype=_F64)
+    if not bool(rows.isfinite().all()):
+        raise ValueError(f"world: {kind} must be finite numbers, got {items}")
+    return rows
 
 
 def unbatched(world: collision.World) -> collision.World:
