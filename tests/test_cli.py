@@ -209,6 +209,7 @@ def test_demo_runs(capsys, tmp_path):
         (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--duration", "0"], "--duration must be positive"),
         (["traj", "--from-q", *["0"] * 7, "--to-q", *["1"] * 7, "--duration", "-1"], "--duration must be positive"),
         (["frobnicate"], "invalid choice"),
+        (["workspace", "--json", "--seed", str(2**70)], "--seed: must be in [0, 2**63)"),  # torch's overflow before
     ],
 )
 def test_bad_arguments_exit_non_zero_with_a_message(capsys, argv, message):

@@ -31,6 +31,17 @@ examples:
 """
 
 
+def _seed(text: str) -> int:
+    """``--seed``: an integer torch's generators take, 0 <= seed < 2**63."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+    if not 0 <= value < 2**63:
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**63), got {value}")
+    return value
+
+
 def _common_options() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--robot", choices=list(robots.PRESETS), help="robot preset (default iiwa14)")
@@ -72,7 +83,7 @@ def _add_ik(sub, common: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--psi", type=float, help="iiwa arm angle for the analytic solver (default 0; where no branch "
                    "is valid at 0, the arm angle of a gradient IK solution)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the gradient solver")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed of the gradient solver")
     p.set_defaults(func=run_ik, parser=p)
 
 
@@ -130,7 +141,7 @@ def _add_view(sub, common: argparse.ArgumentParser) -> None:
     p.add_argument("--path", metavar="CSV", help="play back a joint path written by `iiwa-torch traj --csv`")
     p.add_argument("--policy", metavar="DIR", help="play back a policy's rollouts, e.g. train/policies/ppo_iiwa_reach")
     p.add_argument("--goals", type=int, default=4, help="--policy: number of held-out goals (default 4)")
-    p.add_argument("--seed", type=int, default=0, help="--policy: goal-set seed (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, help="--policy: goal-set seed (default 0)")
     p.set_defaults(func=run_view, parser=p)
 
 
@@ -146,7 +157,7 @@ def _add_workspace(sub, common: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--h", type=float, default=0.005, help="grid cell size in m (default 0.005)")
     p.add_argument("--samples", type=int, default=1 << 23, help="sampled configurations (default 8388608)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the sampling")
+    p.add_argument("--seed", type=_seed, default=0, help="random seed of the sampling")
     p.set_defaults(func=run_workspace, parser=p)
 
 
