@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import Enum
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -398,6 +399,14 @@ def plot_workspace(
     """Write the side view of ``point``'s reachable set (mirrored, as in KUKA's drawing) with its
     envelopes and ``datasheet``'s marks (a :data:`DATASHEET` entry) to the PNG ``path``; with
     ``manipulability_path``, also the mean and max manipulability over it."""
+    keys = set(next(iter(DATASHEET.values())))
+    if datasheet is not None and not (isinstance(datasheet, dict) and keys <= set(datasheet)):
+        raise ValueError(f"datasheet must be a DATASHEET entry (a dict with {sorted(keys)}), got {datasheet!r}")
+    if not is_integer(seed):
+        raise TypeError(f"seed must be an integer, got {seed!r}")
+    for file in (path, manipulability_path):  # before the sampling, not after it
+        if file is not None and not Path(file).resolve().parent.is_dir():
+            raise FileNotFoundError(f"the folder of {file} does not exist")
     gen = torch.Generator().manual_seed(seed)
     occ = occupancy(chain, n_samples, h, section=Section.RZ, point=point, generator=gen)
     fig = _figure((10, 6.5), layout="constrained")

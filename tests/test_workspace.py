@@ -19,6 +19,7 @@ from iiwa_torch.workspace import (
     extent,
     frame_point,
     occupancy,
+    plot_workspace,
     volume,
 )
 
@@ -180,6 +181,18 @@ def test_an_exact_singularity_of_a_urdf_arm_has_an_infinite_condition():
 def test_volume_refuses_a_cap_below_its_start():
     with pytest.raises(ValueError, match=r"max_samples \(10\) must be at least n_start \(1000\)"):
         volume(planar2(), 0.05, section="xy", n_start=1000, max_samples=10)
+
+
+def test_plot_workspace_checks_its_own_arguments_before_sampling(tmp_path):
+    arm = robots.iiwa14()
+    for kwargs, error, message in [
+        ({"datasheet": {"A": 1}}, ValueError, "datasheet must be a DATASHEET entry"),
+        ({"datasheet": "iiwa14"}, ValueError, "datasheet must be a DATASHEET entry"),
+        ({"seed": "a"}, TypeError, "seed must be an integer"),
+        ({"manipulability_path": tmp_path / "no" / "m.png"}, FileNotFoundError, "does not exist"),
+    ]:
+        with pytest.raises(error, match=message):
+            plot_workspace(arm, tmp_path / "side.png", n_samples=1 << 30, **kwargs)  # would sample for minutes
 
 
 def test_dexterity_takes_a_real_bool():
