@@ -64,6 +64,7 @@ class Occupancy:
     lower: tuple[float, ...]
     counts: np.ndarray
     n_samples: int
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, in the end-effector frame: whose reach is counted
 
     @property
     def occupied(self) -> np.ndarray:
@@ -257,12 +258,14 @@ def occupancy(
         check_instance(counts, Occupancy, "counts")
         if (counts.section, counts.h, counts.lower, counts.counts.shape) != (section, h, lower, shape):
             raise ValueError("counts is from a different grid (section, h or chain)")
+        if counts.point != tuple(p.tolist()):
+            raise ValueError(f"counts counts the point {counts.point}, not {tuple(p.tolist())}")
         total += torch.from_numpy(counts.counts.reshape(-1))
         done = counts.n_samples
     for b in _blocks(n_samples, block):
         xyz = sample_points(chain, b, point=p, generator=generator)
         total += torch.bincount(_cell_index(chain, xyz, section, lower, shape, h), minlength=total.numel())
-    return Occupancy(section, float(h), lower, total.numpy().reshape(shape), done + n_samples)
+    return Occupancy(section, float(h), lower, total.numpy().reshape(shape), done + n_samples, tuple(p.tolist()))
 
 
 def _measure(occ: Occupancy) -> tuple[float, float, float]:

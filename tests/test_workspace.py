@@ -252,5 +252,9 @@ def test_bad_counts_and_frames():
     occ = occupancy(planar2(), 10, 0.05, section="xy")
     with pytest.raises(ValueError, match="different grid"):
         occupancy(planar2(), 10, 0.1, section="xy", counts=occ)
+    # another point as far from the end effector: the same grid, another set's counts
+    occ = occupancy(planar2(), 10, 0.05, section="xy", point=[0.1, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"counts counts the point \(0.1, 0.0, 0.0\), not \(0.0, 0.1, 0.0\)"):
+        occupancy(planar2(), 10, 0.05, section="xy", point=[0.0, 0.1, 0.0], counts=occ)
     with pytest.raises(ValueError, match="RZ occupancy"):
         envelopes(occ)
