@@ -717,6 +717,10 @@ def test_set_path_rejects_bad_paths(viewer):
         viewer.set_path(torch.zeros(5, 7, dtype=F64), goals=torch.zeros(2, 3, dtype=F64))
     with pytest.raises(ValueError, match="dt"):
         viewer.set_path(torch.zeros(5, 7, dtype=F64), dt=0.0)
+    with pytest.raises(ValueError, match="goals contains NaN"):
+        viewer.set_path(torch.zeros(5, 7, dtype=F64), goals=torch.full((1, 3), float("nan"), dtype=F64))
+    with pytest.raises(ValueError, match="goals are the targets of path=: pass path too"):  # before any server
+        show(robots.iiwa14(), port=0, block=False, goals=torch.zeros(1, 3, dtype=F64))
 
 
 # ---------------------------------------------------------------------- the command

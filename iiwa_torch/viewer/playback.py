@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..chain import Chain
-from ..checks import check_float_tensor, check_positive
+from ..checks import check_finite, check_float_tensor, check_positive
 
 _F64 = torch.float64
 
@@ -29,6 +29,7 @@ def checked_paths(chain: Chain, q, dt, goals) -> tuple[torch.Tensor, np.ndarray 
         check_float_tensor(goals, "goals", f"({paths.shape[0]}, 3)")
         if goals.shape != (paths.shape[0], 3):
             raise ValueError(f"goals must have shape ({paths.shape[0]}, 3), one per path, got {tuple(goals.shape)}")
+        check_finite(goals, "goals")
         goals = goals.detach().to("cpu", _F64).numpy()
     return chain.clamp(paths), goals, float(dt)
 

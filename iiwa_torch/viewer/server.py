@@ -364,6 +364,8 @@ def show(
     :class:`Viewer` (call its ``stop()``).
     """
     check_bool(block, "block")
+    if goals is not None and path is None:
+        raise ValueError("goals are the targets of path=: pass path too")
     viewer, handed_over = None, False
     try:  # Ctrl-C may come as soon as the page is served, while the scene is still being built
         viewer = Viewer(chain, q, host=host, port=port, **options)
