@@ -772,6 +772,7 @@ def test_cli_view_rejects_a_bad_world(capsys, tmp_path, world, message):
         (["--host", "not a host"], "host must be an IP address"),
         (["--host", "8.8.8.8"], "cannot serve on host '8.8.8.8'"),
         (["--q", "0", "0", "200"], "--q: joint3 = 200 deg outside +-180"),  # in the user's units
+        (["--goals", "3"], "--goals and --seed choose --policy's rollouts: give --policy too"),  # was ignored
     ],
 )
 def test_cli_view_refuses_what_it_cannot_serve(capsys, argv, message):

@@ -140,8 +140,8 @@ def _add_view(sub, common: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", action="store_true", help="draw every link frame")
     p.add_argument("--path", metavar="CSV", help="play back a joint path written by `iiwa-torch traj --csv`")
     p.add_argument("--policy", metavar="DIR", help="play back a policy's rollouts, e.g. train/policies/ppo_iiwa_reach")
-    p.add_argument("--goals", type=int, default=4, help="--policy: number of held-out goals (default 4)")
-    p.add_argument("--seed", type=_seed, default=0, help="--policy: goal-set seed (default 0)")
+    p.add_argument("--goals", type=int, help="--policy: number of held-out goals (default 4)")
+    p.add_argument("--seed", type=_seed, help="--policy: goal-set seed (default 0)")
     p.set_defaults(func=run_view, parser=p)
 
 

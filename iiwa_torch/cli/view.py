@@ -30,12 +30,15 @@ def run_view(args: argparse.Namespace) -> int:
         raise UsageError(f"--world {args.world}: {err}") from None
     if args.policy is not None and args.path is not None:
         raise UsageError("give at most one of --policy and --path")
+    if args.policy is None and (args.goals is not None or args.seed is not None):
+        raise UsageError("--goals and --seed choose --policy's rollouts: give --policy too")
     path, dt, goals = None, 0.05, None
     if args.path is not None:
         path, dt = _csv_path(chain, args.path)
     elif args.policy is not None:
-        path, dt, goals = _policy_rollouts(chain, args.policy, args.goals, args.seed)
-        say(f"{args.goals} rollouts of {args.policy}: pick one with the playback panel's path slider")
+        count, seed = 4 if args.goals is None else args.goals, 0 if args.seed is None else args.seed
+        path, dt, goals = _policy_rollouts(chain, args.policy, count, seed)
+        say(f"{count} rollouts of {args.policy}: pick one with the playback panel's path slider")
     viewer.show(
         chain, q, host=args.host, port=args.port, world=world, urdf=args.urdf, show_capsules=args.capsules,
         show_frames=args.frames, path=path, dt=dt, goals=goals,
