@@ -520,7 +520,7 @@ def test_joint_cylinders_lie_on_the_joint_axes(request, which):
 
 def test_a_chain_and_a_urdf_that_do_not_match_are_refused(kuka):
     file, _ = kuka
-    with pytest.raises(ValueError, match="not the path of urdf"):
+    with pytest.raises(ValueError, match="not the path of that urdf"):
         Viewer(robots.from_urdf(file, base_link="lbr_iiwa_link_1"), port=_free_port(), urdf=file)
     with pytest.raises(TypeError, match="Chain"):
         Viewer("iiwa14", port=_free_port())
@@ -706,6 +706,12 @@ def test_playback_of_several_paths_with_goals(chain, viewer):
     np.testing.assert_allclose(viewer.scene.goal_marker.position, goals[1].numpy())
     viewer.player.path_slider.value = 0  # the browser's path slider keeps the step
     torch.testing.assert_close(viewer.q, paths[0, 4])
+
+
+def test_urdf_of_another_chain_says_which_chain_to_pass(kuka):
+    file, _ = kuka
+    with pytest.raises(ValueError, match=r"urdf= draws the file chain 'iiwa14' was read from .*robots.from_urdf"):
+        show(robots.iiwa14(), port=0, block=False, urdf=file)  # a preset: its links are not the file's
 
 
 def test_set_path_rejects_bad_paths(viewer):

@@ -73,10 +73,13 @@ class _CapsuleNodes:
 def urdf_parts(chain: Chain, source, capsules: collision.Capsules | None):
     """``([(URDF <visual> element, its trimesh or None)], capsules)`` of the file ``chain`` was read from;
     ``capsules=None``: those fitted to its ``<collision>`` geometry, if any."""
-    path = urdf_io.read_urdf(source, end_link=chain.link_names[-1])
+    read_from = f"pass the chain robots.from_urdf reads from the file {os.fspath(source)!r}"
+    try:
+        path = urdf_io.read_urdf(source, end_link=chain.link_names[-1])
+    except ValueError as err:  # e.g. a preset's last link is not in the file
+        raise ValueError(f"urdf= draws the file chain {chain.name!r} was read from ({err}); {read_from}") from None
     if [j.name for j in path.joints] != list(chain.joint_names):
-        raise ValueError(f"chain {chain.name!r} is not the path of urdf {os.fspath(source)!r} from its root link "
-                         f"{path.base_link!r}: pass the chain robots.from_urdf reads from the file")  # fmt: skip
+        raise ValueError(f"chain {chain.name!r} is not the path of that urdf from {path.base_link!r}; {read_from}")
     visuals = [(e, e.load_mesh() if e.shape == "mesh" else None) for e in urdf_io.read_visuals(source, path.end_link)]
     if capsules is None and urdf_io.read_collisions(source, end_link=path.end_link):  # after the quick checks
         capsules = capsule_fit.urdf_capsules(chain, source)
