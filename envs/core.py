@@ -582,9 +582,9 @@ def _collision_of(info):
         flags = info.get("collision")
     elif info is None or (isinstance(info, np.ndarray) and info.dtype != object):
         return None
+    elif not isinstance(info, (list, tuple, np.ndarray)) or not all(isinstance(i, dict) for i in info):
+        raise TypeError(f"info must be a dict, a sequence of per-env dicts or None, got {info!r:.200}")
     else:
-        if not all(isinstance(i, dict) for i in (info if isinstance(info, (list, tuple, np.ndarray)) else [info])):
-            raise TypeError(f"info must be a dict, a sequence of per-env dicts or None, got {info!r:.200}")
         flags = [i.get("collision") for i in info]
         if any(f is None for f in flags):
             return None

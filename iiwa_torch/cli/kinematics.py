@@ -10,7 +10,7 @@ import sys
 import torch
 
 from .. import robots, so3
-from ..chain import Chain, JointKind
+from ..chain import Chain
 from ..dh import DHChain
 from .arguments import (
     F64,
@@ -253,9 +253,8 @@ def _print_joints(chain: Chain, as_json: bool) -> int:
         print_json({"name": chain.name, "joints": joints, "base": chain.base.tolist(), "tool": chain.tool.tolist()})
         return 0
     rows = []
-    for name, kind, axis, link, lo, hi, v in zip(*columns):
-        unit = 1.0 if kind is JointKind.PRISMATIC else math.degrees(1.0)
-        shown = ["-" if x is None else f"{x * unit:.4g}" for x in (lo, hi, v)]
+    for (name, kind, axis, link, lo, hi, v), k in zip(zip(*columns), joint_scales(chain, rad=False)):
+        shown = ["-" if x is None else f"{x / k:.4g}" for x in (lo, hi, v)]
         rows.append([name, kind.value, " ".join(f"{x + 0.0:.3g}" for x in axis), link, *shown])
     cols = ["joint", "kind", "axis", "child link", "min", "max", "speed (per s)"]
     table(f"{chain.name}: {chain.n_joints} joints (deg, or m for a prismatic joint)", cols, rows)
