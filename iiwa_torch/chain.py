@@ -81,13 +81,14 @@ def check_limits(lim: Tensor, kinds: Sequence[JointKind]) -> None:
 
 def z_onto(axis: Tensor) -> Tensor:
     """A ``(3, 3)`` float64 rotation taking z onto the unit ``axis (3,)`` (Rodrigues; exact for coordinate axes)."""
-    c = float(axis[2])
-    if c < -1.0 + 1e-12:  # -z: a half turn about x
+    x, y, c = map(float, axis)
+    s2 = x * x + y * y  # sin^2 of the angle between z and the axis
+    if s2 == 0.0 and c < 0:  # -z: a half turn about x
         return torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
-    v = torch.tensor([-float(axis[1]), float(axis[0]), 0.0], dtype=torch.float64)  # z x axis
-    k = torch.zeros(3, 3, dtype=torch.float64)
-    k[0, 1], k[0, 2], k[1, 0], k[1, 2], k[2, 0], k[2, 1] = -v[2], v[1], v[2], -v[0], -v[1], v[0]
-    return torch.eye(3, dtype=torch.float64) + k + k @ k / (1.0 + c)
+    # 1 + c cancels near -z (an axis 2e-6 rad off -z lost 5 digits): there 1 + c = s2 / (1 - c) exactly
+    one_plus_c = 1.0 + c if c >= 0 else s2 / (1.0 - c)
+    k = torch.tensor([[0.0, 0.0, x], [0.0, 0.0, y], [-x, -y, 0.0]], dtype=torch.float64)  # [z x axis]_x
+    return torch.eye(3, dtype=torch.float64) + k + k @ k / one_plus_c
 
 
 class Chain(nn.Module):

@@ -160,6 +160,18 @@ def test_continuous_and_prismatic_joints():
         Chain(torch.eye(4)[None], [[0.0, 0.0, 1.0]], kinds=["prismatic"])
 
 
+
+@pytest.mark.parametrize("axis", [[0, 0, -1], [1e-6, 0, -1], [2e-6, 0, -1], [0, 3e-6, -1], [1e-6, -2e-6, -0.5],
+                                  [1e-4, 0, -1], [2e-6, 0, 1], [1, 0, 0], [0.3, -0.4, 0.5]])
+def test_a_joint_turns_by_the_exponential_of_its_axis(axis):
+    """Every axis turns by exp(q [a]x), also one a hair off -z (CAD exports write such axes)."""
+    a = torch.tensor(axis, dtype=F64) / torch.tensor(axis, dtype=F64).norm()
+    skew = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=F64)
+    chain = Chain(torch.eye(4, dtype=F64)[None], [axis])
+    for q in (0.3, 1.0, -2.5):
+        expected = torch.linalg.matrix_exp(skew * q)
+        np.testing.assert_allclose(chain.fk(torch.tensor([q], dtype=F64))[:3, :3].numpy(), expected.numpy(), atol=2e-15)
+
 def test_repr_keeps_long_joint_names_apart_from_their_columns():
     names = ["a_rather_long_joint_name_1", "j2"]
     chain = Chain(torch.eye(4).repeat(2, 1, 1), [[0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], joint_names=names)
