@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from . import so3
-from .chain import Chain
+from .chain import Chain, JointKind
 from .checks import (
     all_finite,
     broadcast_shapes,
@@ -359,8 +359,15 @@ def _track_result(chain: Chain, q: Tensor, poses: Tensor, pos_tol: float, rot_to
 
 def _nearest(chain: Chain, sol, q_prev: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The branch of ``sol.q (..., B, n)`` nearest ``q_prev (..., n)``: valid ones first, then reachable
-    in-limit ones, then other reachable ones (clamped) -> ``q``, its index, valid, reachable and in limits."""
-    dist = (sol.q - q_prev[..., None, :]).square().sum(-1)  # (..., B)
+    in-limit ones, then other reachable ones (clamped) -> ``q``, its index, valid, reachable and in limits.
+    Each turning joint is taken at its turn nearest ``q_prev`` that is within its limits: the closed forms
+    return angles in [-pi, pi], and a wrist crossing pi would otherwise flip a whole turn."""
+    prev = q_prev[..., None, :]
+    near = prev + torch.remainder(sol.q - prev + math.pi, 2 * math.pi) - math.pi
+    lo, hi = chain.geometry(sol.q.dtype).limits
+    turning = torch.tensor([k is not JointKind.PRISMATIC for k in chain.kinds], device=near.device)
+    sol = dataclasses.replace(sol, q=torch.where(turning & (near >= lo) & (near <= hi), near, sol.q))
+    dist = (sol.q - prev).square().sum(-1)  # (..., B)
     penalty = 1e6 * (~sol.valid).to(dist.dtype) + 2e6 * (~sol.within_limits).to(dist.dtype)
     key = torch.where(sol.reachable, dist + penalty, torch.full_like(dist, math.inf))
     best = key.argmin(-1)

@@ -298,6 +298,18 @@ def test_track_analytic_6r_arm():
     torch.testing.assert_close(res.q[0], q0, rtol=0, atol=1e-9)  # the branch of q0 is kept
 
 
+@pytest.mark.parametrize("name", ["puma560", "lrmate200ic"])
+def test_track_analytic_follows_a_wrist_across_half_a_turn(name):
+    """q6 from 170 to 190 degrees (inside both arms' limits) one degree a step: the configurations
+    themselves are the smooth answer, which the closed forms give as angles in [-pi, pi]."""
+    arm = getattr(robots, name)()
+    q = torch.tensor([0.3, 0.6, -0.8, 0.4, 0.7, 0.0], dtype=F64).repeat(21, 1)
+    q[:, 5] = torch.linspace(math.radians(170), math.radians(190), 21, dtype=F64)
+    assert arm.within_limits(q).all()
+    res = track(arm, arm.fk(q), q[0], method="analytic")
+    torch.testing.assert_close(res.q, q, rtol=0, atol=1e-9)
+
+
 def test_track_rejects_bad_method_and_shapes(arm):
     path = _line(arm, Q_START, [0.0, 0.0, 0.1], 3)
     with pytest.raises(ValueError, match="method must be one of"):
