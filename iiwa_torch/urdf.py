@@ -119,8 +119,8 @@ class UrdfPath:
 
 
 def _document(source: str | os.PathLike) -> str | bytes:
-    if isinstance(source, str) and source.lstrip().startswith("<"):
-        return source
+    if isinstance(source, str) and source.lstrip().lstrip("\ufeff").lstrip().startswith("<"):
+        return source.lstrip().lstrip("\ufeff")  # text read with encoding="utf-8" keeps a byte-order mark
     if not isinstance(source, (str, os.PathLike)):
         raise TypeError(f"source must be a URDF file path or URDF XML text, got {type(source).__name__}")
     path = os.fspath(source)
@@ -239,13 +239,9 @@ def _tree(links: list[str], joints: list) -> tuple[str, dict, dict[str, list[str
 def _parse(document: str | bytes) -> tuple:
     """The robot parsed by pytorch_kinematics (kinematic elements only), its link names and :func:`_tree`."""
     kinematic = _kinematic_xml(document)
+    urdf = require("pytorch_kinematics.urdf_parser_py.urdf", "urdf")
     try:
-        from pytorch_kinematics.urdf_parser_py.urdf import URDF
-    except ModuleNotFoundError as err:
-        raise ModuleNotFoundError(f"read_urdf needs pytorch_kinematics ({err}): pip install 'iiwa-torch[urdf]'",
-                                  name=err.name) from err
-    try:
-        robot = URDF.from_xml_string(kinematic)
+        robot = urdf.URDF.from_xml_string(kinematic)
     except Exception as err:  # the parser raises its ParseError, AssertionError or a bare Exception
         raise ValueError(f"source is not a valid URDF: {err}".replace("\n", " ")) from None
     links = [link.name for link in robot.links]

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from iiwa_torch import robots
+from iiwa_torch import robots, urdf
 from iiwa_torch.checks import MissingExtra, require
 from iiwa_torch.cli import main
 
@@ -57,6 +57,7 @@ def test_require_leaves_a_missing_dependency_of_an_installed_package_alone(monke
         ("matplotlib", "viz", lambda tmp: importlib.import_module("iiwa_torch.viz").render_rgb(robots.iiwa14(), None)),
         ("PIL", "viz", lambda tmp: importlib.import_module("iiwa_torch.viz").save_png(robots.iiwa14(), None, tmp)),
         ("viser", "viewer", lambda tmp: importlib.import_module("iiwa_torch.viewer").Viewer(robots.iiwa14())),
+        ("pytorch_kinematics", "urdf", lambda tmp: robots.from_urdf(urdf.to_urdf(robots.iiwa14()))),
         (
             "matplotlib",
             "viz",
@@ -105,6 +106,17 @@ def test_cli_view_without_viser_is_one_line_and_exit_2(monkeypatch, capsys):
         "iiwa-torch view: error: viser is not installed; it comes with the viewer extra: "
         "pip install 'iiwa-torch[viewer]'\n"
     )
+
+
+def test_cli_urdf_without_the_urdf_extra_is_one_line_and_exit_2(monkeypatch, capsys, tmp_path):
+    path = tmp_path / "arm.urdf"
+    path.write_text(urdf.to_urdf(robots.iiwa14()))
+    _hide(monkeypatch, "pytorch_kinematics")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["robots", "--urdf", str(path)])
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.endswith("pytorch_kinematics is not installed; it comes with the urdf extra: "
+                                            "pip install 'iiwa-torch[urdf]'\n")
 
 
 def test_cli_policy_playback_without_the_rl_extra_is_one_line(monkeypatch, capsys):
