@@ -487,3 +487,11 @@ def test_any_arm_from_its_urdf(capsys):
     assert "--urdf only" in _fails(capsys, "fk", "0", "--end-link", "tool0")
     assert "do not meet" in _fails(capsys, "ik", "--pose", *flat, "--urdf", panda_file, "--end-link", "panda_hand",
                                    "--method", "analytic")
+
+
+def test_negative_numbers_in_e_notation_are_numbers_not_options(capsys):
+    fk = _run_json(capsys, "fk", "0", "0", "0", "-9e1", "60", "-0.", "0")
+    pose = [repr(v) for row in fk["pose"] for v in row]
+    assert any("e-" in v and v.startswith("-") for v in pose)  # what fk --json prints, e.g. -5.3e-17
+    ik = _run_json(capsys, "ik", "--pose", *pose)
+    assert any(s["valid"] for s in ik["solutions"])

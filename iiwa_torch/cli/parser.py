@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 
 from .. import __version__, robots
 from ..checks import MissingExtra
@@ -29,6 +30,15 @@ examples:
   iiwa-torch demo
   iiwa-torch view --world '{"spheres": [[0.5, 0, 0.5, 0.1]]}' --capsules
 """
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser (its subparsers too) reading ``-5.3e-17``, ``-9e1`` and ``-90.`` as numbers: before
+    Python 3.13 argparse took them for options, so ``ik --pose`` refused the 16 numbers ``fk --json`` prints."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
 
 
 def _seed(text: str) -> int:
@@ -163,7 +173,7 @@ def _add_workspace(sub, common: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     common = _common_options()
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="iiwa-torch", description=_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
