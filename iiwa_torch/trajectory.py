@@ -31,6 +31,7 @@ from .checks import (
     is_number,
 )
 from .collision import Capsules, World, check_world, clearance
+from .dh import DHChain
 
 __all__ = [
     "JointTrajectory",
@@ -206,7 +207,9 @@ def ctraj(T0: Tensor, T1: Tensor, t, *, profile: Profile = "linear") -> Tensor:
     so3.check_rigid(T0, "T0")
     so3.check_rigid(T1, "T1")
     _check_same_kind(("T0", "T1"), (T0, T1))
-    broadcast_shapes({"T0": T0.shape, "T1": T1.shape})
+    ends = broadcast_shapes({"T0": T0.shape, "T1": T1.shape})
+    if isinstance(t, torch.Tensor) and t.ndim > 1:  # a time vector per path
+        broadcast_shapes({"the batch of t (..., T)": t.shape[:-1], "of T0 (..., 4, 4)": ends[:-2]})
     s, _ = _times(t, T0.dtype, T0.device)
     if profile == "quintic":
         zero = torch.zeros(1, dtype=T0.dtype, device=T0.device)
@@ -417,10 +420,10 @@ def _analytic_stepper(
     from .ik import analytic
     from .ik.analytic.srs_sweep import Obstacles
 
-    if chain.n_joints not in (6, 7):
+    if not isinstance(chain, DHChain) or chain.n_joints not in (6, 7):
         raise ValueError(
-            f"method='analytic' tracks 7-joint iiwa-like arms and 6R spherical-wrist arms; "
-            f"{chain.name!r} has {chain.n_joints} joints (use method='gradient')"
+            f"method='analytic' tracks DH chains of 7-joint iiwa-like arms and 6R spherical-wrist arms; "
+            f"{chain.name!r} is a {type(chain).__name__} of {chain.n_joints} joints (use method='gradient')"
         )
     if chain.n_joints == 6:
         return lambda pose, q_prev: _nearest(

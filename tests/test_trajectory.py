@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import compiled, robots, so3
+from iiwa_torch import Chain, compiled, robots, so3
 from iiwa_torch.ik import solve
 from iiwa_torch.trajectory import ctraj, jtraj, sampled_duration, shortest_duration, track
 
@@ -174,6 +174,14 @@ def test_ctraj_rejects_bad_profile(arm):
         ctraj(T0, T1, 5, profile="trapezoid")
 
 
+def test_ctraj_time_vectors_must_match_the_poses(arm):
+    T0 = arm.fk(arm.random_q(3, generator=torch.Generator().manual_seed(0)))
+    t = torch.tensor([[0.0, 1.0], [0.0, 2.0]], dtype=F64)  # 2 time vectors for 3 paths
+    with pytest.raises(ValueError, match=r"the batch of t .* \(2,\), of T0 .* \(3,\)"):
+        ctraj(T0, T0.flip(0), t)
+    assert ctraj(T0, T0.flip(0), t[:1]).shape == (3, 2, 4, 4)
+
+
 # ------------------------------------------------------------------ tracking
 def _line(arm, q0, offset, steps):
     T0 = arm.fk(q0)
@@ -318,8 +326,11 @@ def test_track_rejects_bad_method_and_shapes(arm):
         track(arm, path[0], Q_START)
     with pytest.raises(ValueError, match="do not broadcast"):
         track(arm, path.expand(2, 3, 4, 4), Q_START.expand(3, 7))
-    with pytest.raises(ValueError, match="planar3r"):
+    with pytest.raises(ValueError, match="'planar3r' is a DHChain of 3 joints \\(use method='gradient'\\)"):
         track(robots.planar3r(), path, torch.zeros(3, dtype=F64), method="analytic")
+    urdf_arm = Chain(torch.eye(4, dtype=F64).repeat(7, 1, 1), [[0, 0, 1]] * 7)  # as from_urdf builds
+    with pytest.raises(ValueError, match="is a Chain of 7 joints \\(use method='gradient'\\)"):
+        track(urdf_arm, path, Q_START, method="analytic")
 
 
 # ------------------------------------------------------------------ time scaling
