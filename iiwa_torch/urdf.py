@@ -2,9 +2,9 @@
 the serial path between two links of a URDF as float64 data (:class:`UrdfPath`), and
 :func:`read_collisions`/:func:`read_visuals` the geometry moving with its frames.
 
-Export: links ``base_link``, the chain's ``link_names``, ``tool0``, with a token inertia. A DH
-chain's link i is the frame just after joint i's rotation (not DH frame i); a fixed
-``tool_joint`` carries the last constant part and the tool.
+Export: links ``base_link``, the chain's ``link_names``, ``tool0`` (``_1``, ... appended to a name the
+chain uses), with a token inertia. A DH chain's link i is the frame just after joint i's rotation (not
+DH frame i); a fixed ``tool_joint`` carries the last constant part and the tool.
 """
 
 from __future__ import annotations
@@ -37,7 +37,16 @@ def _origin(matrix: torch.Tensor) -> str:
 
 def _link(name: str) -> str:
     inertia = '<inertia ixx="1e-4" ixy="0" ixz="0" iyy="1e-4" iyz="0" izz="1e-4"/>'
-    return f'  <link name="{name}"><inertial><mass value="0.1"/>{inertia}</inertial></link>'
+    return f'  <link name={quoteattr(name)}><inertial><mass value="0.1"/>{inertia}</inertial></link>'
+
+
+def _unused(name: str, taken: list[str]) -> str:
+    """``name``, or ``name_1``, ``name_2``, ... if the chain already uses it."""
+    candidate, i = name, 0
+    while candidate in taken:
+        i += 1
+        candidate = f"{name}_{i}"
+    return candidate
 
 
 def _dh_joints(chain: DHChain) -> tuple[list[torch.Tensor], list[tuple[float, float, float]], torch.Tensor]:
@@ -68,7 +77,8 @@ def to_urdf(chain: Chain, name: str | None = None) -> str:
         axes, carry = [tuple(a) for a in chain.axes.tolist()], torch.eye(4, dtype=torch.float64)
     lower, upper = chain.limits.detach().cpu().tolist()
     speeds = chain.velocity_limits.tolist() if chain.velocity_limits is not None else [10.0] * chain.n_joints
-    links = ["base_link", *chain.link_names, "tool0"]
+    links = [_unused("base_link", chain.link_names), *chain.link_names, _unused("tool0", chain.link_names)]
+    tool_joint = _unused("tool_joint", chain.joint_names)
     lines = ['<?xml version="1.0"?>', f"<robot name={quoteattr(robot)}>"]
     lines += [_link(link) for link in links]
     for i, (joint, kind, origin, axis) in enumerate(zip(chain.joint_names, chain.kinds, origins, axes)):
@@ -80,8 +90,8 @@ def to_urdf(chain: Chain, name: str | None = None) -> str:
             f'effort="100" velocity="{speeds[i]!r}"/></joint>'
         )
     tool = carry @ chain.tool.detach().cpu().to(torch.float64)
-    lines += [f'  <joint name="tool_joint" type="fixed"><parent link={quoteattr(links[-2])}/>'
-              f'<child link="tool0"/>{_origin(tool)}</joint>', "</robot>"]
+    lines += [f'  <joint name={quoteattr(tool_joint)} type="fixed"><parent link={quoteattr(links[-2])}/>'
+              f'<child link={quoteattr(links[-1])}/>{_origin(tool)}</joint>', "</robot>"]
     return "\n".join(lines) + "\n"
 
 

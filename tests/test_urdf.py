@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from iiwa_torch import DHChain, robots
+from iiwa_torch import Chain, DHChain, robots
 from iiwa_torch.urdf import to_urdf
 
 
@@ -36,3 +36,16 @@ def test_joint_names_and_speeds_exported():
     text = to_urdf(robots.iiwa14())
     assert text.count('type="revolute"') == 7 and 'name="A7"' in text
     assert 'velocity="1.48352986' in text  # 85 deg/s
+
+
+def test_names_are_escaped_and_kept_apart_from_the_exporters_own():
+    """Link names that need XML escaping, or that are the names the export adds, read back as they were."""
+    pytest.importorskip("pytorch_kinematics")
+    origins = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    origins[:, 0, 3] = 0.3
+    chain = Chain(origins, [[0, 0, 1], [0, 1, 0], [1, 0, 0]], link_names=["base_link", 'arm & "wrist"', "tool0"],
+                  joint_names=["tool_joint", "j<2>", "j3"])
+    again = robots.from_urdf(to_urdf(chain))
+    assert again.link_names == chain.link_names and again.joint_names == chain.joint_names
+    q = chain.random_q(20, generator=torch.Generator().manual_seed(0))
+    np.testing.assert_allclose(again.fk(q).numpy(), chain.fk(q).numpy(), atol=1e-15)
