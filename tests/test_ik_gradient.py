@@ -13,7 +13,7 @@ import torch
 
 from iiwa_torch import robots, so3
 from iiwa_torch.dh import DHChain
-from iiwa_torch.ik import IKResult, MinimizeOptions, SolveOptions, lm_compiled, minimize, solve
+from iiwa_torch.ik import IKResult, MinimizeOptions, SolveOptions, lm_compiled, lm_setup, minimize, solve
 from iiwa_torch.ik.dls import cholesky_solve_batch_last, dls_step, dls_step_numpy
 
 DTYPES = [torch.float64, torch.float32]
@@ -148,6 +148,18 @@ def test_first_step_near_a_half_turn_is_finite():
 
 
 # ---------------------------------------------------------------- success on reachable targets
+def test_an_arm_far_from_the_origin_is_solved_to_tight_tolerances():
+    """Float32 spaces numbers 3e-5 m apart at 300 m: the default precision must not iterate there at 1e-5 m."""
+    near, far = robots.iiwa14(), robots.iiwa14()
+    far.base[0, 3] = 300.0
+    target, _ = reachable(near, 2000, 3, torch.float64)
+    options = SolveOptions(pos_tol=1e-5, rot_tol=1e-5)
+    assert lm_setup.work_dtype(target, options) == torch.float32  # the fast path where float32 suffices
+    shifted = far.base @ target
+    assert lm_setup.work_dtype(shifted, options) == torch.float64
+    assert solve(far, shifted, options=options).success.all()
+
+
 @pytest.mark.parametrize(
     "dtype, precision", [(torch.float64, "auto"), (torch.float64, "input"), (torch.float32, "auto")]
 )

@@ -279,7 +279,7 @@ def solve(
     if target.device != chain.limits.device:
         raise ValueError(f"target is on {target.device} but the chain is on {chain.limits.device}")
     check_world_for(world, margin, target, batch, capsules)
-    work = work_dtype(target.dtype, opts)
+    work = work_dtype(target, opts)
     rest_flat = rest_rows(rest, opts.rest_gain, chain, batch, work)
     if lm_compiled.handles(target, q0, rest, world, batch.numel()):  # it caches the default generator's pool
         return lm_compiled.solve_compiled(chain, target, q0, rest_flat, opts, work, generator)

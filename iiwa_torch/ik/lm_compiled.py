@@ -185,7 +185,7 @@ def track_compiled(chain: Chain, poses: torch.Tensor, q0: torch.Tensor, options:
     without each call's checks, set-up and error report -> ``q (..., T, n)`` in the poses' dtype."""
     dtype, n = poses.dtype, chain.n_joints
     batch, steps = poses.shape[:-3], poses.shape[-3]
-    work = work_dtype(dtype, options)
+    work = work_dtype(poses, options)
     flat = poses.reshape(-1, steps, 4, 4).transpose(0, 1).double().numpy()  # (T, b, 4, 4)
     pos, rot = np.ascontiguousarray(flat[..., :3, 3]), np.ascontiguousarray(flat[..., :3, :3])
     start = q0.to(dtype)

@@ -114,7 +114,13 @@ def round_width(seeds: int, next_seed: int, remaining: int) -> int:
     return min(seeds - next_seed, max(1, -(-MIN_BATCH // remaining)))
 
 
-def work_dtype(dtype: torch.dtype, options: SolveOptions) -> torch.dtype:
-    """The dtype :func:`~iiwa_torch.ik.solve` iterates in for targets of ``dtype`` (see ``precision``)."""
-    loose = min(options.pos_tol, options.rot_tol) >= 1e-5  # float32 resolves 1e-5 m and rad with margin
-    return torch.float32 if options.precision == "auto" and dtype == torch.float64 and loose else dtype
+def work_dtype(target: Tensor, options: SolveOptions) -> torch.dtype:
+    """The dtype :func:`~iiwa_torch.ik.solve` iterates in for ``target`` (poses ``(..., 4, 4)`` or points
+    ``(..., 3)``; see ``precision``): float32 for float64 targets when both tolerances are >= 1e-5 and
+    float32's spacing at the farthest target coordinate is 8x below ``pos_tol`` (an arm 300 m from the
+    world origin is not resolved to 1e-5 m in float32)."""
+    if options.precision != "auto" or target.dtype != torch.float64 or min(options.pos_tol, options.rot_tol) < 1e-5:
+        return target.dtype
+    points = target[..., :3, 3] if options.mode == "pose" else target
+    farthest = float(points.detach().abs().max()) if points.numel() else 0.0
+    return torch.float32 if 8 * farthest * torch.finfo(torch.float32).eps <= options.pos_tol else torch.float64
