@@ -19,7 +19,8 @@ def shift_into_limits(q: torch.Tensor, lo, hi) -> tuple[torch.Tensor, torch.Tens
     turn inside; ``fits`` (bool) is True where ``shifted`` lies in ``[lo, hi]``. A numpy ``q``
     (with numbers or arrays ``lo, hi``) gives numpy arrays, by the same formula."""
     xp = np if isinstance(q, np.ndarray) else torch
-    turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in [lo, lo + 2 pi)
+    with np.errstate(invalid="ignore"):  # a continuous joint's infinite limits: NaN turns, unused (it is inside)
+        turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in [lo, lo + 2 pi)
     inside = (q >= lo) & (q <= hi)
     fits = turned <= hi
     return xp.where(inside, q, xp.where(fits, turned, q)), inside | fits

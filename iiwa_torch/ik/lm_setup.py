@@ -49,7 +49,8 @@ def into_limits(q: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     if still outside. Numpy arrays in give a numpy array, by the same formula."""
     xp = np if isinstance(q, np.ndarray) else torch
     shifted, fits = shift_into_limits(q, lo, hi)
-    turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
+    with np.errstate(invalid="ignore"):  # as in shift_into_limits
+        turned = lo + xp.remainder(q - lo, 2 * math.pi)  # in (hi, lo + 2 pi) where nothing fits
     nearer = xp.where(turned - hi <= lo + 2 * math.pi - turned, hi, lo)
     return xp.where(fits, shifted, nearer)
 
