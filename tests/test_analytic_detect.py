@@ -112,6 +112,23 @@ def test_exported_pieper_arms_are_recognised(preset):
     assert torch.equal(sol.valid.sum(-1), ref.valid.sum(-1))
 
 
+@pytest.mark.parametrize("written", ["1.570796", "1.5708"])
+def test_a_file_with_pi_over_2_rounded(written):
+    """pi/2 written with 7 digits: every reachable branch closes after the Gauss-Newton steps; with 5 digits
+    (3.7e-6 rad off, beyond what the closed form takes) ``solve`` refuses what ``structure`` accepted."""
+    chain = robots.from_urdf(urdf.to_urdf(robots.puma560()).replace(repr(math.pi / 2), written))
+    assert analytic.structure(chain, tol=1e-4).form is analytic.ClosedForm.PIEPER
+    target = _targets(chain)
+    if written == "1.5708":
+        with pytest.raises(ValueError, match=r"3.7e-06 \(m or rad\) from an ideal pieper arm.*only within 1e-06"):
+            analytic.solve(chain, target, tol=1e-4)
+        return
+    sol = analytic.solve(chain, target, tol=1e-4)
+    pos, rot = pose_error(chain.fk(sol.q), target[:, None].expand(N, 8, 4, 4))
+    closure = torch.maximum(pos.norm(dim=-1), rot.norm(dim=-1))
+    assert closure[sol.reachable].max() <= 1e-9 and sol.valid.any(-1).all()
+
+
 def test_exported_planar3r_is_recognised_and_off_plane_targets_are_unreachable():
     preset = robots.planar3r(1.0, 0.7, 0.4)
     chain = _exported(preset)

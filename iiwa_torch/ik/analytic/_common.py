@@ -30,6 +30,7 @@ from ..limits import shift_into_limits
 
 Tensor = torch.Tensor
 
+IDEAL_TOL = 1e-6  # how far (m, rad) a DH row may miss its closed form's zeros; float32 holds cos(pi/2) = -4e-8
 TINY = 1e-30  # floor under squared norms before a sqrt / atan2: sqrt(TINY) = 1e-15
 _TWO_PI = 2 * math.pi
 
@@ -266,7 +267,7 @@ def check_chain(chain: DHChain, n: int, rows: list[dict], robot: str) -> list[tu
             f"the {robot} closed form needs a chain of {n} joints, got {chain.name!r} with {chain.n_joints}"
         )
     table = [tuple(float(v) for v in row) for row in chain.dh.tolist()]
-    eps = 1e-6  # float32 chains hold cos(pi/2) = -4e-8
+    eps = IDEAL_TOL
     for i, ((a, alpha, d, _), rule) in enumerate(zip(table, rows)):
         broken = {
             "a0": (abs(a) > eps, f"a = 0 (got {a:g})"),

@@ -27,7 +27,7 @@ from ...collision import Capsules, World
 from ...dh import DHChain
 from ...so3 import pose_error
 from ..dls import dls_step
-from ._common import AnalyticSolutions, reach_tol, with_clearance
+from ._common import IDEAL_TOL, AnalyticSolutions, reach_tol, with_clearance
 from .planar import PLANAR_ROWS, planar3r
 from .spherical6r import PIEPER_ROWS, pieper
 from .srs import SRS_ROWS, iiwa
@@ -38,6 +38,7 @@ Tensor = torch.Tensor
 
 DETECT_TOL = 1e-9  # default tolerance (m, rad) for axes to count as meeting, parallel or perpendicular
 _DAMPING = 1e-12  # of the Gauss-Newton step (m^2): bounds it near a singularity
+_NEWTON_STEPS = 3  # Gauss-Newton steps on a chain off the ideal structure (one takes 3e-7 rad to about 1e-8)
 _EXACT = 1e-14  # departures from the ideal structure below this are rounding: no Gauss-Newton step
 
 
@@ -152,9 +153,17 @@ def solve(
         target off the arm's plane is unreachable), ``(..., 8, 6)`` (Pieper) or ``(..., [K,] 8, 7)``
         (S-R-S), branches as for :func:`~iiwa_torch.ik.analytic.planar3r`, ``pieper`` and ``iiwa``
         on :attr:`Structure.dh`. Where the chain departs from the ideal by more than rounding, each
-        reachable branch gets one Gauss-Newton step (kept where it lowers the pose error).
+        reachable branch gets three Gauss-Newton steps (each kept where it lowers the pose error) and
+        counts as reachable only if it then closes to 1e-9 (float64; 100 ulp in float32).
+
+    Raises:
+        ValueError: a chain :func:`structure` rejects, or one more than 1e-6 (m, rad) from the ideal arm.
     """
     found = structure(chain, tol)
+    if found.deviation > IDEAL_TOL:
+        raise ValueError(f"chain {chain.name!r} is {found.deviation:.2g} (m or rad) from an ideal {found.form.value} "
+                         f"arm, which structure(tol={tol:g}) accepts but the closed form takes only within "
+                         f"{IDEAL_TOL:g}; iiwa_torch.ik.solve (the gradient IK) solves any chain")
     if (psi is None) == (found.form is ClosedForm.SRS):
         need = "needs the arm angles psi" if psi is None else "takes no psi (only an S-R-S arm has an arm angle)"
         raise ValueError(f"chain {chain.name!r} is a {found.form.value} arm: solve {need}")
@@ -166,9 +175,11 @@ def solve(
         sol = _planar(found.dh, target)
     q = found.from_dh(sol.q)
     if found.deviation > _EXACT:
-        q = _newton_step(chain, q, target, sol.reachable)
-        within = chain.within_limits(q)
-        sol = dataclasses.replace(sol, valid=sol.reachable & within, within_limits=within)
+        for _ in range(_NEWTON_STEPS):
+            q = _newton_step(chain, q, target, sol.reachable)
+        within, closes = chain.within_limits(q), _closure(chain, q, target) <= _closure_tol(q.dtype)
+        reachable = sol.reachable & closes
+        sol = dataclasses.replace(sol, reachable=reachable, valid=reachable & within, within_limits=within)
     sol = dataclasses.replace(sol, q=q)
     return with_clearance(chain, sol, target.ndim - 2, world, margin, capsules)
 
@@ -187,11 +198,27 @@ def _planar(dh: DHChain, target: Tensor) -> AnalyticSolutions:
     return dataclasses.replace(sol, reachable=reachable, valid=reachable & sol.within_limits)
 
 
+def _goal(q: Tensor, target: Tensor) -> Tensor:
+    """``target (..., 4, 4)`` expanded over the branches of ``q (..., [K,] B, n)``."""
+    branch_dims = q.ndim - 1 - (target.ndim - 2)
+    return target.reshape(*target.shape[:-2], *(1,) * branch_dims, 4, 4).expand(*q.shape[:-1], 4, 4)
+
+
+def _closure(chain: Chain, q: Tensor, target: Tensor) -> Tensor:
+    """``(..., [K,] B)``: the larger of the position (m) and rotation (rad) errors of each branch."""
+    pos, rot = pose_error(chain.fk(q), _goal(q, target))
+    return torch.maximum(pos.norm(dim=-1), rot.norm(dim=-1))
+
+
+def _closure_tol(dtype: torch.dtype) -> float:
+    """The pose error (m, rad) a branch of a chain off the ideal structure may keep and count as reachable."""
+    return max(1e-9, 100 * torch.finfo(dtype).eps)
+
+
 def _newton_step(chain: Chain, q: Tensor, target: Tensor, reachable: Tensor) -> Tensor:
     """``q (..., [K,] B, n)`` after one Gauss-Newton step towards ``target (..., 4, 4)`` on ``chain``
     where ``reachable (..., [K,] B)`` and the step lowers the pose error."""
-    branch_dims = q.ndim - 1 - (target.ndim - 2)
-    goal = target.reshape(*target.shape[:-2], *(1,) * branch_dims, 4, 4).expand(*q.shape[:-1], 4, 4)
+    goal = _goal(q, target)
     errors = torch.cat(pose_error(chain.fk(q), goal), -1)  # (..., B, 6)
     moved = q + dls_step(chain.jacobian(q), errors, _DAMPING)
     better = torch.cat(pose_error(chain.fk(moved), goal), -1).norm(dim=-1) < errors.norm(dim=-1)
