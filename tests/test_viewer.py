@@ -30,6 +30,7 @@ from iiwa_torch import cli, collision, robots, trajectory  # noqa: E402
 from iiwa_torch import viewer as viewer_module  # noqa: E402
 from iiwa_torch.ik import analytic  # noqa: E402
 from iiwa_torch.viewer import Viewer, load_world, show  # noqa: E402
+from iiwa_torch.viewer.scene import urdf_parts  # noqa: E402
 
 F64 = torch.float64
 Q_FREE = torch.tensor([0.4, 0.7, -0.3, -1.1, 0.5, 0.9, 0.2], dtype=F64)  # clear of itself and the floor
@@ -524,6 +525,22 @@ def test_a_chain_and_a_urdf_that_do_not_match_are_refused(kuka):
         Viewer(robots.from_urdf(file, base_link="lbr_iiwa_link_1"), port=_free_port(), urdf=file)
     with pytest.raises(TypeError, match="Chain"):
         Viewer("iiwa14", port=_free_port())
+
+
+def test_a_chain_read_from_a_link_below_the_root_is_refused(tmp_path):
+    """Its frame 0 is that link, not the root the file's visuals hang from (a 1 m pedestal here)."""
+    pytest.importorskip("pytorch_kinematics")
+    box = '<visual><geometry><box size="0.2 0.2 0.1"/></geometry></visual>'
+    joint = '<limit lower="-3" upper="3" effort="1" velocity="1"/><axis xyz="0 0 1"/>'
+    file = tmp_path / "pedestal.urdf"
+    file.write_text(
+        f'<robot name="ped"><link name="world"/><link name="base_link">{box}</link><link name="l1">{box}</link>'
+        '<joint name="mount" type="fixed"><parent link="world"/><child link="base_link"/><origin xyz="0 0 1"/></joint>'
+        f'<joint name="j1" type="revolute"><parent link="base_link"/><child link="l1"/>{joint}</joint></robot>')
+    with pytest.raises(ValueError, match="not the path of that urdf from 'world'"):
+        urdf_parts(robots.from_urdf(file, base_link="base_link"), file, None)
+    visuals, _ = urdf_parts(robots.from_urdf(file), file, None)
+    assert len(visuals) == 2
 
 
 # ---------------------------------------------------------------------- obstacles

@@ -78,7 +78,9 @@ def urdf_parts(chain: Chain, source, capsules: collision.Capsules | None):
         path = urdf_io.read_urdf(source, end_link=chain.link_names[-1])
     except ValueError as err:  # e.g. a preset's last link is not in the file
         raise ValueError(f"urdf= draws the file chain {chain.name!r} was read from ({err}); {read_from}") from None
-    if [j.name for j in path.joints] != list(chain.joint_names):
+    first = torch.tensor(path.joints[0].origin, dtype=torch.float64)  # differs if read from a link below the root
+    if [j.name for j in path.joints] != list(chain.joint_names) or not torch.allclose(
+            chain.base.double().cpu() @ chain.origins[0].double().cpu(), first, rtol=0, atol=1e-12):
         raise ValueError(f"chain {chain.name!r} is not the path of that urdf from {path.base_link!r}; {read_from}")
     visuals = [(e, e.load_mesh() if e.shape == "mesh" else None) for e in urdf_io.read_visuals(source, path.end_link)]
     if capsules is None and urdf_io.read_collisions(source, end_link=path.end_link):  # after the quick checks
